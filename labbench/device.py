@@ -1,0 +1,65 @@
+"""The one interface every rig offers: the simulator, the CANopen drive, the serial stream.
+
+A device delivers timestamped, sequence-numbered position samples and takes a
+force command. The haptic loop (``labbench.loop``) is the only caller in a run.
+All methods with a wait take a timeout. ``close()`` is safe to call twice.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One position sample at the handle.
+
+    ``seq``: device sequence number (gaps = drops); ``t_s``: device time [s]
+    (monotonic within a run); ``position_m``: SI position at the handle;
+    ``flags``: device-specific health bits (0 = healthy).
+    """
+
+    seq: int
+    t_s: float
+    position_m: float
+    flags: int = 0
+
+
+@dataclass(frozen=True)
+class DeviceDescription:
+    """What ``describe()`` returns: identity, units and limits at the handle."""
+
+    kind: str  # "sim", "canopen", "serial", ...
+    name: str
+    sample_time_s: float
+    force_limit_n: float
+    position_limits_m: tuple[float, float]
+    details: dict = field(default_factory=dict)
+
+
+class DeviceFault(RuntimeError):
+    """The device reported or showed a fault; force is already zero when raised."""
+
+
+@runtime_checkable
+class Device(Protocol):
+    def describe(self) -> DeviceDescription: ...
+
+    def enable(self, timeout: float = 1.0) -> None: ...
+
+    def disable(self, timeout: float = 1.0) -> None: ...
+
+    def emergency_stop(self) -> None:
+        """Zero force at once and latch; never raises."""
+
+    def read(self, timeout: float) -> Sample:
+        """Block until the next sample (or raise TimeoutError / DeviceFault)."""
+
+    def command(self, force_n: float) -> None:
+        """Set the force applied from the next sample period on."""
+
+    def close(self) -> None: ...
+
+    def __enter__(self): ...
+
+    def __exit__(self, *exc) -> None: ...

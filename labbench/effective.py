@@ -1,0 +1,91 @@
+"""Effective impedances of a closed-loop impedance Z = F/V (paper sec. 2.2, Figure 2).
+
+Signs follow ../shared/DESIGN.md (Z = F/V, s = jw):
+ED = Re Z, ES = -w Im Z, EM = Im Z / w; with theta the phase of Z unwrapped
+from the lowest frequency, EJF = -Re Z / w^2 where theta is in [90, 270] deg
+and EIF = -w^2 Re Z where theta is in [-270, -90] deg.
+ES is the physically meaningful reading where Im Z < 0, EM where Im Z > 0;
+both are returned signed at every frequency, with masks saying where each applies.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class EffectiveImpedances:
+    w: np.ndarray  # rad/s
+    ES: np.ndarray  # N/m
+    ED: np.ndarray  # N s/m
+    EM: np.ndarray  # kg
+    EJF: np.ndarray  # N s^2/m (zero outside its phase range)
+    EIF: np.ndarray  # N/(m s) (zero outside its phase range)
+    theta_deg: np.ndarray  # unwrapped phase of Z
+
+    @property
+    def stiffness_region(self) -> np.ndarray:
+        return self.ES > 0
+
+    @property
+    def mass_region(self) -> np.ndarray:
+        return self.EM > 0
+
+
+def effective_impedances(w, Z) -> EffectiveImpedances:
+    """Decompose Z(jw) into effective stiffness, damping, mass, jerk and integral feedback."""
+    w = np.asarray(w, dtype=float)
+    Z = np.asarray(Z, dtype=complex)
+    theta = np.degrees(np.unwrap(np.angle(Z)))
+    re, im = Z.real, Z.imag
+    jerk = (theta >= 90) & (theta <= 270)
+    integral = (theta >= -270) & (theta <= -90)
+    return EffectiveImpedances(
+        w=w,
+        ES=-w * im,
+        ED=re,
+        EM=im / w,
+        EJF=np.where(jerk, -re / w**2, 0.0),
+        EIF=np.where(integral, -(w**2) * re, 0.0),
+        theta_deg=theta,
+    )
+
+
+def measured_ws_star(w, ES) -> float | None:
+    """Stiffness bandwidth read off a curve: first w where ES falls through zero.
+
+    Linear interpolation between the bracketing points; None when ES never
+    goes from positive to non-positive on the grid.
+    """
+    w = np.asarray(w, float)
+    ES = np.asarray(ES, float)
+    idx = np.flatnonzero((ES[:-1] > 0) & (ES[1:] <= 0))
+    if idx.size == 0:
+        return None
+    i = idx[0]
+    return float(w[i] + (w[i + 1] - w[i]) * ES[i] / (ES[i] - ES[i + 1]))
+
+
+def measured_wb_star(w, ED, b: float, n_low: int = 3) -> float | None:
+    """Damping bandwidth read off a curve: first w where ED has fallen half-way
+    from its low-frequency value (median of the ``n_low`` lowest points) to ``b``.
+
+    None when the low-frequency ED is not above b (no virtual damping to lose)
+    or it never falls that far on the grid.
+    """
+    w = np.asarray(w, float)
+    ED = np.asarray(ED, float)
+    ok = np.isfinite(ED)
+    w, ED = w[ok], ED[ok]
+    if ED.size < n_low + 1:
+        return None
+    ed_low = float(np.median(ED[:n_low]))
+    if ed_low <= b:
+        return None
+    half = b + 0.5 * (ed_low - b)
+    idx = np.flatnonzero((ED[:-1] > half) & (ED[1:] <= half))
+    if idx.size == 0:
+        return None
+    i = idx[0]
+    return float(w[i] + (w[i + 1] - w[i]) * (ED[i] - half) / (ED[i] - ED[i + 1]))

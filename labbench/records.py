@@ -1,0 +1,86 @@
+"""The one stream of records a run produces.
+
+Recorder, live plots, analysis and replay all consume the same sequence:
+``start`` -> ``descriptor`` -> any number of ``page`` and ``event`` -> ``stop``.
+A record is a plain dict with a ``kind`` key (JSON-friendly apart from the numpy
+arrays inside a page), so a session file read back is the same stream again.
+"""
+from __future__ import annotations
+
+import time
+import uuid
+from typing import Callable, Iterable
+
+import numpy as np
+
+import labbench
+
+START, DESCRIPTOR, PAGE, EVENT, STOP = "start", "descriptor", "page", "event", "stop"
+KINDS = (START, DESCRIPTOR, PAGE, EVENT, STOP)
+
+# Channels of a page: name -> unit. Every page holds equal-length arrays of all of them.
+CHANNELS = {
+    "t": "s",  # device time of the sample
+    "seq": "1",  # device sequence number
+    "position": "m",  # sampled position x[k]
+    "velocity": "m/s",  # filtered velocity estimate v[k]
+    "ve_force": "N",  # VE force computed at step k (before delay)
+    "excitation": "N",  # exogenous force applied during step k
+    "command": "N",  # force commanded for step k (after safety and delay)
+    "flags": "1",  # safety / device bits (labbench.loop documents them)
+}
+
+Consumer = Callable[[dict], None]
+
+
+def start_record(rig: dict, protocol: dict, seed: int | None, **extra) -> dict:
+    return {
+        "kind": START,
+        "uid": uuid.uuid4().hex,
+        "time": time.time(),
+        "software": f"labbench {labbench.__version__}",
+        "rig": rig,
+        "protocol": protocol,
+        "seed": seed,
+        **extra,
+    }
+
+
+def descriptor_record(sample_time_s: float) -> dict:
+    return {"kind": DESCRIPTOR, "channels": dict(CHANNELS), "sample_time_s": sample_time_s}
+
+
+def page_record(index: int, data: dict[str, np.ndarray]) -> dict:
+    missing = set(CHANNELS) - set(data)
+    if missing:
+        raise ValueError(f"page lacks channels {sorted(missing)}")
+    return {"kind": PAGE, "index": index, "data": data}
+
+
+def event_record(t_s: float, name: str, reason: str, **extra) -> dict:
+    return {"kind": EVENT, "t": t_s, "name": name, "reason": reason, **extra}
+
+
+def stop_record(status: str, reason: str = "", **extra) -> dict:
+    """``status``: "success", "aborted" or "failed"."""
+    return {"kind": STOP, "status": status, "reason": reason, "time": time.time(), **extra}
+
+
+def fan_out(records: Iterable[dict], consumers: Iterable[Consumer]) -> None:
+    """Feed a stream to every consumer in order (replay uses this too)."""
+    consumers = list(consumers)
+    for rec in records:
+        for c in consumers:
+            c(rec)
+
+
+def concat_pages(records: Iterable[dict]) -> dict[str, np.ndarray]:
+    """All page data of a stream joined per channel."""
+    parts: dict[str, list[np.ndarray]] = {name: [] for name in CHANNELS}
+    for rec in records:
+        if rec["kind"] == PAGE:
+            for name in CHANNELS:
+                parts[name].append(np.asarray(rec["data"][name]))
+    return {
+        name: (np.concatenate(p) if p else np.zeros(0)) for name, p in parts.items()
+    }

@@ -1,0 +1,41 @@
+"""Mass-damper plant at the handle, advanced exactly over one zero-order-hold step.
+
+``m x'' + b x' = u`` with u constant over each step of length T. The linear
+step is the exact discretisation (matrix exponential of the augmented system,
+Franklin, Powell & Workman, Digital Control of Dynamic Systems, sec. 4.3), so a
+simulation of the loop equals the exact sampled-data model of ``labbench.theory``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import expm
+
+
+def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Ad, Bd) of the state [x, x'] for a force held constant over T."""
+    M = np.zeros((3, 3))
+    M[0, 1] = 1.0
+    M[1, 1] = -b / m
+    M[1, 2] = 1.0 / m
+    E = expm(M * T)
+    return E[:2, :2], E[:2, 2]
+
+
+class MassDamperPlant:
+    """Linear plant state [x, v]; ``step(force)`` holds the force for one T."""
+
+    def __init__(self, m: float, b: float, T: float, x0: float = 0.0, v0: float = 0.0):
+        self.m, self.b, self.T = m, b, T
+        self.Ad, self.Bd = zoh_matrices(m, b, T)
+        self.state = np.array([x0, v0], dtype=float)
+
+    @property
+    def position(self) -> float:
+        return float(self.state[0])
+
+    @property
+    def velocity(self) -> float:
+        return float(self.state[1])
+
+    def step(self, force: float) -> None:
+        self.state = self.Ad @ self.state + self.Bd * force
