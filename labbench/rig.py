@@ -29,12 +29,23 @@ class Rig:
     force_limit_n: float = 5.0
     position_limits_m: tuple[float, float] = (-0.1, 0.1)
     velocity_limit_m_s: float = 2.0
+    # Nominal device model at the handle (the paper's Phantom-like joint): used for
+    # stability pre-checks and credited as dissipation by the loop's energy observer.
+    nominal_mass_kg: float = 0.094
+    nominal_damping_ns_m: float = 0.10
     sections: dict = field(default_factory=dict)  # backend tables, validated by the backend
     source: str = "<defaults>"
 
     @property
     def metres_per_count(self) -> float:
         return 2 * math.pi * self.lever_arm_m / self.counts_per_rev
+
+    @property
+    def nominal_plant(self):
+        """The nominal model as a ``labbench.ve.Plant``."""
+        from labbench.ve import Plant
+
+        return Plant(self.nominal_mass_kg, self.nominal_damping_ns_m)
 
     def section(self, name: str) -> dict:
         return dict(self.sections.get(name, {}))
@@ -48,12 +59,16 @@ class Rig:
             "force_limit_n": self.force_limit_n,
             "position_limits_m": list(self.position_limits_m),
             "velocity_limit_m_s": self.velocity_limit_m_s,
+            "nominal_mass_kg": self.nominal_mass_kg,
+            "nominal_damping_ns_m": self.nominal_damping_ns_m,
             "sections": self.sections,
             "source": self.source,
         }
 
 
-_POSITIVE = ("sample_time_s", "counts_per_rev", "lever_arm_m", "force_limit_n", "velocity_limit_m_s")
+_POSITIVE = ("sample_time_s", "counts_per_rev", "lever_arm_m", "force_limit_n", "velocity_limit_m_s",
+             "nominal_mass_kg")
+_NON_NEGATIVE = ("nominal_damping_ns_m",)
 
 
 def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
@@ -63,11 +78,13 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     unknown = set(common) - known
     if unknown:
         raise UserError(f"{source}: unknown field(s) in [rig]: {', '.join(sorted(unknown))}")
-    for name in _POSITIVE:
+    for name in _POSITIVE + _NON_NEGATIVE:
         if name in common:
             v = common[name]
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not (v > 0) or not math.isfinite(v):
-                raise UserError(f"{source}: [rig] {name} must be a positive number, got {v!r}")
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if not ok or not (v > 0 or (name in _NON_NEGATIVE and v == 0)):
+                kind = "a number >= 0" if name in _NON_NEGATIVE else "a positive number"
+                raise UserError(f"{source}: [rig] {name} must be {kind}, got {v!r}")
             common[name] = float(v)
     if "position_limits_m" in common:
         lim = common["position_limits_m"]

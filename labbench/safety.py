@@ -1,0 +1,115 @@
+"""Safety envelope of the haptic loop: its settings, flag bits and trip reasons.
+
+The arithmetic of the envelope runs inline in ``labbench.loop.HapticLoop.step``
+(one call per sample must stay cheap); this module holds what is configured and
+what is reported. Settings come from the rig: ``force_limit_n``,
+``position_limits_m`` and ``velocity_limit_m_s`` from ``[rig]``, the rest from an
+optional ``[safety]`` table (see docs/loop.md).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+from labbench.errors import UserError
+
+# Bits of the page channel "flags" (one int per sample; 0 = nothing happened).
+CLAMP = 1  # force clamp engaged (|command| held at force_limit_n)
+RATE = 2  # force-rate limit engaged
+GATED = 4  # enable gate: device not enabled yet, command held at zero
+FADE = 8  # energy observer over its limit: force fading to zero
+TRIPPED = 16  # a trip zeroed the force (position, velocity, energy, watchdog, stop)
+SEQ_GAP = 32  # the device skipped sequence numbers before this sample
+DEVICE = 64  # the device reported nonzero health flags with this sample
+OVERRUN = 128  # the loop period before this sample exceeded 1.5 T (paced devices)
+
+FLAG_NAMES = {
+    CLAMP: "clamp", RATE: "rate", GATED: "gated", FADE: "fade", TRIPPED: "tripped",
+    SEQ_GAP: "seq_gap", DEVICE: "device", OVERRUN: "overrun",
+}
+
+
+def flag_names(flags: int) -> list[str]:
+    """Names of the bits set in one ``flags`` value."""
+    return [name for bit, name in FLAG_NAMES.items() if flags & bit]
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Limits of the safety envelope (SI at the handle).
+
+    ``force_limit_n``: clamp on |command|. ``force_rate_limit_n_per_s``: largest
+    change of command per second. ``velocity_limit_m_s``: trip when the velocity
+    estimate exceeds it. ``position_limits_m``: (low, high) window; outside it trips.
+    ``energy_limit_j``: trip (fade to zero over ``energy_fade_s``) when the energy
+    the VE has generated exceeds it (passivity observer, see ``labbench.loop``).
+    ``nominal_damping_ns_m``: device damping credited as dissipation by that
+    observer (0 = strict). ``watchdog_s``: zero force when no sample arrives within
+    it, or (paced devices) when one loop period exceeds it.
+    ``enable_force_threshold_n``: the device is enabled only at a sample whose
+    command is at most this large.
+    """
+
+    force_limit_n: float = 5.0
+    force_rate_limit_n_per_s: float = 5000.0
+    velocity_limit_m_s: float = 2.0
+    position_limits_m: tuple = (-0.1, 0.1)
+    energy_limit_j: float = 0.05
+    energy_fade_s: float = 0.05
+    nominal_damping_ns_m: float = 0.0
+    watchdog_s: float = 0.05
+    enable_force_threshold_n: float = 0.2
+
+    def __post_init__(self):
+        for f in fields(self):
+            if f.name == "position_limits_m":
+                continue
+            v = getattr(self, f.name)
+            if not _is_number(v) or not math.isfinite(v):
+                raise UserError(f"safety {f.name} must be a finite number, got {v!r}")
+            minimum_ok = v >= 0 if f.name in _NON_NEGATIVE else v > 0
+            if not minimum_ok:
+                kind = ">= 0" if f.name in _NON_NEGATIVE else "positive"
+                raise UserError(f"safety {f.name} must be {kind}, got {v!r}")
+            object.__setattr__(self, f.name, float(v))
+        lim = self.position_limits_m
+        if (not isinstance(lim, (list, tuple)) or len(lim) != 2
+                or not all(_is_number(x) and math.isfinite(x) for x in lim) or not lim[0] < lim[1]):
+            raise UserError(f"safety position_limits_m must be (low, high) with low < high, got {lim!r}")
+        object.__setattr__(self, "position_limits_m", (float(lim[0]), float(lim[1])))
+
+    @classmethod
+    def from_rig(cls, rig, **overrides) -> "SafetyConfig":
+        """Limits of ``rig`` ([rig] fields plus its optional [safety] table), then ``overrides``."""
+        settings = {
+            "force_limit_n": rig.force_limit_n,
+            "position_limits_m": tuple(rig.position_limits_m),
+            "velocity_limit_m_s": rig.velocity_limit_m_s,
+            "nominal_damping_ns_m": getattr(rig, "nominal_damping_ns_m", 0.0),
+        }
+        table = rig.section("safety")
+        known = {f.name for f in fields(cls)} - {"force_limit_n", "position_limits_m", "velocity_limit_m_s"}
+        unknown = set(table) - known
+        if unknown:
+            raise UserError(f"{rig.source}: unknown field(s) in [safety]: {', '.join(sorted(unknown))}"
+                            f" (known: {', '.join(sorted(known))})")
+        settings.update(table)
+        settings.update(overrides)
+        try:
+            return cls(**settings)
+        except UserError as exc:
+            raise UserError(f"{rig.source}: {exc}") from None
+        except TypeError as exc:  # unknown override keyword
+            raise UserError(f"bad safety setting: {exc}") from None
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["position_limits_m"] = list(self.position_limits_m)
+        return d
+
+
+_NON_NEGATIVE = {"nominal_damping_ns_m", "enable_force_threshold_n"}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
