@@ -1,0 +1,178 @@
+"""``labbench theory``: closed-loop impedance, effective impedances and stability of a VE."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from labbench import theory
+from labbench.cli import float_list, json_safe
+from labbench.effective import effective_impedances
+from labbench.errors import UserError
+from labbench.ve import Plant, VirtualEnvironment
+
+KINDS = ("spring", "damper", "spring-damper")
+# which of --K, --B, --w0 each VE uses
+USES = {"spring": ("K",), "damper": ("B", "w0"), "spring-damper": ("K", "B", "w0")}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "theory", help="closed-loop impedance of a virtual environment (paper or exact sampled model)",
+        description=__doc__)
+    p.add_argument("--ve", required=True, choices=KINDS, help="virtual environment")
+    p.add_argument("--m", type=float, required=True, metavar="KG", help="device mass")
+    p.add_argument("--b", type=float, required=True, metavar="NS_PER_M", help="device damping")
+    p.add_argument("--K", type=float, metavar="N_PER_M", help="virtual stiffness")
+    p.add_argument("--B", type=float, metavar="NS_PER_M", help="virtual damping")
+    p.add_argument("--w0", type=float, metavar="RAD_S", help="velocity low-pass cut-off (default: none)")
+    p.add_argument("--T", type=float, default=0.001, metavar="S", help="sample time (default 0.001)")
+    p.add_argument("--td", type=float_list, default=[0.0], metavar="S[,S...]",
+                   help="external delay; a list overlays one curve per value with --plot")
+    p.add_argument("--model", choices=theory.MODELS, default="paper",
+                   help="paper: eq. 2 with delay T/2 + td; sampled: exact sampled-data loop")
+    p.add_argument("--w", type=float_list, metavar="W1,W2,...", help="frequencies (rad/s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="FILE", help="write a paper-style figure (.png, .svg, .pdf)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    plant = Plant(args.m, args.b)
+    ves = [_ve(args, td) for td in args.td]
+    if len(ves) > 1 and (args.json or not args.plot):
+        raise UserError("several --td values need --plot (and no --json); give one value otherwise")
+    if args.w is not None and any(not (w > 0) or math.isinf(w) for w in args.w):
+        raise UserError("--w frequencies must be positive finite rad/s")
+    if args.model == "sampled":
+        for ve in ves:
+            ve.delay_samples  # one clear error when td is not whole samples
+    grid_points = 200 if (args.json or args.plot) else 31
+    w = np.asarray(args.w, float) if args.w is not None else default_grid(plant, ves[0], grid_points)
+    summaries = [summary(plant, ve, w, args.model) for ve in ves]
+
+    if args.plot:
+        _plot(args, plant, ves, w)
+    if args.json:
+        out = summaries[0]
+        out["w"] = list(args.w) if args.w is not None else out["w"]
+        print(json.dumps(json_safe(out)))
+    elif len(ves) == 1:
+        print(table(summaries[0]))
+    else:
+        for s in summaries:
+            print(_headline(s))
+    if args.plot:
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _ve(args, td: float) -> VirtualEnvironment:
+    uses = USES[args.ve]
+    given = {name: getattr(args, name) for name in ("K", "B", "w0") if getattr(args, name) is not None}
+    stray = [f"--{name}" for name in given if name not in uses]
+    if stray:
+        raise UserError(f"{', '.join(stray)} does not apply to --ve {args.ve}")
+    for name in ("K", "B"):
+        if name in uses and not (given.get(name, 0.0) > 0):
+            raise UserError(f"--ve {args.ve} needs --{name} > 0")
+    return VirtualEnvironment(kind=args.ve, K=given.get("K", 0.0), B=given.get("B", 0.0),
+                              w0=given.get("w0", math.inf), T=args.T, td=td)
+
+
+def default_grid(plant: Plant, ve: VirtualEnvironment, n: int) -> np.ndarray:
+    """Log-spaced w from a decade below the slowest corner (at most 1 rad/s) to
+    a decade above w0 (at least 1000 rad/s), capped at the Nyquist rate pi/T."""
+    corners = [r for r in (theory.predicted_ws_star(plant, ve), theory.predicted_wb_star(ve)) if r]
+    lo = min([1.0] + [0.1 * r for r in corners])
+    hi = min(max([1000.0] + [10 * r for r in corners]), math.pi / ve.T)
+    return np.logspace(math.log10(lo), math.log10(hi), n)
+
+
+def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str) -> dict:
+    """Everything the CLI reports for one VE: the contract keys plus context."""
+    Z = theory.theory_curve(plant, ve, w, model)
+    eff = effective_impedances(w, Z)
+    whole = theory.whole_samples(ve)
+    st = theory.stability(plant, ve) if whole else None
+    kmax = theory.k_max(plant, ve) if whole else None
+    kapp = theory.k_max_approx(plant, ve)
+    return {
+        "model": model,
+        "ve": ve.as_dict(),
+        "plant": {"m": plant.m, "b": plant.b},
+        "w": w,
+        "Z_re": Z.real,
+        "Z_im": Z.imag,
+        "ES": eff.ES,
+        "ED": eff.ED,
+        "EM": eff.EM,
+        # sampled-model stability; null when td is not whole samples (no sampled model)
+        "stable": None if st is None else st.stable,
+        "spectral_radius": None if st is None else st.spectral_radius,
+        "K_max": kmax,
+        "K_max_approx": kapp,
+        "K_max_margin": (kmax / kapp - 1) if kmax is not None and kapp else None,
+        "ws_star": theory.predicted_ws_star(plant, ve),
+        "wb_star": theory.predicted_wb_star(ve),
+        "delay_effects": theory.delay_effects(plant, ve),
+    }
+
+
+def _fmt(v, spec=".4g") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def _headline(s: dict) -> str:
+    ve = s["ve"]
+    stab = ("n/a (td not whole samples)" if s["stable"] is None
+            else f"{'stable' if s['stable'] else 'UNSTABLE'} (spectral radius {s['spectral_radius']:.6f})")
+    line = f"td = {ve['td']:g} s: {stab}"
+    if s["K_max_approx"] is not None:
+        line += f"; K_max {_fmt(s['K_max'])} N/m (paper approx {_fmt(s['K_max_approx'])})"
+    de = s["delay_effects"]
+    if "ED_drop_paper" in de:
+        line += (f"; low-w ED drop {_fmt(de['ED_drop_paper'])} paper, {_fmt(de['ED_drop_sampled'])}"
+                 f" sampled vs K(T/2+td) = {de['K_tau']:.4g} N s/m")
+    if "EM_drop_paper" in de:
+        line += (f"; low-w EM drop {_fmt(de['EM_drop_paper'])} paper, {_fmt(de['EM_drop_sampled'])}"
+                 f" sampled vs B(T/2+td) = {de['B_tau']:.4g} kg")
+    return line
+
+
+def table(s: dict) -> str:
+    ve, pl = s["ve"], s["plant"]
+    head = [
+        f"{ve['kind']} VE, {s['model']} model: m = {pl['m']:g} kg, b = {pl['b']:g} N s/m, "
+        f"K = {ve['K']:g} N/m, B = {ve['B']:g} N s/m, w0 = {_fmt(ve['w0'], 'g')} rad/s, "
+        f"T = {ve['T']:g} s",
+        _headline(s),
+        f"ws* = {_fmt(s['ws_star'])} rad/s, wb* = {_fmt(s['wb_star'])} rad/s",
+        "",
+        f"{'w rad/s':>10} {'|Z| dB':>8} {'phase':>8} {'Re Z':>10} {'Im Z':>10} "
+        f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}",
+    ]
+    Z = np.asarray(s["Z_re"]) + 1j * np.asarray(s["Z_im"])
+    phase = np.degrees(np.unwrap(np.angle(Z)))
+    rows = [
+        f"{w:10.4g} {20 * np.log10(abs(z)):8.2f} {ph:8.2f} {z.real:10.4g} {z.imag:10.4g} "
+        f"{es:10.4g} {ed:10.4g} {em:10.4g}"
+        for w, z, ph, es, ed, em in zip(s["w"], Z, phase, s["ES"], s["ED"], s["EM"])
+    ]
+    return "\n".join(head + rows)
+
+
+def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray) -> None:
+    from labbench.figures import Curve, paper_figure
+
+    curves = [Curve(label=f"td = {1e3 * ve.td:g} ms (T/2 + td = {1e3 * ve.delay:g} ms)",
+                    w=w, Z=theory.theory_curve(plant, ve, w, args.model)) for ve in ves]
+    ve = ves[0]
+    marks = {"ws*": theory.predicted_ws_star(plant, ve), "wb*": theory.predicted_wb_star(ve)}
+    gains = ", ".join(f"{n} = {getattr(ve, n):g}" for n in ("K", "B") if n in USES[ve.kind])
+    if "w0" in USES[ve.kind]:
+        gains += f", w0 = {ve.w0:g}"
+    title = (f"{ve.kind} VE ({args.model} model): m = {plant.m:g} kg, b = {plant.b:g} N s/m, "
+             f"{gains}, T = {ve.T:g} s")
+    paper_figure(curves, args.plot, title=title, marks={k: v for k, v in marks.items() if v})

@@ -1,0 +1,107 @@
+"""Paper-style static figures: Bode and effective-impedance panels (paper Figures 4-8).
+
+Matplotlib through its object API on the Agg canvas (no pyplot state, no Qt),
+so reports, the CLI and worker threads can all call it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from labbench.effective import effective_impedances
+from labbench.errors import UserError
+
+FORMATS = (".png", ".svg", ".pdf")
+STYLES = ("line", "points")
+
+
+@dataclass
+class Curve:
+    """One frequency response Z(jw) to draw.
+
+    ``w`` [rad/s], ``Z`` = F/V [N s/m] complex; ``style`` "line" (theory) or
+    "points" (measured); ``Z_err`` the 95 % radius |dZ| per frequency, drawn as
+    a band on the magnitude and on ES, ED, EM.
+    """
+
+    label: str
+    w: np.ndarray
+    Z: np.ndarray
+    style: str = "line"
+    Z_err: np.ndarray | None = None
+
+
+def paper_figure(curves: list[Curve], path, title: str | None = None,
+                 marks: dict | None = None) -> None:
+    """Write Bode magnitude (dB), phase (deg) and ES, ED, EM panels of each curve.
+
+    ES is drawn where Im Z < 0 and EM where Im Z > 0, zero elsewhere (paper
+    sec. 2.2, Figure 2). ``marks`` maps a label to a frequency [rad/s] drawn as
+    a dashed vertical line on every panel, e.g. ``{"ws*": 23.1, "wb*": 125}``.
+    The format follows the suffix of ``path`` (.png, .svg, .pdf).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in FORMATS:
+        raise UserError(f"figure {path}: use a .png, .svg or .pdf file name")
+    for c in curves:
+        if c.style not in STYLES:
+            raise ValueError(f"curve style {c.style!r}; choose one of {', '.join(STYLES)}")
+
+    fig = Figure(figsize=(11, 7), layout="constrained")
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(6, 2)
+    mag = fig.add_subplot(grid[0:3, 0])
+    phase = fig.add_subplot(grid[3:6, 0], sharex=mag)
+    es = fig.add_subplot(grid[0:2, 1], sharex=mag)
+    ed = fig.add_subplot(grid[2:4, 1], sharex=mag)
+    em = fig.add_subplot(grid[4:6, 1], sharex=mag)
+
+    for i, c in enumerate(curves):
+        w = np.asarray(c.w, float)
+        Z = np.asarray(c.Z, complex)
+        eff = effective_impedances(w, Z)
+        stiff = Z.imag < 0
+        fmt = dict(color=f"C{i}", label=c.label)
+        fmt.update(dict(lw=1.5) if c.style == "line" else dict(ls="none", marker=".", ms=3))
+        mag.semilogx(w, 20 * np.log10(np.abs(Z)), **fmt)
+        phase.semilogx(w, eff.theta_deg, **fmt)
+        es.semilogx(w, np.where(stiff, eff.ES, 0.0), **fmt)
+        ed.semilogx(w, eff.ED, **fmt)
+        em.semilogx(w, np.where(stiff, 0.0, eff.EM), **fmt)
+        if c.Z_err is not None:
+            dz = np.asarray(c.Z_err, float)
+            band = dict(color=f"C{i}", alpha=0.2, lw=0)
+            absz = np.abs(Z)
+            mag.fill_between(w, 20 * np.log10(np.maximum(absz - dz, 1e-3 * absz)),
+                             20 * np.log10(absz + dz), **band)
+            es_val = np.where(stiff, eff.ES, 0.0)
+            es.fill_between(w, es_val - w * dz, es_val + w * dz, where=stiff, **band)
+            ed.fill_between(w, eff.ED - dz, eff.ED + dz, **band)
+            em_val = np.where(stiff, 0.0, eff.EM)
+            em.fill_between(w, em_val - dz / w, em_val + dz / w, where=~stiff, **band)
+
+    for ax, ylabel in ((mag, "|Z| (dB re 1 N s/m)"), (phase, "phase of Z (deg)"),
+                       (es, "ES (N/m)"), (ed, "ED (N s/m)"), (em, "EM (kg)")):
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", alpha=0.3)
+        for j, (name, wm) in enumerate((marks or {}).items()):
+            if wm is not None and np.isfinite(wm):
+                ax.axvline(wm, color="0.3", ls=(0, (4, 2 + 2 * j)), lw=1)
+    for name, wm in (marks or {}).items():
+        if wm is not None and np.isfinite(wm):
+            mag.annotate(name, (wm, 1.0), xycoords=("data", "axes fraction"),
+                         xytext=(3, -12), textcoords="offset points", fontsize=9)
+    for ax in (phase, em):
+        ax.set_xlabel("frequency (rad/s)")
+    mag.legend(fontsize=9, loc="lower left")
+    if title:
+        fig.suptitle(title)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fig.savefig(path, dpi=120)
+    except OSError as exc:
+        raise UserError(f"cannot write figure {path}: {exc.strerror or exc}")

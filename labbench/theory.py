@@ -1,0 +1,292 @@
+"""Closed-loop impedance of an impedance-type haptic display: paper model and exact sampled model.
+
+Two models of the same loop (signs and units: ../shared/DESIGN.md):
+
+* the paper's continuous model, Colonnese, Sketch & Okamura, "Closed-loop
+  stiffness and damping accuracy of impedance-type haptic displays", eq. 2
+  (its spring, damper and spring-damper cases are eqs. 4, 6, 7), with the
+  zero-order hold approximated by a delay of T/2;
+* the exact sampled-data model of issue 2: plant ``m x'' + b x' = f_exo - f_ve``
+  driven through a zero-order hold, ``x[k]`` sampled at the start of step k,
+  velocity ``v[k] = a v[k-1] + (1 - a)(x[k] - x[k-1]) / T`` with
+  ``a = exp(-w0 T)``, VE force ``f[k] = K x[k] + B v[k]`` applied during step
+  ``k + n`` (``td = n T``), ``f_exo[k]`` applied during step k. Its impedance
+  ``F_exo(e^{jwT}) / (jw X(e^{jwT}))`` is what an ETFE of sampled force and
+  position converges to.
+
+Bandwidths read off measured curves live in ``labbench.effective``; this
+module holds the formulas.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import null_space
+
+from labbench.errors import UserError
+from labbench.ve import Plant, VirtualEnvironment
+from sim_backend.plant import zoh_matrices
+
+MODELS = ("paper", "sampled")
+
+# Spectral radius below this counts as stable; keeps a marginal mode computed
+# as 1 - 1e-16 (e.g. an undamped plant) from being called stable.
+_STABLE_BELOW = 1.0 - 1e-9
+
+
+# ----------------------------------------------------------------------------- paper model
+def _ve_paper(ve: VirtualEnvironment, s: np.ndarray) -> np.ndarray:
+    """VE(s) of eq. 2: K + B s w0 / (s + w0) (the filter is 1 when w0 is infinite)."""
+    lowpass = 1.0 if math.isinf(ve.w0) else ve.w0 / (s + ve.w0)
+    return ve.K + ve.B * s * lowpass
+
+
+def z_paper(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
+    """Closed-loop impedance Z(jw) = F/V of the paper's eq. 2.
+
+    ``Z(s) = (m s^2 + b s + VE(s) e^{-s(T/2 + td)}) / s``; for ``ve.kind ==
+    "none"`` this is the open-loop device ``m s + b``.
+    """
+    s = 1j * np.asarray(w, dtype=float)
+    d = np.exp(-s * ve.delay)  # eq. 8
+    return (plant.m * s**2 + plant.b * s + _ve_paper(ve, s) * d) / s
+
+
+# ----------------------------------------------------------------------------- sampled model
+def _plant_response(plant: Plant, T: float, w: np.ndarray) -> np.ndarray:
+    """P(e^{jwT}) = X/U of the ZOH-sampled plant, [1 0](zI - Ad)^{-1} Bd."""
+    Ad, Bd = zoh_matrices(plant.m, plant.b, T)
+    z = np.exp(1j * w * T)
+    # z - Ad[0,0] as expm1 + (1 - Ad[0,0]): no cancellation near w = 0
+    z_minus_a00 = np.expm1(1j * w * T) + (1.0 - Ad[0, 0])
+    det = z_minus_a00 * (z - Ad[1, 1]) - Ad[0, 1] * Ad[1, 0]
+    return ((z - Ad[1, 1]) * Bd[0] + Ad[0, 1] * Bd[1]) / det
+
+
+def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:
+    """C(e^{jwT}) = F/X of the sampled VE: K + B (1-a)(1 - z^-1) / (T (1 - a z^-1))."""
+    a = ve.filter_pole
+    one_minus_zinv = -np.expm1(-1j * w * ve.T)
+    velocity = (1 - a) * one_minus_zinv / (ve.T * (1 - a * np.exp(-1j * w * ve.T)))
+    return ve.K + ve.B * velocity
+
+
+def z_sampled(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
+    """Exact sampled-data impedance F_exo(e^{jwT}) / (jw X(e^{jwT})).
+
+    From ``x = P (f_exo - z^-n C x)`` (module docstring):
+    ``Z = 1 / (jw P) + z^-n C / (jw)``, the sampled counterpart of eq. 2.
+    Raises UserError when td is not a whole number of samples.
+    """
+    w = np.asarray(w, dtype=float)
+    n = ve.delay_samples
+    jw = 1j * w
+    Z = 1.0 / (jw * _plant_response(plant, ve.T, w))
+    if ve.kind != "none":
+        Z = Z + np.exp(-1j * w * n * ve.T) * _ve_sampled(ve, w) / jw
+    return Z
+
+
+def theory_curve(plant: Plant, ve: VirtualEnvironment, w, model: str = "paper") -> np.ndarray:
+    """Z(jw) of the chosen model ("paper" or "sampled")."""
+    if model == "paper":
+        return z_paper(plant, ve, w)
+    if model == "sampled":
+        return z_sampled(plant, ve, w)
+    raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
+
+
+@dataclass(frozen=True)
+class DiscreteLoop:
+    """The exact sampled loop as ``s[k+1] = A s[k] + B f_exo[k]``, ``x[k] = C s[k] + D f_exo[k]``.
+
+    State ``s[k] = [x[k], x'[k], x[k-1], v[k-1], f[k-1], ..., f[k-n]]`` (plant
+    position and velocity at the start of step k, previous sample, previous
+    velocity estimate, VE forces still in the delay line). ``as_dlti()`` gives
+    the tuple ``scipy.signal.dlsim`` takes.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    T: float
+
+    def as_dlti(self) -> tuple:
+        return (self.A, self.B, self.C, self.D, self.T)
+
+
+def closed_loop(plant: Plant, ve: VirtualEnvironment) -> DiscreteLoop:
+    """State-space form of the exact sampled loop (input f_exo[k], output x[k])."""
+    n = ve.delay_samples
+    T, a = ve.T, ve.filter_pole
+    Ad, Bd = zoh_matrices(plant.m, plant.b, T)
+    size = 4 + n
+    X, XD, XP, VP = 0, 1, 2, 3
+    # f[k] = K x[k] + B (a v[k-1] + (1 - a)(x[k] - x[k-1]) / T) as a row on s[k]
+    force = np.zeros(size)
+    force[X] = ve.K + ve.B * (1 - a) / T
+    force[XP] = -ve.B * (1 - a) / T
+    force[VP] = ve.B * a
+    applied = force if n == 0 else np.eye(size)[4 + n - 1]  # f[k - n]
+    A = np.zeros((size, size))
+    A[:2, :2] = Ad
+    A[:2, :] -= np.outer(Bd, applied)
+    A[XP, X] = 1.0
+    A[VP, X], A[VP, XP], A[VP, VP] = (1 - a) / T, -(1 - a) / T, a
+    if n:
+        A[4] = force
+        for i in range(1, n):
+            A[4 + i, 4 + i - 1] = 1.0
+    B = np.zeros((size, 1))
+    B[:2, 0] = Bd
+    C = np.zeros((1, size))
+    C[0, X] = 1.0
+    return DiscreteLoop(A=A, B=B, C=C, D=np.zeros((1, 1)), T=T)
+
+
+# ----------------------------------------------------------------------------- stability
+@dataclass(frozen=True)
+class Stability:
+    stable: bool
+    spectral_radius: float
+
+
+def stability(plant: Plant, ve: VirtualEnvironment) -> Stability:
+    """Stability of the exact sampled loop: spectral radius of A below 1.
+
+    Without a virtual spring (K = 0) any constant position offset is an
+    equilibrium: A has the eigenvector e = [1, 0, 1, 0, 0, ...] (x = x[k-1] =
+    const, all velocities and forces zero) with eigenvalue exactly 1. That mode
+    is not instability, so it is deflated: with Q an orthonormal basis of the
+    complement of e, ``Q^T A Q`` carries the remaining eigenvalues (Schur
+    deflation, Golub & Van Loan, Matrix Computations, sec. 7.3).
+    """
+    A = closed_loop(plant, ve).A
+    if ve.K == 0:
+        e = np.zeros(A.shape[0])
+        e[0] = e[2] = 1.0
+        Q = null_space(e[None, :])
+        A = Q.T @ A @ Q
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+    return Stability(stable=rho < _STABLE_BELOW, spectral_radius=rho)
+
+
+def _stable_with_k(plant: Plant, ve: VirtualEnvironment, K: float) -> bool:
+    return stability(plant, ve.with_(K=K)).stable
+
+
+def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4) -> float | None:
+    """Largest K keeping the exact sampled loop stable (other parameters fixed).
+
+    Defined as the first loss of stability as K grows from 0: K is raised by
+    factors of 1.25 from a small value until the loop is unstable, then the
+    bracket is bisected to ``rel_tol`` (default 0.01 %, inside the 0.1 % the
+    issue asks). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up
+    to 1e12 N/m is unstable; None for kinds without a spring.
+    """
+    if ve.kind not in ("spring", "spring-damper"):
+        return None
+    guess = k_max_approx(plant, ve)
+    lo = 1e-6 * guess if guess and math.isfinite(guess) else 1e-6
+    if not _stable_with_k(plant, ve, lo):
+        return 0.0
+    hi = lo * 1.25
+    while _stable_with_k(plant, ve, hi):
+        lo, hi = hi, hi * 1.25
+        if hi > 1e12:
+            return math.inf
+    while hi - lo > rel_tol * lo:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _stable_with_k(plant, ve, mid) else (lo, mid)
+    return lo
+
+
+def k_max_approx(plant: Plant, ve: VirtualEnvironment) -> float | None:
+    """The paper's approximate stability boundary, solved for K.
+
+    Spring: ``b > K (T/2 + td)`` (paper sec. 3.1, after Gil et al. 2009), so
+    ``K_max ~ b / (T/2 + td)``. Spring-damper: the same condition on the
+    low-frequency effective damping ``b + B - K (T/2 + td) > 0`` (paper
+    sec. 3.3), ``K_max ~ (b + B) / (T/2 + td)``; it ignores the velocity
+    filter, so compare it with ``k_max``. None for kinds without a spring.
+    """
+    if ve.kind == "spring":
+        return plant.b / ve.delay
+    if ve.kind == "spring-damper":
+        return (plant.b + ve.B) / ve.delay
+    return None
+
+
+# ----------------------------------------------------------------------------- bandwidths, delay
+def predicted_ws_star(plant: Plant, ve: VirtualEnvironment) -> float | None:
+    """Effective-stiffness bandwidth sqrt(K/m) (paper eq. 5); None without a spring."""
+    return math.sqrt(ve.K / plant.m) if ve.K > 0 else None
+
+
+def predicted_wb_star(ve: VirtualEnvironment) -> float | None:
+    """Effective-damping bandwidth w0 (paper sec. 3.2); None without filter or virtual damping."""
+    return ve.w0 if ve.B > 0 and math.isfinite(ve.w0) else None
+
+
+def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str) -> tuple[float, float]:
+    """(ED, EM) in the limit w -> 0, by Richardson extrapolation in w^2.
+
+    Re Z and Im Z / w are even in w, so ``(4 f(w) - f(2w)) / 3`` removes the
+    w^2 term; w is 1e-3 of the loop's fastest relevant rate.
+    """
+    rates = [1.0 / ve.delay]
+    if ve.K > 0:
+        rates.append(math.sqrt(ve.K / plant.m))
+    if math.isfinite(ve.w0):
+        rates.append(ve.w0)
+    if plant.b + ve.B > 0:
+        rates.append((plant.b + ve.B) / plant.m)
+    w = 1e-3 * min(rates) * np.array([1.0, 2.0])
+    Z = theory_curve(plant, ve, w, model)
+    ED, EM = Z.real, Z.imag / w
+    return float((4 * ED[0] - ED[1]) / 3), float((4 * EM[0] - EM[1]) / 3)
+
+
+def delay_effects(plant: Plant, ve: VirtualEnvironment) -> dict:
+    """Low-frequency effect of delay, as numbers, for both models.
+
+    Spring, spring-damper: ``ED_low`` (w -> 0) and its drop below b + B,
+    beside the paper's prediction ``K_tau = K (T/2 + td)`` (secs. 3.1, 3.3)
+    and ``K_td = K td``. Damper: ``EM_low`` and its drop below the no-delay
+    value m - B/w0 (paper model), beside ``B_tau = B (T/2 + td)`` (sec. 3.2)
+    and ``B_td``. Sampled-model entries are None when td is not a whole
+    number of samples.
+
+    In the sampled model the exogenous force passes through the same hold as
+    the VE force, so ``Z_sampled ~ e^{jwT/2} Z_paper`` and its ED drop is close
+    to K td rather than K (T/2 + td).
+    """
+    out: dict = {"tau": ve.delay}
+    whole = whole_samples(ve)
+    if ve.K > 0:
+        base = plant.b + ve.B
+        out.update(K_tau=ve.K * ve.delay, K_td=ve.K * ve.td)
+        for model in MODELS:
+            ed = _low_frequency(plant, ve, model)[0] if model == "paper" or whole else None
+            out[f"ED_low_{model}"] = ed
+            out[f"ED_drop_{model}"] = None if ed is None else base - ed
+    elif ve.B > 0:
+        base = plant.m - (0.0 if math.isinf(ve.w0) else ve.B / ve.w0)
+        out.update(EM_nodelay=base, B_tau=ve.B * ve.delay, B_td=ve.B * ve.td)
+        for model in MODELS:
+            em = _low_frequency(plant, ve, model)[1] if model == "paper" or whole else None
+            out[f"EM_low_{model}"] = em
+            out[f"EM_drop_{model}"] = None if em is None else base - em
+    return out
+
+
+def whole_samples(ve: VirtualEnvironment) -> bool:
+    """True when td is a whole number of samples (the sampled model exists)."""
+    try:
+        ve.delay_samples
+    except UserError:
+        return False
+    return True
