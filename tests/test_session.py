@@ -197,3 +197,91 @@ def test_writer_fsyncs_while_idle(tmp_path, monkeypatch):
         time.sleep(0.01)
     assert calls, "no fsync within 2 s of a write"
     w.close()
+
+
+def test_replay_feeds_the_same_stream(tmp_path):
+    from labbench.session import StreamSummary, replay
+
+    stream = synthetic_stream(1000)
+    path = _write(tmp_path, stream)
+    got, summary = [], StreamSummary()
+    reader = replay(path, [got.append, summary])
+    assert reader.problem is None and len(got) == len(stream)
+    for a, b in zip(stream, got):
+        _assert_same(a, b)
+    s = summary.as_dict()
+    assert (s["samples"], s["pages"], s["dropped_samples"], s["status"]) == (1000, 10, 0, "success")
+    assert s["duration_s"] == pytest.approx(0.999)
+    assert [e["name"] for e in s["events"]] == ["force_limit"]
+    joined = records.concat_pages(stream)
+    assert s["max_abs_command_n"] == np.max(np.abs(joined["command"]))
+
+
+def test_summary_counts_dropped_samples():
+    from labbench.session import StreamSummary
+
+    stream = synthetic_stream(300)
+    for page in stream[3:5]:  # 7 samples missing inside page 1
+        page["data"]["seq"] = page["data"]["seq"] + 7
+    stream[3]["data"]["seq"][:50] -= 7
+    s = StreamSummary()
+    records.fan_out(stream, [s])
+    assert s.dropped == 7
+
+
+def test_replay_paces_by_sample_time(tmp_path):
+    from labbench.session import replay
+
+    path = _write(tmp_path, synthetic_stream(1000, events=False))
+    now = [0.0]
+    due = []
+
+    def sleep(dt):
+        now[0] += dt
+
+    def note(rec):
+        if rec["kind"] == records.PAGE:
+            due.append((now[0], float(rec["data"]["t"][-1])))
+
+    replay(path, [note], speed=2.0, clock=lambda: now[0], sleep=sleep)
+    t_first = due[0][1]
+    for wall, t in due:
+        assert wall == pytest.approx((t - t_first) / 2.0)
+    assert due[-1][0] == pytest.approx((0.999 - 0.099) / 2.0)
+
+
+def test_replay_stops_on_request(tmp_path):
+    import threading
+
+    from labbench.session import replay
+
+    path = _write(tmp_path, synthetic_stream(1000))
+    stop = threading.Event()
+    got = []
+
+    def consumer(rec):
+        got.append(rec)
+        if rec["kind"] == records.PAGE and rec["index"] == 2:
+            stop.set()
+
+    replay(path, [consumer], speed=1.0, stop=stop)
+    assert [r["kind"] for r in got].count(records.PAGE) == 3
+
+
+def test_replay_cli(tmp_path, capsys):
+    from labbench.cli import main
+
+    path = _write(tmp_path, synthetic_stream(500, status=None))
+    assert main(["replay", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples"] == 500 and out["status"] == "incomplete"
+    assert out["damaged_tail"] is None
+    raw = path.read_bytes()
+    path.write_bytes(raw[:-10])
+    t0 = time.monotonic()
+    assert main(["replay", str(path), "--speed", "1"]) == 0
+    assert time.monotonic() - t0 >= 0.3  # ~0.4 s of samples survive, paced in real time
+    cap = capsys.readouterr()
+    assert "samples   400" in cap.out and "torn" in cap.err
+    assert main(["replay", str(tmp_path / "nope")]) == 2
+    assert main(["replay", str(path), "--speed", "0"]) == 2
