@@ -23,6 +23,7 @@ stops at the first short, corrupt or out-of-sequence chunk and says so in
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import struct
@@ -37,6 +38,7 @@ import numpy as np
 
 from labbench import records
 from labbench.errors import UserError
+from labbench.ve import VirtualEnvironment
 
 MAGIC = b"LBSESSION 1\n"
 SUFFIX = ".lbsession"
@@ -218,7 +220,7 @@ def _slug(text: str) -> str:
 
 def protocol_name(start: dict) -> str:
     proto = start.get("protocol")
-    if isinstance(proto, dict):
+    if isinstance(proto, dict):  # {"name": ...} or a protocol's describe(): {"protocol": ...}
         return str(proto.get("name") or proto.get("protocol") or "run")
     return str(proto or "run")
 
@@ -369,13 +371,26 @@ def list_sessions(directory) -> list[SessionSummary]:
     return sorted(found, key=lambda s: (s.time or 0.0, str(s.path)))
 
 
-def _find_ve(start: dict) -> dict:
-    """The VE settings of a run: ``start["ve"]`` or the protocol config's ``ve``."""
+def session_ve(start: dict) -> VirtualEnvironment | None:
+    """The VE a run started with, from its start record.
+
+    Accepts a VE dict (``VirtualEnvironment.as_dict``) under ``start["ve"]`` or the
+    protocol's ``ve``, or a protocol config with ``ve`` = kind and ``K``, ``B``,
+    ``w0_rad_s``, ``td_s``. ``None`` when the record names no VE.
+    """
     proto = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
-    for candidate in (start.get("ve"), proto.get("ve"), proto):
-        if isinstance(candidate, dict) and ("kind" in candidate or "K" in candidate):
-            return candidate
-    return {}
+    for candidate in (start.get("ve"), proto.get("ve")):
+        if isinstance(candidate, dict):
+            return VirtualEnvironment.from_dict(candidate)
+    if not isinstance(proto.get("ve"), str):
+        return None
+    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    w0 = proto.get("w0_rad_s")
+    return VirtualEnvironment(
+        proto["ve"], K=float(proto.get("K", 0.0)), B=float(proto.get("B", 0.0)),
+        w0=math.inf if w0 is None else float(w0),
+        T=float(proto.get("sample_time_s") or rig.get("sample_time_s") or 0.001),
+        td=float(proto.get("td_s", 0.0)))
 
 
 def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
@@ -402,15 +417,14 @@ def analysis_meta(start: dict, desc: dict) -> dict:
     """Metadata keys of the analysis format (issue 3): fs, ve, K, B, w0, td, protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     T = desc.get("sample_time_s") or rig.get("sample_time_s")
-    ve = _find_ve(start)
+    ve = session_ve(start)
     meta = {"protocol": protocol_name(start)}
     if T:
         meta["fs"] = 1.0 / float(T)
-    if ve:
-        meta["ve"] = ve.get("kind", "none")
-        for key in ("K", "B", "w0", "td"):
-            if ve.get(key) is not None:
-                meta[key] = float(ve[key])
+    if ve is not None:
+        meta.update(ve=ve.kind, K=ve.K, B=ve.B, td=ve.td)
+        if math.isfinite(ve.w0):
+            meta["w0"] = ve.w0
     for key in ("uid", "seed"):
         if start.get(key) is not None:
             meta[key] = start[key]

@@ -180,6 +180,15 @@ def test_load_analysis_arrays(tmp_path):
         VE.kind, VE.K, VE.B, VE.w0, VE.td)
 
 
+def test_meta_from_a_protocol_config(tmp_path):
+    stream = synthetic_stream(100)
+    stream[0]["protocol"] = {"protocol": "etfe", "ve": "damper", "K": 50.0, "B": 2.0,
+                             "w0_rad_s": None, "td_s": 0.002, "sample_time_s": 0.001}
+    meta = load_analysis_arrays(_write(tmp_path, stream))["meta"]
+    assert meta["protocol"] == "etfe" and meta["ve"] == "damper"
+    assert (meta["K"], meta["B"], meta["td"]) == (0.0, 2.0, 0.002) and "w0" not in meta
+
+
 def test_session_without_samples_is_a_user_error(tmp_path):
     path = _write(tmp_path, synthetic_stream(0))
     with pytest.raises(UserError, match="no samples"):
