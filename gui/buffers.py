@@ -1,0 +1,67 @@
+"""The GUI's copy of one record stream (live run or replay), without Qt.
+
+Pages are appended into growable numpy arrays so the plots can take the last
+N points and the live estimator a snapshot of everything so far without
+re-joining lists on every frame. Only the GUI thread touches a buffer: the
+acquisition thread hands records over through a queue (``gui.worker``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from labbench.records import CHANNELS, DESCRIPTOR, EVENT, PAGE, START, STOP
+
+
+class StreamBuffer:
+    """Accumulates start/descriptor/page/event/stop records of one run."""
+
+    def __init__(self, capacity: int = 16384):
+        self._cap = capacity
+        self._data = {name: np.empty(capacity) for name in CHANNELS}
+        self.n = 0
+        self.start: dict | None = None
+        self.descriptor: dict | None = None
+        self.stop: dict | None = None
+        self.events: list[dict] = []
+        self.version = 0  # bumps on every page, so views know when to redraw
+
+    def add(self, rec: dict) -> None:
+        kind = rec.get("kind")
+        if kind == START:
+            self.start = rec
+        elif kind == DESCRIPTOR:
+            self.descriptor = rec
+        elif kind == PAGE:
+            self._append(rec["data"])
+        elif kind == EVENT:
+            self.events.append(rec)
+        elif kind == STOP:
+            self.stop = rec
+
+    def _append(self, data: dict) -> None:
+        k = len(np.asarray(data["t"]))
+        if self.n + k > self._cap:
+            self._cap = max(2 * self._cap, self.n + k)
+            for name, arr in self._data.items():
+                grown = np.empty(self._cap)
+                grown[: self.n] = arr[: self.n]
+                self._data[name] = grown
+        for name in CHANNELS:
+            self._data[name][self.n : self.n + k] = np.asarray(data[name], dtype=float)
+        self.n += k
+        self.version += 1
+
+    def channel(self, name: str, last: int | None = None) -> np.ndarray:
+        """A view of channel ``name`` (the last ``last`` samples if given)."""
+        lo = 0 if last is None else max(0, self.n - last)
+        return self._data[name][lo : self.n]
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """Copies of all channels so far (safe to hand to another thread)."""
+        return {name: arr[: self.n].copy() for name, arr in self._data.items()}
+
+    @property
+    def sample_time_s(self) -> float | None:
+        if self.descriptor and self.descriptor.get("sample_time_s"):
+            return float(self.descriptor["sample_time_s"])
+        return None

@@ -1,0 +1,103 @@
+"""Device panel (connect, enable, state, stream health) and the E-STOP button."""
+from __future__ import annotations
+
+from PySide6 import QtCore, QtWidgets
+
+from labbench.devices import DEVICES
+
+HEALTH_FIELDS = (("state", "state"), ("heartbeat", "heartbeat"), ("drops", "drops"),
+                 ("crc_errors", "CRC errors"), ("faults", "faults"))
+
+
+class DevicePanel(QtWidgets.QGroupBox):
+    """Buttons emit requests; the window does the work and reports back with ``set_*``."""
+
+    connect_requested = QtCore.Signal(str)
+    disconnect_requested = QtCore.Signal()
+    enable_requested = QtCore.Signal(bool)
+
+    def __init__(self, default_device: str = "sim", parent=None):
+        super().__init__("Device", parent)
+        self.backend = QtWidgets.QComboBox()
+        self.backend.addItems(list(DEVICES))
+        self.backend.setCurrentText(default_device)
+        self.backend.setToolTip("device backend; a rig file with a [canopen] or [serial] table selects it")
+        self.connect_button = QtWidgets.QPushButton("Connect")
+        self.enable_button = QtWidgets.QPushButton("Enable")
+        self.enable_button.setEnabled(False)
+        self.name_label = QtWidgets.QLabel("not connected")
+        self.name_label.setWordWrap(True)
+        self.health = {key: QtWidgets.QLabel("-") for key, _ in HEALTH_FIELDS}
+
+        form = QtWidgets.QFormLayout(self)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(self.backend, 1)
+        row.addWidget(self.connect_button)
+        row.addWidget(self.enable_button)
+        form.addRow("backend", row)
+        form.addRow("device", self.name_label)
+        for key, title in HEALTH_FIELDS:
+            form.addRow(title, self.health[key])
+
+        self.connected = False
+        self.enabled = False
+        self.connect_button.clicked.connect(self._on_connect)
+        self.enable_button.clicked.connect(lambda: self.enable_requested.emit(not self.enabled))
+
+    def _on_connect(self):
+        if self.connected:
+            self.disconnect_requested.emit()
+        else:
+            self.connect_button.setEnabled(False)
+            self.connect_button.setText("Connecting...")
+            self.connect_requested.emit(self.backend.currentText())
+
+    def set_connected(self, description=None) -> None:
+        """``description``: a DeviceDescription, or None when disconnected (or failed)."""
+        self.connected = description is not None
+        self.connect_button.setEnabled(True)
+        self.connect_button.setText("Disconnect" if self.connected else "Connect")
+        self.backend.setEnabled(not self.connected)
+        self.enable_button.setEnabled(self.connected)
+        if description is None:
+            self.name_label.setText("not connected")
+            self.set_enabled(False)
+            for lab in self.health.values():
+                lab.setText("-")
+        else:
+            d = description
+            self.name_label.setText(f"{d.name} ({d.kind}), T = {d.sample_time_s * 1e3:g} ms, "
+                                    f"force limit {d.force_limit_n:g} N")
+
+    def set_enabled(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.enable_button.setText("Disable" if enabled else "Enable")
+
+    def set_health(self, health: dict) -> None:
+        """Show whatever the backend reports under the known keys (others ignored)."""
+        for key, _ in HEALTH_FIELDS:
+            if key in health:
+                self.health[key].setText(str(health[key]))
+
+
+class EStopButton(QtWidgets.QPushButton):
+    """Big red E-STOP; shows whether a stop is latched."""
+
+    def __init__(self, key_hint: str, parent=None):
+        super().__init__(parent)
+        self.key_hint = key_hint
+        self.setMinimumHeight(64)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Expanding, QtWidgets.QSizePolicy.Policy.Fixed)
+        self.setFocusPolicy(QtCore.Qt.FocusPolicy.NoFocus)  # never steals the key from the window
+        self.set_latched(False)
+
+    def set_latched(self, latched: bool) -> None:
+        self.latched = latched
+        if latched:
+            self.setText(f"E-STOP LATCHED: force zeroed ({self.key_hint})\nreconnect the device to clear")
+            colour = "#7a0010"
+        else:
+            self.setText(f"E-STOP  ({self.key_hint})")
+            colour = "#d00020"
+        self.setStyleSheet(f"QPushButton {{ background: {colour}; color: white; font-size: 18pt;"
+                           " font-weight: bold; border-radius: 8px; }")

@@ -1,0 +1,146 @@
+"""Live effective impedances: re-estimate Z from the data so far, off the GUI thread.
+
+The estimate is the ETFE of ``labbench.analysis.etfe`` (paper sec. 4.2) on
+everything recorded so far, decomposed by ``labbench.effective`` (paper
+Figure 2), with the theory of ``labbench.theory`` for the configured VE and
+the plant (given, or identified by l2 on the same data, paper sec. 4.1).
+No Qt here: ``LiveEstimator`` runs ``estimate`` on one worker thread and the
+window polls for the newest finished result.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.ve import Plant, VirtualEnvironment
+
+log = logging.getLogger(__name__)
+
+MIN_SAMPLES = 2000  # below ~2 s at 1 kHz the smoothed ETFE has too few bins to show
+
+
+@dataclass
+class Estimate:
+    """One live estimate, ready to draw. Bands are +-1 Z_err mapped through each formula."""
+
+    n_samples: int
+    w: np.ndarray
+    Z: np.ndarray
+    Z_err: np.ndarray
+    ES: np.ndarray
+    ED: np.ndarray
+    EM: np.ndarray
+    ws_measured: float | None
+    wb_measured: float | None
+    plant: Plant | None
+    plant_source: str  # "given", "identified (l2)" or "none"
+    theory: dict = field(default_factory=dict)  # w, Z, ES, ED, EM; empty when unavailable
+    ws_theory: float | None = None
+    wb_theory: float | None = None
+
+    def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of ES, ED or EM from |Z_err| (Re and Im each move by at most |Z_err|)."""
+        scale = {"ES": self.w, "ED": np.ones_like(self.w), "EM": 1.0 / self.w}[name]
+        mid = getattr(self, name)
+        half = np.abs(self.Z_err) * scale
+        return mid - half, mid + half
+
+
+def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,
+             plant: Plant | None, window: int = 200, estimator: str | None = None) -> Estimate | None:
+    """ETFE of force (excitation) to position so far; None while too short to estimate."""
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.analysis.etfe import etfe
+
+    n = len(data["t"])
+    if n < MIN_SAMPLES:
+        return None
+    rec = recording_from_arrays(data["t"], data["excitation"], data["position"], meta)
+    res = etfe(rec, estimator=estimator, window=window)
+    w = np.asarray(res.w, float)
+    Z = np.asarray(res.Z, complex)
+    Z_err = np.asarray(res.Z_err, float) if res.Z_err is not None else np.zeros_like(w)
+    eff = effective_impedances(w, Z)
+
+    source = "given" if plant is not None else "none"
+    if plant is None:
+        # The plant is driven by the net commanded force, not by the excitation alone.
+        plant = _identify_l2(recording_from_arrays(data["t"], data["command"], data["position"], meta))
+        source = "identified (l2)" if plant is not None else "none"
+
+    b_total = (plant.b if plant else 0.0) + (ve.B if ve else 0.0)
+    wb = measured_wb_star(w, eff.ED, plant.b) if plant is not None else None
+    out = Estimate(
+        n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
+        ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
+        plant=plant, plant_source=source,
+    )
+    if plant is not None and ve is not None:
+        out.theory = _theory(plant, ve, w)
+        if ve.K > 0:
+            out.ws_theory = math.sqrt(ve.K / plant.m)
+        if ve.B > 0 and math.isfinite(ve.w0) and b_total > plant.b:
+            out.wb_theory = ve.w0
+    return out
+
+
+def _identify_l2(rec) -> Plant | None:
+    """m, b by least squares on the same data; None when identification refuses it."""
+    from labbench.analysis.identify import identify
+
+    try:
+        res = identify(rec, model="mass-damper", method="l2").as_dict()
+        return Plant(float(res["m"]), max(float(res["b"]), 0.0))
+    except Exception as exc:  # noqa: BLE001 - the overlay is optional, the estimate is not
+        log.info("live identification unavailable: %s", exc)
+        return None
+
+
+def _theory(plant: Plant, ve: VirtualEnvironment, w: np.ndarray) -> dict:
+    from labbench.theory import theory_curve
+
+    wt = np.geomspace(max(w[w > 0].min(), 1e-2), w.max(), 400)
+    Zt = np.asarray(theory_curve(plant, ve, wt, "sampled"), complex)
+    eff = effective_impedances(wt, Zt)
+    return {"w": wt, "Z": Zt, "ES": eff.ES, "ED": eff.ED, "EM": eff.EM}
+
+
+class LiveEstimator:
+    """At most one estimate in flight on a single worker thread; ``poll`` gives the newest."""
+
+    def __init__(self):
+        self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="labbench-etfe")
+        self._future: cf.Future | None = None
+        self.last_error: str | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._future is not None and not self._future.done()
+
+    def submit(self, data, meta, ve, plant, window: int = 200, estimator: str | None = None) -> bool:
+        """Start an estimate unless one is running; True if started."""
+        if self.busy:
+            return False
+        self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator)
+        return True
+
+    def poll(self) -> Estimate | None:
+        """The finished estimate (once), else None; errors land in ``last_error``."""
+        f = self._future
+        if f is None or not f.done():
+            return None
+        self._future = None
+        try:
+            return f.result()
+        except Exception as exc:  # noqa: BLE001 - shown in the window, never raised into Qt
+            self.last_error = f"live estimate failed: {type(exc).__name__}: {exc}"
+            log.exception("live estimate failed")
+            return None
+
+    def shutdown(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)

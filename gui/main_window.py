@@ -1,0 +1,630 @@
+"""The main window: device and protocol on the left, live plots / identification / sessions
+on the right, the event log below, E-STOP on top, loop health in the status bar.
+
+All slow or blocking work (device I/O, runs, replays, estimates, exports) runs on
+worker threads (``gui.worker``, ``gui.live_estimate``); the window only drains
+their mailbox from a QTimer (<= 30 Hz) and redraws, so it never freezes and
+the acquisition loop never waits for it.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from gui.buffers import StreamBuffer
+from gui.device_panel import DevicePanel, EStopButton
+from gui.event_log import EventLog
+from gui.id_view import IdView
+from gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
+from gui.live_plots import ImpedancePlots, TimeTraces
+from gui.protocol_panel import ProtocolPanel
+from gui.sessions_view import SessionsView
+from gui.worker import Mailbox, describe_error, run_in_background, start_replay, start_run
+from labbench.errors import UserError
+from labbench.records import EVENT, STOP
+from labbench.ve import Plant, VirtualEnvironment
+
+log = logging.getLogger(__name__)
+
+ESTOP_KEYS = ("Esc", "Space")
+SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial")
+
+
+def guarded(slot):
+    """A slot that reports any exception in the window instead of raising into Qt."""
+
+    @functools.wraps(slot)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return slot(self, *args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - the window must survive every user action
+            if not isinstance(exc, UserError):
+                log.exception("GUI action %s failed", slot.__name__)
+            self.show_error(describe_error(exc))
+
+    return wrapper
+
+
+def default_backend(rig) -> str:
+    """A rig file with a [canopen] or [serial] table selects that driver; else the simulator."""
+    for name in ("canopen", "serial"):
+        if rig.section(name):
+            return name
+    return "sim"
+
+
+def protocol_names() -> list[str]:
+    from protocols import PROTOCOLS
+
+    return list(PROTOCOLS)
+
+
+class MainWindow(QtWidgets.QMainWindow):
+    def __init__(self, rig, session_dir, backend: str | None = None, redraw_hz: float = 30.0,
+                 estimate_period_s: float = 0.4, realtime: bool = True):
+        super().__init__()
+        self.rig = rig
+        self.session_dir = Path(session_dir)
+        self.realtime = realtime
+        self.mailbox = Mailbox()
+        self.buffer = StreamBuffer()
+        self.estimator = LiveEstimator()
+        self.device = None
+        self.stop_event = threading.Event()
+        self.mode = "idle"  # "running" | "replay"
+        self.session_path: str | None = None
+        self.last_run = None  # RunResult of the last run
+        self._drawn_version = -1
+        self._estimated_version = -1
+        self._final_estimate_pending = False
+        self._rate = (time.monotonic(), 0)
+        self._pending_start = False
+        self._estimator_error_shown = None
+
+        self.setWindowTitle(f"labbench: {rig.name}")
+        self.resize(1600, 1000)
+        self._build(backend or default_backend(rig))
+
+        self.redraw_timer = QtCore.QTimer(self)
+        self.redraw_timer.setInterval(max(int(1000 / min(redraw_hz, 30.0)), 33))  # <= 30 Hz
+        self.redraw_timer.timeout.connect(self._tick)
+        self.redraw_timer.start()
+        self.estimate_timer = QtCore.QTimer(self)
+        self.estimate_timer.setInterval(int(estimate_period_s * 1000))  # >= 2 estimates per second
+        self.estimate_timer.timeout.connect(self._estimate_tick)
+        self.estimate_timer.start()
+        self.health_timer = QtCore.QTimer(self)
+        self.health_timer.setInterval(500)
+        self.health_timer.timeout.connect(self._poll_health)
+        self.health_timer.start()
+
+        for key in ESTOP_KEYS:
+            sc = QtGui.QShortcut(QtGui.QKeySequence(key), self)
+            sc.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
+            sc.activated.connect(self.emergency_stop)
+        self.log.add("info", f"rig: {rig.name} ({rig.source}); sessions in {self.session_dir}")
+        self.refresh_sessions()
+
+    # ----- layout -------------------------------------------------------------------------
+    def _build(self, backend: str):
+        self.estop = EStopButton(" / ".join(ESTOP_KEYS))
+        self.estop.clicked.connect(self.emergency_stop)
+        self.device_panel = DevicePanel(backend)
+        self.protocol_panel = ProtocolPanel(protocol_names())
+        self.traces = TimeTraces()
+        self.impedance = ImpedancePlots()
+        self.theory_plant = QtWidgets.QComboBox()
+        self.theory_plant.addItems(["identified (l2)", "rig nominal / protocol"])
+        self.theory_plant.setToolTip("plant m, b used for the theory overlay")
+        self.id_view = IdView()
+        self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
+        self.log = EventLog()
+        self.banner = QtWidgets.QLabel()
+        self.banner.setWordWrap(True)
+        self.banner.setStyleSheet("QLabel { background: #fde0e0; color: #7a0010; padding: 6px;"
+                                  " border: 1px solid #b00020; font-weight: bold; }")
+        self.banner.setVisible(False)
+        self.banner.mousePressEvent = lambda e: self.banner.setVisible(False)
+        self.banner.setToolTip("click to dismiss")
+
+        left = QtWidgets.QWidget()
+        ll = QtWidgets.QVBoxLayout(left)
+        ll.setContentsMargins(4, 4, 4, 4)
+        ll.addWidget(self.estop)
+        ll.addWidget(self.device_panel)
+        ll.addWidget(self.protocol_panel, 1)
+        left.setMinimumWidth(360)
+        left.setMaximumWidth(460)
+
+        live = QtWidgets.QWidget()
+        lv = QtWidgets.QVBoxLayout(live)
+        lv.setContentsMargins(0, 0, 0, 0)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(QtWidgets.QLabel("theory overlay plant:"))
+        row.addWidget(self.theory_plant)
+        row.addStretch(1)
+        lv.addLayout(row)
+        split = QtWidgets.QSplitter()
+        split.addWidget(self.traces)
+        split.addWidget(self.impedance)
+        split.setSizes([500, 700])
+        lv.addWidget(split, 1)
+
+        self.tabs = QtWidgets.QTabWidget()
+        self.tabs.addTab(live, "Live")
+        self.tabs.addTab(self.id_view, "Identification")
+        self.tabs.addTab(self.sessions, "Sessions")
+        right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        right.addWidget(self.tabs)
+        right.addWidget(self.log)
+        right.setSizes([820, 150])
+
+        body = QtWidgets.QSplitter()
+        body.addWidget(left)
+        body.addWidget(right)
+        body.setStretchFactor(1, 1)
+        central = QtWidgets.QWidget()
+        cl = QtWidgets.QVBoxLayout(central)
+        cl.setContentsMargins(4, 4, 4, 4)
+        cl.addWidget(self.banner)
+        cl.addWidget(body, 1)
+        self.setCentralWidget(central)
+
+        self.status = {k: QtWidgets.QLabel(f"{k}: -") for k in
+                       ("mode", "loop rate", "period p99", "overruns", "bus load")}
+        for lab in self.status.values():
+            self.statusBar().addPermanentWidget(lab)
+
+        self.device_panel.connect_requested.connect(self.connect_device)
+        self.device_panel.disconnect_requested.connect(self.disconnect_device)
+        self.device_panel.enable_requested.connect(self.enable_device)
+        self.protocol_panel.protocol_changed.connect(self.select_protocol)
+        self.protocol_panel.settings_changed.connect(self.update_precheck)
+        self.protocol_panel.start_requested.connect(self.start_protocol)
+        self.protocol_panel.stop_requested.connect(self.stop_run)
+        self.sessions.refresh_requested.connect(self.refresh_sessions)
+        self.sessions.replay_requested.connect(self.replay)
+        self.sessions.reanalyse_requested.connect(self.reanalyse)
+        self.sessions.export_requested.connect(self.export)
+        self.theory_plant.currentTextChanged.connect(lambda *_: self._invalidate_estimate())
+        self.select_protocol(self.protocol_panel.choice.currentText())
+
+    @staticmethod
+    def _estimators() -> list[str]:
+        try:
+            from labbench.analysis.etfe import ESTIMATORS
+            return list(ESTIMATORS)
+        except ImportError:
+            return ["default"]
+
+    # ----- messages -------------------------------------------------------------------------
+    def show_error(self, text: str) -> None:
+        """A clear message in the window (banner + status bar) and in the event log."""
+        self.banner.setText(text)
+        self.banner.setVisible(True)
+        self.statusBar().showMessage(text, 15000)
+        self.log.add("error", text)
+
+    def info(self, text: str) -> None:
+        self.statusBar().showMessage(text, 8000)
+        self.log.add("info", text)
+
+    # ----- device ---------------------------------------------------------------------------
+    @guarded
+    def connect_device(self, backend: str):
+        from labbench.devices import open_device
+
+        options = {"realtime": self.realtime} if backend == "sim" else {}
+        self.log.add("info", f"connecting to {backend} ...")
+        self.estop.set_latched(False)
+        run_in_background(self.mailbox, "connect", open_device, backend, self.rig, **options)
+
+    @guarded
+    def disconnect_device(self):
+        if self.mode == "running":
+            raise UserError("stop the run before disconnecting")
+        dev, self.device = self.device, None
+        self.device_panel.set_connected(None)
+        if dev is not None:
+            run_in_background(self.mailbox, "disconnect", dev.close)
+
+    @guarded
+    def enable_device(self, on: bool):
+        if self.device is None:
+            raise UserError("connect a device first")
+        fn = self.device.enable if on else self.device.disable
+        run_in_background(self.mailbox, "enable" if on else "disable", fn, 1.0)
+
+    @guarded
+    def emergency_stop(self):
+        """Zero force at once (device latches), stop any run or replay; never raises."""
+        self.stop_event.set()
+        dev = self.device
+        if dev is not None:
+            try:
+                dev.emergency_stop()
+            except Exception as exc:  # noqa: BLE001 - emergency_stop must not raise; say so if it does
+                self.log.add("error", f"device emergency_stop raised: {describe_error(exc)}")
+        self.estop.set_latched(dev is not None)
+        self.device_panel.set_enabled(False)
+        self.log.add("warning", "E-STOP: force zeroed, run stopped" if dev is not None
+                     else "E-STOP: no device connected; any run or replay stopped")
+
+    def _poll_health(self):
+        dev = self.device
+        health = getattr(dev, "health", None)
+        if callable(health):
+            try:
+                self.device_panel.set_health(dict(health()))
+            except Exception as exc:  # noqa: BLE001 - a health read failing is itself news
+                self.device_panel.set_health({"state": f"health read failed: {exc}"})
+        self._update_rate()
+
+    # ----- protocol ---------------------------------------------------------------------------
+    @guarded
+    def select_protocol(self, name: str):
+        from protocols import make_protocol
+
+        self.protocol_panel.set_config(make_protocol(name).config.as_dict())
+        self.update_precheck()
+
+    def make_protocol(self):
+        from protocols import make_protocol
+
+        return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_panel.values())
+
+    def update_precheck(self):
+        """Boundary and margin of the configured VE, shown before Start."""
+        try:
+            from protocols import precheck
+
+            protocol = self.make_protocol()
+            rep = precheck(protocol, protocol.plant(self.rig), self.rig)
+        except UserError as exc:
+            self.protocol_panel.set_precheck(f"pre-check: {exc}", False)
+            return None
+        except Exception as exc:  # noqa: BLE001 - shown beside Start, never raised into Qt
+            self.protocol_panel.set_precheck(f"pre-check failed: {describe_error(exc)}", False)
+            return None
+        self.protocol_panel.set_precheck(precheck_text(rep), bool(rep.get("stable", True)))
+        return protocol, rep
+
+    @guarded
+    def start_protocol(self):
+        if self.mode != "idle":
+            raise UserError(f"a {self.mode} is in progress; stop it first")
+        if self.device is None:
+            backend = self.device_panel.backend.currentText()
+            self._pending_start = True
+            self.connect_device(backend)
+            return
+        checked = self.update_precheck()
+        if checked is None:
+            raise UserError(self.protocol_panel.precheck.text().split(">", 1)[-1].split("<")[0])
+        protocol, _rep = checked
+        if hasattr(protocol, "gui_state"):
+            protocol.gui_state = self.protocol_panel.state()
+        self._reset_view()
+        self.stop_event = threading.Event()
+        self.mode = "running"
+        self.protocol_panel.set_running(True)
+        self.protocol_panel.set_progress(0.0, "starting ...")
+        self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
+        start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event, self.session_dir)
+
+    @guarded
+    def stop_run(self):
+        if self.mode != "idle":
+            self.stop_event.set()
+            self.log.add("info", f"stop requested ({self.mode})")
+
+    def _reset_view(self):
+        self.buffer = StreamBuffer()
+        self.traces.clear_data()
+        self.impedance.clear_data()
+        self._drawn_version = self._estimated_version = -1
+        self._estimator_error_shown = None
+        self._rate = (time.monotonic(), 0)
+
+    # ----- the redraw timer -------------------------------------------------------------------------
+    def _tick(self):
+        try:
+            for kind, payload in self.mailbox.drain():
+                self._handle(kind, payload)
+            if self.buffer.version != self._drawn_version:
+                self.traces.update_from(self.buffer)
+                self._drawn_version = self.buffer.version
+            est = self.estimator.poll()
+            if est is not None:
+                self.impedance.show_estimate(est)
+            err = self.estimator.last_error
+            if err and err != self._estimator_error_shown:
+                self._estimator_error_shown = err
+                self.log.add("warning", err)
+        except Exception as exc:  # noqa: BLE001 - a bad record must not stop the display
+            log.exception("redraw failed")
+            self.show_error(f"display error: {describe_error(exc)}")
+
+    def _handle(self, kind: str, payload):
+        if kind == "record":
+            self.buffer.add(payload)
+            if payload.get("kind") == EVENT:
+                self.log.add("event", f"{payload.get('name')}: {payload.get('reason')}")
+            elif payload.get("kind") == STOP:
+                self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
+        elif kind == "progress":
+            frac, text = payload
+            self.protocol_panel.set_progress(frac, text)
+        elif kind == "warning":
+            self.log.add("warning", payload)
+        elif kind == "session":
+            self.session_path = payload
+            self.log.add("info", f"recording to {payload}")
+        elif kind == "result":
+            tag, value = payload
+            getattr(self, f"_on_{tag}_done", lambda v: None)(value)
+        elif kind == "error":
+            tag, message = payload
+            self._on_error(tag, message)
+
+    def _on_error(self, tag: str, message: str):
+        if tag == "connect":
+            self.device_panel.set_connected(None)
+            self._pending_start = False
+        if tag in ("run", "replay"):
+            self._run_finished()
+        self.show_error(f"{tag}: {message}")
+
+    def _on_connect_done(self, device):
+        self.device = device
+        desc = device.describe()
+        self.device_panel.set_connected(desc)
+        self.log.add("info", f"connected: {desc.name} ({desc.kind})")
+        if self._pending_start:
+            self._pending_start = False
+            self.start_protocol()
+
+    def _on_disconnect_done(self, _):
+        self.log.add("info", "disconnected")
+
+    def _on_enable_done(self, _):
+        self.device_panel.set_enabled(True)
+        self.log.add("info", "device enabled")
+
+    def _on_disable_done(self, _):
+        self.device_panel.set_enabled(False)
+        self.log.add("info", "device disabled")
+
+    def _on_run_done(self, result):
+        self.last_run = result
+        status, reason = getattr(result, "status", "?"), getattr(result, "reason", "")
+        level = "info" if status in ("success", "completed") else "warning"
+        self.log.add(level, f"run ended: {status} {reason}".strip())
+        if status not in ("success", "completed", "aborted"):
+            self.show_error(f"run {status}: {reason}")
+        self._show_timing(getattr(result, "timing", {}) or {})
+        self._show_results(getattr(result, "results", {}) or {})
+        self._run_finished()
+        self.refresh_sessions()
+        if self.session_path:
+            self.sessions.select_path(self.session_path)
+
+    def _on_replay_done(self, status):
+        self.log.add("info", f"replay {status}")
+        self._run_finished()
+
+    def _run_finished(self):
+        self.mode = "idle"
+        self.protocol_panel.set_running(False)
+        self._final_estimate_pending = True
+        self._estimate_tick()
+
+    def _on_reanalyse_done(self, value):
+        est, id_results = value
+        if est is not None:
+            self.impedance.show_estimate(est)
+        if id_results:
+            self._show_id(id_results)
+        self.tabs.setCurrentIndex(0)
+        self.log.add("info", "re-analysis done")
+
+    def _on_export_done(self, paths):
+        self.info("exported: " + ", ".join(str(p) for p in paths))
+
+    def _on_sessions_done(self, summaries):
+        self.sessions.set_sessions(summaries)
+
+    # ----- live estimate -------------------------------------------------------------------------
+    def _invalidate_estimate(self):
+        self._estimated_version = -1
+        self._estimate_tick()
+
+    def _estimate_tick(self):
+        buf = self.buffer
+        if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
+            return
+        ve, plant, meta = self._estimate_inputs(buf)
+        if self.estimator.submit(buf.snapshot(), meta, ve, plant, **self._etfe_options(buf)):
+            self._estimated_version = buf.version
+
+    def _etfe_options(self, buf) -> dict:
+        proto = buf.start.get("protocol") if isinstance(buf.start.get("protocol"), dict) else {}
+        opts = {}
+        if isinstance(proto.get("window"), int):
+            opts["window"] = proto["window"]
+        if proto.get("estimator"):
+            opts["estimator"] = proto["estimator"]
+        return opts
+
+    def _estimate_inputs(self, buf):
+        from labbench.session import analysis_meta
+
+        meta = analysis_meta(buf.start, buf.descriptor or {})
+        ve = ve_from_meta(meta)
+        plant = None
+        if self.theory_plant.currentIndex() == 1:
+            proto = buf.start.get("protocol") if isinstance(buf.start.get("protocol"), dict) else {}
+            m, b = proto.get("plant_m_kg"), proto.get("plant_b")
+            nominal = self.rig.nominal_plant
+            plant = Plant(m if m is not None else nominal.m, b if b is not None else nominal.b)
+        return ve, plant, meta
+
+    # ----- results -------------------------------------------------------------------------
+    def _show_timing(self, timing: dict):
+        def ms(key):
+            v = timing.get(key)
+            return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
+
+        self.status["period p99"].setText(f"period p99: {ms('p99_s')}")
+        self.status["overruns"].setText(f"overruns: {timing.get('overruns', '-')}")
+        if "bus_load" in timing:
+            self.status["bus load"].setText(f"bus load: {100 * timing['bus_load']:.0f} %")
+
+    def _update_rate(self):
+        now = time.monotonic()
+        t0, n0 = self._rate
+        if now - t0 >= 1.0:
+            rate = (self.buffer.n - n0) / (now - t0)
+            self.status["loop rate"].setText(f"loop rate: {rate:.0f} Hz")
+            self._rate = (now, self.buffer.n)
+        self.status["mode"].setText(f"mode: {self.mode}")
+
+    def _show_results(self, results: dict):
+        ident = results.get("identification") or results.get("identify")
+        if isinstance(ident, dict):
+            self._show_id(ident)
+
+    def _show_id(self, ident: dict):
+        """``ident``: method -> IdResult dict, or one IdResult dict; optional t/f arrays inside."""
+        per_method = {k: v for k, v in ident.items() if isinstance(v, dict)} or {"l2": ident}
+        chosen = next((v.get("model") for v in per_method.values() if v.get("model")), "?")
+        first = next(iter(per_method.values()))
+        self.id_view.show_results(per_method, f"model chosen: {chosen}",
+                                  first.get("t"), first.get("f_measured"), first.get("f_model"))
+
+    # ----- sessions -------------------------------------------------------------------------
+    @guarded
+    def refresh_sessions(self):
+        from labbench.session import list_sessions
+
+        d = self.sessions.directory
+        if not d.exists():
+            self.sessions.set_sessions([])
+            return
+        run_in_background(self.mailbox, "sessions", list_sessions, d)
+
+    @guarded
+    def replay(self, path: str, speed):
+        if self.mode != "idle":
+            raise UserError(f"a {self.mode} is in progress; stop it first")
+        from labbench.session import looks_like_session
+
+        if not looks_like_session(path):
+            raise UserError(f"not a labbench session file: {path}")
+        self._reset_view()
+        self.stop_event = threading.Event()
+        self.mode = "replay"
+        self.tabs.setCurrentIndex(0)
+        self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
+        start_replay(self.mailbox, path, speed, self.stop_event)
+
+    @guarded
+    def reanalyse(self, path: str, estimator: str):
+        self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
+        plant = None
+        if self.theory_plant.currentIndex() == 1:
+            plant = self.rig.nominal_plant
+        run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
+                          None if estimator == "default" else estimator, plant)
+
+    @guarded
+    def export(self, path: str, fmt: str):
+        out_dir = self.session_dir / "exports"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        run_in_background(self.mailbox, "export", export_session, path, fmt, out_dir)
+
+    # ----- shutdown -------------------------------------------------------------------------
+    def closeEvent(self, event):
+        self.stop_event.set()
+        for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
+            t.stop()
+        self.estimator.shutdown()
+        dev, self.device = self.device, None
+        if dev is not None:
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001 - closing anyway
+                log.exception("device close failed")
+        super().closeEvent(event)
+
+
+def ve_from_meta(meta: dict) -> VirtualEnvironment | None:
+    """The run's VE from analysis metadata (``labbench.session.analysis_meta``)."""
+    if "ve" not in meta or not meta.get("fs"):
+        return None
+    w0 = meta.get("w0")
+    return VirtualEnvironment(meta["ve"], meta.get("K", 0.0), meta.get("B", 0.0),
+                              math.inf if w0 is None else w0, 1.0 / meta["fs"], meta.get("td", 0.0))
+
+
+def precheck_text(rep: dict) -> str:
+    """One line per checked VE: stable or not, spectral radius, K_max and margin."""
+    lines = []
+    for c in rep.get("checks", []):
+        ve = c["ve"]
+        km = c.get("k_max")
+        margin = (f", margin K_max/K = {km / ve['K']:.1f}x" if km and ve.get("K") else "")
+        bound = f"K_max = {km:.4g} N/m" if km else "no K bound"
+        lines.append(f"{'stable' if c['stable'] else 'UNSTABLE'} {ve['kind']}: spectral radius "
+                     f"{c['spectral_radius']:.4f}; {bound}{margin}")
+    return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
+
+
+def reanalyse_session(path: str, estimator: str | None, plant: Plant | None):
+    """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker."""
+    from labbench.session import load_analysis_arrays
+
+    arrays = load_analysis_arrays(path)
+    from labbench.session import load_session
+
+    _start, _desc, ch, _ev, _stop, _problem = load_session(path)
+    meta = arrays["meta"]
+    data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
+            "command": ch["command"]}
+    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator)
+    return est, identify_all(data, meta)
+
+
+def identify_all(data: dict, meta: dict) -> dict:
+    """l2 and l1 fits of the net force on the device (the ``command`` channel)."""
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.analysis.identify import identify
+
+    rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
+    out = {}
+    for method in ("l2", "l1"):
+        out[method] = identify(rec, model="auto", method=method).as_dict()
+    return out
+
+
+def export_session(path: str, fmt: str, out_dir: Path) -> list[Path]:
+    stem = Path(path).stem
+    if fmt == "hdf5":
+        from labbench.export import export_hdf5
+
+        return [export_hdf5(path, out_dir / f"{stem}.h5")]
+    if fmt == "csv":
+        from labbench.export import export_csv
+
+        return [export_csv(path, out_dir / f"{stem}.csv")]
+    if fmt == "report":
+        from labbench.report import write_report
+
+        return list(write_report(path, out_dir / stem))
+    raise UserError(f"unknown export format {fmt!r}")

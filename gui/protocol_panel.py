@@ -1,0 +1,161 @@
+"""Protocol panel: choice of protocol, its settings in a ParameterTree, pre-check, Start/Stop, progress.
+
+The tree is built from the protocol's own validated config (``config.as_dict()``
+of ``protocols.make_protocol(name)``), so new settings appear without GUI
+changes; units and limits come from the name suffix convention of the project
+(``_s``, ``_hz``, ``_n``, ``_m``...) and from the VE's fields. The protocol
+validates the values itself when Start is pressed.
+"""
+from __future__ import annotations
+
+import math
+
+from pyqtgraph.parametertree import Parameter, ParameterTree
+from PySide6 import QtCore, QtWidgets
+
+from labbench.errors import UserError
+from labbench.ve import VE_KINDS
+
+# name or suffix -> (unit, lower limit); the protocol itself enforces the real bounds
+UNITS = {
+    "K": ("N/m", 0.0), "B": ("N s/m", 0.0), "w0": ("rad/s", 1e-3), "T": ("s", 1e-6), "td": ("s", 0.0),
+    "m": ("kg", 1e-6), "b": ("N s/m", 0.0), "plant_b": ("N s/m", 0.0), "_kg": ("kg", 0.0),
+    "_s": ("s", 0.0), "_hz": ("Hz", 0.0), "_n": ("N", 0.0), "_m": ("m", 0.0), "_j": ("J", 0.0),
+    "_rad_s": ("rad/s", 0.0), "_n_per_s": ("N/s", 0.0), "_m_s": ("m/s", 0.0),
+}
+CHOICES = {"kind": list(VE_KINDS), "ve": list(VE_KINDS), "sweep": ["log", "linear"]}
+
+
+def _unit(name: str):
+    if name in UNITS:
+        return UNITS[name]
+    for suffix in sorted((k for k in UNITS if k.startswith("_")), key=len, reverse=True):
+        if name.endswith(suffix):
+            return UNITS[suffix]
+    return ("", None)
+
+
+def params_from_config(config: dict) -> list[dict]:
+    """ParameterTree children for a (nested) config dict of numbers, bools, strings and lists."""
+    children = []
+    for name, value in config.items():
+        unit, low = _unit(name)
+        item = {"name": name, "title": f"{name} [{unit}]" if unit else name}
+        if isinstance(value, dict):
+            item.update(type="group", children=params_from_config(value))
+        elif isinstance(value, bool):
+            item.update(type="bool", value=value)
+        elif isinstance(value, int):
+            item.update(type="int", value=value, limits=(low if low is not None else -2**31, 2**31))
+        elif isinstance(value, float):
+            item.update(type="float", value=value, dec=True, step=1.0, minStep=1e-9,
+                        limits=(low if low is not None else -math.inf, math.inf))
+        elif value is None:  # optional number: empty text = the protocol's default / none
+            item.update(type="str", value="", optional_number=True,
+                        tip="empty: not set (default, or no filter for w0)")
+            item["title"] += " (optional)"
+        elif isinstance(value, str) and name in CHOICES:
+            item.update(type="list", limits=CHOICES[name], value=value)
+        elif isinstance(value, str):
+            item.update(type="str", value=value)
+        elif isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) for v in value):
+            item.update(type="str", value=", ".join(f"{v:g}" for v in value), list_of_numbers=True)
+        else:
+            continue  # not editable here (the protocol keeps its default)
+        children.append(item)
+    return children
+
+
+def values_of(param: Parameter) -> dict:
+    """Nested plain values of a tree built by ``params_from_config`` (lists parsed back)."""
+    out = {}
+    for child in param.children():
+        if child.type() == "group":
+            out[child.name()] = values_of(child)
+        elif child.opts.get("list_of_numbers"):
+            out[child.name()] = [_number(child.name(), v) for v in str(child.value()).split(",")
+                                 if v.strip()]
+        elif child.opts.get("optional_number"):
+            text = str(child.value()).strip()
+            out[child.name()] = _number(child.name(), text) if text else None
+        else:
+            out[child.name()] = child.value()
+    return out
+
+
+def _number(name: str, text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise UserError(f"{name}: {text!r} is not a number") from None
+
+
+class ProtocolPanel(QtWidgets.QGroupBox):
+    start_requested = QtCore.Signal()
+    stop_requested = QtCore.Signal()
+    settings_changed = QtCore.Signal()
+    protocol_changed = QtCore.Signal(str)
+
+    def __init__(self, names, parent=None):
+        super().__init__("Protocol", parent)
+        self.choice = QtWidgets.QComboBox()
+        self.choice.addItems(list(names))
+        self.tree = ParameterTree(showHeader=False)
+        self.tree.setMinimumHeight(220)
+        self.params = Parameter.create(name="settings", type="group", children=[])
+        self.tree.setParameters(self.params, showTop=False)
+        self.precheck = QtWidgets.QLabel("pre-check: -")
+        self.precheck.setWordWrap(True)
+        self.precheck.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.start_button = QtWidgets.QPushButton("Start")
+        self.stop_button = QtWidgets.QPushButton("Stop")
+        self.stop_button.setEnabled(False)
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.progress.setTextVisible(False)
+        self.time_left = QtWidgets.QLabel("")
+
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.addWidget(self.choice)
+        lay.addWidget(self.tree, 1)
+        lay.addWidget(self.precheck)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(self.start_button)
+        row.addWidget(self.stop_button)
+        lay.addLayout(row)
+        lay.addWidget(self.progress)
+        lay.addWidget(self.time_left)
+
+        self.choice.currentTextChanged.connect(self.protocol_changed)
+        self.start_button.clicked.connect(self.start_requested)
+        self.stop_button.clicked.connect(self.stop_requested)
+
+    def set_config(self, config: dict) -> None:
+        """Rebuild the tree for a protocol's default config."""
+        self.params = Parameter.create(name="settings", type="group", children=params_from_config(config))
+        self.tree.setParameters(self.params, showTop=False)
+        self.params.sigTreeStateChanged.connect(lambda *a: self.settings_changed.emit())
+
+    def values(self) -> dict:
+        return values_of(self.params)
+
+    def state(self) -> dict:
+        """The tree's ``saveState()`` (goes into the run's start record)."""
+        return self.params.saveState(filter="user")
+
+    def set_value(self, path: tuple[str, ...], value) -> None:
+        self.params.child(*path).setValue(value)
+
+    def set_precheck(self, text: str, ok: bool | None) -> None:
+        colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]
+        self.precheck.setText(f'<span style="color:{colour}">{text}</span>')
+
+    def set_running(self, running: bool) -> None:
+        self.start_button.setEnabled(not running)
+        self.stop_button.setEnabled(running)
+        self.choice.setEnabled(not running)
+        self.tree.setEnabled(not running)
+
+    def set_progress(self, frac: float, text: str = "") -> None:
+        self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))
+        self.time_left.setText(text)

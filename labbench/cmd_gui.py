@@ -1,0 +1,49 @@
+"""``labbench gui``: the desktop application (Qt is imported only when the command runs)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from labbench.errors import UserError
+
+DEFAULT_SESSIONS = "sessions"
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("gui", help="open the desktop application (simulated rig by default)")
+    p.add_argument("--rig", metavar="FILE", help="rig file (TOML); a [canopen] or [serial] table "
+                   "selects that driver, default: the simulated rig")
+    p.add_argument("--sessions", metavar="DIR", default=DEFAULT_SESSIONS,
+                   help=f"folder for recorded sessions (default: ./{DEFAULT_SESSIONS})")
+    p.add_argument("--demo", action="store_true", help="run a short simulated ETFE at once")
+    p.add_argument("--screenshot", metavar="FILE.png",
+                   help="save a screenshot once the result is visible, then exit "
+                        "(with --demo: after the live estimate of the whole run shows)")
+    p.add_argument("--timeout", type=float, default=180.0, metavar="S",
+                   help="with --screenshot: give up after S seconds (exit 1)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from labbench.rig import load_rig
+
+    rig = load_rig(args.rig)
+    sessions = Path(args.sessions)
+    try:
+        sessions.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot use session folder {sessions}: {exc}") from None
+    shot = Path(args.screenshot) if args.screenshot else None
+    if shot is not None and shot.suffix.lower() != ".png":
+        raise UserError(f"--screenshot must name a .png file, got {shot}")
+    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+                    or os.environ.get("QT_QPA_PLATFORM"))
+    if headless and shot is None:
+        raise UserError("no display found (DISPLAY unset); run under a desktop, or use --screenshot")
+    if headless:
+        os.environ["QT_QPA_PLATFORM"] = "offscreen"  # renders without a display
+    try:
+        from gui.app import run_app
+    except ImportError as exc:
+        raise UserError(f"the GUI needs PySide6 and pyqtgraph: {exc}") from None
+    return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout)
