@@ -51,7 +51,7 @@ class SafetyConfig:
     """
 
     force_limit_n: float = 5.0
-    force_rate_limit_n_per_s: float = 5000.0
+    force_rate_limit_n_per_s: float = 10000.0
     velocity_limit_m_s: float = 2.0
     position_limits_m: tuple = (-0.1, 0.1)
     energy_limit_j: float = 0.05

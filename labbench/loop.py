@@ -1,0 +1,366 @@
+"""The one haptic loop chain, used by the simulator, the real drivers and replay.
+
+Per sample k (issue 2's exact sampled-data model, then the safety envelope):
+
+    v[k]     = a v[k-1] + (1 - a) (x[k] - x[k-1]) / T,   a = exp(-w0 T)
+    f_ve[k]  = K x[k] + B v[k]                           (applied during step k + n, td = n T)
+    u[k]     = f_exo[k] - f_ve[k - n]                    (plant m x'' + b x' = f_exo - f_ve)
+    command  = safety(u[k])
+
+Safety, in this order: position window and velocity limit (trip: force zero at
+once), enable gate (the device is enabled only at a sample whose |u| is at most
+``enable_force_threshold_n``; before that the command and the applied
+excitation are zero), force clamp, force-rate limit, energy observer (fades the
+force to zero over ``energy_fade_s``, then trips). ``run_loop`` adds the watchdog
+(no sample within ``watchdog_s``, or a paced loop period longer than it: force
+zero, trip) and the stop request.
+
+Energy observer: a passivity observer (Hannaford & Ryu, IEEE TRO 18(1), 2002) of
+the VE port, in discrete form. Over step k-1 the display pushed the handle with
+``-f_d`` (``f_d`` = excitation applied - command) through ``dx = x[k] - x[k-1]``.
+The energy it generated beyond what a spring K legitimately stores and
+returns, less what the device's nominal damping dissipates, is accumulated:
+
+    E[k] = max(0, E[k-1] - f_d dx + K (x[k]^2 - x[k-1]^2) / 2 - b_nom dx^2 / T)
+
+Flooring at zero stops a long passive stretch from banking credit against a
+later instability. E grows steadily exactly when the rendered spring's delay
+loss K (T/2 + td) outweighs the damping b_nom (the paper's stability condition).
+
+Flags: ``labbench.safety`` documents the bits of the "flags" channel.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from itertools import chain
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from labbench import records
+from labbench.device import DeviceFault
+from labbench.errors import UserError
+from labbench.safety import (CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED,
+                             SafetyConfig)
+from labbench.ve import VirtualEnvironment
+
+__all__ = ["HapticLoop", "LoopOutcome", "SafetyConfig", "run_loop"]
+
+
+# Order of the values in a row returned by ``HapticLoop.advance`` = the page channels.
+ROW = ("t", "seq", "position", "velocity", "ve_force", "excitation", "command", "flags")
+if tuple(records.CHANNELS) != ROW:
+    raise ImportError("labbench.records.CHANNELS changed: update labbench.loop.ROW")
+
+
+class HapticLoop:
+    """Velocity estimate -> VE force -> delay line -> + excitation -> safety -> command.
+
+    ``step(seq, t_s, position_m, excitation_n)`` returns the force to command for
+    step k. ``advance`` takes the same arguments and returns the whole row
+    ``(t, seq, position, velocity, ve_force, excitation, command, flags)``
+    (``ROW``; ``excitation`` as applied during step k: zero while gated or
+    tripped). The attributes ``velocity``, ``ve_force``, ``excitation``,
+    ``command``, ``flags``, ``energy_j``, ``energy_max_j``, ``gate_open``,
+    ``fading``, ``trip_name`` and ``trip_reason`` read the state after the last
+    sample. The chain state lives in a closure: cell access is cheaper than
+    attribute access, and this runs 1000 times a second (300 000 in the simulator).
+    """
+
+    def __init__(self, ve: VirtualEnvironment, safety: SafetyConfig):
+        self.ve, self.safety = ve, safety
+        self.advance, self.trip, self._state = _chain(ve, safety)
+
+    def step(self, seq: int, t_s: float, position_m: float, excitation_n: float) -> float:
+        """One sample through the chain; returns the force to command for step k."""
+        return self.advance(seq, t_s, position_m, excitation_n)[6]
+
+    def __getattr__(self, name):
+        state = self.__dict__["_state"]()
+        if name in state:
+            return state[name]
+        raise AttributeError(name)
+
+
+def _chain(ve: VirtualEnvironment, s: SafetyConfig):
+    """Closures (advance, trip, state) of one loop; see HapticLoop and the module docstring."""
+    a = ve.filter_pole
+    c = (1.0 - a) / ve.T
+    K, B = ve.K, ve.B
+    line = [0.0] * (ve.delay_samples + 1)  # ring holding f_ve[k-n .. k]
+    L = len(line)
+    lo, hi = s.position_limits_m
+    vmax, fmax = s.velocity_limit_m_s, s.force_limit_n
+    dmax = s.force_rate_limit_n_per_s * ve.T
+    emax, gate_n = s.energy_limit_j, s.enable_force_threshold_n
+    dgain = ve.T / s.energy_fade_s
+    bnom_T = s.nominal_damping_ns_m / ve.T
+    j = 0
+    xp = seqp = None  # x[k-1], seq[k-1]; None before the first sample
+    v = f = e_app = u_prev = 0.0
+    flags_last = 0
+    energy = energy_max = 0.0
+    gate_open = fading = False
+    gain = 1.0
+    trip_name, trip_reason = "", None
+
+    def trip(name: str, reason: str) -> None:
+        """Latch a trip (event ``name``, one-line ``reason``): zero force from the next step on."""
+        nonlocal trip_name, trip_reason
+        if trip_reason is None:
+            trip_name, trip_reason = name, reason
+
+    def state() -> dict:
+        return {"velocity": v, "ve_force": f, "excitation": e_app, "command": u_prev,
+                "flags": flags_last, "energy_j": energy, "energy_max_j": energy_max,
+                "gate_open": gate_open, "fading": fading, "trip_name": trip_name,
+                "trip_reason": trip_reason}
+
+    def advance(seq, t_s, x, exc):
+        nonlocal j, xp, seqp, v, f, e_app, u_prev, flags_last, energy, energy_max
+        nonlocal gate_open, fading, gain
+        if xp is None:
+            xp = x
+        dx = x - xp
+        flags = SEQ_GAP if seqp is not None and seq != seqp + 1 else 0
+        seqp = seq
+        v = a * v + c * dx
+        f = K * x + B * v
+        line[j] = f
+        j += 1
+        if j == L:
+            j = 0
+        # energy observer over the step that just ended (force applied then, dx)
+        e = energy - (e_app - u_prev) * dx + 0.5 * K * (x * x - xp * xp) - bnom_T * dx * dx
+        xp = x
+        if e <= 0.0:
+            e = 0.0
+        elif e > energy_max:
+            energy_max = e
+            if e > emax:
+                fading = True
+        energy = e
+
+        u = exc - line[j]  # f_exo[k] - f_ve[k-n]
+        if not lo <= x <= hi:
+            trip("position_limit", f"position {x:.4g} m outside the window [{lo:g}, {hi:g}] m")
+        elif not -vmax <= v <= vmax:
+            trip("velocity_limit", f"velocity estimate {v:.4g} m/s beyond the limit {vmax:g} m/s")
+        if trip_reason is not None:
+            e_app = u_prev = 0.0
+            flags_last = flags | TRIPPED
+            return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
+        if not gate_open:
+            if -gate_n <= u <= gate_n:
+                gate_open = True
+            else:
+                e_app = u_prev = 0.0
+                flags_last = flags | GATED
+                return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
+        if u > fmax:
+            u, flags = fmax, flags | CLAMP
+        elif u < -fmax:
+            u, flags = -fmax, flags | CLAMP
+        du = u - u_prev
+        if du > dmax:
+            u, flags = u_prev + dmax, flags | RATE
+        elif du < -dmax:
+            u, flags = u_prev - dmax, flags | RATE
+        if fading:
+            gain -= dgain
+            flags |= FADE
+            if gain <= 0.0:
+                trip("energy", f"energy observer: {energy_max:.4g} J generated > {emax:g} J;"
+                               " force faded to zero")
+                e_app = u_prev = 0.0
+                flags_last = flags | TRIPPED
+                return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
+            u *= gain
+        e_app = exc
+        u_prev = u
+        flags_last = flags
+        return (t_s, seq, x, v, f, exc, u, flags)
+
+    return advance, trip, state
+
+
+@dataclass
+class LoopOutcome:
+    """How a ``run_loop`` ended.
+
+    ``status``: "completed", "tripped" (a safety trip or the watchdog zeroed the
+    force), "aborted" (stop requested) or "fault" (the device failed).
+    ``timing``: loop period p50_s, p99_s, max_s, overruns (periods > 1.5 T, paced
+    devices only), paced, wall_s, realtime_factor. ``stats``: counts of samples
+    clamped / rate-limited / with sequence gaps, peak observer energy.
+    """
+
+    status: str
+    reason: str
+    n_done: int
+    timing: dict
+    stats: dict = field(default_factory=dict)
+
+
+_LOUD = CLAMP | RATE | SEQ_GAP | DEVICE | FADE | TRIPPED  # bits that may need an event
+
+
+def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Consumer,
+             stop: threading.Event | None = None,
+             progress: Callable[[int, int], None] | None = None,
+             page_size: int = 100, first_page: int = 0) -> LoopOutcome:
+    """Run ``len(excitation)`` samples of ``loop`` on ``device``; emit pages and events.
+
+    The device is enabled here, at the sample where the enable gate opens, and
+    is commanded to zero and disabled on every way out. ``stop`` may be set from
+    any thread (GUI, Ctrl-C): the loop commands zero at its next sample and
+    returns "aborted"; for an emergency stop call ``device.emergency_stop()``
+    first, which zeroes the force at the device at once. Pages are numbered from
+    ``first_page`` (several runs can share one stream). Devices may offer
+    ``read_raw(timeout) -> (seq, t_s, position_m, flags)`` as a fast form of
+    ``read``.
+    """
+    desc = device.describe()
+    T = loop.ve.T
+    if abs(desc.sample_time_s - T) > 1e-12 * T:
+        raise UserError(f"VE sample time {T} s differs from the device's {desc.sample_time_s} s")
+    if not 1 <= page_size <= 100_000:
+        raise UserError(f"page_size must be 1..100000, got {page_size}")
+    exc = np.asarray(excitation, dtype=float).tolist()
+    n = len(exc)
+    stop = stop or threading.Event()
+    paced = bool(desc.details.get("paced", True))
+    wd = loop.safety.watchdog_s
+    late = 1.5 * T if paced else float("inf")
+    too_late = wd if paced else float("inf")
+
+    raw = getattr(device, "read_raw", None)
+    if raw is None:
+        def raw(timeout, _read=device.read):
+            s = _read(timeout)
+            return s.seq, s.t_s, s.position_m, s.flags
+
+    rows: list[tuple] = []  # one ROW per sample of the page being filled
+    stamps = [0.0] * (n + 1)  # wall time at each sample's arrival (loop period = difference)
+    counts = {"clamp": 0, "rate": 0, "seq_gap": 0, "device_flags": 0, "overrun": 0}
+    last_event_t: dict[str, float] = {}
+    pages = [first_page, 0]  # next page index, rows emitted before the current ``rows``
+
+    def event(t_s, name, reason, **extra):
+        emit(records.event_record(t_s, name, reason, **extra))
+
+    def flush():
+        m = len(rows)
+        if not m:
+            return
+        block = np.fromiter(chain.from_iterable(rows), float, m * len(ROW)).reshape(m, len(ROW))
+        rows.clear()  # short-lived rows keep the garbage collector's work flat
+        data = {name: block[:, c].copy() for c, name in enumerate(ROW)}
+        data["seq"] = data["seq"].astype(np.int64)
+        data["flags"] = data["flags"].astype(np.int64)
+        emit(records.page_record(pages[0], data))
+        pages[0] += 1
+        pages[1] += m
+        if progress is not None:
+            progress(pages[1], n)
+
+    def noisy(i, t_s, seq, flags):
+        """Slow path: count saturations, emit events (clamp and rate at most once a second)."""
+        for bit, key, name in ((CLAMP, "clamp", "force clamp engaged"),
+                               (RATE, "rate", "force-rate limit engaged")):
+            if flags & bit:
+                counts[key] += 1
+                if t_s - last_event_t.get(key, -1e300) >= 1.0:
+                    last_event_t[key] = t_s
+                    event(t_s, key, f"{name} (sample {i}, {counts[key]} so far)")
+        if flags & SEQ_GAP:
+            counts["seq_gap"] += 1
+            event(t_s, "seq_gap", f"device skipped samples before seq {seq}")
+        if flags & DEVICE:
+            counts["device_flags"] += 1
+        if flags & FADE and "fade" not in last_event_t:
+            last_event_t["fade"] = t_s
+            event(t_s, "energy", f"energy observer over {loop.safety.energy_limit_j:g} J:"
+                                 " fading force to zero", energy_j=loop.energy_j)
+
+    clock = time.perf_counter
+    advance, command, stop_set, keep = loop.advance, device.command, stop.is_set, rows.append
+    enabled = False
+    status, reason, i = "completed", "", 0
+    t_s = 0.0
+    left = page_size
+    stamps[0] = prev = clock()
+    try:
+        for i in range(n):
+            if stop_set():
+                command(0.0)
+                status, reason = "aborted", "stop requested"
+                event(t_s, "stop", reason)
+                break
+            try:
+                seq, t_s, x, dflags = raw(wd)
+            except TimeoutError:
+                command(0.0)
+                status, reason = "tripped", f"watchdog: no sample within {wd:g} s"
+                loop.trip("watchdog", reason)
+                event(t_s, "watchdog", reason)
+                break
+            now = clock()
+            stamps[i + 1] = now
+            extra = dflags and DEVICE
+            if now - prev > late:
+                extra |= OVERRUN
+                counts["overrun"] += 1
+                if now - prev > too_late:
+                    loop.trip("watchdog", f"watchdog: loop period {(now - prev) * 1e3:.3g} ms"
+                                          f" > {wd * 1e3:g} ms")
+            prev = now
+            row = advance(seq, t_s, x, exc[i])
+            flags = row[7]
+            if not enabled and not flags & (GATED | TRIPPED):
+                device.enable(timeout=wd)
+                enabled = True
+                event(t_s, "enabled", f"enable gate opened at |force| = {abs(row[6]):.3g} N")
+            command(row[6])
+            if extra:
+                flags |= extra
+                row = row[:7] + (flags,)
+            keep(row)
+            if flags & _LOUD:
+                noisy(i, t_s, seq, flags)
+                if flags & TRIPPED:
+                    status, reason = "tripped", loop.trip_reason
+                    event(t_s, loop.trip_name, reason)
+                    break
+            left -= 1
+            if not left:
+                flush()
+                left = page_size
+    except DeviceFault as exc_:
+        status, reason = "fault", f"device fault: {exc_}"
+        _safe(device.emergency_stop)
+        event(t_s, "device_fault", reason)
+    finally:
+        _safe(lambda: device.command(0.0))
+        _safe(lambda: device.disable(timeout=wd))
+    wall = clock() - stamps[0]
+    flush()
+    done = pages[1]
+    p = np.diff(stamps[1:done + 1]) if done > 1 else np.zeros(1)
+    timing = {
+        "p50_s": float(np.percentile(p, 50)), "p99_s": float(np.percentile(p, 99)),
+        "max_s": float(p.max()), "overruns": counts["overrun"], "paced": paced,
+        "wall_s": wall, "realtime_factor": done * T / wall if wall > 0 else float("inf"),
+    }
+    stats = {**counts, "energy_max_j": loop.energy_max_j, "pages": pages[0] - first_page}
+    return LoopOutcome(status, reason or "", done, timing, stats)
+
+
+def _safe(call) -> None:
+    """Best effort on the way out: a failing device must not mask the first error."""
+    try:
+        call()
+    except Exception:  # noqa: BLE001 - shutting down; the outcome already says what failed
+        pass

@@ -1,0 +1,214 @@
+"""Simulated rig: a mass-damper handle behind the ``labbench.device.Device`` interface.
+
+Timing is that of the exact sampled-data model (DESIGN.md, issue 2): ``read()``
+number k returns x[k], the position at the start of step k; the force given to
+``command()`` after it is held over step k; the next ``read()`` advances the
+plant by exactly one T (``sim_backend.plant.zoh_matrices``) and returns x[k+1].
+With no friction, noise, quantisation or extra delay a run through
+``labbench.loop`` therefore equals the sampled model to rounding.
+
+Options (rig table ``[sim]``, overridden by keyword options of ``open_sim``):
+``m`` [kg], ``b`` [N s/m], ``coulomb_n`` [N] Coulomb friction (stick/slip solved
+inside the step, ``sim_backend.friction``), ``quantize`` (report positions in
+encoder counts of ``rig.metres_per_count``), ``force_noise_n`` [N] std of white
+noise added to the applied force, ``extra_delay_samples`` whole samples of
+actuator latency, ``x0_m`` / ``v0_m_s`` initial state.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from labbench.device import DeviceDescription, DeviceFault, Sample
+from labbench.errors import UserError
+from sim_backend.friction import reversing_step
+from sim_backend.plant import zoh_matrices
+
+# name -> (default, check, what the check demands)
+_OPTIONS = {
+    "m": (0.094, lambda v: _num(v) and v > 0, "a positive number [kg]"),
+    "b": (0.10, lambda v: _num(v) and v >= 0, "a number >= 0 [N s/m]"),
+    "coulomb_n": (0.0, lambda v: _num(v) and v >= 0, "a number >= 0 [N]"),
+    "quantize": (False, lambda v: isinstance(v, bool), "true or false"),
+    "force_noise_n": (0.0, lambda v: _num(v) and v >= 0, "a number >= 0 [N]"),
+    "extra_delay_samples": (0, lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 1000,
+                            "a whole number of samples in 0..1000"),
+    "x0_m": (0.0, lambda v: _num(v), "a number [m]"),
+    "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
+}
+_NOISE_BLOCK = 4096
+
+
+def _num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def sim_options(rig, **options) -> dict:
+    """Validated simulator settings: defaults < ``rig.section("sim")`` < ``options``."""
+    settings = {name: spec[0] for name, spec in _OPTIONS.items()}
+    for origin, table in ((f"{rig.source}: [sim]", rig.section("sim")), ("sim option", options)):
+        for name, value in table.items():
+            if name not in _OPTIONS:
+                raise UserError(f"{origin} {name}: unknown (known: {', '.join(_OPTIONS)})")
+            if not _OPTIONS[name][1](value):
+                raise UserError(f"{origin} {name} must be {_OPTIONS[name][2]}, got {value!r}")
+            settings[name] = value
+    for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s"):
+        settings[name] = float(settings[name])
+    return settings
+
+
+def open_sim(rig, realtime: bool = False, seed: int | None = None, **options) -> "SimDevice":
+    """Open the simulated device for ``rig`` (registered as "sim" in ``labbench.devices``)."""
+    return SimDevice(rig, realtime=realtime, seed=seed, **options)
+
+
+class SimDevice:
+    """Simulated 1-DOF handle; see the module docstring for timing and options.
+
+    ``read_raw(timeout)`` is the allocation-free form of ``read``: it returns the
+    tuple ``(seq, t_s, position_m, flags)``; ``labbench.loop.run_loop`` uses it
+    when a device offers it. ``emergency_stop()`` may be called from any thread:
+    the force applied from the step under way on is zero, and stays zero.
+    """
+
+    def __init__(self, rig, realtime: bool = False, seed: int | None = None, **options):
+        self.options = sim_options(rig, **options)
+        self.rig, self.realtime, self.seed = rig, bool(realtime), seed
+        o = self.options
+        self.T = T = rig.sample_time_s
+        Ad, Bd = zoh_matrices(o["m"], o["b"], T)
+        self._coef = (*Ad.ravel().tolist(), *Bd.tolist())  # a11, a12, a21, a22, b1, b2
+        self._q = rig.metres_per_count if o["quantize"] else 0.0
+        self._fc = o["coulomb_n"]
+        self._noise_std = o["force_noise_n"]
+        self._rng = np.random.default_rng(seed)
+        self._noise: list[float] = []
+        self._noise_i = 0
+        self._delay = [0.0] * o["extra_delay_samples"]
+        self._delay_i = 0
+        self.x, self.v = o["x0_m"], o["v0_m_s"]  # true state at the start of the current step
+        self.applied_n = 0.0  # force applied over the last completed step (after noise/gating)
+        self._u = 0.0
+        self._k = -1  # index of the last sample returned
+        self._t0 = None
+        self.enabled = False
+        self.estopped = False
+        self._active = False  # enabled and not emergency-stopped: read at apply time
+        self.closed = False
+
+    # -- Device protocol -------------------------------------------------------------
+    def describe(self) -> DeviceDescription:
+        return DeviceDescription(
+            kind="sim", name=self.rig.name, sample_time_s=self.T,
+            force_limit_n=self.rig.force_limit_n,
+            position_limits_m=tuple(self.rig.position_limits_m),
+            details={**self.options, "metres_per_count": self.rig.metres_per_count,
+                     "paced": self.realtime, "seed": self.seed},
+        )
+
+    def enable(self, timeout: float = 1.0) -> None:
+        self._check_open()
+        if self.estopped:
+            raise DeviceFault("emergency stop latched: close and reopen the device")
+        self.enabled = self._active = True
+
+    def disable(self, timeout: float = 1.0) -> None:
+        self.enabled = self._active = False
+        self._u = 0.0
+
+    def emergency_stop(self) -> None:
+        self._active = False
+        self.estopped = True
+        self._u = 0.0
+
+    def command(self, force_n: float) -> None:
+        self._u = force_n
+
+    def read(self, timeout: float) -> Sample:
+        return Sample(*self.read_raw(timeout))
+
+    def read_raw(self, timeout: float) -> tuple:
+        """Next sample as ``(seq, t_s, position_m, flags)``; advances the plant one T."""
+        if self.closed:
+            raise DeviceFault("simulated device is closed")
+        k = self._k + 1
+        if self.realtime:
+            self._pace(k, timeout)
+        if k:
+            self._advance()
+        self._k = k
+        x = self.x
+        q = self._q
+        if q:
+            x = math.floor(x / q + 0.5) * q
+        return k, k * self.T, x, 0
+
+    def close(self) -> None:
+        self.emergency_stop()
+        self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals -------------------------------------------------------------------
+    def _advance(self) -> None:
+        """Hold the applied force over one step: exact ZOH, friction solved in-step."""
+        u = self._u
+        if self._delay:
+            d, i = self._delay, self._delay_i
+            d[i], u = u, d[i]
+            self._delay_i = i + 1 if i + 1 < len(d) else 0
+        if not self._active:
+            u = 0.0
+        elif self._noise_std:
+            if self._noise_i == len(self._noise):
+                self._noise = self._rng.normal(0.0, self._noise_std, _NOISE_BLOCK).tolist()
+                self._noise_i = 0
+            u += self._noise[self._noise_i]
+            self._noise_i += 1
+        self.applied_n = u
+        x, v = self.x, self.v
+        a11, a12, a21, a22, b1, b2 = self._coef
+        fc = self._fc
+        if fc:
+            if v > 0.0:
+                ue = u - fc
+            elif v < 0.0:
+                ue = u + fc
+            elif u > fc:
+                ue = u - fc
+            elif u < -fc:
+                ue = u + fc
+            else:  # at rest and the force cannot break it loose
+                return
+            vn = a21 * x + a22 * v + b2 * ue
+            if (v > 0.0 and vn <= 0.0) or (v < 0.0 and vn >= 0.0):
+                o = self.options
+                self.x, self.v = reversing_step(x, v, u, fc, self.T, o["m"], o["b"])
+                return
+            self.x = a11 * x + a12 * v + b1 * ue
+            self.v = vn
+            return
+        self.x = a11 * x + a12 * v + b1 * u
+        self.v = a21 * x + a22 * v + b2 * u
+
+    def _pace(self, k: int, timeout: float) -> None:
+        now = time.perf_counter()
+        if self._t0 is None:
+            self._t0 = now
+        wait = self._t0 + k * self.T - now
+        if wait > timeout:
+            time.sleep(timeout)
+            raise TimeoutError(f"no simulated sample within {timeout} s")
+        if wait > 0:
+            time.sleep(wait)
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise DeviceFault("simulated device is closed")
