@@ -1,0 +1,224 @@
+"""Wire formats of the serial encoder stream: pure functions and parsers, no I/O.
+
+Two board -> host forms (docs/serial-protocol.md is the user-facing spec):
+
+* ASCII, one sample per line: ``<micros>,<count>`` (see ``ASCII_LINE``).
+* Binary, COBS-framed (Cheshire & Baker, "Consistent Overhead Byte Stuffing",
+  IEEE/ACM Trans. Networking 7(2), 1999) with a 0x00 delimiter after every
+  frame and a CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection) over
+  the payload. Little-endian payloads:
+
+  sample  (board -> host, 14 bytes): ``'S' u8 | seq u16 | micros u32 | count i32 | status u8 | crc u16``
+  command (host -> board,  9 bytes): ``'F' u8 | seq u16 | value f32 | crc u16``
+
+The parsers take arbitrary chunks, keep the partial tail, never raise on bad
+input, and count what they threw away, so a stream resynchronises by itself
+after garbage or the boot noise of a board that reset on DTR.
+"""
+from __future__ import annotations
+
+import binascii
+import re
+import struct
+from typing import NamedTuple
+
+SAMPLE_TYPE = 0x53  # 'S'
+COMMAND_TYPE = 0x46  # 'F'
+_SAMPLE = struct.Struct("<BHIiB")
+_COMMAND = struct.Struct("<BHf")
+_CRC = struct.Struct("<H")
+SAMPLE_PAYLOAD_LEN = _SAMPLE.size + _CRC.size  # 14
+COMMAND_PAYLOAD_LEN = _COMMAND.size + _CRC.size  # 9
+# COBS adds exactly one byte to payloads shorter than 254 bytes.
+SAMPLE_FRAME_LEN = SAMPLE_PAYLOAD_LEN + 1
+COMMAND_FRAME_LEN = COMMAND_PAYLOAD_LEN + 1
+
+# Board status bits carried in a sample frame (the reference sketch sets them).
+STATUS_WATCHDOG = 0x01  # board zeroed its output: no command within 3 periods
+STATUS_BAD_COMMAND = 0x02  # board discarded a command frame (CRC/format) since last sample
+
+# One accepted ASCII line: decimal micros (0..4294967295, at most 10 digits),
+# one separator (comma, semicolon, tab or spaces; blanks allowed around it),
+# decimal count with optional minus sign; optional trailing blanks and CR.
+ASCII_LINE = re.compile(rb"[ \t]*(\d{1,10})[ \t]*(?:[,;\t]|[ ]+)[ \t]*(-?\d{1,11})[ \t]*\r?")
+ASCII_MAX_LINE = 48  # longer lines are malformed; bounds the buffer under garbage
+_U32 = 1 << 32
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE (check value 0x29B1 for b"123456789")."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def cobs_encode(data: bytes) -> bytes:
+    """COBS-encode ``data`` (no delimiter appended)."""
+    out = bytearray()
+    for block in data.split(b"\x00"):
+        # A block longer than 254 bytes is split into 254-byte runs coded 0xFF.
+        while len(block) >= 254:
+            out.append(0xFF)
+            out += block[:254]
+            block = block[254:]
+        out.append(len(block) + 1)
+        out += block
+    return bytes(out)
+
+
+def cobs_decode(data: bytes) -> bytes | None:
+    """Inverse of ``cobs_encode``; ``None`` if ``data`` is not valid COBS."""
+    out = bytearray()
+    i, n = 0, len(data)
+    while i < n:
+        code = data[i]
+        end = i + code
+        if code == 0 or end > n:
+            return None
+        block = data[i + 1:end]
+        if 0 in block:
+            return None
+        out += block
+        i = end
+        if code != 0xFF and i < n:
+            out.append(0)
+    return bytes(out)
+
+
+def _frame(payload: bytes) -> bytes:
+    return cobs_encode(payload + _CRC.pack(crc16(payload))) + b"\x00"
+
+
+def encode_sample(seq: int, t_us: int, count: int, status: int = 0) -> bytes:
+    """One framed sample; ``count`` is stored as its low 32 bits (two's complement)."""
+    count &= 0xFFFFFFFF
+    if count >= 1 << 31:
+        count -= 1 << 32
+    return _frame(_SAMPLE.pack(SAMPLE_TYPE, seq & 0xFFFF, t_us % _U32, count, status & 0xFF))
+
+
+def encode_command(seq: int, value: float) -> bytes:
+    """One framed force command answering sample ``seq``."""
+    return _frame(_COMMAND.pack(COMMAND_TYPE, seq & 0xFFFF, value))
+
+
+def format_ascii(t_us: int, count: int) -> bytes:
+    """The line an Arduino ``Serial.print(t); Serial.print(','); Serial.println(c)`` sends."""
+    return b"%d,%d\r\n" % (t_us % _U32, count)
+
+
+class RawSample(NamedTuple):
+    """A sample as the board sent it: ``seq`` is None for ASCII lines."""
+
+    seq: int | None
+    t_us: int
+    count: int
+    status: int = 0
+
+
+class FrameParser:
+    """Split a COBS byte stream into checked payloads of one frame type.
+
+    Counters: ``frames`` good, ``crc_errors``, ``bad_frames`` (wrong length,
+    type or COBS), ``garbage_bytes`` (bytes of every discarded frame).
+    """
+
+    def __init__(self, frame_type: int, payload_len: int):
+        self._type = frame_type
+        self._plen = payload_len
+        self._flen = payload_len + 1
+        self._buf = b""
+        self.frames = self.crc_errors = self.bad_frames = self.garbage_bytes = 0
+
+    def feed_payloads(self, data: bytes) -> list[bytes]:
+        """Checked payloads (CRC stripped) completed by ``data``."""
+        parts = (self._buf + data).split(b"\x00")
+        tail = parts.pop()
+        # An unterminated tail longer than a frame is garbage: drop it now so
+        # garbage without zeros cannot grow the buffer.
+        if len(tail) > self._flen:
+            self.bad_frames += 1
+            self.garbage_bytes += len(tail)
+            tail = b""
+        self._buf = tail
+        out = []
+        for part in parts:
+            if not part:
+                continue  # back-to-back delimiters (a sender may flush with a zero)
+            payload = cobs_decode(part) if len(part) == self._flen else None
+            if payload is None or len(payload) != self._plen or payload[0] != self._type:
+                self.bad_frames += 1
+                self.garbage_bytes += len(part)
+            elif crc16(payload[:-2]) != _CRC.unpack_from(payload, self._plen - 2)[0]:
+                self.crc_errors += 1
+                self.garbage_bytes += len(part)
+            else:
+                self.frames += 1
+                out.append(payload[:-2])
+        return out
+
+    @property
+    def errors(self) -> int:
+        return self.crc_errors + self.bad_frames
+
+
+class BinarySampleParser(FrameParser):
+    """Board -> host sample frames."""
+
+    def __init__(self):
+        super().__init__(SAMPLE_TYPE, SAMPLE_PAYLOAD_LEN)
+
+    def feed(self, data: bytes) -> list[RawSample]:
+        return [RawSample(*_SAMPLE.unpack(p)[1:]) for p in self.feed_payloads(data)]
+
+
+class CommandParser(FrameParser):
+    """Host -> board command frames (the board side: peer and sketch)."""
+
+    def __init__(self):
+        super().__init__(COMMAND_TYPE, COMMAND_PAYLOAD_LEN)
+
+    def feed(self, data: bytes) -> list[tuple[int, float]]:
+        return [_COMMAND.unpack(p)[1:] for p in self.feed_payloads(data)]
+
+
+class AsciiSampleParser:
+    """``micros,count`` lines (``ASCII_LINE``); blank lines and ``#`` lines are skipped.
+
+    Counters: ``lines`` good, ``comments`` (``#...``), ``malformed`` (anything
+    else, including lines over ``ASCII_MAX_LINE`` bytes), ``garbage_bytes``.
+    """
+
+    def __init__(self):
+        self._buf = b""
+        self.lines = self.comments = self.malformed = self.garbage_bytes = 0
+
+    def feed(self, data: bytes) -> list[RawSample]:
+        parts = (self._buf + data).split(b"\n")
+        tail = parts.pop()
+        if len(tail) > ASCII_MAX_LINE:
+            self.malformed += 1
+            self.garbage_bytes += len(tail)
+            tail = b""
+        self._buf = tail
+        out = []
+        match = ASCII_LINE.fullmatch
+        for line in parts:
+            m = match(line) if len(line) <= ASCII_MAX_LINE else None
+            if m is not None:
+                t_us = int(m[1])
+                if t_us < _U32:
+                    self.lines += 1
+                    out.append(RawSample(None, t_us, int(m[2])))
+                    continue
+            stripped = line.strip(b" \t\r")
+            if not stripped:
+                continue
+            if stripped[:1] == b"#" and len(line) <= ASCII_MAX_LINE:
+                self.comments += 1
+            else:
+                self.malformed += 1
+                self.garbage_bytes += len(line) + 1
+        return out
+
+    @property
+    def errors(self) -> int:
+        return self.malformed

@@ -1,0 +1,413 @@
+"""Serial encoder stream (Arduino-style board) behind ``labbench.device.Device``.
+
+The board streams ``micros,count`` lines or COBS-framed binary samples
+(``drivers.framing``; spec in docs/serial-protocol.md) and may take framed
+force commands back. The driver reads whatever bytes are waiting in one call
+(never byte-by-byte ``readline()``), resynchronises after garbage, counts link
+errors, drops and reboots, and fails safe: once enabled, a stream silent for
+``stale_periods`` sample periods, a reboot of the board (its time goes back),
+more lost samples in a row than ``tolerate_drops``, or a lost port zero the
+commanded force, latch, and raise ``DeviceFault`` with the reason. Only
+``enable()`` (the operator) clears the latch.
+
+Units: position = ``direction * count * rig.metres_per_count`` [m] at the
+handle; the force command is sent in N at the handle (``command_units = "N"``)
+or as joint torque ``F * lever_arm_m`` in N m (``"N*m"``).
+"""
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections import deque
+from dataclasses import asdict, dataclass
+from typing import Callable, NamedTuple
+
+from drivers import framing
+from drivers.unwrap import Unwrapper
+from labbench.device import DeviceDescription, DeviceFault, Sample
+from labbench.errors import UserError
+
+# Sample.flags bits of this device (0 = healthy).
+FLAG_LOST = 1  # samples were lost right before this one (seq / time gap)
+FLAG_LINK_ERRORS = 2  # bytes were discarded (CRC, framing, malformed line) since the previous sample
+FLAG_BOARD_WATCHDOG = 4  # the board reports it zeroed its output (no command in time)
+FLAG_BOARD_BAD_COMMAND = 8  # the board discarded a corrupt command frame
+FLAG_BACKLOG = 16  # more samples were already waiting behind this one (host is late)
+
+SYNC_SAMPLES = 5  # consecutive good samples that make a stream "in sync"
+PERIOD_TOLERANCE = 0.1  # relative mismatch allowed between board period and rig sample time
+
+
+@dataclass(frozen=True)
+class SerialConfig:
+    """The ``[serial]`` table of a rig file (see docs/serial-protocol.md)."""
+
+    port: str = ""
+    baudrate: int = 500_000
+    format: str = "binary"  # "binary" | "ascii"
+    count_bits: int = 32  # width of the board's encoder counter: 16 | 32
+    direction: int = 1  # +1 | -1: sign of counts at the handle
+    force_command: bool = False  # send framed force commands to the board
+    command_units: str = "N"  # "N" at the handle | "N*m" joint torque via lever_arm_m
+    stale_periods: float = 2.5  # silent periods before force is zeroed (1..3)
+    tolerate_drops: int = 0  # lost samples in a row accepted (flagged) while enabled
+    sync_timeout_s: float = 3.0  # wait for the first samples after opening (board boot)
+
+    @classmethod
+    def from_rig(cls, rig, **overrides) -> "SerialConfig":
+        table = {**rig.section("serial"), **overrides}
+        unknown = set(table) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise UserError(f"{rig.source}: unknown field(s) in [serial]: {', '.join(sorted(unknown))}"
+                            f" (known: {', '.join(cls.__dataclass_fields__)})")
+        checks = {
+            "port": (lambda v: isinstance(v, str), "a string (device path or pyserial URL)"),
+            "baudrate": (lambda v: _is_int(v) and v > 0, "a positive integer"),
+            "format": (lambda v: v in ("binary", "ascii"), '"binary" or "ascii"'),
+            "count_bits": (lambda v: _is_int(v) and v in (16, 32), "16 or 32"),
+            "direction": (lambda v: _is_int(v) and v in (1, -1), "1 or -1"),
+            "force_command": (lambda v: isinstance(v, bool), "true or false"),
+            "command_units": (lambda v: v in ("N", "N*m"), '"N" or "N*m"'),
+            "stale_periods": (lambda v: _is_num(v) and 1 <= v <= 3, "a number from 1 to 3"),
+            "tolerate_drops": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+            "sync_timeout_s": (lambda v: _is_num(v) and 0 < v <= 60, "a number of seconds in (0, 60]"),
+        }
+        for name, value in table.items():
+            ok, what = checks[name]
+            if not ok(value):
+                raise UserError(f"{rig.source}: [serial] {name} must be {what}, got {value!r}")
+        return cls(**table)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+class Decoded(NamedTuple):
+    sample: Sample
+    lost: int  # samples missing right before this one
+
+
+class Reboot(NamedTuple):
+    reason: str
+
+
+class StreamDecoder:
+    """Bytes -> calibrated samples, with unwrapping and gap/reboot detection (no I/O).
+
+    ``seq`` of a sample is the unwrapped board sequence number (binary) or
+    ``round(micros / T)`` (ASCII, which carries no sequence number), so a gap
+    in ``seq`` is a loss in both forms. Board time going backwards (or a
+    binary sequence number not advancing) is a reboot: the unwrappers restart.
+    """
+
+    def __init__(self, config: SerialConfig, sample_time_s: float, metres_per_count: float):
+        self.binary = config.format == "binary"
+        self.parser = framing.BinarySampleParser() if self.binary else framing.AsciiSampleParser()
+        self._T_us = sample_time_s * 1e6
+        self._scale = config.direction * metres_per_count
+        self._count = Unwrapper(config.count_bits, signed=True)
+        self._time = Unwrapper(32, signed=False)
+        self._seq = Unwrapper(16, signed=False)
+        self._last_seq: int | None = None
+        self.samples = self.lost = self.reboots = self.duplicates = 0
+
+    def reset(self) -> None:
+        """Forget the stream position (after a reboot or before a new sync)."""
+        self._count.reset()
+        self._time.reset()
+        self._seq.reset()
+        self._last_seq = None
+
+    def feed(self, data: bytes) -> list[Decoded | Reboot]:
+        errors_before = self.parser.errors
+        out: list[Decoded | Reboot] = []
+        for raw in self.parser.feed(data):
+            t_prev = self._time.value
+            t_us = self._time.update(raw.t_us)
+            if self.binary:
+                seq = self._seq.update(raw.seq)
+                went_back = self._last_seq is not None and seq <= self._last_seq
+            else:
+                seq = round(t_us / self._T_us)
+                went_back = False
+                if self._last_seq is not None and seq <= self._last_seq and self._time.last_step >= 0:
+                    self.duplicates += 1  # two lines in one period: keep the first
+                    continue
+            if self._time.last_step < 0 or went_back:
+                self.reboots += 1
+                out.append(Reboot(f"board rebooted: time went from {t_prev} us to {raw.t_us} us"
+                                  + (f", sequence to {raw.seq}" if self.binary else "")))
+                self.reset()
+                t_us = self._time.update(raw.t_us)
+                seq = self._seq.update(raw.seq) if self.binary else round(t_us / self._T_us)
+            lost = 0 if self._last_seq is None else seq - self._last_seq - 1
+            self._last_seq = seq
+            count = self._count.update(raw.count)
+            flags = FLAG_LOST if lost else 0
+            if raw.status & framing.STATUS_WATCHDOG:
+                flags |= FLAG_BOARD_WATCHDOG
+            if raw.status & framing.STATUS_BAD_COMMAND:
+                flags |= FLAG_BOARD_BAD_COMMAND
+            self.samples += 1
+            self.lost += lost
+            out.append(Decoded(Sample(seq, t_us * 1e-6, count * self._scale, flags), lost))
+        if out and self.parser.errors != errors_before:
+            first = next((i for i, d in enumerate(out) if isinstance(d, Decoded)), None)
+            if first is not None:
+                d = out[first]
+                out[first] = d._replace(sample=_with_flags(d.sample, FLAG_LINK_ERRORS))
+        return out
+
+    def counters(self) -> dict:
+        p = self.parser
+        link = ({"crc_errors": p.crc_errors, "bad_frames": p.bad_frames} if self.binary
+                else {"malformed_lines": p.malformed, "comment_lines": p.comments})
+        return {"samples": self.samples, "lost": self.lost, "reboots": self.reboots,
+                "duplicates": self.duplicates, "garbage_bytes": p.garbage_bytes, **link}
+
+
+def _with_flags(s: Sample, bits: int) -> Sample:
+    return Sample(s.seq, s.t_s, s.position_m, s.flags | bits)
+
+
+class SerialStream:
+    """``Device`` over an open pyserial port (a real port, a pty path or ``loop://``).
+
+    ``on_close`` runs once after the port is closed (``open_sim_serial`` stops
+    its simulated board there). ``stale_s`` overrides ``stale_periods * T`` for a
+    lock-step simulated board, whose time is not wall time. ``clock`` is
+    injectable for tests.
+    """
+
+    def __init__(self, port, config: SerialConfig, rig, on_close: Callable[[], None] | None = None,
+                 stale_s: float | None = None, clock: Callable[[], float] = time.monotonic):
+        self.port = port
+        self.config = config
+        self.rig = rig
+        self.T = rig.sample_time_s
+        self._on_close = on_close
+        self._clock = clock
+        self._decoder = StreamDecoder(config, self.T, rig.metres_per_count)
+        self._ready: deque[Sample] = deque()
+        self._stale_s = config.stale_periods * self.T if stale_s is None else stale_s
+        # Poll granularity of a blocking read: bounds how late a stale stream is seen.
+        self._poll_s = self.T / 4
+        port.timeout = self._poll_s
+        # Only a full output buffer blocks a write; scheduling noise alone must not time out.
+        port.write_timeout = 0.02
+        self._unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
+        self._enabled = False
+        self._fault: str | None = None
+        self._closed = False
+        self._last_arrival = clock()
+        self._last_seq = 0
+        self._force = 0.0
+        self.stale_trips = 0
+
+    # -- Device protocol ---------------------------------------------------------------
+    def describe(self) -> DeviceDescription:
+        c = self.config
+        return DeviceDescription(
+            kind="serial",
+            name=f"serial encoder stream on {c.port or getattr(self.port, 'port', '?')}",
+            sample_time_s=self.T,
+            force_limit_n=self.rig.force_limit_n if c.force_command else 0.0,
+            position_limits_m=tuple(self.rig.position_limits_m),
+            details={"config": asdict(c), "counters": self.counters(),
+                     "metres_per_count": self.rig.metres_per_count},
+        )
+
+    def counters(self) -> dict:
+        return {**self._decoder.counters(), "stale_trips": self.stale_trips}
+
+    def wait_for_stream(self, timeout: float) -> None:
+        """Block until the board streams ``SYNC_SAMPLES`` good samples in a row.
+
+        Boot noise and garbage before them are discarded (and counted). A board
+        period that does not match the rig's sample time is a ``UserError``.
+        """
+        self._check_open()
+        deadline = self._clock() + timeout
+        good: list[Sample] = []
+        self._ready.clear()
+        while len(good) < SYNC_SAMPLES:
+            if self._clock() >= deadline:
+                raise UserError(
+                    f"no {self.config.format} sample stream on {self.port.port or self.config.port} within "
+                    f"{timeout:g} s (got {len(good)} good samples; counters {self._decoder.counters()}): "
+                    "check port, baudrate, format and that the board runs the labbench sketch")
+            for item in self._decoder.feed(self._read_chunk()):
+                if isinstance(item, Reboot) or item.lost:
+                    good.clear()
+                if isinstance(item, Decoded):
+                    good.append(item.sample)
+                    self._last_seq = item.sample.seq
+                    self._send(0.0)  # keeps a lock-step board moving and its watchdog fed
+        period = statistics.median(b.t_s - a.t_s for a, b in zip(good, good[1:]))
+        if abs(period - self.T) > PERIOD_TOLERANCE * self.T:
+            raise UserError(f"the board streams every {period * 1e3:.3f} ms but the rig's "
+                            f"sample_time_s is {self.T * 1e3:.3f} ms")
+        self._last_arrival = self._clock()
+
+    def enable(self, timeout: float = 1.0) -> None:
+        """Resynchronise on the live stream and clear a latched fault (operator action)."""
+        self._check_open()
+        self._enabled = False
+        self._force = 0.0
+        try:
+            self.port.reset_input_buffer()
+        except Exception as exc:  # noqa: BLE001 - any port error means the port is gone
+            raise DeviceFault(f"serial port lost: {exc}") from None
+        self._decoder.reset()
+        self.wait_for_stream(timeout)
+        self._fault = None
+        self._enabled = True
+
+    def disable(self, timeout: float = 1.0) -> None:
+        self._enabled = False
+        self._force = 0.0
+        self._send(0.0)
+
+    def emergency_stop(self) -> None:
+        self._latch("emergency stop")
+
+    def read(self, timeout: float) -> Sample:
+        self._check_open()
+        if self._fault:
+            raise DeviceFault(self._fault)
+        now = self._clock()
+        deadline = now + timeout
+        while not self._ready:
+            if self._enabled and now - self._last_arrival >= self._stale_s:
+                self.stale_trips += 1
+                self._trip(f"serial stream stale: no sample for {(now - self._last_arrival) * 1e3:.2f} ms "
+                           f"({self._stale_s * 1e3:.2f} ms allowed) after seq {self._last_seq}")
+            if now >= deadline:
+                if self._enabled:
+                    self._trip(f"no serial sample within the read timeout of {timeout * 1e3:.1f} ms")
+                raise TimeoutError(f"no serial sample within {timeout:g} s")
+            self._ingest(self._read_chunk())
+            now = self._clock()
+        s = self._ready.popleft()
+        if self._ready:
+            s = _with_flags(s, FLAG_BACKLOG)
+        self._last_seq = s.seq
+        return s
+
+    def command(self, force_n: float) -> None:
+        if not math.isfinite(force_n):
+            self._trip(f"non-finite force command {force_n!r}")
+        if self._fault or not self._enabled:
+            force_n = 0.0
+        lim = self.rig.force_limit_n
+        self._force = min(max(force_n, -lim), lim)
+        self._send(self._force)
+
+    @property
+    def commanded_force_n(self) -> float:
+        """The force last sent (0 after any fault)."""
+        return self._force
+
+    @property
+    def fault(self) -> str | None:
+        return self._fault
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._enabled = False
+        self._force = 0.0
+        self._send(0.0)
+        self._closed = True
+        try:
+            self.port.close()
+        finally:
+            if self._on_close is not None:
+                self._on_close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals ---------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DeviceFault("serial device is closed")
+
+    def _read_chunk(self) -> bytes:
+        """Whatever is waiting, or block up to one poll interval for the first byte."""
+        try:
+            n = self.port.in_waiting
+            data = self.port.read(n or 1)
+            if data and not n:
+                n = self.port.in_waiting
+                if n:
+                    data += self.port.read(n)
+            return data
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, ...: the port is gone
+            self._trip(f"serial port lost: {exc}")
+
+    def _ingest(self, data: bytes) -> None:
+        if not data:
+            return
+        arrival = self._clock()
+        for item in self._decoder.feed(data):
+            if isinstance(item, Reboot):
+                if self._enabled:
+                    self._trip(item.reason + " (encoder zero lost)")
+                self._ready.clear()
+                continue
+            if self._enabled and item.lost > self.config.tolerate_drops:
+                self._trip(f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
+                           f"({self.config.tolerate_drops} tolerated; counters {self.counters()})")
+            self._ready.append(item.sample)
+            self._last_arrival = arrival
+
+    def _send(self, force_n: float) -> None:
+        if not self.config.force_command or self._closed:
+            return
+        try:
+            self.port.write(framing.encode_command(self._last_seq, force_n * self._unit))
+        except Exception as exc:  # noqa: BLE001 - write timeout or lost port
+            if force_n != 0.0:
+                self._trip(f"cannot send force command: {exc}")
+
+    def _latch(self, reason: str) -> None:
+        """Zero the force and latch ``reason`` (never raises)."""
+        self._enabled = False
+        self._force = 0.0
+        if self._fault is None:
+            self._fault = f"{reason}; force zeroed"
+        self._send(0.0)  # best effort (never raises for zero): the board's watchdog zeroes too
+
+    def _trip(self, reason: str):
+        self._latch(reason)
+        raise DeviceFault(self._fault)
+
+
+def open_serial(rig, port: str | None = None) -> SerialStream:
+    """Open the board of ``rig``'s ``[serial]`` table (``port`` overrides it) and wait for its stream."""
+    import serial
+
+    config = SerialConfig.from_rig(rig, **({"port": port} if port else {}))
+    if not config.port:
+        raise UserError(f"{rig.source}: [serial] port is not set (e.g. port = \"/dev/ttyACM0\")")
+    try:
+        ser = serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
+    except (serial.SerialException, ValueError) as exc:
+        raise UserError(f"cannot open serial port {config.port}: {exc}") from None
+    dev = SerialStream(ser, config, rig)
+    try:
+        dev.wait_for_stream(config.sync_timeout_s)
+    except BaseException:
+        dev.close()
+        raise
+    return dev

@@ -1,0 +1,341 @@
+"""A simulated Arduino encoder board, so the REAL serial driver runs in tests and demos.
+
+The board side of docs/serial-protocol.md in Python: it samples a simulated
+plant, sends ``micros,count`` lines or framed binary samples, takes framed
+force commands back, and has the sketch's watchdog (output zeroed after 3
+periods without a command). Transports: a pty pair (``os.openpty``; the host
+opens the slave by path with pyserial, 8-bit clean and fast) or a pyserial
+``loop://`` port for unit tests (board -> host only; the test calls ``emit``).
+
+Pacing and delay (sample k = position at the start of period k):
+
+* lock-step (default, as fast as possible): emit sample k, wait for the
+  command answering k (``lockstep_timeout_s``; none -> zero force, watchdog
+  bit), apply it during period k. Zero extra delay: the sampled model is the
+  plain simulator's. ``delay_samples`` = n applies the answer to sample k in
+  period k+n instead, to mimic a board.
+* free-running (``realtime=True``): a tick every T of wall time; at tick k the
+  board latches the newest command received, sends sample k and applies the
+  latched force during period k. The answer to sample k arrives during period
+  k and is applied in period k+1: one whole sample of extra delay (td = T), as
+  on the reference sketch, provided the host answers within one period.
+
+Faults are scheduled by sample index (``schedule``) so tests are repeatable.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import select
+import threading
+import time
+import tty
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers import framing
+
+BANNER = b"#labbench encoder v1\r\n"
+FAULT_KINDS = ("garbage", "flip", "drop", "stall", "unplug", "reboot")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """``kind`` at sample ``at``: garbage (``n`` random bytes before the sample), flip (one
+    bit of the frame), drop (``n`` samples not sent), stall (board silent ``seconds``),
+    unplug (port gone), reboot (time, sequence and count restart, boot noise)."""
+
+    kind: str
+    at: int
+    n: int = 1
+    seconds: float = 0.0
+
+    def __post_init__(self):
+        if self.kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault {self.kind!r}; choose one of {', '.join(FAULT_KINDS)}")
+
+
+class ArduinoPeer:
+    """The simulated board. ``plant`` has ``step(force)`` and ``position``.
+
+    ``unit``: command value per newton at the handle (1 for "N", ``lever_arm_m``
+    for "N*m"). ``t0_us``/``count0`` start micros() and the counter elsewhere
+    than zero (e.g. just before a wrap).
+    """
+
+    def __init__(self, plant, T: float, metres_per_count: float, *, fmt: str = "binary",
+                 count_bits: int = 32, direction: int = 1, unit: float = 1.0, realtime: bool = False,
+                 delay_samples: int = 0, lockstep_timeout_s: float = 0.05, boot_noise: bool = True,
+                 t0_us: int = 0, count0: int = 0, seed: int | None = None, faults=()):
+        self.plant, self.T = plant, T
+        self.fmt, self.count_bits, self.direction = fmt, count_bits, direction
+        self._mpc, self._unit = metres_per_count, unit
+        self.realtime, self.lockstep_timeout_s = realtime, lockstep_timeout_s
+        self.boot_noise = boot_noise
+        self._rng = np.random.default_rng(seed)
+        self._t0_us, self._count0 = t0_us, count0
+        self._zero_x = 0.0  # plant position at the board's last boot (count 0 there)
+        self.k = 0  # samples since boot
+        self.samples_sent = 0
+        self._pending = deque([0.0] * delay_samples)
+        self._latest = 0.0  # newest command [N at the handle]
+        self._latest_at = -10**9  # sample index when it arrived
+        self._status = 0
+        self._sent_this = False
+        self.commands = framing.CommandParser()
+        self.watchdog_zeroed = 0  # periods the watchdog forced zero
+        self.applied: list[float] = []  # force applied per period (tests read it)
+        self._faults: dict[int, list[Fault]] = {}
+        for f in faults:
+            self.schedule(f)
+        self._write = None
+        self._master: int | None = None
+        self.slave_path: str | None = None
+        self._slave: int | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.error: BaseException | None = None
+        self.unplugged = False
+
+    # -- transports -------------------------------------------------------------------
+    def open_pty(self) -> str:
+        """Create the pty pair; returns the path the host opens with pyserial."""
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo or line discipline before the host configures it
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.slave_path = os.ttyname(slave)
+        self._write = self._write_pty
+        return self.slave_path
+
+    def attach_loop(self, port) -> None:
+        """Board -> host over a pyserial ``loop://`` port (no command channel)."""
+        self._write = port.write
+
+    def _write_pty(self, data: bytes) -> None:
+        # A full pty buffer loses bytes, as a USB-serial bridge does when the host stops reading.
+        try:
+            os.write(self._master, data)
+        except BlockingIOError:
+            pass
+
+    # -- the board --------------------------------------------------------------------
+    def schedule(self, fault: Fault) -> None:
+        self._faults.setdefault(fault.at, []).append(fault)
+
+    def boot(self) -> None:
+        """What a board sends after reset: bootloader noise, then the banner."""
+        if self.boot_noise:
+            noise = self._rng.integers(0, 256, int(self._rng.integers(8, 64)), dtype=np.uint8).tobytes()
+            self._write(noise + b"\r\n")
+        self._write(BANNER)
+
+    def frame(self, k: int) -> bytes:
+        """Bytes of sample k (position now, time and count as the board holds them)."""
+        t_us = (self._t0_us + round(k * self.T * 1e6)) % (1 << 32)
+        count = self._count0 + self.direction * round((self.plant.position - self._zero_x) / self._mpc)
+        bits = self.count_bits
+        count &= (1 << bits) - 1
+        if count >> (bits - 1):
+            count -= 1 << bits  # the board's signed int of that width
+        if self.fmt == "ascii":
+            return framing.format_ascii(t_us, count)
+        return framing.encode_sample(k, t_us, count, self._status)
+
+    def emit(self, n: int = 1, force_n: float = 0.0) -> None:
+        """Send n samples, each followed by one period under ``force_n`` (loop:// tests)."""
+        for _ in range(n):
+            if self._send_sample():
+                self._advance(force_n)
+
+    def _send_sample(self) -> bool:
+        """Send sample k with its scheduled faults; False once unplugged."""
+        k = self.k
+        data = self.frame(k)
+        for f in self._faults.pop(k, ()):
+            if f.kind == "garbage":
+                self._write(self._rng.integers(0, 256, f.n, dtype=np.uint8).tobytes())
+            elif f.kind == "flip":
+                buf = bytearray(data)
+                i = int(self._rng.integers(0, len(buf) - 1))  # not the delimiter
+                buf[i] ^= 1 << int(self._rng.integers(0, 8))
+                data = bytes(buf)
+            elif f.kind == "drop":
+                for j in range(1, f.n):
+                    self._faults.setdefault(k + j, []).append(Fault("drop", k + j))
+                data = b""
+            elif f.kind == "stall":
+                self._stop.wait(f.seconds)
+            elif f.kind == "unplug":
+                self.unplug()
+                return False
+            elif f.kind == "reboot":
+                self._reboot()
+                data = self.frame(self.k)
+        if data:
+            self._write(data)
+            self.samples_sent += 1
+            self._status = 0  # a sample reports what happened since the previous one
+        self._sent_this = bool(data)
+        return True
+
+    def _reboot(self) -> None:
+        self._zero_x = self.plant.position
+        self._t0_us = 300_000 - round(self.k * self.T * 1e6)  # micros() ~0.3 s after reset
+        self._count0 = 0
+        self._status = 0
+        self.boot()
+
+    def _advance(self, force_n: float) -> None:
+        self._pending.append(force_n)
+        f = self._pending.popleft()
+        self.plant.step(f)
+        self.applied.append(f)
+        self.k += 1
+
+    def _take_commands(self, data: bytes) -> list[tuple[int, float]]:
+        before = self.commands.errors
+        cmds = self.commands.feed(data)
+        if self.commands.errors != before:
+            self._status |= framing.STATUS_BAD_COMMAND
+        for _, value in cmds:
+            self._latest, self._latest_at = value / self._unit, self.k
+        return cmds
+
+    def _watchdog_force(self) -> float:
+        if self.k - self._latest_at > 3:
+            self.watchdog_zeroed += 1
+            self._status |= framing.STATUS_WATCHDOG
+            return 0.0
+        return self._latest
+
+    def _read_master(self, timeout: float) -> bytes:
+        r, _, _ = select.select([self._master], [], [], timeout)
+        if not r:
+            return b""
+        try:
+            return os.read(self._master, 4096)
+        except OSError as exc:  # EIO: host side closed
+            if exc.errno == errno.EIO:
+                return b""
+            raise
+
+    def _lockstep_period(self) -> None:
+        if not self._send_sample():
+            return
+        force = None
+        want = self.k & 0xFFFF
+        if self._sent_this:
+            deadline = time.monotonic() + self.lockstep_timeout_s
+            while force is None and not self._stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                for seq, value in self._take_commands(self._read_master(left)):
+                    if self.fmt == "ascii" or seq == want:
+                        force = value / self._unit
+        if force is None:
+            self.watchdog_zeroed += 1
+            self._status |= framing.STATUS_WATCHDOG
+            force = 0.0
+        self._advance(force)
+
+    def _realtime_period(self) -> None:
+        self._take_commands(self._read_master(0))
+        force = self._watchdog_force()
+        if self._send_sample():
+            self._advance(force)
+
+    def _run(self) -> None:
+        try:
+            self.boot()
+            period = self._realtime_period if self.realtime else self._lockstep_period
+            next_tick = time.monotonic()
+            while not self._stop.is_set() and not self.unplugged:
+                period()
+                if self.realtime:
+                    next_tick += self.T
+                    delay = next_tick - time.monotonic()
+                    if delay > 0:
+                        self._stop.wait(delay)
+        except BaseException as exc:  # noqa: BLE001 - reported to the test through .error
+            self.error = exc
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="arduino-peer", daemon=True)
+        self._thread.start()
+
+    def unplug(self) -> None:
+        """The cable is pulled: the host's port fails from now on."""
+        self.unplugged = True
+        if self._master is not None:
+            os.close(self._master)
+            self._master = None
+        if self._slave is not None:
+            os.close(self._slave)
+            self._slave = None
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the board thread and release the pty (safe to call twice)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                os.close(fd)
+        self._master = self._slave = None
+
+
+def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, faults=(), plant=None,
+                       delay_samples: int = 0, t0_us: int = 0, count0: int = 0,
+                       boot_noise: bool = True, lockstep_timeout_s: float = 0.05):
+    """The real ``SerialStream`` on a pty to a started ``ArduinoPeer``: ``(driver, peer)``.
+
+    Driver settings come from ``rig``'s ``[serial]`` table (port and
+    ``force_command = true`` are forced: the simulated plant needs the force);
+    closing the driver stops the board.
+    """
+    import serial
+
+    from drivers.serial_stream import SerialConfig, SerialStream
+
+    config = SerialConfig.from_rig(rig, port="pty", force_command=True)
+    T = rig.sample_time_s
+    if plant is None:
+        plant = default_plant(rig)
+    unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
+    peer = ArduinoPeer(plant, T, rig.metres_per_count, fmt=config.format, count_bits=config.count_bits,
+                       direction=config.direction, unit=unit, realtime=realtime,
+                       delay_samples=delay_samples, lockstep_timeout_s=lockstep_timeout_s,
+                       boot_noise=boot_noise, t0_us=t0_us, count0=count0, seed=seed, faults=faults)
+    path = peer.open_pty()
+    try:
+        ser = serial.Serial(path, baudrate=config.baudrate, timeout=0)
+    except BaseException:
+        peer.close()
+        raise
+    # A lock-step board's time is virtual: the host's stale limit is the board's
+    # own wait for a command, not a few periods of wall time.
+    driver = SerialStream(ser, config, rig, on_close=peer.close,
+                          stale_s=None if realtime else lockstep_timeout_s)
+    peer.start()
+    try:
+        driver.wait_for_stream(config.sync_timeout_s)
+    except BaseException:
+        driver.close()
+        raise
+    return driver, peer
+
+
+def default_plant(rig):
+    """The rig's nominal mass-damper, exact over each ZOH step."""
+    from sim_backend.plant import MassDamperPlant
+
+    return MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
+
+
+def open_sim_serial(rig, realtime: bool = False, seed: int | None = None):
+    """Device registry factory for ``--device sim-serial``."""
+    return connect_sim_serial(rig, realtime=realtime, seed=seed)[0]
