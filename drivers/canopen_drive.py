@@ -534,6 +534,8 @@ class CanopenDrive:
         else:
             wait = self.config.lockstep_timeout_s
         wait = min(wait, timeout)
+        if self._bus.state is can.BusState.ERROR:
+            self._fail("CAN controller is bus-off (error state)")
         self._send(self._sync_msg)
         if now - self._last_hb >= self.config.host_heartbeat_ms * 1e-3:
             self._send(self._host_hb_msg)
@@ -551,8 +553,8 @@ class CanopenDrive:
                 counts, status, torque = TPDO1.unpack_from(msg.data)
                 break
             self._dispatch(msg)
-        if self._fault:  # an EMCY or error frame seen while waiting
-            self._fail(self._fault)
+            if self._fault:  # EMCY, error frame or NMT change seen while waiting
+                self._fail(self._fault)
         if status & 0x6F != 0x27:  # CiA 402 coding of OPERATION ENABLED
             try:
                 now_in = cia402.decode_status(status).value

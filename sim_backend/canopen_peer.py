@@ -365,31 +365,46 @@ def plant_for(rig) -> MassDamperPlant:
     return MassDamperPlant(m, b, rig.sample_time_s)
 
 
-def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
-    """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
-
-    The drive lives on a fresh ``virtual`` channel; closing the driver stops it.
-    ``seed`` is accepted for interface parity with ``sim`` (this drive has no noise).
-    """
-    if options:
-        raise UserError(f"sim-canopen device takes no option(s) {', '.join(sorted(options))}")
+def sim_config(rig) -> CanopenConfig:
+    """The rig's ``[canopen]`` table minus the hardware fields the simulation defines itself."""
     section = rig.section("canopen")
     for hardware_field in ("interface", "channel", "eds"):
-        section.pop(hardware_field, None)  # the simulated drive defines these itself
-    config = CanopenConfig.from_section(section, source=rig.source)
+        section.pop(hardware_field, None)
+    return CanopenConfig.from_section(section, source=rig.source)
+
+
+def start_sim_drive(rig, config: CanopenConfig) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
+    """A running simulated drive on a fresh ``virtual`` channel, and the host's bus to it."""
     channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
     peer = SimCanopenDrive(channel, config.node_id, plant_for(rig), rig.metres_per_count,
                            rig.lever_arm_m, rig.sample_time_s).start()
     try:
-        host_bus = FaultyVirtualBus(channel=channel)
+        return peer, FaultyVirtualBus(channel=channel)
     except Exception:
         peer.close()
         raise
+
+
+def connect_driver(rig, config, peer, host_bus, realtime: bool = False) -> CanopenDrive:
+    """The real driver, opened against ``peer``; closing the driver stops the peer."""
     drive = CanopenDrive(rig, config, bus=host_bus, realtime=realtime)
     drive.peer = peer
     drive.add_close_hook(peer.close)
     try:
         return drive.open()
     except BaseException:
+        host_bus.shutdown()
         peer.close()
         raise
+
+
+def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
+    """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
+
+    ``seed`` is accepted for interface parity with ``sim`` (this drive has no noise).
+    """
+    if options:
+        raise UserError(f"sim-canopen device takes no option(s) {', '.join(sorted(options))}")
+    config = sim_config(rig)
+    peer, host_bus = start_sim_drive(rig, config)
+    return connect_driver(rig, config, peer, host_bus, realtime)

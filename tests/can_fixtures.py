@@ -1,0 +1,49 @@
+"""Fixtures for the CANopen tests: a simulated drive plus the real driver, and a
+check that no test leaves a virtual CAN bus open."""
+import pytest
+from can.interfaces import virtual
+
+from labbench.rig import rig_from_dict
+from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
+
+# Short lock-step timeout so a silent drive is detected quickly in tests.
+FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2}
+
+
+def make_rig(**canopen):
+    return rig_from_dict({"canopen": {**FAST, **canopen}}, source="test-rig")
+
+
+@pytest.fixture(autouse=True)
+def no_bus_left_open():
+    before = {k: len(v) for k, v in virtual.channels.items()}
+    yield
+    left = {k: len(v) for k, v in virtual.channels.items() if len(v) > before.get(k, 0)}
+    assert not left, f"virtual CAN bus(es) left open: {left}"
+
+
+@pytest.fixture
+def sim_parts():
+    """(rig, config, peer, host_bus) not yet connected: tweak the peer first."""
+    rig = make_rig()
+    config = sim_config(rig)
+    peer, bus = start_sim_drive(rig, config)
+    yield rig, config, peer, bus
+    bus.shutdown()
+    peer.close()
+
+
+@pytest.fixture
+def drive():
+    """An opened driver against a fresh simulated drive (closed after the test)."""
+    rig = make_rig()
+    config = sim_config(rig)
+    peer, bus = start_sim_drive(rig, config)
+    d = connect_driver(rig, config, peer, bus)
+    yield d
+    d.close()
+
+
+def connect(parts, **kw):
+    rig, config, peer, bus = parts
+    return connect_driver(rig, config, peer, bus, **kw)

@@ -1,0 +1,168 @@
+"""The CANopen driver against the simulated CiA 402 drive on python-can's virtual bus."""
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from drivers import emcy
+from drivers.canopen_drive import CanopenConfig, open_canopen
+from drivers.cia402 import State
+from labbench.device import Device, DeviceFault
+from labbench.errors import UserError
+from labbench.rig import Rig
+from sim_backend.plant import MassDamperPlant
+from tests.can_fixtures import connect, drive, make_rig, no_bus_left_open, sim_parts  # noqa: F401
+
+
+# ------------------------------------------------------------------ config
+@pytest.mark.parametrize("section,field", [
+    ({"node_id": 0}, "node_id"), ({"node_id": 128}, "node_id"), ({"node_id": "1"}, "node_id"),
+    ({"bitrate": True}, "bitrate"), ({"mode": "csp"}, "mode"), ({"sdo_timeout_s": -1}, "sdo_timeout_s"),
+    ({"heartbeat_consumer_ms": 10, "host_heartbeat_ms": 20}, "heartbeat_consumer_ms"),
+    ({"host_node_id": 1}, "host_node_id"), ({"nodeid": 3}, "nodeid"),
+    ({"eds": "/no/such/file.eds"}, "eds"), ({"interface": 3}, "interface"),
+])
+def test_config_errors_name_the_field(section, field):
+    with pytest.raises(UserError, match=rf"\[canopen\] {field}"):
+        CanopenConfig.from_section(section, source="r.toml")
+
+
+def test_config_defaults_are_valid_and_eds_is_checked(tmp_path):
+    cfg = CanopenConfig.from_section({"eds": "sim_backend/drive.eds", "node_id": 5})
+    assert cfg.node_id == 5 and cfg.mode == "auto"
+    from drivers.canopen_drive import check_eds
+
+    check_eds("sim_backend/drive.eds", 5)  # our own EDS lists every object used
+    bad = tmp_path / "bad.eds"
+    bad.write_text("[1000]\nParameterName=Device type\nObjectType=0x7\nDataType=0x0007\n"
+                   "AccessType=ro\nDefaultValue=0x00020192\n")
+    with pytest.raises(UserError, match="lacks object"):
+        check_eds(str(bad), 1)
+
+
+def test_hardware_factory_reports_a_missing_interface_in_one_line():
+    rig = make_rig(interface="no-such-interface", channel="x")
+    with pytest.raises(UserError, match="cannot open CAN interface"):
+        open_canopen(rig)
+
+
+# ---------------------------------------------------------------- bring-up
+def test_bring_up_observes_nmt_maps_pdos_and_selects_cst(drive):
+    assert isinstance(drive, Device)
+    peer = drive.peer
+    assert peer.nmt_state == 5  # NMT start was sent and the heartbeat showed OPERATIONAL
+    ident = drive.identity()
+    assert ident["device_type"] & 0xFFFF == 402
+    assert ident["vendor_id"] == 0x4C4200AB and ident["supported_modes"] == 0x208
+    d = drive.describe()
+    assert d.kind == "canopen" and d.details["mode"] == "cyclic synchronous torque"
+    assert peer.mode == 10
+    store = peer.node.data_store
+    u32 = lambda idx, sub: struct.unpack("<I", store[idx][sub])[0]  # noqa: E731
+    assert [u32(0x1A00, s) for s in (1, 2, 3)] == [0x60640020, 0x60410010, 0x60770010]
+    assert u32(0x1A01, 1) == 0x606C0020
+    assert [u32(0x1600, s) for s in (1, 2)] == [0x60710010, 0x60400010]
+    assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 50)
+
+
+def test_enable_writes_and_reads_back_the_safety_objects(drive):
+    drive.enable()
+    peer = drive.peer
+    assert peer.state is State.OPERATION_ENABLED
+    rig = drive.rig
+    # 5 N at 0.1 m = 0.5 N m = 5000 per-mille of the 100 mN m rated torque.
+    assert peer._get(0x6072) == 5000
+    assert peer._get(0x607D, 1) == math.floor(-0.1 / rig.metres_per_count)
+    assert peer._get(0x607D, 2) == math.ceil(0.1 / rig.metres_per_count)
+    assert peer._get(0x1016, 1) == (127 << 16 | 100)
+    assert (peer._get(0x605A), peer._get(0x605E), peer._get(0x6007)) == (0, 0, 1)
+    drive.disable()
+    assert peer.state is State.SWITCH_ON_DISABLED and peer._get(0x1016, 1) == 0
+
+
+def test_profile_torque_fallback_when_cst_is_missing(sim_parts):
+    peer = sim_parts[2]
+    peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 3)}  # profile torque only
+    d = connect(sim_parts)
+    try:
+        assert d.describe().details["mode"] == "profile torque" and peer.mode == 4
+    finally:
+        d.close()
+
+
+def test_no_torque_mode_is_refused(sim_parts):
+    peer = sim_parts[2]
+    peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 7)}  # CSP only
+    with pytest.raises(UserError, match="0x6502"):
+        connect(sim_parts)
+
+
+def test_not_a_402_device_is_refused(sim_parts):
+    sim_parts[2].node.data_store[0x1000] = {0: struct.pack("<I", 0x00000191)}  # CiA 401 I/O
+    with pytest.raises(UserError, match="not a CiA 402 drive"):
+        connect(sim_parts)
+
+
+# ----------------------------------------------------------------- cycling
+def test_positions_match_the_exact_plant_count_for_count(drive):
+    """Oracle: the same torques on MassDamperPlant, quantised as the drive does.
+
+    SYNC k advances the plant one period with the torque of the last RPDO, then
+    samples; torque is in per-mille of 100 mN m, position in counts.
+    """
+    rig = drive.rig
+    drive.enable()
+    forces = 0.8 * np.random.default_rng(1).standard_normal(600)
+    ref = MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
+    held = 0.0
+    got, want = [], []
+    for f in forces:
+        ref.step(held)
+        want.append(round(ref.position / rig.metres_per_count))
+        got.append(round(drive.read(1.0).position_m / rig.metres_per_count))
+        drive.command(f)
+        held = round(f * 1000) * 1e-3 * 100 * 1e-3 / rig.lever_arm_m
+    assert got == want
+    assert max(abs(c) for c in got) > 20  # the test moved the handle
+    assert drive.peer.sync_count == len(forces)
+
+
+def test_sample_sequence_time_and_torque_clamp(drive):
+    drive.enable()
+    samples = []
+    for _ in range(5):
+        samples.append(drive.read(1.0))
+        drive.command(50.0)  # ten times the force limit
+    assert [s.seq for s in samples] == [0, 1, 2, 3, 4]
+    assert [s.t_s for s in samples] == pytest.approx([0, 0.001, 0.002, 0.003, 0.004])
+    assert drive.peer.torque_permille == 5000
+    assert drive.torque_actual_n == pytest.approx(5.0)
+    drive.disable()
+    assert drive.peer.torque_permille == 0
+
+
+def test_close_twice_and_context_manager(sim_parts):
+    with connect(sim_parts) as d:
+        d.enable()
+        d.read(1.0)
+        d.command(0.1)
+    assert d.peer.torque_permille == 0 and d.peer.state is State.SWITCH_ON_DISABLED
+    d.close()
+
+
+# -------------------------------------------------------------------- EMCY
+def test_emcy_decoding():
+    e = emcy.decode(emcy.encode(0x8130, 0x11, b"\x01\x02"))
+    assert e.code == 0x8130 and "heartbeat" in e.text
+    assert e.register_bits() == ["generic", "communication"]
+    assert "0x8130" in str(e) and not e.is_reset
+    assert emcy.decode(bytes(8)).is_reset
+    assert emcy.code_text(0x2311) == "current" and emcy.code_text(0x8F00) == "monitoring"
+    assert emcy.code_text(0x8199) == "communication"
+    with pytest.raises(ValueError):
+        emcy.decode(b"\x00")
+
+
+def test_default_rig_has_no_canopen_table():
+    assert Rig().section("canopen") == {}
