@@ -106,12 +106,16 @@ def format_ascii(t_us: int, count: int) -> bytes:
 
 
 class RawSample(NamedTuple):
-    """A sample as the board sent it: ``seq`` is None for ASCII lines."""
+    """A sample as the board sent it: ``seq`` is None for ASCII lines.
+
+    ``skipped``: frames or lines discarded between the previous good sample and this one.
+    """
 
     seq: int | None
     t_us: int
     count: int
     status: int = 0
+    skipped: int = 0
 
 
 class FrameParser:
@@ -126,34 +130,39 @@ class FrameParser:
         self._plen = payload_len
         self._flen = payload_len + 1
         self._buf = b""
+        self._skipped = 0  # discarded since the last good frame
         self.frames = self.crc_errors = self.bad_frames = self.garbage_bytes = 0
 
-    def feed_payloads(self, data: bytes) -> list[bytes]:
-        """Checked payloads (CRC stripped) completed by ``data``."""
+    def feed_payloads(self, data: bytes) -> list[tuple[bytes, int]]:
+        """(checked payload without CRC, frames discarded before it) completed by ``data``."""
         parts = (self._buf + data).split(b"\x00")
         tail = parts.pop()
         # An unterminated tail longer than a frame is garbage: drop it now so
         # garbage without zeros cannot grow the buffer.
-        if len(tail) > self._flen:
-            self.bad_frames += 1
-            self.garbage_bytes += len(tail)
-            tail = b""
-        self._buf = tail
         out = []
         for part in parts:
             if not part:
                 continue  # back-to-back delimiters (a sender may flush with a zero)
             payload = cobs_decode(part) if len(part) == self._flen else None
             if payload is None or len(payload) != self._plen or payload[0] != self._type:
-                self.bad_frames += 1
-                self.garbage_bytes += len(part)
+                self._discard(part)
             elif crc16(payload[:-2]) != _CRC.unpack_from(payload, self._plen - 2)[0]:
                 self.crc_errors += 1
-                self.garbage_bytes += len(part)
+                self._discard(part, bad_frame=False)
             else:
                 self.frames += 1
-                out.append(payload[:-2])
+                out.append((payload[:-2], self._skipped))
+                self._skipped = 0
+        if len(tail) > self._flen:
+            self._discard(tail)
+            tail = b""
+        self._buf = tail
         return out
+
+    def _discard(self, part: bytes, bad_frame: bool = True) -> None:
+        self.bad_frames += bad_frame
+        self.garbage_bytes += len(part)
+        self._skipped += 1
 
     @property
     def errors(self) -> int:
@@ -167,7 +176,7 @@ class BinarySampleParser(FrameParser):
         super().__init__(SAMPLE_TYPE, SAMPLE_PAYLOAD_LEN)
 
     def feed(self, data: bytes) -> list[RawSample]:
-        return [RawSample(*_SAMPLE.unpack(p)[1:]) for p in self.feed_payloads(data)]
+        return [RawSample(*_SAMPLE.unpack(p)[1:], skipped) for p, skipped in self.feed_payloads(data)]
 
 
 class CommandParser(FrameParser):
@@ -177,7 +186,7 @@ class CommandParser(FrameParser):
         super().__init__(COMMAND_TYPE, COMMAND_PAYLOAD_LEN)
 
     def feed(self, data: bytes) -> list[tuple[int, float]]:
-        return [_COMMAND.unpack(p)[1:] for p in self.feed_payloads(data)]
+        return [_COMMAND.unpack(p)[1:] for p, _ in self.feed_payloads(data)]
 
 
 class AsciiSampleParser:
@@ -189,16 +198,12 @@ class AsciiSampleParser:
 
     def __init__(self):
         self._buf = b""
+        self._skipped = 0
         self.lines = self.comments = self.malformed = self.garbage_bytes = 0
 
     def feed(self, data: bytes) -> list[RawSample]:
         parts = (self._buf + data).split(b"\n")
         tail = parts.pop()
-        if len(tail) > ASCII_MAX_LINE:
-            self.malformed += 1
-            self.garbage_bytes += len(tail)
-            tail = b""
-        self._buf = tail
         out = []
         match = ASCII_LINE.fullmatch
         for line in parts:
@@ -207,7 +212,8 @@ class AsciiSampleParser:
                 t_us = int(m[1])
                 if t_us < _U32:
                     self.lines += 1
-                    out.append(RawSample(None, t_us, int(m[2])))
+                    out.append(RawSample(None, t_us, int(m[2]), 0, self._skipped))
+                    self._skipped = 0
                     continue
             stripped = line.strip(b" \t\r")
             if not stripped:
@@ -215,9 +221,17 @@ class AsciiSampleParser:
             if stripped[:1] == b"#" and len(line) <= ASCII_MAX_LINE:
                 self.comments += 1
             else:
-                self.malformed += 1
-                self.garbage_bytes += len(line) + 1
+                self._discard(len(line) + 1)
+        if len(tail) > ASCII_MAX_LINE:
+            self._discard(len(tail))
+            tail = b""
+        self._buf = tail
         return out
+
+    def _discard(self, n_bytes: int) -> None:
+        self.malformed += 1
+        self.garbage_bytes += n_bytes
+        self._skipped += 1
 
     @property
     def errors(self) -> int:

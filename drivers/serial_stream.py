@@ -125,7 +125,6 @@ class StreamDecoder:
         self._last_seq = None
 
     def feed(self, data: bytes) -> list[Decoded | Reboot]:
-        errors_before = self.parser.errors
         out: list[Decoded | Reboot] = []
         for raw in self.parser.feed(data):
             t_prev = self._time.value
@@ -149,7 +148,7 @@ class StreamDecoder:
             lost = 0 if self._last_seq is None else seq - self._last_seq - 1
             self._last_seq = seq
             count = self._count.update(raw.count)
-            flags = FLAG_LOST if lost else 0
+            flags = (FLAG_LOST if lost else 0) | (FLAG_LINK_ERRORS if raw.skipped else 0)
             if raw.status & framing.STATUS_WATCHDOG:
                 flags |= FLAG_BOARD_WATCHDOG
             if raw.status & framing.STATUS_BAD_COMMAND:
@@ -157,11 +156,6 @@ class StreamDecoder:
             self.samples += 1
             self.lost += lost
             out.append(Decoded(Sample(seq, t_us * 1e-6, count * self._scale, flags), lost))
-        if out and self.parser.errors != errors_before:
-            first = next((i for i, d in enumerate(out) if isinstance(d, Decoded)), None)
-            if first is not None:
-                d = out[first]
-                out[first] = d._replace(sample=_with_flags(d.sample, FLAG_LINK_ERRORS))
         return out
 
     def counters(self) -> dict:

@@ -130,7 +130,8 @@ class ArduinoPeer:
         if self.boot_noise:
             noise = self._rng.integers(0, 256, int(self._rng.integers(8, 64)), dtype=np.uint8).tobytes()
             self._write(noise + b"\r\n")
-        self._write(BANNER)
+        # A zero after the banner ends whatever frame the noise started (binary form).
+        self._write(BANNER + (b"\x00" if self.fmt == "binary" else b""))
 
     def frame(self, k: int) -> bytes:
         """Bytes of sample k (position now, time and count as the board holds them)."""

@@ -1,0 +1,280 @@
+"""Serial driver: unwrapping, configuration, decoding, and the real driver against the simulated board."""
+import math
+import os
+
+import numpy as np
+import pytest
+import serial
+
+from drivers import framing
+from drivers.serial_stream import (FLAG_LINK_ERRORS, FLAG_LOST, Decoded, Reboot, SerialConfig,
+                                   SerialStream, StreamDecoder, open_serial)
+from drivers.unwrap import Unwrapper, wrap_delta
+from labbench.device import Device, DeviceFault
+from labbench.errors import UserError
+from labbench.rig import rig_from_dict
+from sim_backend.arduino_peer import ArduinoPeer, connect_sim_serial, default_plant
+from sim_backend.plant import MassDamperPlant
+
+
+def make_rig(**serial_table):
+    return rig_from_dict({"rig": {"sample_time_s": 0.001}, "serial": serial_table}, source="test.toml")
+
+
+# -- unwrapping -------------------------------------------------------------------------
+@pytest.mark.parametrize("bits", [16, 32])
+def test_unwrapper_recovers_a_random_walk_across_many_wraps(bits):
+    rng = np.random.default_rng(bits)
+    half = 1 << (bits - 1)
+    steps = rng.integers(-half + 1, half, 2000)  # any step smaller than half a range
+    truth = np.cumsum(steps) - 3 * half
+    u = Unwrapper(bits, signed=True)
+    got = [u.update(int(v) & ((1 << bits) - 1)) for v in truth]
+    start = int(truth[0]) & ((1 << bits) - 1)
+    offset = (start - (1 << bits) if start >= half else start) - int(truth[0])
+    assert np.array_equal(np.array(got) - offset, truth)
+    assert abs(truth[-1] - truth[0]) > 4 * half  # it really wrapped
+
+
+def test_unwrapper_signed_start_and_sign_extended_input():
+    u = Unwrapper(16, signed=True)
+    assert u.update(0xFFFE) == -2
+    assert u.update(-1) == -1  # a sign-extended 16-bit value is the same counter reading
+    assert u.update(1) == 1
+    t = Unwrapper(32, signed=False)
+    assert t.update(2**32 - 500) == 2**32 - 500
+    assert t.update(500) == 2**32 + 500  # micros() wrapped after 71.6 min
+    assert t.update(400) == 2**32 + 400 and t.last_step == -100
+
+
+def test_wrap_delta():
+    assert wrap_delta(3, 65533, 16) == 6
+    assert wrap_delta(65533, 3, 16) == -6
+
+
+# -- configuration ----------------------------------------------------------------------
+@pytest.mark.parametrize("field, value", [
+    ("baudrate", 0), ("baudrate", 9600.5), ("format", "hex"), ("count_bits", 24), ("direction", 2),
+    ("force_command", "yes"), ("command_units", "Nm"), ("stale_periods", 4), ("stale_periods", 0.5),
+    ("tolerate_drops", -1), ("sync_timeout_s", 0), ("port", 3), ("count_bits", True),
+])
+def test_config_rejects_each_bad_field_in_one_line(field, value):
+    with pytest.raises(UserError) as exc:
+        SerialConfig.from_rig(make_rig(**{field: value}))
+    msg = str(exc.value)
+    assert f"[serial] {field}" in msg and "test.toml" in msg and "\n" not in msg
+
+
+def test_config_unknown_field_and_defaults():
+    with pytest.raises(UserError, match="unknown field.*baud_rate"):
+        SerialConfig.from_rig(make_rig(baud_rate=9600))
+    c = SerialConfig.from_rig(make_rig(port="/dev/ttyACM0", format="ascii", count_bits=16))
+    assert (c.port, c.format, c.count_bits, c.stale_periods) == ("/dev/ttyACM0", "ascii", 16, 2.5)
+
+
+def test_open_serial_user_errors():
+    with pytest.raises(UserError, match="port is not set"):
+        open_serial(make_rig())
+    with pytest.raises(UserError, match="cannot open serial port /nonexistent/tty"):
+        open_serial(make_rig(port="/nonexistent/tty"))
+
+
+def test_open_serial_on_a_silent_port_gives_a_clear_error():
+    master, slave = os.openpty()
+    try:
+        rig = make_rig(port=os.ttyname(slave), sync_timeout_s=0.2)
+        with pytest.raises(UserError, match="no binary sample stream .* within 0.2 s"):
+            open_serial(rig)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+# -- decoding ---------------------------------------------------------------------------
+def _decoder(**table):
+    rig = make_rig(**table)
+    return StreamDecoder(SerialConfig.from_rig(rig), rig.sample_time_s, rig.metres_per_count), rig
+
+
+def test_decoder_binary_gaps_reboot_and_calibration():
+    dec, rig = _decoder(direction=-1)
+    frames = [framing.encode_sample(k, 1000 * k, 10 * k) for k in (65534, 65535, 65536, 65539)]
+    out = dec.feed(b"".join(frames) + b"\x17junk\x00" + framing.encode_sample(65540, 65_540_000, 655_400))
+    samples = [d.sample for d in out]
+    assert [s.seq for s in samples] == [65534, 65535, 65536, 65539, 65540]
+    assert [d.lost for d in out] == [0, 0, 0, 2, 0]
+    assert samples[3].flags & FLAG_LOST and samples[4].flags & FLAG_LINK_ERRORS
+    assert samples[1].position_m == pytest.approx(-10 * 65535 * rig.metres_per_count)
+    assert dec.counters()["lost"] == 2 and dec.counters()["bad_frames"] == 1
+    out = dec.feed(framing.encode_sample(0, 300_000, 0))
+    assert isinstance(out[0], Reboot) and "time went from" in out[0].reason
+    assert isinstance(out[1], Decoded) and out[1].lost == 0 and dec.reboots == 1
+
+
+def test_decoder_ascii_seq_from_time_and_wraps():
+    dec, rig = _decoder(format="ascii", count_bits=16)
+    lines = b"4294966296,32767\r\n4294967296,-32768\r\n".replace(b"4294967296", b"0")
+    lines += b"1000,-32767\r\n4000,-32766\r\n4000,-1\r\n"
+    out = dec.feed(lines)
+    assert [d.sample.seq for d in out] == [4294966, 4294967, 4294968, 4294971]
+    assert [d.lost for d in out] == [0, 0, 0, 2]
+    counts = [round(d.sample.position_m / rig.metres_per_count) for d in out]
+    assert counts == [32767, 32768, 32769, 32770]  # the 16-bit counter unwrapped
+    assert dec.duplicates == 1
+
+
+# -- the driver against the simulated board -----------------------------------------------
+def _oracle_positions(rig, forces, delay=0):
+    plant = default_plant(rig)
+    applied = [0.0] * delay + list(forces)
+    xs = []
+    for f in applied[:len(forces)]:
+        xs.append(plant.position)
+        plant.step(f)
+    return np.round(np.array(xs) / rig.metres_per_count) * rig.metres_per_count
+
+
+def _run(drv, forces, timeout=1.0):
+    out = []
+    for f in forces:
+        out.append(drv.read(timeout))
+        drv.command(f)
+    return out
+
+
+@pytest.mark.parametrize("fmt", ["binary", "ascii"])
+@pytest.mark.parametrize("delay", [0, 1])
+def test_lockstep_positions_equal_the_exact_sampled_plant(fmt, delay):
+    rig = make_rig(format=fmt)
+    forces = 0.4 * np.sin(np.arange(400) * 0.05) + 0.1
+    drv, peer = connect_sim_serial(rig, seed=3, delay_samples=delay)
+    with drv:
+        assert isinstance(drv, Device)
+        drv.enable(1.0)
+        x0 = peer.plant.position
+        assert x0 == 0.0  # nothing applied before enable
+        samples = _run(drv, forces)
+        d = drv.describe()
+    seqs = np.array([s.seq for s in samples])
+    assert np.array_equal(np.diff(seqs), np.ones(len(seqs) - 1))
+    assert np.allclose(np.diff([s.t_s for s in samples]), rig.sample_time_s, atol=1e-6)
+    # The sync samples before enable ran under zero force, so the oracle starts at rest too.
+    pos = np.array([s.position_m for s in samples])
+    assert np.array_equal(pos, _oracle_positions(rig, forces, delay))
+    assert d.kind == "serial" and d.force_limit_n == rig.force_limit_n
+    assert d.details["counters"]["lost"] == 0 and d.details["counters"]["reboots"] == 0
+    assert peer.error is None
+
+
+def test_command_units_newton_metre_reach_the_plant_as_newton():
+    rig = make_rig(command_units="N*m")
+    drv, peer = connect_sim_serial(rig, seed=1)
+    with drv:
+        drv.enable(1.0)
+        _run(drv, [0.25] * 20)
+        drv.read(1.0)
+        # The board received torque 0.25 * lever_arm and converted it back.
+        assert peer.applied[-20:] == pytest.approx([0.25] * 20, rel=1e-6)
+
+
+def test_force_is_clamped_to_the_rig_limit_and_zero_when_disabled():
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=1)
+    with drv:
+        drv.command(1.0)  # not enabled: held at zero
+        assert drv.commanded_force_n == 0.0
+        drv.enable(1.0)
+        drv.read(1.0)
+        drv.command(100.0)
+        assert drv.commanded_force_n == rig.force_limit_n
+        drv.read(1.0)
+        drv.disable()
+        assert drv.commanded_force_n == 0.0
+
+
+def test_sixteen_bit_counter_and_micros_wrap_through_the_pty():
+    rig = make_rig(count_bits=16, format="binary")
+    # Start 0.3 s before micros() wraps and 20 counts below the 16-bit limit.
+    drv, peer = connect_sim_serial(rig, seed=2, t0_us=2**32 - 300_000, count0=32_740)
+    forces = [2.0] * 300 + [-2.0] * 300
+    with drv:
+        drv.enable(1.0)
+        samples = _run(drv, forces)
+    t = np.array([s.t_s for s in samples])
+    assert np.allclose(np.diff(t), rig.sample_time_s, atol=1e-6)
+    assert t[0] < 2**32 * 1e-6 < t[-1]  # crossed the micros() wrap
+    counts = np.array([round(s.position_m / rig.metres_per_count) for s in samples])
+    assert np.all(np.abs(np.diff(counts)) < 1000) and counts.max() > 32_767  # crossed the counter wrap
+    expect = _oracle_positions(rig, forces) / rig.metres_per_count + counts[0]
+    assert np.array_equal(counts, expect)
+
+
+def test_boot_noise_on_open_is_skipped_and_counted():
+    rig = make_rig(format="ascii")
+    drv, peer = connect_sim_serial(rig, seed=7)
+    with drv:
+        c = drv.counters()
+        assert c["garbage_bytes"] > 0 or c["malformed_lines"] > 0
+        assert c["comment_lines"] == 1  # the banner
+        drv.enable(1.0)
+        assert drv.read(1.0).flags == 0
+
+
+def test_loop_url_port_carries_board_bytes_to_the_driver():
+    rig = make_rig()
+    port = serial.serial_for_url("loop://", baudrate=1_000_000, timeout=0)
+    plant = MassDamperPlant(0.1, 0.2, rig.sample_time_s, x0=0.01, v0=0.05)
+    peer = ArduinoPeer(plant, rig.sample_time_s, rig.metres_per_count, seed=1)
+    peer.attach_loop(port)
+    drv = SerialStream(port, SerialConfig.from_rig(rig), rig)
+    with drv:
+        peer.boot()
+        peer.emit(5)
+        drv.wait_for_stream(0.5)
+        drv._enabled = True  # enable() flushes the input; here the test drives the board itself
+        xs = []
+        for _ in range(50):
+            xs.append(plant.position)
+            peer.emit(1, force_n=0.0)
+            drv._last_arrival = drv._clock()
+            assert drv.read(0.5).position_m == pytest.approx(
+                round(xs[-1] / rig.metres_per_count) * rig.metres_per_count)
+    assert xs[-1] > xs[0] + 0.001  # the plant was moving, so positions really changed
+
+
+def test_realtime_board_applies_each_answer_one_period_later():
+    # 10 ms periods: the free-running board in Python is robust to scheduling noise there.
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.01}, "serial": {"stale_periods": 3}})
+    drv, peer = connect_sim_serial(rig, realtime=True, seed=4)
+    sent = {}
+    with drv:
+        drv.enable(1.0)
+        for i in range(60):
+            s = drv.read(0.1)
+            sent[s.seq] = 0.01 * (i + 1)
+            drv.command(sent[s.seq])
+    # peer.applied[k] is the force of period k since boot; the answer to k lands in k+1.
+    hits = [peer.applied[k + 1] == pytest.approx(f) for k, f in sent.items() if k + 1 < len(peer.applied)]
+    assert len(hits) > 50 and sum(hits) >= 0.8 * len(hits)
+
+
+def test_close_is_idempotent_and_stops_the_board():
+    drv, peer = connect_sim_serial(make_rig(), seed=1)
+    drv.close()
+    drv.close()
+    assert not peer._thread.is_alive()
+    with pytest.raises(DeviceFault, match="closed"):
+        drv.read(0.1)
+
+
+def test_period_mismatch_is_a_user_error():
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.002}}, source="r.toml")
+    plant = default_plant(rig)
+    peer = ArduinoPeer(plant, 0.001, rig.metres_per_count, seed=1)  # board runs at 1 kHz
+    path = peer.open_pty()
+    drv = SerialStream(serial.Serial(path, timeout=0), SerialConfig.from_rig(rig, force_command=True),
+                       rig, on_close=peer.close)
+    peer.start()
+    with drv, pytest.raises(UserError, match="every 1.000 ms but the rig's sample_time_s is 2.000 ms"):
+        drv.wait_for_stream(1.0)
+    assert math.isfinite(plant.position)
