@@ -131,16 +131,52 @@ class SimDevice:
         return Sample(*self.read_raw(timeout))
 
     def read_raw(self, timeout: float) -> tuple:
-        """Next sample as ``(seq, t_s, position_m, flags)``; advances the plant one T."""
+        """Next sample as ``(seq, t_s, position_m, flags)``; advances the plant one T.
+
+        The step holds the applied force: exact ZOH for the linear part, Coulomb
+        friction solved inside the step (one method, no helper calls: this runs
+        once per simulated sample).
+        """
         if self.closed:
             raise DeviceFault("simulated device is closed")
         k = self._k + 1
         if self.realtime:
             self._pace(k, timeout)
-        if k:
-            self._advance()
         self._k = k
-        x = self.x
+        if k:
+            u = self._u
+            if self._delay:
+                d, i = self._delay, self._delay_i
+                d[i], u = u, d[i]
+                self._delay_i = i + 1 if i + 1 < len(d) else 0
+            if not self._active:
+                u = 0.0
+            elif self._noise_std:
+                if self._noise_i == len(self._noise):
+                    self._noise = self._rng.normal(0.0, self._noise_std, _NOISE_BLOCK).tolist()
+                    self._noise_i = 0
+                u += self._noise[self._noise_i]
+                self._noise_i += 1
+            self.applied_n = u
+            x, v = self.x, self.v
+            a11, a12, a21, a22, b1, b2 = self._coef
+            fc = self._fc
+            if not fc:
+                self.v = a21 * x + a22 * v + b2 * u
+                self.x = x = a11 * x + a12 * v + b1 * u
+            elif v == 0.0 and -fc <= u <= fc:
+                pass  # at rest and the force cannot break it loose
+            else:
+                ue = u - fc if v > 0.0 or (v == 0.0 and u > 0.0) else u + fc
+                vn = a21 * x + a22 * v + b2 * ue
+                if (v > 0.0 and vn <= 0.0) or (v < 0.0 and vn >= 0.0):
+                    o = self.options
+                    self.x, self.v = x, _ = reversing_step(x, v, u, fc, self.T, o["m"], o["b"])
+                else:
+                    self.x = x = a11 * x + a12 * v + b1 * ue
+                    self.v = vn
+        else:
+            x = self.x
         q = self._q
         if q:
             x = math.floor(x / q + 0.5) * q
@@ -157,47 +193,6 @@ class SimDevice:
         self.close()
 
     # -- internals -------------------------------------------------------------------
-    def _advance(self) -> None:
-        """Hold the applied force over one step: exact ZOH, friction solved in-step."""
-        u = self._u
-        if self._delay:
-            d, i = self._delay, self._delay_i
-            d[i], u = u, d[i]
-            self._delay_i = i + 1 if i + 1 < len(d) else 0
-        if not self._active:
-            u = 0.0
-        elif self._noise_std:
-            if self._noise_i == len(self._noise):
-                self._noise = self._rng.normal(0.0, self._noise_std, _NOISE_BLOCK).tolist()
-                self._noise_i = 0
-            u += self._noise[self._noise_i]
-            self._noise_i += 1
-        self.applied_n = u
-        x, v = self.x, self.v
-        a11, a12, a21, a22, b1, b2 = self._coef
-        fc = self._fc
-        if fc:
-            if v > 0.0:
-                ue = u - fc
-            elif v < 0.0:
-                ue = u + fc
-            elif u > fc:
-                ue = u - fc
-            elif u < -fc:
-                ue = u + fc
-            else:  # at rest and the force cannot break it loose
-                return
-            vn = a21 * x + a22 * v + b2 * ue
-            if (v > 0.0 and vn <= 0.0) or (v < 0.0 and vn >= 0.0):
-                o = self.options
-                self.x, self.v = reversing_step(x, v, u, fc, self.T, o["m"], o["b"])
-                return
-            self.x = a11 * x + a12 * v + b1 * ue
-            self.v = vn
-            return
-        self.x = a11 * x + a12 * v + b1 * u
-        self.v = a21 * x + a22 * v + b2 * u
-
     def _pace(self, k: int, timeout: float) -> None:
         now = time.perf_counter()
         if self._t0 is None:
