@@ -93,6 +93,7 @@ class CanopenConfig:
     stale_periods: int = 3  # a TPDO later than this many periods is a fault
     sdo_timeout_s: float = 0.5
     lockstep_timeout_s: float = 1.0  # simulated drive: wait for the TPDO of a SYNC
+    enable_timeout_s: float = 0.5  # OPERATION ENABLED must show in a TPDO within this
     velocity_tpdo_every: int = 1  # TPDO2 (0x606C) transmission type: every n-th SYNC
 
     _RANGES = {
@@ -183,7 +184,9 @@ class CanopenDrive:
         self._close_hooks: list = []
         self._closed = False
         self._cyclic = False
-        self._enabled = False  # enable() reached OPERATION ENABLED at least once
+        self._enable_deadline: float | None = None  # set by enable(), until disable()
+        self._confirmed = False  # a TPDO showed OPERATION ENABLED since enable()
+        self._state_seen = State.NOT_READY_TO_SWITCH_ON  # from the latest statusword
         self._fault: str | None = None
         self._hb = threading.Condition()
         self._nmt_state: int | None = None
@@ -254,6 +257,8 @@ class CanopenDrive:
         self._max_permille = min(32767, max(1, round(self.rig.force_limit_n * self._force_to_permille)))
         self._map_pdos()
         self._select_mode()
+        for index, sub, fmt, value in self._safety_objects():
+            self._write_checked(index, sub, fmt, value)
         self._nmt(NMT_START)
         self._wait_nmt(5, timeout)
 
@@ -304,7 +309,6 @@ class CanopenDrive:
             (0x605A, 0, "<h", cfg.quick_stop_option),
             (0x605E, 0, "<h", cfg.fault_reaction_option),
             (0x6007, 0, "<h", cfg.abort_connection_option),
-            (0x1016, 1, "<I", cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms),
             (0x6071, 0, "<h", 0),
         ]
 
@@ -410,65 +414,89 @@ class CanopenDrive:
 
     # ------------------------------------------------------------------ Device
     def describe(self) -> DeviceDescription:
+        limit = (self._max_permille / self._force_to_permille if self._force_to_permille
+                 else self.rig.force_limit_n)
         return DeviceDescription(
             kind="canopen", name=f"CiA 402 drive, node {self.config.node_id}",
-            sample_time_s=self.T, force_limit_n=self._max_permille / self._force_to_permille
-            if self._force_to_permille else self.rig.force_limit_n,
+            sample_time_s=self.T, force_limit_n=limit,
             position_limits_m=self.rig.position_limits_m,
             details={"config": self.config.as_dict(), "identity": dict(self._identity),
                      "mode": MODE_NAMES.get(self._mode, ""), "rated_torque_mnm": self._rated_mnm,
-                     "max_torque_permille": self._max_permille, "realtime": self.realtime,
+                     "max_torque_permille": self._max_permille, "paced": self.realtime,
                      "counters": dict(self.counters)},
         )
 
-    def enable(self, timeout: float = 1.0) -> None:
-        """Write and verify the safety objects, then reach OPERATION ENABLED."""
-        if self._cyclic:
-            return
+    def _start_cyclic(self) -> None:
+        """Service -> cyclic phase: re-verify the drive, arm its heartbeat consumer."""
         if self._fault:
             raise DeviceFault(f"latched fault: {self._fault}; an operator must reset it "
                               "(labbench devices --fault-reset)")
-        state = self.drive_state()
-        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            self._latch(f"drive is in {state.value}: {self._error_code()}")
-            raise DeviceFault(f"{self._fault}; an operator must reset it "
-                              "(labbench devices --fault-reset)")
-        for index, sub, fmt, value in self._safety_objects():
-            self._write_checked(index, sub, fmt, value)
-        for index, sub, fmt, value in (
-                (0x1400, 5, "<H", self.config.rpdo_timeout_ms), (0x6061, 0, "<b", self._mode)):
-            if (back := self._read(index, sub, fmt)) != value:
-                raise UserError(f"node {self.config.node_id}: object 0x{index:04X}:{sub:02X} "
-                                f"is {back}, expected {value}: refusing to enable")
-        self._drive_to(State.OPERATION_ENABLED, timeout)
+        try:
+            state = self.drive_state()
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                self._latch(f"drive is in {state.value}: {self._error_code()}")
+                raise DeviceFault(f"{self._fault}; an operator must reset it "
+                                  "(labbench devices --fault-reset)")
+            for index, sub, fmt, value in self._safety_objects() + [
+                    (0x1400, 5, "<H", self.config.rpdo_timeout_ms), (0x6061, 0, "<b", self._mode)]:
+                if (back := self._read(index, sub, fmt)) != value:
+                    raise UserError(f"node {self.config.node_id}: object 0x{index:04X}:{sub:02X}"
+                                    f" is {back}, expected {value}: refusing to enable")
+            cfg = self.config
+            self._write_checked(0x1016, 1, "<I", cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms)
+        except UserError as exc:  # inside a run this is a device fault with the same words
+            self._latch(str(exc))
+            raise DeviceFault(self._fault) from None
         self._stop_receiver()
-        self._cyclic = self._enabled = True
+        self._state_seen = state
+        self._controlword = cia402.CONTROLWORD[Command.SHUTDOWN]  # ready, no torque
+        self._enable_deadline = None
+        self._confirmed = False
+        self._cyclic = True
         self._next_tick = time.perf_counter()
         self._last_hb = -math.inf
-        self._controlword = cia402.CONTROLWORD[Command.ENABLE_OPERATION]
+
+    def enable(self, timeout: float = 1.0) -> None:
+        """Ask for OPERATION ENABLED (RPDO controlword); the next TPDOs must confirm it.
+
+        Non-blocking so that the loop can enable at the sample where its gate
+        opens; ``read()`` faults if the drive is not there within
+        ``max(timeout, enable_timeout_s)``.
+        """
+        if self._fault:
+            raise DeviceFault(f"latched fault: {self._fault}; an operator must reset it "
+                              "(labbench devices --fault-reset)")
+        if not self._cyclic:
+            self._start_cyclic()
+        if self._enable_deadline is None:
+            self._enable_deadline = time.perf_counter() + max(timeout, self.config.enable_timeout_s)
+        self._step_toward_enabled(self._state_seen)
+        self._send(can.Message(arbitration_id=self._rpdo1_id,
+                               data=RPDO1.pack(0, self._controlword), is_extended_id=False))
 
     def disable(self, timeout: float = 1.0) -> None:
-        """Zero torque, SWITCH ON DISABLED, stop the drive watching our heartbeat."""
+        """Zero torque, SWITCH ON DISABLED (confirmed over SDO), heartbeat consumer off."""
         if self._closed or self._network is None:
             return
         self._zero_force(Command.DISABLE_VOLTAGE)
         if self._cyclic:
             self._cyclic = False
             self._start_receiver()
-        if self._fault:
-            return  # the drive is in FAULT or unreachable; leave it for the operator
         try:
-            self._drive_to(State.SWITCH_ON_DISABLED, timeout)
+            if not self._fault:
+                self._drive_to(State.SWITCH_ON_DISABLED, timeout)
+            # The loop has stopped producing our heartbeat: stop the drive watching it.
             self._write_checked(0x1016, 1, "<I", 0)
         except (UserError, DeviceFault) as exc:
+            if self._fault:
+                return  # already faulted (perhaps unreachable): the fault says why
             self._latch(f"disable failed: {exc}")
             raise DeviceFault(self._fault) from None
 
     def emergency_stop(self) -> None:
         """Zero torque and power stage off at once; latch. Never raises."""
         self._zero_force(Command.DISABLE_VOLTAGE)
-        if not self._fault:
-            self._fault = "emergency stop"
+        self._latch("emergency stop")
 
     def _zero_force(self, cmd: Command) -> None:
         try:
@@ -516,11 +544,17 @@ class CanopenDrive:
             self._fail(f"CAN transmit error: {exc}")
 
     def read(self, timeout: float) -> Sample:
-        """SYNC, then the TPDO of that SYNC: position at the start of the period."""
+        return Sample(*self.read_raw(timeout))
+
+    def read_raw(self, timeout: float) -> tuple:
+        """SYNC, then the TPDO of that SYNC: ``(seq, t_s, position_m, flags)``.
+
+        The position is the drive's at the SYNC, i.e. at the start of the period.
+        """
         if self._fault:
             raise DeviceFault(self._fault)
         if not self._cyclic:
-            raise DeviceFault("read() before enable()")
+            self._start_cyclic()
         now = time.perf_counter()
         if self.realtime:
             if now < self._next_tick:
@@ -534,38 +568,60 @@ class CanopenDrive:
         else:
             wait = self.config.lockstep_timeout_s
         wait = min(wait, timeout)
-        if self._bus.state is can.BusState.ERROR:
+        bus = self._bus
+        if bus.state is can.BusState.ERROR:
             self._fail("CAN controller is bus-off (error state)")
         self._send(self._sync_msg)
         if now - self._last_hb >= self.config.host_heartbeat_ms * 1e-3:
             self._send(self._host_hb_msg)
             self._last_hb = now
         deadline = now + wait
-        bus = self._bus
         while True:
             left = deadline - time.perf_counter()
             msg = bus.recv(left if left > 0 else 0.0)
             if msg is None:
                 self._fail(f"stale TPDO: no answer to SYNC {self._seq + 1} within "
-                           f"{wait * 1e3:.1f} ms")
-            cid = msg.arbitration_id
-            if cid == self._tpdo1_id and not msg.is_error_frame:
+                           f"{wait * 1e3:.3g} ms")
+            if msg.arbitration_id == self._tpdo1_id and not msg.is_error_frame:
                 counts, status, torque = TPDO1.unpack_from(msg.data)
                 break
             self._dispatch(msg)
             if self._fault:  # EMCY, error frame or NMT change seen while waiting
                 self._fail(self._fault)
         if status & 0x6F != 0x27:  # CiA 402 coding of OPERATION ENABLED
-            try:
-                now_in = cia402.decode_status(status).value
-            except cia402.UnknownStatusword:
-                now_in = "an unknown state"
-            self._fail(f"drive left OPERATION ENABLED: now {now_in} (statusword 0x{status:04X})")
+            self._not_enabled(status)
+        elif self._enable_deadline is not None and not self._confirmed:
+            self._confirmed = True
+            self._state_seen = State.OPERATION_ENABLED
         self._seq += 1
         self.torque_actual_n = torque / self._force_to_permille
         flags = (FLAG_WARNING if status & cia402.SW_WARNING else 0) | (
             FLAG_INTERNAL_LIMIT if status & cia402.SW_INTERNAL_LIMIT else 0)
-        return Sample(self._seq, self._seq * self.T, counts * self.rig.metres_per_count, flags)
+        return self._seq, self._seq * self.T, counts * self.rig.metres_per_count, flags
+
+    def _not_enabled(self, status: int) -> None:
+        """A TPDO statusword other than OPERATION ENABLED: fault unless still on the way."""
+        try:
+            state = cia402.decode_status(status)
+        except cia402.UnknownStatusword as exc:
+            self._fail(str(exc))
+        if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self._confirmed:
+            self._fail(f"drive left OPERATION ENABLED: now {state.value} "
+                       f"(statusword 0x{status:04X})")
+        self._state_seen = state
+        if self._enable_deadline is not None:
+            if time.perf_counter() > self._enable_deadline:
+                self._fail(f"drive did not reach OPERATION ENABLED: still {state.value} "
+                           f"(statusword 0x{status:04X})")
+            self._step_toward_enabled(state)
+
+    def _step_toward_enabled(self, state: State) -> None:
+        """Controlword of the next step to OPERATION ENABLED (sent with the next RPDO)."""
+        try:
+            cmd = cia402.command_toward(state, State.OPERATION_ENABLED)
+        except cia402.NoRoute as exc:
+            self._fail(f"cannot enable: {exc}")
+        self._controlword = cia402.CONTROLWORD[cmd or Command.ENABLE_OPERATION]
 
     def _dispatch(self, msg: can.Message) -> None:
         """Everything but TPDO1 in the cyclic phase."""
@@ -587,9 +643,14 @@ class CanopenDrive:
             self.counters["stray_frames"] += 1
 
     def command(self, force_n: float) -> None:
-        """RPDO: torque held by the drive from now until the next command."""
-        if self._fault:
-            raise DeviceFault(self._fault)
+        """RPDO: torque held by the drive from now until the next command.
+
+        Outside a run (or after a fault) only zero is accepted, and sends nothing.
+        """
+        if self._fault or not self._cyclic:
+            if force_n != 0.0:
+                raise DeviceFault(self._fault or "command() outside a run (no read() yet)")
+            return
         p = round(force_n * self._force_to_permille)
         p = self._max_permille if p > self._max_permille else (
             -self._max_permille if p < -self._max_permille else p)
@@ -607,7 +668,7 @@ class CanopenDrive:
         if self._closed:
             return
         try:
-            if self._enabled:
+            if self._cyclic:
                 self.disable()
         except Exception:  # closing must not fail; the drive's own timers remove torque
             pass

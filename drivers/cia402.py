@@ -152,7 +152,7 @@ def next_state(state: State, command: Command | None) -> State:
 _ROUTE = {
     S.OPERATION_ENABLED: {
         S.SWITCH_ON_DISABLED: C.SHUTDOWN,
-        S.READY_TO_SWITCH_ON: C.SWITCH_ON,
+        S.READY_TO_SWITCH_ON: C.ENABLE_OPERATION,  # transitions 3 + 4 in one command
         S.SWITCHED_ON: C.ENABLE_OPERATION,
         S.QUICK_STOP_ACTIVE: C.DISABLE_VOLTAGE,
     },

@@ -34,7 +34,7 @@ from drivers import cia402, emcy
 from drivers.canopen_drive import MODE_BITS, CanopenConfig, CanopenDrive
 from drivers.cia402 import State
 from labbench.errors import UserError
-from sim_backend.plant import MassDamperPlant
+from sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
 # Struct codes of the OD data types the drive can map into a PDO.
@@ -79,7 +79,7 @@ class _DriveNode(canopen.LocalNode):
 class SimCanopenDrive:
     """The simulated drive; ``start()`` runs its thread, ``close()`` stops it (idempotent)."""
 
-    def __init__(self, channel: str, node_id: int, plant: MassDamperPlant,
+    def __init__(self, channel: str, node_id: int, plant: SimDevice,
                  metres_per_count: float, lever_arm_m: float, sample_time_s: float):
         self.node_id = node_id
         self.plant = plant
@@ -127,13 +127,13 @@ class SimCanopenDrive:
     def _live(self, index: int) -> int | None:
         """Process values (None for stored parameters)."""
         if index == 0x6064:
-            return round(self.plant.position / self.mpc)
+            return round(self.plant.x / self.mpc)
         if index == 0x6041:
             return self._statusword()
         if index == 0x6077:
             return self.torque_permille
         if index == 0x606C:
-            return round(self.plant.velocity / self.mpc)
+            return round(self.plant.v / self.mpc)
         return {0x6061: self.mode, 0x603F: self.error_code, 0x6071: self.target_permille,
                 0x6040: self.controlword,
                 0x1001: 0x01 if self.state is State.FAULT else 0}.get(index)
@@ -256,10 +256,13 @@ class SimCanopenDrive:
     def _on_sync(self) -> None:
         if self.nmt_state != 5:
             return
-        self.plant.step(self.torque_permille * 1e-3 * self._get(0x6076) * 1e-3 / self.lever)
+        # SYNC k samples x[k]; from the second SYNC on the plant first advances one
+        # period under the torque held since the last RPDO (as sim_backend.sim_device).
+        self.plant.command(self.torque_permille * 1e-3 * self._get(0x6076) * 1e-3 / self.lever)
+        self.plant.read_raw(1.0)
         self.sync_count += 1
         lo, hi = self._get(0x607D, 1), self._get(0x607D, 2)
-        counts = round(self.plant.position / self.mpc)
+        counts = round(self.plant.x / self.mpc)
         if self.state is State.OPERATION_ENABLED and not lo <= counts <= hi:
             self._fault(0x8612, f"position {counts} counts outside 0x607D [{lo}, {hi}]")
         for cob_id, every, indices, st in self._tpdos:
@@ -357,12 +360,12 @@ class SimCanopenDrive:
         self.bus.shutdown()
 
 
-def plant_for(rig) -> MassDamperPlant:
-    """The plant behind the drive: the rig's nominal model, overridable in ``[sim]``."""
-    sim = rig.section("sim")
-    m = float(sim.get("m", rig.nominal_mass_kg))
-    b = float(sim.get("b", rig.nominal_damping_ns_m))
-    return MassDamperPlant(m, b, rig.sample_time_s)
+def plant_for(rig, seed=None) -> SimDevice:
+    """The handle behind the drive: the plain simulator of ``[sim]`` (mass, damping,
+    friction, noise, delay), stepped once per SYNC."""
+    plant = open_sim(rig, realtime=False, seed=seed)
+    plant.enable()
+    return plant
 
 
 def sim_config(rig) -> CanopenConfig:
@@ -373,10 +376,11 @@ def sim_config(rig) -> CanopenConfig:
     return CanopenConfig.from_section(section, source=rig.source)
 
 
-def start_sim_drive(rig, config: CanopenConfig) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
+def start_sim_drive(rig, config: CanopenConfig,
+                    seed=None) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
     """A running simulated drive on a fresh ``virtual`` channel, and the host's bus to it."""
     channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
-    peer = SimCanopenDrive(channel, config.node_id, plant_for(rig), rig.metres_per_count,
+    peer = SimCanopenDrive(channel, config.node_id, plant_for(rig, seed), rig.metres_per_count,
                            rig.lever_arm_m, rig.sample_time_s).start()
     try:
         return peer, FaultyVirtualBus(channel=channel)
@@ -401,10 +405,10 @@ def connect_driver(rig, config, peer, host_bus, realtime: bool = False) -> Canop
 def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
-    ``seed`` is accepted for interface parity with ``sim`` (this drive has no noise).
+    ``seed`` seeds the simulated handle's force noise (``[sim] force_noise_n``).
     """
     if options:
         raise UserError(f"sim-canopen device takes no option(s) {', '.join(sorted(options))}")
     config = sim_config(rig)
-    peer, host_bus = start_sim_drive(rig, config)
+    peer, host_bus = start_sim_drive(rig, config, seed)
     return connect_driver(rig, config, peer, host_bus, realtime)

@@ -66,8 +66,29 @@ def test_bring_up_observes_nmt_maps_pdos_and_selects_cst(drive):
     assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 50)
 
 
-def test_enable_writes_and_reads_back_the_safety_objects(drive):
+def enabled(drive):
+    """enable() as the loop does it: the RPDO of each cycle carries the next controlword."""
     drive.enable()
+    for _ in range(3):
+        drive.read(1.0)
+        drive.command(0.0)
+    assert drive.peer.state is State.OPERATION_ENABLED
+    return drive
+
+
+def test_enable_from_switch_on_disabled_takes_the_cia402_route(drive):
+    drive.enable()
+    states = []
+    for _ in range(3):
+        drive.read(1.0)
+        drive.command(0.0)
+        states.append(drive._state_seen)
+    assert states == [State.READY_TO_SWITCH_ON, State.OPERATION_ENABLED,
+                      State.OPERATION_ENABLED]
+
+
+def test_enable_writes_and_reads_back_the_safety_objects(drive):
+    enabled(drive)
     peer = drive.peer
     assert peer.state is State.OPERATION_ENABLED
     rig = drive.rig
@@ -112,30 +133,31 @@ def test_positions_match_the_exact_plant_count_for_count(drive):
     samples; torque is in per-mille of 100 mN m, position in counts.
     """
     rig = drive.rig
-    drive.enable()
+    enabled(drive)
     forces = 0.8 * np.random.default_rng(1).standard_normal(600)
     ref = MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
     held = 0.0
     got, want = [], []
-    for f in forces:
-        ref.step(held)
+    for k, f in enumerate(forces):
+        if k:
+            ref.step(held)
         want.append(round(ref.position / rig.metres_per_count))
         got.append(round(drive.read(1.0).position_m / rig.metres_per_count))
         drive.command(f)
         held = round(f * 1000) * 1e-3 * 100 * 1e-3 / rig.lever_arm_m
     assert got == want
     assert max(abs(c) for c in got) > 20  # the test moved the handle
-    assert drive.peer.sync_count == len(forces)
+    assert drive.peer.sync_count == len(forces) + 3  # 3 cycles of enabled()
 
 
 def test_sample_sequence_time_and_torque_clamp(drive):
-    drive.enable()
+    enabled(drive)
     samples = []
     for _ in range(5):
         samples.append(drive.read(1.0))
         drive.command(50.0)  # ten times the force limit
-    assert [s.seq for s in samples] == [0, 1, 2, 3, 4]
-    assert [s.t_s for s in samples] == pytest.approx([0, 0.001, 0.002, 0.003, 0.004])
+    assert [s.seq for s in samples] == [3, 4, 5, 6, 7]
+    assert [s.t_s for s in samples] == pytest.approx([0.003, 0.004, 0.005, 0.006, 0.007])
     assert drive.peer.torque_permille == 5000
     assert drive.torque_actual_n == pytest.approx(5.0)
     drive.disable()
@@ -144,8 +166,7 @@ def test_sample_sequence_time_and_torque_clamp(drive):
 
 def test_close_twice_and_context_manager(sim_parts):
     with connect(sim_parts) as d:
-        d.enable()
-        d.read(1.0)
+        enabled(d)
         d.command(0.1)
     assert d.peer.torque_permille == 0 and d.peer.state is State.SWITCH_ON_DISABLED
     d.close()
