@@ -17,6 +17,7 @@ or as joint torque ``F * lever_arm_m`` in N m (``"N*m"``).
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import time
 from collections import deque
@@ -174,18 +175,25 @@ class SerialStream:
     """``Device`` over an open pyserial port (a real port, a pty path or ``loop://``).
 
     ``on_close`` runs once after the port is closed (``open_sim_serial`` stops
-    its simulated board there). ``stale_s`` overrides ``stale_periods * T`` for a
-    lock-step simulated board, whose time is not wall time. ``clock`` is
-    injectable for tests.
+    its simulated board there). A lock-step simulated board's time is not wall
+    time: it passes ``paced=False`` (the loop then does not judge its periods)
+    and ``stale_s``, which overrides ``stale_periods * T``; ``kind`` names it
+    in ``describe()``. ``clock`` is injectable for tests.
+
+    Before ``enable()`` a read returns the newest sample waiting (older ones are
+    dropped: nothing is driven yet, and a stale backlog would only add latency);
+    after it, every sample in order.
     """
 
     def __init__(self, port, config: SerialConfig, rig, on_close: Callable[[], None] | None = None,
-                 stale_s: float | None = None, clock: Callable[[], float] = time.monotonic):
+                 stale_s: float | None = None, paced: bool = True, kind: str = "serial",
+                 clock: Callable[[], float] = time.monotonic):
         self.port = port
         self.config = config
         self.rig = rig
         self.T = rig.sample_time_s
         self._on_close = on_close
+        self._paced, self._kind = paced, kind
         self._clock = clock
         self._decoder = StreamDecoder(config, self.T, rig.metres_per_count)
         self._ready: deque[Sample] = deque()
@@ -193,8 +201,13 @@ class SerialStream:
         # Poll granularity of a blocking read: bounds how late a stale stream is seen.
         self._poll_s = self.T / 4
         port.timeout = self._poll_s
-        # Only a full output buffer blocks a write; scheduling noise alone must not time out.
-        port.write_timeout = 0.02
+        port.write_timeout = 0.02  # loop:// and other non-posix ports only (see _write)
+        # A posix port is written with one non-blocking os.write: pyserial's write
+        # timeout also fires when the thread is merely descheduled after writing.
+        try:
+            self._fd = port.fileno()
+        except (AttributeError, OSError):  # io.UnsupportedOperation is an OSError
+            self._fd = None
         self._unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
         self._enabled = False
         self._fault: str | None = None
@@ -208,13 +221,13 @@ class SerialStream:
     def describe(self) -> DeviceDescription:
         c = self.config
         return DeviceDescription(
-            kind="serial",
+            kind=self._kind,
             name=f"serial encoder stream on {c.port or getattr(self.port, 'port', '?')}",
             sample_time_s=self.T,
             force_limit_n=self.rig.force_limit_n if c.force_command else 0.0,
             position_limits_m=tuple(self.rig.position_limits_m),
-            details={"config": asdict(c), "counters": self.counters(),
-                     "metres_per_count": self.rig.metres_per_count},
+            details={"config": asdict(c), "counters": self.counters(), "paced": self._paced,
+                     "stale_s": self._stale_s, "metres_per_count": self.rig.metres_per_count},
         )
 
     def counters(self) -> dict:
@@ -250,17 +263,26 @@ class SerialStream:
         self._last_arrival = self._clock()
 
     def enable(self, timeout: float = 1.0) -> None:
-        """Resynchronise on the live stream and clear a latched fault (operator action)."""
+        """Arm the driver: nonzero forces pass, and stale, lost or rebooted streams fault.
+
+        Takes no sample away from the caller. The stream must be live: a sample
+        within ``stale_s`` or one arriving within ``timeout`` (kept for the next
+        ``read``). After a latched fault (operator re-enable) the stream position
+        is forgotten first, so a rebooted board's new zero is accepted.
+        """
         self._check_open()
-        self._enabled = False
-        self._force = 0.0
-        try:
-            self.port.reset_input_buffer()
-        except Exception as exc:  # noqa: BLE001 - any port error means the port is gone
-            raise DeviceFault(f"serial port lost: {exc}") from None
-        self._decoder.reset()
-        self.wait_for_stream(timeout)
+        if self._fault:
+            self._ready.clear()
+            self._decoder.reset()
+            self._last_arrival = -math.inf
+        deadline = self._clock() + timeout
+        while not self._ready and self._clock() - self._last_arrival > self._stale_s:
+            if self._clock() >= deadline:
+                raise DeviceFault(f"cannot enable: no serial sample within {timeout:g} s "
+                                  f"(counters {self.counters()})")
+            self._ingest(self._read_chunk())
         self._fault = None
+        self._force = 0.0
         self._enabled = True
 
     def disable(self, timeout: float = 1.0) -> None:
@@ -288,6 +310,9 @@ class SerialStream:
                 raise TimeoutError(f"no serial sample within {timeout:g} s")
             self._ingest(self._read_chunk())
             now = self._clock()
+        if not self._enabled:
+            while len(self._ready) > 1:
+                self._ready.popleft()
         s = self._ready.popleft()
         if self._ready:
             s = _with_flags(s, FLAG_BACKLOG)
@@ -368,9 +393,13 @@ class SerialStream:
     def _send(self, force_n: float) -> None:
         if not self.config.force_command or self._closed:
             return
+        frame = framing.encode_command(self._last_seq, force_n * self._unit)
         try:
-            self.port.write(framing.encode_command(self._last_seq, force_n * self._unit))
-        except Exception as exc:  # noqa: BLE001 - write timeout or lost port
+            if self._fd is None:
+                self.port.write(frame)
+            elif os.write(self._fd, frame) != len(frame):
+                raise BlockingIOError("output buffer full")
+        except Exception as exc:  # noqa: BLE001 - full buffer, write timeout or lost port
             if force_n != 0.0:
                 self._trip(f"cannot send force command: {exc}")
 

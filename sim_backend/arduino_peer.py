@@ -25,6 +25,7 @@ Faults are scheduled by sample index (``schedule``) so tests are repeatable.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import select
 import threading
@@ -136,7 +137,7 @@ class ArduinoPeer:
     def frame(self, k: int) -> bytes:
         """Bytes of sample k (position now, time and count as the board holds them)."""
         t_us = (self._t0_us + round(k * self.T * 1e6)) % (1 << 32)
-        count = self._count0 + self.direction * round((self.plant.position - self._zero_x) / self._mpc)
+        count = self._count0 + self.direction * math.floor((self.plant.position - self._zero_x) / self._mpc + 0.5)
         bits = self.count_bits
         count &= (1 << bits) - 1
         if count >> (bits - 1):
@@ -291,12 +292,14 @@ class ArduinoPeer:
 
 def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, faults=(), plant=None,
                        delay_samples: int = 0, t0_us: int = 0, count0: int = 0,
-                       boot_noise: bool = True, lockstep_timeout_s: float = 0.05):
+                       boot_noise: bool = True, lockstep_timeout_s: float = 0.05, sim: dict | None = None):
     """The real ``SerialStream`` on a pty to a started ``ArduinoPeer``: ``(driver, peer)``.
 
     Driver settings come from ``rig``'s ``[serial]`` table (port and
-    ``force_command = true`` are forced: the simulated plant needs the force);
-    closing the driver stops the board.
+    ``force_command = true`` are forced: the simulated plant needs the force).
+    The plant is the plain simulator's physics (``SimPlant``: ``[sim]`` table,
+    overridden by ``sim``) unless ``plant`` is given. Closing the driver stops
+    the board.
     """
     import serial
 
@@ -305,7 +308,7 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
     config = SerialConfig.from_rig(rig, port="pty", force_command=True)
     T = rig.sample_time_s
     if plant is None:
-        plant = default_plant(rig)
+        plant = SimPlant(rig, seed=seed, **(sim or {}))
     unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
     peer = ArduinoPeer(plant, T, rig.metres_per_count, fmt=config.format, count_bits=config.count_bits,
                        direction=config.direction, unit=unit, realtime=realtime,
@@ -319,8 +322,8 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
         raise
     # A lock-step board's time is virtual: the host's stale limit is the board's
     # own wait for a command, not a few periods of wall time.
-    driver = SerialStream(ser, config, rig, on_close=peer.close,
-                          stale_s=None if realtime else lockstep_timeout_s)
+    driver = SerialStream(ser, config, rig, on_close=peer.close, paced=realtime,
+                          stale_s=None if realtime else lockstep_timeout_s, kind="sim-serial")
     peer.start()
     try:
         driver.wait_for_stream(config.sync_timeout_s)
@@ -330,6 +333,27 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
     return driver, peer
 
 
+class SimPlant:
+    """The plain simulator's physics as a board's plant (``step(force)``, ``position``).
+
+    Friction, force noise, actuator delay and initial state come from
+    ``sim_backend.sim_device`` with the same options and seed, so a run through
+    the board matches a run on ``--device sim``; the board adds its encoder's
+    quantisation.
+    """
+
+    def __init__(self, rig, seed: int | None = None, **options):
+        from sim_backend.sim_device import SimDevice
+
+        self._sim = SimDevice(rig, seed=seed, **options)
+        self._sim.enable()
+        self.position = self._sim.read_raw(1.0)[2]
+
+    def step(self, force: float) -> None:
+        self._sim.command(force)
+        self.position = self._sim.read_raw(1.0)[2]
+
+
 def default_plant(rig):
     """The rig's nominal mass-damper, exact over each ZOH step."""
     from sim_backend.plant import MassDamperPlant
@@ -337,6 +361,6 @@ def default_plant(rig):
     return MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
 
 
-def open_sim_serial(rig, realtime: bool = False, seed: int | None = None):
-    """Device registry factory for ``--device sim-serial``."""
-    return connect_sim_serial(rig, realtime=realtime, seed=seed)[0]
+def open_sim_serial(rig, realtime: bool = False, seed: int | None = None, **sim_options):
+    """Device registry factory for ``--device sim-serial`` (``sim_options``: as for ``--device sim``)."""
+    return connect_sim_serial(rig, realtime=realtime, seed=seed, sim=sim_options)[0]

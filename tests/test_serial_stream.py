@@ -161,7 +161,7 @@ def test_lockstep_positions_equal_the_exact_sampled_plant(fmt, delay):
     # The sync samples before enable ran under zero force, so the oracle starts at rest too.
     pos = np.array([s.position_m for s in samples])
     assert np.array_equal(pos, _oracle_positions(rig, forces, delay))
-    assert d.kind == "serial" and d.force_limit_n == rig.force_limit_n
+    assert d.kind == "sim-serial" and d.force_limit_n == rig.force_limit_n
     assert d.details["counters"]["lost"] == 0 and d.details["counters"]["reboots"] == 0
     assert peer.error is None
 
@@ -226,17 +226,17 @@ def test_loop_url_port_carries_board_bytes_to_the_driver():
     plant = MassDamperPlant(0.1, 0.2, rig.sample_time_s, x0=0.01, v0=0.05)
     peer = ArduinoPeer(plant, rig.sample_time_s, rig.metres_per_count, seed=1)
     peer.attach_loop(port)
-    drv = SerialStream(port, SerialConfig.from_rig(rig), rig)
+    # The test is the board's clock here: a generous stale limit.
+    drv = SerialStream(port, SerialConfig.from_rig(rig), rig, stale_s=1.0)
     with drv:
         peer.boot()
         peer.emit(5)
         drv.wait_for_stream(0.5)
-        drv._enabled = True  # enable() flushes the input; here the test drives the board itself
+        drv.enable(0.5)
         xs = []
         for _ in range(50):
             xs.append(plant.position)
             peer.emit(1, force_n=0.0)
-            drv._last_arrival = drv._clock()
             assert drv.read(0.5).position_m == pytest.approx(
                 round(xs[-1] / rig.metres_per_count) * rig.metres_per_count)
     assert xs[-1] > xs[0] + 0.001  # the plant was moving, so positions really changed
