@@ -368,9 +368,15 @@ def plant_for(rig, seed=None) -> SimDevice:
     return plant
 
 
+# The simulated drive's monitors run on wall-clock time in a process that is not
+# real-time (a shared machine stalls it for tens of ms now and then): defaults
+# that survive such stalls. A rig's [canopen] table still overrides them.
+SIM_MONITOR_DEFAULTS = {"heartbeat_consumer_ms": 1000, "rpdo_timeout_ms": 500}
+
+
 def sim_config(rig) -> CanopenConfig:
     """The rig's ``[canopen]`` table minus the hardware fields the simulation defines itself."""
-    section = rig.section("canopen")
+    section = {**SIM_MONITOR_DEFAULTS, **rig.section("canopen")}
     for hardware_field in ("interface", "channel", "eds"):
         section.pop(hardware_field, None)
     return CanopenConfig.from_section(section, source=rig.source)

@@ -7,7 +7,8 @@ from labbench.rig import rig_from_dict
 from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 # Short lock-step timeout so a silent drive is detected quickly in tests.
-FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2}
+FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2, "heartbeat_consumer_ms": 400,
+        "rpdo_timeout_ms": 300}
 
 
 def make_rig(**canopen):
