@@ -121,7 +121,8 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str) -> 
 
 
 def _fmt(v, spec=".4g") -> str:
-    return "-" if v is None else format(v, spec)
+    """Number for people: rounding noise below 1e-12 shows as 0."""
+    return "-" if v is None else format(round(v, 12) + 0.0, spec)
 
 
 def _headline(s: dict) -> str:

@@ -51,7 +51,7 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
         if c.style not in STYLES:
             raise ValueError(f"curve style {c.style!r}; choose one of {', '.join(STYLES)}")
 
-    fig = Figure(figsize=(11, 7), layout="constrained")
+    fig = Figure(figsize=(11, 7.5), layout="constrained")
     FigureCanvasAgg(fig)
     grid = fig.add_gridspec(6, 2)
     mag = fig.add_subplot(grid[0:3, 0])
@@ -88,7 +88,7 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
                        (es, "ES (N/m)"), (ed, "ED (N s/m)"), (em, "EM (kg)")):
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)
-        for j, (name, wm) in enumerate((marks or {}).items()):
+        for j, wm in enumerate((marks or {}).values()):
             if wm is not None and np.isfinite(wm):
                 ax.axvline(wm, color="0.3", ls=(0, (4, 2 + 2 * j)), lw=1)
     for name, wm in (marks or {}).items():
@@ -97,7 +97,8 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
                          xytext=(3, -12), textcoords="offset points", fontsize=9)
     for ax in (phase, em):
         ax.set_xlabel("frequency (rad/s)")
-    mag.legend(fontsize=9, loc="lower left")
+    handles, labels = mag.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4), fontsize=9)
     if title:
         fig.suptitle(title)
     path.parent.mkdir(parents=True, exist_ok=True)

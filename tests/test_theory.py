@@ -161,3 +161,38 @@ def test_sampled_model_tends_to_paper_model_times_half_sample_advance(T):
     w = w[w * T < 0.5]
     ratio = theory.z_sampled(PAPER, ve, w) / (np.exp(1j * w * T / 2) * theory.z_paper(PAPER, ve, w))
     assert np.all(np.abs(ratio - 1) < (w * T) ** 2)
+
+
+def test_paper_figure_draws_measured_points_with_bands(tmp_path, monkeypatch):
+    """paper_figure: 5 panels, one line per curve plus marks, 95 % bands on |Z|, ES, ED, EM."""
+    from matplotlib.figure import Figure
+
+    from labbench.errors import UserError
+    from labbench.figures import Curve, paper_figure
+
+    drawn = []
+    save = Figure.savefig
+
+    def capture(fig, path, **kw):
+        drawn.append(fig)
+        save(fig, path, **kw)
+
+    monkeypatch.setattr(Figure, "savefig", capture)
+    ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125)
+    Z = theory.z_paper(PAPER, ve, W)
+    curves = [Curve("theory", W, Z),
+              Curve("measured", W, Z * 1.01, style="points", Z_err=0.05 * abs(Z))]
+    paper_figure(curves, tmp_path / "f.png", title="t", marks={"ws*": 22.4, "wb*": 125, "none": None})
+    assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
+    axes = drawn[0].axes
+    assert len(axes) == 5
+    for ax in axes:
+        assert len(ax.lines) == 2 + 2  # two curves, two marks
+    mag, phase = axes[0], axes[1]
+    assert len(mag.collections) == 1 and len(phase.collections) == 0
+    assert all(len(ax.collections) == 1 for ax in axes[2:])
+    np.testing.assert_allclose(mag.lines[0].get_ydata(), 20 * np.log10(abs(Z)))
+    with pytest.raises(UserError):
+        paper_figure(curves, tmp_path / "f.jpg")
+    with pytest.raises(ValueError):
+        paper_figure([Curve("x", W, Z, style="dots")], tmp_path / "g.png")
