@@ -17,6 +17,13 @@ DEMO_PROTOCOL = "etfe"
 DEMO_SETTINGS = {"duration_s": 20.0, "seed": 1}
 
 
+def tune_interpreter(switch_interval_s: float = 0.0005) -> None:
+    """Let the acquisition thread get the GIL back within 0.5 ms instead of Python's
+    default 5 ms: while the GUI thread runs Python (pyqtgraph's paint code), a 1 kHz
+    loop would otherwise wait up to five periods for it."""
+    sys.setswitchinterval(switch_interval_s)
+
+
 def start_demo(win: MainWindow, settings: dict | None = None) -> None:
     """Select the demo protocol with short settings and press Start (connects the simulator)."""
     win.protocol_panel.choice.setCurrentText(DEMO_PROTOCOL)
@@ -33,10 +40,12 @@ def demo_finished(win: MainWindow) -> bool:
 
 
 def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None,
-            timeout_s: float = 180.0, argv: list[str] | None = None) -> int:
-    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(argv or sys.argv[:1])
+            timeout_s: float = 180.0, demo_settings: dict | None = None, realtime: bool = True) -> int:
+    """Open the window (and with ``demo`` start the demo); returns the exit code."""
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("labbench")
-    win = MainWindow(rig, session_dir)
+    tune_interpreter()
+    win = MainWindow(rig, session_dir, realtime=realtime)
     previous_hook = sys.excepthook
 
     def hook(kind, exc, tb):  # a last resort: report in the window, keep running
@@ -47,7 +56,7 @@ def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None
     win.show()
     result = {"code": 0}
     if demo:
-        start_demo(win)
+        start_demo(win, demo_settings)
     if screenshot is not None:
         def done(ok, path):
             if ok:

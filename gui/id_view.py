@@ -16,6 +16,31 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def model_force(t, force, position, fit: dict, hold: str = "zoh"):
+    """(t, measured, model) force on the samples an identification used.
+
+    The model force is f = m x'' + b x' [+ Fc sign(x')] [+ f0] (paper sec. 4.1)
+    with the derivatives of ``labbench.analysis.derivatives`` at the fit's own
+    cut-off. As in ``labbench.analysis.identify``, a zero-order-held force is
+    compared as the mean of the two holds around each sample (the central
+    second difference spans both), so measured - model is the fit's residual.
+    """
+    from labbench.analysis.derivatives import differentiate
+
+    t = np.asarray(t, float)
+    f = np.asarray(force, float)
+    if hold == "zoh":
+        f = np.concatenate([f[:1], 0.5 * (f[1:] + f[:-1])])
+    fs = (len(t) - 1) / (t[-1] - t[0])
+    d = differentiate(np.asarray(position, float), fs, float(fit["cutoff_hz"]))
+    model = (fit["m"] or 0.0) * d.a + (fit["b"] or 0.0) * d.v
+    if fit.get("coulomb") is not None:
+        model = model + fit["coulomb"] * np.sign(d.v)
+    if fit.get("offset") is not None:
+        model = model + fit["offset"]
+    return t[d.keep], f[d.keep], model
+
+
 class IdView(QtWidgets.QWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -26,7 +51,8 @@ class IdView(QtWidgets.QWidget):
         self.plot.addLegend(offset=(-10, 5))
         self.plot.setClipToView(True)
         self.plot.setDownsampling(auto=True, mode="peak")
-        self.measured = self.plot.plot(pen=pg.mkPen(COLOURS["excitation"], width=1), name="measured")
+        self.measured = self.plot.plot(pen=pg.mkPen(COLOURS["excitation"], width=1),
+                                       name="measured (mean of the two holds)")
         self.model = self.plot.plot(pen=pg.mkPen(COLOURS["theory"], width=1), name="model")
         self.chosen = QtWidgets.QLabel("no identification yet: run chirp-ID, or open a session and press Re-analyse")
         self.chosen.setWordWrap(True)
@@ -44,25 +70,44 @@ class IdView(QtWidgets.QWidget):
         QtWidgets.QVBoxLayout(self).addWidget(split)
         self.results: dict = {}
 
-    def show_results(self, results: dict[str, dict], chosen: str,
-                     t=None, f_measured=None, f_model=None) -> None:
-        """``results``: method name -> ``IdResult.as_dict()``; one table column per method."""
+    def show_results(self, results: dict[str, dict], t=None, f_measured=None, f_model=None) -> None:
+        """``results``: method name -> ``IdResult.as_dict()``; one table column per method.
+
+        Rows: the parameters with their 95 % intervals, fit quality, flags.
+        """
         self.results = results
-        keys: list[str] = []
-        for res in results.values():
-            for k, v in res.items():
-                if k not in keys and not isinstance(v, (dict, np.ndarray)) and not (
-                        isinstance(v, list) and len(v) > 2):
-                    keys.append(k)
+        rows = {}
+        for method, res in results.items():
+            col = rows.setdefault
+            for k in ("m", "b", "coulomb", "offset"):
+                if res.get(k) is not None:
+                    col(k, {})[method] = res[k]
+                    ci = (res.get("ci95") or {}).get(k)
+                    if ci:
+                        col(f"{k} 95% interval", {})[method] = ci
+            for k in ("rms_residual", "explained", "n_used", "cutoff_hz", "model"):
+                if k in res:
+                    col(k, {})[method] = res[k]
+            col("flags", {})[method] = ", ".join(res.get("flags") or []) or "none"
+        keys = list(rows)
         self.table.setRowCount(len(keys))
         self.table.setColumnCount(len(results))
         self.table.setHorizontalHeaderLabels(list(results))
         self.table.setVerticalHeaderLabels(keys)
-        for col, res in enumerate(results.values()):
-            for row, k in enumerate(keys):
-                self.table.setItem(row, col, QtWidgets.QTableWidgetItem(_fmt(res.get(k, ""))))
+        for c, method in enumerate(results):
+            for r, k in enumerate(keys):
+                self.table.setItem(r, c, QtWidgets.QTableWidgetItem(_fmt(rows[k].get(method, ""))))
         self.table.resizeColumnsToContents()
-        self.chosen.setText(chosen)
+        first = next(iter(results.values()))
+        sel = first.get("selection") or {}
+        why = sel.get("criterion", "")
+        terms = "f = m x'' + b x'"
+        if first.get("coulomb") is not None:
+            terms += " + Fc sign(x')"
+        if first.get("offset") is not None:
+            terms += " + f0"
+        self.chosen.setText(f"model chosen: {first.get('model')} ({terms})"
+                            + (f"; selection: {why}" if why else ""))
         if t is not None:
             self.measured.setData(t, f_measured)
             self.model.setData(t, f_model if f_model is not None else [])

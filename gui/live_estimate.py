@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,7 +72,6 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         plant = _identify_l2(recording_from_arrays(data["t"], data["command"], data["position"], meta))
         source = "identified (l2)" if plant is not None else "none"
 
-    b_total = (plant.b if plant else 0.0) + (ve.B if ve else 0.0)
     wb = measured_wb_star(w, eff.ED, plant.b) if plant is not None else None
     out = Estimate(
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
@@ -81,11 +79,11 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         plant=plant, plant_source=source,
     )
     if plant is not None and ve is not None:
+        from labbench.theory import predicted_wb_star, predicted_ws_star
+
         out.theory = _theory(plant, ve, w)
-        if ve.K > 0:
-            out.ws_theory = math.sqrt(ve.K / plant.m)
-        if ve.B > 0 and math.isfinite(ve.w0) and b_total > plant.b:
-            out.wb_theory = ve.w0
+        out.ws_theory = predicted_ws_star(plant, ve)
+        out.wb_theory = predicted_wb_star(ve)
     return out
 
 
@@ -94,7 +92,7 @@ def _identify_l2(rec) -> Plant | None:
     from labbench.analysis.identify import identify
 
     try:
-        res = identify(rec, model="mass-damper", method="l2").as_dict()
+        res = identify(rec, model="mb", method="l2").as_dict()
         return Plant(float(res["m"]), max(float(res["b"]), 0.0))
     except Exception as exc:  # noqa: BLE001 - the overlay is optional, the estimate is not
         log.info("live identification unavailable: %s", exc)

@@ -20,7 +20,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from gui.buffers import StreamBuffer
 from gui.device_panel import DevicePanel, EStopButton
 from gui.event_log import EventLog
-from gui.id_view import IdView
+from gui.id_view import IdView, model_force
 from gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from gui.live_plots import ImpedancePlots, TimeTraces
 from gui.protocol_panel import ProtocolPanel
@@ -308,15 +308,14 @@ class MainWindow(QtWidgets.QMainWindow):
         if checked is None:
             raise UserError(self.protocol_panel.precheck.text().split(">", 1)[-1].split("<")[0])
         protocol, _rep = checked
-        if hasattr(protocol, "gui_state"):
-            protocol.gui_state = self.protocol_panel.state()
         self._reset_view()
         self.stop_event = threading.Event()
         self.mode = "running"
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
         self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
-        start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event, self.session_dir)
+        start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event, self.session_dir,
+                  start_extra={"gui_settings": self.protocol_panel.state()})
 
     @guarded
     def stop_run(self):
@@ -426,11 +425,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self._estimate_tick()
 
     def _on_reanalyse_done(self, value):
-        est, id_results = value
+        est, id_results, data = value
         if est is not None:
             self.impedance.show_estimate(est)
         if id_results:
-            self._show_id(id_results)
+            self._show_id(id_results, data)
         self.tabs.setCurrentIndex(0)
         self.log.add("info", "re-analysis done")
 
@@ -496,17 +495,19 @@ class MainWindow(QtWidgets.QMainWindow):
         self.status["mode"].setText(f"mode: {self.mode}")
 
     def _show_results(self, results: dict):
-        ident = results.get("identification") or results.get("identify")
-        if isinstance(ident, dict):
-            self._show_id(ident)
+        if results.get("error"):
+            self.show_error(str(results["error"]))
+        ident = results.get("identification")
+        if isinstance(ident, dict) and ident:
+            data = self.buffer.snapshot()
+            self._show_id(ident, data)
+            self.tabs.setCurrentWidget(self.id_view)
 
-    def _show_id(self, ident: dict):
-        """``ident``: method -> IdResult dict, or one IdResult dict; optional t/f arrays inside."""
-        per_method = {k: v for k, v in ident.items() if isinstance(v, dict)} or {"l2": ident}
-        chosen = next((v.get("model") for v in per_method.values() if v.get("model")), "?")
-        first = next(iter(per_method.values()))
-        self.id_view.show_results(per_method, f"model chosen: {chosen}",
-                                  first.get("t"), first.get("f_measured"), first.get("f_model"))
+    def _show_id(self, ident: dict, data: dict):
+        """``ident``: method -> IdResult dict, fitted on ``data`` (command force, position)."""
+        fit = ident.get("l2") or next(iter(ident.values()))
+        curves = model_force(data["t"], data["command"], data["position"], fit)
+        self.id_view.show_results(ident, *curves)
 
     # ----- sessions -------------------------------------------------------------------------
     @guarded
@@ -598,7 +599,7 @@ def reanalyse_session(path: str, estimator: str | None, plant: Plant | None):
     data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
             "command": ch["command"]}
     est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator)
-    return est, identify_all(data, meta)
+    return est, identify_all(data, meta), data
 
 
 def identify_all(data: dict, meta: dict) -> dict:

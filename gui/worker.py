@@ -14,6 +14,7 @@ from typing import Callable
 
 from labbench.device import DeviceFault
 from labbench.errors import UserError
+from labbench.records import START
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +69,14 @@ def run_in_background(mailbox: Mailbox, tag: str, fn: Callable, *args, **kwargs)
 
 
 def start_run(mailbox: Mailbox, device, protocol, rig, stop: threading.Event,
-              session_dir=None) -> threading.Thread:
+              session_dir=None, start_extra: dict | None = None) -> threading.Thread:
     """Run ``protocol`` on ``device`` through the runner on its own thread.
 
     Records go to the mailbox (as ("record", rec)) and, when ``session_dir`` is
-    given, to a crash-safe session file; progress as ("progress", (frac, text));
-    the end as ("result", ("run", RunResult)) or ("error", ("run", message)).
+    given, to a crash-safe session file whose start record also carries
+    ``start_extra`` (the runner has no such field, so it is added on the way to
+    the file); progress as ("progress", (frac, text)); the end as
+    ("result", ("run", RunResult)) or ("error", ("run", message)).
     """
 
     def job():
@@ -85,14 +88,20 @@ def start_run(mailbox: Mailbox, device, protocol, rig, stop: threading.Event,
             from labbench.session import SessionWriter
 
             writer = SessionWriter(session_dir)
-            consumers.insert(0, writer)
-            mailbox.put("session", str(writer.path))
+
+            def record(rec, _write=writer):
+                _write({**rec, **start_extra} if start_extra and rec.get("kind") == START else rec)
+
+            consumers.insert(0, record)
         try:
-            return run(device, protocol, consumers, stop=stop,
-                       progress=lambda frac, text: mailbox.put("progress", (frac, text)), rig=rig)
+            # close=False: the device stays connected in the window for the next run
+            return run(device, protocol, consumers, stop=stop, rig=rig, close=False,
+                       progress=lambda frac, text: mailbox.put("progress", (frac, text)))
         finally:
             if writer is not None:
                 writer.close()
+                if writer.path is not None:  # None when the run was refused before its start record
+                    mailbox.put("session", str(writer.path))
 
     return run_in_background(mailbox, "run", job)
 

@@ -28,11 +28,6 @@ def run(args) -> int:
     from labbench.rig import load_rig
 
     rig = load_rig(args.rig)
-    sessions = Path(args.sessions)
-    try:
-        sessions.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot use session folder {sessions}: {exc}") from None
     shot = Path(args.screenshot) if args.screenshot else None
     if shot is not None and shot.suffix.lower() != ".png":
         raise UserError(f"--screenshot must name a .png file, got {shot}")
@@ -42,6 +37,12 @@ def run(args) -> int:
         raise UserError("no display found (DISPLAY unset); run under a desktop, or use --screenshot")
     if headless:
         os.environ["QT_QPA_PLATFORM"] = "offscreen"  # renders without a display
+    sessions = Path(args.sessions)
+    try:
+        sessions.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot use session folder {sessions}: {exc}") from None
+
     try:
         from gui.app import run_app
     except ImportError as exc:

@@ -1,0 +1,153 @@
+"""GUI cost: frame time of the live view, and loop overruns with and without the GUI.
+
+1. Frame time: 4 time-trace curves x 5000 points (setData) plus a live ETFE
+   update (ES/ED/EM with bands, theory, Bode) painted synchronously, against a
+   floor measured in the same run (the same window repainted with no new data).
+   Goal: <= 8 ms per frame.
+2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
+   real-time simulator, headless through ``labbench.runner.run``, then inside the
+   window (redraw timer, live ETFE, session recording). Goal: the GUI adds none.
+   Runs alternate to spread the noise of this shared machine over both arms.
+
+Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]``
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+from PySide6 import QtWidgets  # noqa: E402
+
+from gui.app import tune_interpreter  # noqa: E402
+from gui.buffers import StreamBuffer  # noqa: E402
+from gui.live_estimate import estimate  # noqa: E402
+from gui.main_window import MainWindow  # noqa: E402
+from labbench.devices import open_device  # noqa: E402
+from labbench.records import PAGE  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+from labbench.runner import run  # noqa: E402
+from protocols import make_protocol  # noqa: E402
+
+
+def recorded_run(seconds: float, realtime: bool) -> tuple[list[dict], dict]:
+    """Records and timing of an ETFE run on the simulator, without any GUI."""
+    recs: list[dict] = []
+    dev = open_device("sim", Rig(), realtime=realtime)
+    res = run(dev, make_protocol("etfe", duration_s=seconds, seed=3), [recs.append], rig=Rig())
+    return recs, res.timing
+
+
+def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60):
+    """(frame with new data, floor) per-frame times [s]: data + live estimate + synchronous paint."""
+    buf = StreamBuffer()
+    for r in recs:
+        buf.add(r)
+    win.buffer = buf
+    start, desc = buf.start, buf.descriptor
+    from labbench.session import analysis_meta
+    from gui.main_window import ve_from_meta
+
+    meta = analysis_meta(start, desc)
+    t0 = time.perf_counter()
+    est = estimate(buf.snapshot(), meta, ve_from_meta(meta), None)
+    etfe_s = time.perf_counter() - t0
+    win.tabs.setCurrentIndex(0)
+    app.processEvents()
+
+    def frame(new_data: bool):
+        t = time.perf_counter()
+        if new_data:
+            win.traces.update_from(buf)
+            win.impedance.show_estimate(est)
+        win.repaint()
+        app.processEvents()
+        return time.perf_counter() - t
+
+    for _ in range(5):  # warm-up
+        frame(True)
+    with_data = [frame(True) for _ in range(n_frames)]
+    floor = [frame(False) for _ in range(n_frames)]
+    traces_only = []
+    for _ in range(n_frames):
+        t = time.perf_counter()
+        win.traces.update_from(buf)
+        win.repaint()
+        app.processEvents()
+        traces_only.append(time.perf_counter() - t)
+    return with_data, floor, traces_only, etfe_s, est.n_samples
+
+
+def gui_run(app, win: MainWindow, seconds: float) -> dict:
+    """The same run inside the window (live plots and estimate on); its loop timing."""
+    win.last_run = None
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("duration_s",), seconds)
+    win.protocol_panel.set_value(("seed",), 3)
+    win.start_protocol()
+    deadline = time.monotonic() + seconds * 4 + 30
+    while (win.last_run is None or win.mode != "idle") and time.monotonic() < deadline:
+        app.processEvents()
+        time.sleep(0.002)
+    if win.last_run is None:
+        raise SystemExit("GUI run did not finish")
+    return {**win.last_run.timing, "frames": win.traces.frames, "estimates": win.impedance.updates}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args()
+    tune_interpreter()
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
+    tmp = tempfile.mkdtemp(prefix="bench_gui_")
+    win = MainWindow(Rig(), tmp, realtime=True)
+    win.resize(1600, 1000)
+    win.show()
+    app.processEvents()
+
+    recs, _ = recorded_run(60.0, realtime=False)
+    n = sum(len(r["data"]["t"]) for r in recs if r["kind"] == PAGE)
+    with_data, floor, traces_only, etfe_s, n_est = frame_times(app, win, recs)
+    med = statistics.median
+    print(f"frame time (4 curves x {win.traces.window} points + live ETFE update, "
+          f"{QtWidgets.QApplication.platformName()}):")
+    print(f"  median {med(with_data) * 1e3:.2f} ms, p90 {np.percentile(with_data, 90) * 1e3:.2f} ms"
+          f" (goal <= 8 ms); floor (repaint, no new data) {med(floor) * 1e3:.2f} ms;"
+          f" ratio {med(with_data) / med(floor):.2f}")
+    print(f"  traces only (every frame) {med(traces_only) * 1e3:.2f} ms;"
+          f" ETFE + theory on {n_est} of {n} samples (worker thread) {etfe_s * 1e3:.0f} ms")
+
+    headless, in_gui = [], []
+    for i in range(args.repeats):
+        headless.append(recorded_run(args.seconds, realtime=True)[1])
+        in_gui.append(gui_run(app, win, args.seconds))
+    print(f"loop timing, {args.seconds:g} s real-time ETFE runs x {args.repeats} (alternating):")
+    for name, runs in (("without GUI", headless), ("with GUI", in_gui)):
+        ov = [r.get("overruns") for r in runs]
+        p99 = [r.get("p99_s", float("nan")) * 1e3 for r in runs]
+        mx = [r.get("max_s", float("nan")) * 1e3 for r in runs]
+        extra = (f", frames {[r['frames'] for r in runs]}, estimates {[r['estimates'] for r in runs]}"
+                 if "frames" in runs[0] else "")
+        print(f"  {name:12s} overruns {ov}, p99 {[f'{v:.2f}' for v in p99]} ms, "
+              f"max {[f'{v:.1f}' for v in mx]} ms{extra}")
+    added = statistics.mean(r["overruns"] for r in in_gui) - statistics.mean(
+        r["overruns"] for r in headless)
+    print(f"  overruns added by the GUI (mean difference): {added:+.1f} per {args.seconds:g} s run")
+    win.close()
+    threading.Event().wait(0.1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,292 @@
+"""The desktop application, offscreen: runs on the simulator, e-stop, replay, export, errors."""
+import os
+
+os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
+
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+pytest.importorskip("pytestqt")
+
+from PySide6 import QtCore  # noqa: E402
+
+from gui.app import run_app  # noqa: E402
+from gui.live_estimate import estimate  # noqa: E402
+from gui.main_window import MainWindow, ve_from_meta  # noqa: E402
+from labbench.device import DeviceFault  # noqa: E402
+from labbench.devices import open_device  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+from labbench.session import analysis_meta, list_sessions, load_session  # noqa: E402
+from labbench.ve import Plant  # noqa: E402
+
+TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (sim_backend.sim_device)
+RUN_TIMEOUT_MS = 60_000
+
+
+needs_etfe = pytest.mark.skipif(not importlib.util.find_spec("labbench.analysis.etfe"),
+                                reason="labbench.analysis.etfe not on main yet")
+
+
+@pytest.fixture
+def make_window(qtbot, tmp_path):
+    def make(realtime=False):
+        win = MainWindow(Rig(), tmp_path / "sessions", realtime=realtime)
+        qtbot.addWidget(win)
+        win.show()
+        return win
+
+    return make
+
+
+def start(win, protocol, **settings):
+    win.protocol_panel.choice.setCurrentText(protocol)
+    for name, value in settings.items():
+        win.protocol_panel.set_value((name,), value)
+    win.start_protocol()
+
+
+def wait_run_done(qtbot, win, timeout=RUN_TIMEOUT_MS):
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=timeout)
+
+
+def wait_final_estimate(qtbot, win, timeout=RUN_TIMEOUT_MS):
+    qtbot.waitUntil(lambda: win.impedance.last is not None
+                    and win.impedance.last.n_samples == win.buffer.n, timeout=timeout)
+
+
+@needs_etfe
+def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_window):
+    win = make_window()
+    start(win, "etfe", duration_s=6.0, seed=5)
+    wait_run_done(qtbot, win)
+    wait_final_estimate(qtbot, win)
+    assert win.last_run.status == "success", win.last_run.reason
+    assert win.buffer.n == 6000
+
+    # time traces: the last 5000 samples of the stream, per channel
+    for name in ("position", "velocity", "command", "excitation"):
+        x, y = win.traces.curves[name].getData()
+        np.testing.assert_array_equal(y, win.buffer.channel(name)[-5000:])
+
+    # the session on disk holds the same stream, plus the ParameterTree state
+    summaries = list_sessions(win.session_dir)
+    assert len(summaries) == 1 and summaries[0].n_samples == 6000
+    start_rec, desc, ch, _events, stop, problem = load_session(summaries[0].path)
+    assert problem is None and stop["status"] == "success"
+    assert start_rec["gui_settings"]["children"]["K"]["value"] == 50.0
+    np.testing.assert_array_equal(ch["position"], win.buffer.channel("position"))
+
+    # the drawn estimate is the ETFE of the recorded data, with the theory for the identified plant
+    est = win.impedance.last
+    meta = analysis_meta(start_rec, desc)
+    again = estimate({k: ch[k] for k in ch}, meta, ve_from_meta(meta), None)
+    np.testing.assert_allclose(est.Z, again.Z, rtol=1e-12)
+    # the simulator is exact and noise-free: l2 on the commanded force recovers its plant
+    assert est.plant_source == "identified (l2)"
+    assert est.plant.m == pytest.approx(TRUTH.m, rel=0.01)
+    assert est.plant.b == pytest.approx(TRUTH.b, rel=0.05)
+    from labbench.theory import theory_curve
+
+    wt, yt = win.impedance.curves["ED_theory"].getData()
+    Zt = theory_curve(est.plant, ve_from_meta(meta), est.theory["w"], "sampled")
+    np.testing.assert_allclose(yt, Zt.real, rtol=1e-9)
+    # the ETFE follows that theory over the band the paper checks (2-100 rad/s)
+    band = (est.w >= 2) & (est.w <= 100)
+    Zb = theory_curve(TRUTH, ve_from_meta(meta), est.w[band], "sampled")
+    assert np.median(np.abs(est.Z[band] - Zb) / np.abs(Zb)) < 0.10
+    # w_s* is marked at the measured crossing, near sqrt(K/m) = 23 rad/s
+    assert win.impedance.marks["ws"].isVisible()
+    assert 10 ** win.impedance.marks["ws"].value() == pytest.approx(est.ws_measured)
+    assert est.ws_measured == pytest.approx((50 / TRUTH.m) ** 0.5, rel=0.25)
+
+
+@needs_etfe
+def test_live_estimate_updates_during_a_realtime_run(qtbot, make_window):
+    win = make_window(realtime=True)
+    start(win, "etfe", duration_s=5.0, seed=2)
+    qtbot.waitUntil(lambda: win.mode == "running", timeout=10_000)
+    seen = []
+    qtbot.waitUntil(lambda: seen.append((win.impedance.updates, win.mode)) or win.mode == "idle",
+                    timeout=RUN_TIMEOUT_MS)
+    during = max(u for u, mode in seen if mode == "running")
+    # 5 s of data, estimates from 2 s on, every 0.4 s: several while the run goes on
+    assert during >= 2, seen[-5:]
+    assert win.traces.frames >= 20
+
+
+def test_chirp_id_fills_identification_view(qtbot, make_window):
+    win = make_window()
+    start(win, "chirp-id", f0_hz=0.5, duration_s=4.0)
+    wait_run_done(qtbot, win)
+    assert win.last_run.status == "success"
+    view = win.id_view
+    assert set(view.results) == {"l2", "l1"}
+    for method in ("l2", "l1"):
+        assert view.results[method]["m"] == pytest.approx(TRUTH.m, rel=0.01)
+    rows = [view.table.verticalHeaderItem(i).text() for i in range(view.table.rowCount())]
+    assert "m 95% interval" in rows and "b 95% interval" in rows
+    assert "model chosen: mb" in view.chosen.text()
+    t, f_meas = view.measured.getData()
+    _, f_model = view.model.getData()
+    # the plotted curves are the ones fitted: their difference is the fit's residual
+    rms = np.sqrt(np.mean((f_meas - f_model) ** 2))
+    assert len(t) == view.results["l2"]["n_used"]
+    assert rms == pytest.approx(view.results["l2"]["rms_residual"], rel=1e-6)
+    assert rms < 1e-3 * np.sqrt(np.mean(f_meas**2))  # an exact plant is explained
+
+
+def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
+    win = make_window(realtime=True)
+    start(win, "etfe", duration_s=60.0, seed=1)
+    qtbot.waitUntil(lambda: win.buffer.n > 300, timeout=20_000)
+    device = win.device
+    win.activateWindow()
+    qtbot.keyClick(win, QtCore.Qt.Key.Key_Escape)
+    assert device.estopped  # set synchronously by the key, before the run thread notices
+    assert win.estop.latched and "LATCHED" in win.estop.text()
+    wait_run_done(qtbot, win, timeout=10_000)
+    assert win.last_run.status in ("aborted", "failed")
+    assert win.buffer.n < 20_000
+    assert any("E-STOP" in t for t in win.log.texts("warning"))
+
+
+def test_unstable_settings_are_refused_with_a_message(qtbot, make_window):
+    win = make_window()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("ve",), "spring")
+    win.protocol_panel.set_value(("K",), 5000.0)
+    assert "refusing unstable" in win.protocol_panel.precheck.text()
+    win.start_protocol()
+    qtbot.waitUntil(lambda: win.banner.isVisible(), timeout=10_000)
+    assert "refusing unstable" in win.banner.text()
+    assert any("refusing unstable" in t for t in win.log.texts("error"))
+    assert win.mode == "idle" and win.protocol_panel.start_button.isEnabled()
+    assert not list(win.session_dir.glob("*.lbsession"))
+
+
+class FaultyDevice:
+    """The simulator, faulting after ``n_ok`` samples (a drive fault injected mid-run)."""
+
+    def __init__(self, n_ok):
+        self.inner = open_device("sim", Rig())
+        self.n_ok = n_ok
+
+    def _tick(self):
+        self.n_ok -= 1
+        if self.n_ok < 0:
+            raise DeviceFault("injected: drive reported over-current")
+
+    def read(self, timeout):
+        self._tick()
+        return self.inner.read(timeout)
+
+    def read_raw(self, timeout):
+        self._tick()
+        return self.inner.read_raw(timeout)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
+    win = make_window()
+    win.device = FaultyDevice(1500)
+    win.device_panel.set_connected(win.device.describe())
+    start(win, "etfe", duration_s=5.0, seed=1)
+    wait_run_done(qtbot, win)
+    assert win.last_run.status == "failed"
+    assert win.banner.isVisible() and "over-current" in win.banner.text()
+    assert win.buffer.n < 5000
+
+
+@needs_etfe
+def test_replay_session_through_the_live_view(qtbot, make_window):
+    win = make_window()
+    start(win, "etfe", duration_s=4.0, seed=3)
+    wait_run_done(qtbot, win)
+    wait_final_estimate(qtbot, win)
+    recorded = win.buffer.snapshot()
+    z_live = win.impedance.last.Z
+    win.refresh_sessions()
+    qtbot.waitUntil(lambda: len(win.sessions.paths) == 1, timeout=10_000)
+    win.sessions.buttons["Replay fast"].click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.buffer.stop is not None, timeout=20_000)
+    wait_final_estimate(qtbot, win)
+    for name in ("t", "position", "command"):
+        np.testing.assert_array_equal(win.buffer.channel(name), recorded[name])
+    np.testing.assert_allclose(win.impedance.last.Z, z_live, rtol=1e-12)
+
+
+def test_export_session_data_and_report(qtbot, make_window):
+    h5py = pytest.importorskip("h5py")
+    win = make_window()
+    start(win, "chirp-id", f0_hz=0.5, duration_s=3.0, model="mb")
+    wait_run_done(qtbot, win)
+    qtbot.waitUntil(lambda: len(win.sessions.paths) == 1, timeout=10_000)
+    out = win.session_dir / "exports"
+    for fmt in ("hdf5", "csv"):
+        win.sessions.buttons[f"Export {fmt.upper()}"].click()
+    qtbot.waitUntil(lambda: len(list(out.glob("*"))) >= 2, timeout=20_000)
+    with h5py.File(next(out.glob("*.h5")), "r") as f:
+        np.testing.assert_array_equal(f["channels/position"][()], win.buffer.channel("position"))
+    pytest.importorskip("labbench.report")
+    win.sessions.buttons["Export report"].click()
+    qtbot.waitUntil(lambda: any("exported" in t and ".pdf" in t for t in win.log.texts("info")),
+                    timeout=RUN_TIMEOUT_MS)
+    html = next(out.rglob("*.html"))
+    assert html.stat().st_size > 0 and next(out.rglob("*.pdf")).stat().st_size > 0
+
+
+def test_bad_session_file_gives_a_message(qtbot, make_window, tmp_path):
+    win = make_window()
+    junk = tmp_path / "junk.lbsession"
+    junk.write_bytes(b"not a session at all")
+    win.replay(str(junk), None)
+    assert win.banner.isVisible() and "not a labbench session" in win.banner.text()
+    assert win.mode == "idle"
+
+
+@needs_etfe
+def test_demo_screenshot_in_process(qtbot, tmp_path):
+    shot = tmp_path / "shot.png"
+    code = run_app(Rig(), tmp_path / "s", demo=True, screenshot=shot, timeout_s=60,
+                   demo_settings={"duration_s": 3.0, "seed": 1}, realtime=False)
+    assert code == 0
+    from PySide6 import QtGui
+
+    img = QtGui.QImage(str(shot))
+    assert img.width() >= 1200 and img.height() >= 800
+
+
+def test_cli_does_not_import_qt_until_gui_runs():
+    code = ("import sys, labbench.cli as c; c.build_parser().parse_args(['gui', '--demo']); "
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('PySide6', 'pyqtgraph')))))")
+    out = subprocess.run([sys.executable, "-c", "import json; " + code], capture_output=True,
+                         text=True, timeout=60, check=True)
+    assert json.loads(out.stdout) == []
+
+
+def test_cli_refuses_headless_window_without_screenshot(monkeypatch, capsys, tmp_path):
+    from labbench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["gui"]) == 2
+    assert "no display" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@needs_etfe
+def test_cli_demo_screenshot(tmp_path):
+    shot = tmp_path / "demo.png"
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    subprocess.run([sys.executable, "-m", "labbench.cli", "gui", "--demo", "--sessions",
+                    str(tmp_path / "s"), "--screenshot", str(shot)], env=env, check=True,
+                   timeout=240, cwd=tmp_path)
+    assert shot.stat().st_size > 10_000
