@@ -19,15 +19,18 @@ USES = {"spring": ("K",), "damper": ("B", "w0"), "spring-damper": ("K", "B", "w0
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "theory", help="closed-loop impedance of a virtual environment (paper or exact sampled model)",
+        "theory",
+        help="closed-loop impedance of a virtual environment (paper or exact sampled model)",
         description=__doc__)
     p.add_argument("--ve", required=True, choices=KINDS, help="virtual environment")
     p.add_argument("--m", type=float, required=True, metavar="KG", help="device mass")
     p.add_argument("--b", type=float, required=True, metavar="NS_PER_M", help="device damping")
     p.add_argument("--K", type=float, metavar="N_PER_M", help="virtual stiffness")
     p.add_argument("--B", type=float, metavar="NS_PER_M", help="virtual damping")
-    p.add_argument("--w0", type=float, metavar="RAD_S", help="velocity low-pass cut-off (default: none)")
-    p.add_argument("--T", type=float, default=0.001, metavar="S", help="sample time (default 0.001)")
+    p.add_argument("--w0", type=float, metavar="RAD_S",
+                   help="velocity low-pass cut-off (default: none)")
+    p.add_argument("--T", type=float, default=0.001, metavar="S",
+                   help="sample time (default 0.001)")
     p.add_argument("--td", type=float_list, default=[0.0], metavar="S[,S...]",
                    help="external delay; a list overlays one curve per value with --plot")
     p.add_argument("--model", choices=theory.MODELS, default="paper",
@@ -49,7 +52,10 @@ def run(args) -> int:
         for ve in ves:
             ve.delay_samples  # one clear error when td is not whole samples
     grid_points = 200 if (args.json or args.plot) else 31
-    w = np.asarray(args.w, float) if args.w is not None else default_grid(plant, ves[0], grid_points)
+    if args.w is not None:
+        w = np.asarray(args.w, float)
+    else:
+        w = default_grid(plant, ves[0], grid_points)
     summaries = [summary(plant, ve, w, args.model) for ve in ves]
 
     if args.plot:
@@ -70,7 +76,8 @@ def run(args) -> int:
 
 def _ve(args, td: float) -> VirtualEnvironment:
     uses = USES[args.ve]
-    given = {name: getattr(args, name) for name in ("K", "B", "w0") if getattr(args, name) is not None}
+    given = {name: getattr(args, name) for name in ("K", "B", "w0")
+             if getattr(args, name) is not None}
     stray = [f"--{name}" for name in given if name not in uses]
     if stray:
         raise UserError(f"{', '.join(stray)} does not apply to --ve {args.ve}")
@@ -127,8 +134,11 @@ def _fmt(v, spec=".4g") -> str:
 
 def _headline(s: dict) -> str:
     ve = s["ve"]
-    stab = ("n/a (td not whole samples)" if s["stable"] is None
-            else f"{'stable' if s['stable'] else 'UNSTABLE'} (spectral radius {s['spectral_radius']:.6f})")
+    if s["stable"] is None:
+        stab = "n/a (td not whole samples)"
+    else:
+        verdict = "stable" if s["stable"] else "UNSTABLE"
+        stab = f"{verdict} (spectral radius {s['spectral_radius']:.6f})"
     line = f"td = {ve['td']:g} s: {stab}"
     if s["K_max_approx"] is not None:
         line += f"; K_max {_fmt(s['K_max'])} N/m (paper approx {_fmt(s['K_max_approx'])})"

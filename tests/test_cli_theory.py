@@ -133,8 +133,9 @@ def test_bad_input_is_one_line_exit_2(args, capsys, tmp_path, monkeypatch):
 
 
 def test_bad_input_through_the_console_entry_point():
-    r = subprocess.run([sys.executable, "-m", "labbench.cli", "theory", "--ve", "spring", "--m", "0.1",
-                        "--b", "0.1", "--K", "10", "--td", "0.0015", "--model", "sampled"],
+    r = subprocess.run([sys.executable, "-m", "labbench.cli", "theory", "--ve", "spring",
+                        "--m", "0.1", "--b", "0.1", "--K", "10", "--td", "0.0015",
+                        "--model", "sampled"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "whole number of samples" in r.stderr

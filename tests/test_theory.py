@@ -182,7 +182,8 @@ def test_paper_figure_draws_measured_points_with_bands(tmp_path, monkeypatch):
     Z = theory.z_paper(PAPER, ve, W)
     curves = [Curve("theory", W, Z),
               Curve("measured", W, Z * 1.01, style="points", Z_err=0.05 * abs(Z))]
-    paper_figure(curves, tmp_path / "f.png", title="t", marks={"ws*": 22.4, "wb*": 125, "none": None})
+    marks = {"ws*": 22.4, "wb*": 125, "none": None}
+    paper_figure(curves, tmp_path / "f.png", title="t", marks=marks)
     assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
     axes = drawn[0].axes
     assert len(axes) == 5
