@@ -314,26 +314,28 @@ class CanopenDrive:
 
     # ----------------------------------------------------------------- SDO/NMT
     def _read(self, index: int, sub: int, fmt: str) -> int:
+        self._check_receiver()
         try:
             raw = self._sdo.upload(index, sub)
         except SdoAbortedError as exc:
             raise UserError(f"node {self.config.node_id}: SDO read of 0x{index:04X}:{sub:02X} "
                             f"refused: {exc}") from None
         except SdoCommunicationError as exc:
-            self._network.check()  # a dead receive thread raises its own exception here
+            self._check_receiver()
             raise UserError(f"node {self.config.node_id}: no answer to SDO read of "
                             f"0x{index:04X}:{sub:02X} ({exc})") from None
         size = struct.calcsize(fmt)
         return struct.unpack(fmt, bytes(raw[:size]).ljust(size, b"\0"))[0]
 
     def _write(self, index: int, sub: int, fmt: str, value: int) -> None:
+        self._check_receiver()
         try:
             self._sdo.download(index, sub, struct.pack(fmt, value))
         except SdoAbortedError as exc:
             raise UserError(f"node {self.config.node_id}: drive refused writing {value} to "
                             f"0x{index:04X}:{sub:02X}: {exc}; refusing to enable") from None
         except SdoCommunicationError as exc:
-            self._network.check()
+            self._check_receiver()
             raise UserError(f"node {self.config.node_id}: no answer to SDO write of "
                             f"0x{index:04X}:{sub:02X} ({exc})") from None
 
@@ -377,6 +379,14 @@ class CanopenDrive:
         if not e.is_reset:
             self._latch(f"drive reported {e}")
 
+    def _check_receiver(self) -> None:
+        """A dead receive thread (service phase) is a latched fault, not a silent timeout."""
+        notifier = self._network.notifier if self._network is not None else None
+        exc = notifier.exception if notifier is not None else None
+        if exc is not None:
+            self._latch(f"CAN receive thread died: {exc!r}")
+            raise DeviceFault(self._fault)
+
     def _start_receiver(self) -> None:
         # Short notifier cycle so the hand-over to the cyclic phase is quick.
         self._network.notifier = can.Notifier(self._bus, self._network.listeners, timeout=0.02)
@@ -384,7 +394,7 @@ class CanopenDrive:
     def _stop_receiver(self) -> None:
         if self._network is not None and self._network.notifier is not None:
             self._network.notifier.stop(timeout=1.0)
-            self._network.check()
+            self._check_receiver()
             self._network.notifier = None
 
     # ------------------------------------------------------------ state machine
@@ -429,8 +439,7 @@ class CanopenDrive:
     def _start_cyclic(self) -> None:
         """Service -> cyclic phase: re-verify the drive, arm its heartbeat consumer."""
         if self._fault:
-            raise DeviceFault(f"latched fault: {self._fault}; an operator must reset it "
-                              "(labbench devices --fault-reset)")
+            raise self._latched()
         try:
             state = self.drive_state()
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
@@ -464,8 +473,7 @@ class CanopenDrive:
         ``max(timeout, enable_timeout_s)``.
         """
         if self._fault:
-            raise DeviceFault(f"latched fault: {self._fault}; an operator must reset it "
-                              "(labbench devices --fault-reset)")
+            raise self._latched()
         if not self._cyclic:
             self._start_cyclic()
         if self._enable_deadline is None:
@@ -528,6 +536,10 @@ class CanopenDrive:
         self._fault = None
         return state
 
+    def _latched(self) -> DeviceFault:
+        return DeviceFault(f"latched fault: {self._fault}; an operator must reset it "
+                           "(labbench devices --fault-reset)")
+
     def _latch(self, reason: str) -> None:
         if not self._fault:
             self._fault = reason
@@ -552,7 +564,7 @@ class CanopenDrive:
         The position is the drive's at the SYNC, i.e. at the start of the period.
         """
         if self._fault:
-            raise DeviceFault(self._fault)
+            raise DeviceFault(self._fault) if self._cyclic else self._latched()
         if not self._cyclic:
             self._start_cyclic()
         now = time.perf_counter()
