@@ -195,3 +195,15 @@ def test_fractional_delay_is_a_clear_error():
             f()
     assert theory.delay_effects(SPRING, ve)["ED_drop_sampled"] is None
     assert np.isfinite(theory.z_paper(SPRING, ve, [1.0])).all()
+
+
+def test_undamped_device_cannot_render_a_stable_spring():
+    """b = 0: b > K (T/2 + td) fails for every K > 0, and so does the sampled loop."""
+    plant = Plant(0.1, 0.0)
+    ve = VirtualEnvironment("spring", K=10)
+    assert theory.k_max(plant, ve) == 0.0
+    assert not theory.stability(plant, ve).stable
+    assert growth(plant, ve, 20000) > 1.3  # rho^18000 = 1.57
+    # open loop, no damping: a marginal double integrator, not called stable
+    st = theory.stability(plant, VirtualEnvironment())
+    assert not st.stable and st.spectral_radius == pytest.approx(1.0, abs=1e-12)
