@@ -27,6 +27,7 @@ read from the drive), force = torque / ``Rig.lever_arm_m``.
 """
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import threading
@@ -42,6 +43,10 @@ from drivers import cia402, emcy
 from drivers.cia402 import Command, State
 from labbench.device import DeviceDescription, DeviceFault, Sample
 from labbench.errors import UserError
+
+# canopen logs SDO timeouts as errors; the driver turns them into one-line
+# messages, so without logging configured they must not also reach stderr.
+logging.getLogger("canopen").addHandler(logging.NullHandler())
 
 # CiA 402 operation modes (0x6060) and their bits in supported drive modes (0x6502).
 MODE_CST, MODE_PT = 10, 4
@@ -209,6 +214,16 @@ class CanopenDrive:
     # ---------------------------------------------------------------- bring-up
     def open(self, timeout: float = 3.0) -> "CanopenDrive":
         """Connect, observe NMT, read identity, map PDOs, select the mode, start the node."""
+        self.connect()
+        try:
+            self._bring_up(timeout)
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def connect(self) -> "CanopenDrive":
+        """Bus, SDO client and receive thread only: nothing is written to the drive."""
         cfg = self.config
         if cfg.eds:
             check_eds(cfg.eds, cfg.node_id)
@@ -228,12 +243,31 @@ class CanopenDrive:
         self._network.subscribe(self._hb_id, self._on_heartbeat)
         self._network.subscribe(self._emcy_id, self._on_emcy)
         self._start_receiver()
-        try:
-            self._bring_up(timeout)
-        except BaseException:
-            self.close()
-            raise
         return self
+
+    def probe(self, wait_s: float = 0.3) -> dict:
+        """What the node answers, read-only: identity 0x1018, device type 0x1000,
+        supported modes 0x6502, state 0x6041 (error code 0x603F in FAULT) and the
+        NMT state of a heartbeat heard within ``wait_s`` (if the drive sends any)."""
+        with self._hb:
+            self._nmt_state = None
+            self._hb.wait_for(lambda: self._nmt_state is not None, wait_s)
+            nmt = self._nmt_state
+        info = {
+            "node_id": self.config.node_id, "device_type": self._read(0x1000, 0, "<I"),
+            "vendor_id": self._read(0x1018, 1, "<I"), "product_code": self._read(0x1018, 2, "<I"),
+            "revision": self._read(0x1018, 3, "<I"), "serial": self._read(0x1018, 4, "<I"),
+            "supported_modes": self._read(0x6502, 0, "<I"),
+            "nmt_state": NMT_NAMES.get(nmt, "no heartbeat heard") if nmt is not None
+            else "no heartbeat heard",
+        }
+        info["torque_modes"] = [MODE_NAMES[m] for m in (MODE_CST, MODE_PT)
+                                if info["supported_modes"] & MODE_BITS[m]]
+        state = self.drive_state()
+        info["state"] = state.value
+        if state is State.FAULT:
+            info["error"] = self._error_code()
+        return info
 
     def _bring_up(self, timeout: float) -> None:
         cfg = self.config

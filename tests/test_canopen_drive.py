@@ -187,3 +187,38 @@ def test_emcy_decoding():
 
 def test_default_rig_has_no_canopen_table():
     assert Rig().section("canopen") == {}
+
+
+# ------------------------------------------------------------ labbench devices
+def test_devices_command_probes_the_simulated_drive(capsys):
+    import json
+
+    from labbench.cli import main
+
+    assert main(["devices", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    (row,) = [r for r in out["devices"] if r["device"] == "sim-canopen"]
+    a = row["answer"]
+    assert a["device_type"] & 0xFFFF == 402 and a["vendor_id"] == 0x4C4200AB
+    assert a["torque_modes"] == ["cyclic synchronous torque", "profile torque"]
+    assert a["state"] == "SWITCH ON DISABLED"
+    assert [r["configured"] for r in out["devices"] if r["device"] == "canopen"] == [False]
+
+
+def test_devices_command_reports_a_silent_drive_in_one_line(tmp_path, capsys):
+    from labbench.cli import main
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[canopen]\ninterface = "virtual"\nchannel = "nobody-here"\n'
+                   'node_id = 3\nsdo_timeout_s = 0.05\n')
+    assert main(["devices", "--rig", str(rig)]) == 0
+    captured = capsys.readouterr()
+    assert "no answer: node 3: no answer to SDO read of 0x1000:00" in captured.out
+    assert captured.err == ""
+
+
+def test_devices_fault_reset_on_the_simulated_drive(capsys):
+    from labbench.cli import main
+
+    assert main(["devices", "--fault-reset", "--sim"]) == 0
+    assert "SWITCH ON DISABLED -> SWITCH ON DISABLED" in capsys.readouterr().out
