@@ -15,10 +15,11 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from gui.buffers import StreamBuffer
-from gui.device_panel import DevicePanel, EStopButton
+from gui.device_panel import DevicePanel, EStopButton, device_health
 from gui.event_log import EventLog
 from gui.id_view import IdView, model_force
 from gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
@@ -28,6 +29,7 @@ from gui.sessions_view import SessionsView
 from gui.worker import Mailbox, describe_error, run_in_background, start_replay, start_run
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
+from labbench.safety import OVERRUN, SEQ_GAP
 from labbench.ve import Plant, VirtualEnvironment
 
 log = logging.getLogger(__name__)
@@ -86,6 +88,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._rate = (time.monotonic(), 0)
         self._pending_start = False
         self._estimator_error_shown = None
+        self._run_started = time.monotonic()
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -231,6 +234,7 @@ class MainWindow(QtWidgets.QMainWindow):
             raise UserError("stop the run before disconnecting")
         dev, self.device = self.device, None
         self.device_panel.set_connected(None)
+        self.estop.set_latched(False)  # the latch lives in the device being closed
         if dev is not None:
             run_in_background(self.mailbox, "disconnect", dev.close)
 
@@ -257,14 +261,22 @@ class MainWindow(QtWidgets.QMainWindow):
                      else "E-STOP: no device connected; any run or replay stopped")
 
     def _poll_health(self):
-        dev = self.device
-        health = getattr(dev, "health", None)
-        if callable(health):
+        if self.device is not None:
             try:
-                self.device_panel.set_health(dict(health()))
+                health = device_health(self.device)
             except Exception as exc:  # noqa: BLE001 - a health read failing is itself news
-                self.device_panel.set_health({"state": f"health read failed: {exc}"})
+                health = {"state": f"health read failed: {describe_error(exc)}"}
+            if self.mode == "running":
+                health["drops"] = str(self._count_flag(SEQ_GAP))
+            self.device_panel.set_health(health)
+        if self.mode == "running":
+            self.status["overruns"].setText(f"overruns: {self._count_flag(OVERRUN)} (live)")
         self._update_rate()
+
+    def _count_flag(self, bit: int) -> int:
+        """Samples of this run whose loop flags carry ``bit`` (labbench.safety)."""
+        flags = self.buffer.channel("flags").astype(np.int64)
+        return int(np.count_nonzero(flags & bit))
 
     # ----- protocol ---------------------------------------------------------------------------
     @guarded
@@ -299,6 +311,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def start_protocol(self):
         if self.mode != "idle":
             raise UserError(f"a {self.mode} is in progress; stop it first")
+        if self.estop.latched:
+            raise UserError("E-STOP is latched: disconnect and reconnect the device to clear it")
         if self.device is None:
             backend = self.device_panel.backend.currentText()
             self._pending_start = True
@@ -311,6 +325,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._reset_view()
         self.stop_event = threading.Event()
         self.mode = "running"
+        self._run_started = time.monotonic()
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
         self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
@@ -359,7 +374,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
             frac, text = payload
-            self.protocol_panel.set_progress(frac, text)
+            elapsed = time.monotonic() - self._run_started
+            left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
+            self.protocol_panel.set_progress(frac, f"{text}: {100 * frac:.0f} %  {left}".strip())
         elif kind == "warning":
             self.log.add("warning", payload)
         elif kind == "session":

@@ -27,20 +27,21 @@ CHOICES = {"kind": list(VE_KINDS), "ve": list(VE_KINDS), "sweep": ["log", "linea
 
 
 def _unit(name: str):
+    """(unit, lower limit, readable label) of a config field."""
     if name in UNITS:
-        return UNITS[name]
+        return (*UNITS[name], name.replace("_", " "))
     for suffix in sorted((k for k in UNITS if k.startswith("_")), key=len, reverse=True):
         if name.endswith(suffix):
-            return UNITS[suffix]
-    return ("", None)
+            return (*UNITS[suffix], name[: -len(suffix)].replace("_", " "))
+    return ("", None, name.replace("_", " "))
 
 
 def params_from_config(config: dict) -> list[dict]:
     """ParameterTree children for a (nested) config dict of numbers, bools, strings and lists."""
     children = []
     for name, value in config.items():
-        unit, low = _unit(name)
-        item = {"name": name, "title": f"{name} [{unit}]" if unit else name}
+        unit, low, label = _unit(name)
+        item = {"name": name, "title": f"{label} [{unit}]" if unit else label, "tip": name}
         if isinstance(value, dict):
             item.update(type="group", children=params_from_config(value))
         elif isinstance(value, bool):
@@ -53,7 +54,7 @@ def params_from_config(config: dict) -> list[dict]:
         elif value is None:  # optional number: empty text = the protocol's default / none
             item.update(type="str", value="", optional_number=True,
                         tip="empty: not set (default, or no filter for w0)")
-            item["title"] += " (optional)"
+            item["title"] += " (opt.)"
         elif isinstance(value, str) and name in CHOICES:
             item.update(type="list", limits=CHOICES[name], value=value)
         elif isinstance(value, str):

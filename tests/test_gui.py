@@ -153,6 +153,8 @@ def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
     assert win.last_run.status in ("aborted", "failed")
     assert win.buffer.n < 20_000
     assert any("E-STOP" in t for t in win.log.texts("warning"))
+    win.start_protocol()  # refused while the latch holds
+    assert "E-STOP is latched" in win.banner.text() and win.mode == "idle"
 
 
 def test_unstable_settings_are_refused_with_a_message(qtbot, make_window):
