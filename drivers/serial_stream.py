@@ -267,14 +267,14 @@ class SerialStream:
 
         Takes no sample away from the caller. The stream must be live: a sample
         within ``stale_s`` or one arriving within ``timeout`` (kept for the next
-        ``read``). After a latched fault (operator re-enable) the stream position
-        is forgotten first, so a rebooted board's new zero is accepted.
+        ``read``). After a latched fault (operator re-enable) only the newest
+        waiting sample is kept; after a reboot that is one counted from the
+        board's new zero.
         """
         self._check_open()
         if self._fault:
-            self._ready.clear()
-            self._decoder.reset()
-            self._last_arrival = -math.inf
+            while len(self._ready) > 1:
+                self._ready.popleft()
         deadline = self._clock() + timeout
         while not self._ready and self._clock() - self._last_arrival > self._stale_s:
             if self._clock() >= deadline:
@@ -375,20 +375,27 @@ class SerialStream:
             self._trip(f"serial port lost: {exc}")
 
     def _ingest(self, data: bytes) -> None:
+        """Decode ``data`` into the queue; a fault latches at once and raises after the
+        whole chunk is decoded (counters stay right, later samples stay queued)."""
         if not data:
             return
         arrival = self._clock()
+        reason = None
         for item in self._decoder.feed(data):
             if isinstance(item, Reboot):
+                self._ready.clear()  # positions before a reboot belong to another zero
                 if self._enabled:
-                    self._trip(item.reason + " (encoder zero lost)")
-                self._ready.clear()
+                    reason = reason or item.reason + " (encoder zero lost)"
+                    self._latch(reason)
                 continue
             if self._enabled and item.lost > self.config.tolerate_drops:
-                self._trip(f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
-                           f"({self.config.tolerate_drops} tolerated; counters {self.counters()})")
+                reason = reason or (f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
+                                    f"({self.config.tolerate_drops} tolerated)")
+                self._latch(reason)
             self._ready.append(item.sample)
             self._last_arrival = arrival
+        if reason is not None:
+            raise DeviceFault(self._fault)
 
     def _send(self, force_n: float) -> None:
         if not self.config.force_command or self._closed:

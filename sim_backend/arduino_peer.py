@@ -13,7 +13,11 @@ Pacing and delay (sample k = position at the start of period k):
   command answering k (``lockstep_timeout_s``; none -> zero force, watchdog
   bit), apply it during period k. Zero extra delay: the sampled model is the
   plain simulator's. ``delay_samples`` = n applies the answer to sample k in
-  period k+n instead, to mimic a board.
+  period k+n instead, to mimic a board. A sample the board corrupted or
+  dropped on purpose (a fault) gets no answer: the board holds the last
+  command for that period and goes on at once. Board time is virtual here, so
+  the host's stale limit is ``lockstep_timeout_s / 2`` of wall time, not a
+  few periods; the 3-period limit is a property of the free-running board.
 * free-running (``realtime=True``): a tick every T of wall time; at tick k the
   board latches the newest command received, sends sample k and applies the
   latched force during period k. The answer to sample k arrives during period
@@ -68,7 +72,7 @@ class ArduinoPeer:
 
     def __init__(self, plant, T: float, metres_per_count: float, *, fmt: str = "binary",
                  count_bits: int = 32, direction: int = 1, unit: float = 1.0, realtime: bool = False,
-                 delay_samples: int = 0, lockstep_timeout_s: float = 0.05, boot_noise: bool = True,
+                 delay_samples: int = 0, lockstep_timeout_s: float = 1.0, boot_noise: bool = True,
                  t0_us: int = 0, count0: int = 0, seed: int | None = None, faults=()):
         self.plant, self.T = plant, T
         self.fmt, self.count_bits, self.direction = fmt, count_bits, direction
@@ -78,13 +82,14 @@ class ArduinoPeer:
         self._rng = np.random.default_rng(seed)
         self._t0_us, self._count0 = t0_us, count0
         self._zero_x = 0.0  # plant position at the board's last boot (count 0 there)
-        self.k = 0  # samples since boot
+        self.k = 0  # periods simulated (the plant's clock; survives a reboot)
+        self._k_boot = 0  # k at the last boot: sequence numbers count from there
         self.samples_sent = 0
         self._pending = deque([0.0] * delay_samples)
         self._latest = 0.0  # newest command [N at the handle]
         self._latest_at = -10**9  # sample index when it arrived
         self._status = 0
-        self._sent_this = False
+        self._intact = False
         self.commands = framing.CommandParser()
         self.watchdog_zeroed = 0  # periods the watchdog forced zero
         self.applied: list[float] = []  # force applied per period (tests read it)
@@ -137,6 +142,7 @@ class ArduinoPeer:
     def frame(self, k: int) -> bytes:
         """Bytes of sample k (position now, time and count as the board holds them)."""
         t_us = (self._t0_us + round(k * self.T * 1e6)) % (1 << 32)
+        seq = k - self._k_boot
         count = self._count0 + self.direction * math.floor((self.plant.position - self._zero_x) / self._mpc + 0.5)
         bits = self.count_bits
         count &= (1 << bits) - 1
@@ -144,7 +150,7 @@ class ArduinoPeer:
             count -= 1 << bits  # the board's signed int of that width
         if self.fmt == "ascii":
             return framing.format_ascii(t_us, count)
-        return framing.encode_sample(k, t_us, count, self._status)
+        return framing.encode_sample(seq, t_us, count, self._status)
 
     def emit(self, n: int = 1, force_n: float = 0.0) -> None:
         """Send n samples, each followed by one period under ``force_n`` (loop:// tests)."""
@@ -153,21 +159,31 @@ class ArduinoPeer:
                 self._advance(force_n)
 
     def _send_sample(self) -> bool:
-        """Send sample k with its scheduled faults; False once unplugged."""
+        """Send sample k with its scheduled faults; False once unplugged.
+
+        Sets ``_intact``: whether the host can decode sample k (a lock-step
+        board waits for an answer only then).
+        """
         k = self.k
         data = self.frame(k)
+        intact = True
         for f in self._faults.pop(k, ()):
             if f.kind == "garbage":
-                self._write(self._rng.integers(0, 256, f.n, dtype=np.uint8).tobytes())
+                junk = self._rng.integers(0, 256, f.n, dtype=np.uint8).tobytes()
+                self._write(junk)
+                # Junk not ending in a delimiter (or a newline) merges with the sample.
+                intact = intact and junk.endswith(b"\n" if self.fmt == "ascii" else b"\x00")
             elif f.kind == "flip":
                 buf = bytearray(data)
                 i = int(self._rng.integers(0, len(buf) - 1))  # not the delimiter
                 buf[i] ^= 1 << int(self._rng.integers(0, 8))
                 data = bytes(buf)
+                intact = False
             elif f.kind == "drop":
                 for j in range(1, f.n):
                     self._faults.setdefault(k + j, []).append(Fault("drop", k + j))
                 data = b""
+                intact = False
             elif f.kind == "stall":
                 self._stop.wait(f.seconds)
             elif f.kind == "unplug":
@@ -180,13 +196,14 @@ class ArduinoPeer:
             self._write(data)
             self.samples_sent += 1
             self._status = 0  # a sample reports what happened since the previous one
-        self._sent_this = bool(data)
+        self._intact = intact
         return True
 
     def _reboot(self) -> None:
         self._zero_x = self.plant.position
         self._t0_us = 300_000 - round(self.k * self.T * 1e6)  # micros() ~0.3 s after reset
         self._count0 = 0
+        self._k_boot = self.k  # the sequence number restarts too
         self._status = 0
         self.boot()
 
@@ -229,7 +246,9 @@ class ArduinoPeer:
             return
         force = None
         want = self.k & 0xFFFF
-        if self._sent_this:
+        if not self._intact:
+            force = self._watchdog_force()  # no answer can come: the latch, as a free-running board
+        else:
             deadline = time.monotonic() + self.lockstep_timeout_s
             while force is None and not self._stop.is_set():
                 left = deadline - time.monotonic()
@@ -292,7 +311,7 @@ class ArduinoPeer:
 
 def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, faults=(), plant=None,
                        delay_samples: int = 0, t0_us: int = 0, count0: int = 0,
-                       boot_noise: bool = True, lockstep_timeout_s: float = 0.05, sim: dict | None = None):
+                       boot_noise: bool = True, lockstep_timeout_s: float = 1.0, sim: dict | None = None):
     """The real ``SerialStream`` on a pty to a started ``ArduinoPeer``: ``(driver, peer)``.
 
     Driver settings come from ``rig``'s ``[serial]`` table (port and
@@ -320,10 +339,11 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
     except BaseException:
         peer.close()
         raise
-    # A lock-step board's time is virtual: the host's stale limit is the board's
-    # own wait for a command, not a few periods of wall time.
+    # A lock-step board's time is virtual (its plant waits for the host), so a few
+    # periods of wall time mean nothing there: the host's stale limit is half the
+    # board's own wait for a command instead.
     driver = SerialStream(ser, config, rig, on_close=peer.close, paced=realtime,
-                          stale_s=None if realtime else lockstep_timeout_s, kind="sim-serial")
+                          stale_s=None if realtime else lockstep_timeout_s / 2, kind="sim-serial")
     peer.start()
     try:
         driver.wait_for_stream(config.sync_timeout_s)

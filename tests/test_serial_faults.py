@@ -1,0 +1,203 @@
+"""Injected faults on the serial stream: each ends with force zero and a recorded, explained event.
+
+Faults are scheduled on the simulated board by sample index (boot = 0; the
+driver's sync at open takes the first samples), so every run is repeatable.
+The whole chain runs: real driver on a pty, labbench.runner, labbench.loop.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from drivers.serial_stream import FLAG_LINK_ERRORS, FLAG_LOST, SerialConfig, SerialStream
+from labbench import records
+from labbench.device import DeviceFault
+from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.rig import rig_from_dict
+from labbench.runner import run
+from labbench.safety import DEVICE
+from labbench.ve import VirtualEnvironment
+from protocols import make_protocol
+from sim_backend.arduino_peer import Fault, connect_sim_serial
+
+FAULT_AT = 400  # board sample index: well inside the run, after the enable gate
+
+
+def make_rig(T=0.001, **serial_table):
+    # A lock-step board's time is virtual: the loop watchdog must not judge this
+    # shared machine's scheduling hiccups (tens of ms under load) as a frozen loop.
+    return rig_from_dict({"rig": {"sample_time_s": T}, "serial": serial_table,
+                          "safety": {"watchdog_s": 2.0}}, source="test.toml")
+
+
+def run_etfe(drv, rig, duration_s=1.0, seed=5):
+    protocol = make_protocol("etfe", duration_s=duration_s, seed=seed, sample_time_s=rig.sample_time_s)
+    stream = []
+    result = run(drv, protocol, [stream.append], rig=rig)
+    return result, stream
+
+
+@pytest.mark.parametrize("fault, explained", [
+    (Fault("flip", FAULT_AT), "1 serial sample(s) lost before seq"),
+    (Fault("drop", FAULT_AT, n=3), "3 serial sample(s) lost before seq"),
+    (Fault("garbage", FAULT_AT, n=40), "1 serial sample(s) lost before seq"),
+    (Fault("reboot", FAULT_AT), "board rebooted: time went from"),
+    (Fault("stall", FAULT_AT, seconds=0.8), "serial stream stale: no sample for"),
+    (Fault("unplug", FAULT_AT), "serial port lost"),
+])
+def test_fault_during_a_run_zeroes_force_and_is_recorded(fault, explained):
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=11, faults=[fault])
+    result, stream = run_etfe(drv, rig)
+    assert result.status == "failed"
+    faults = [r for r in stream if r["kind"] == records.EVENT and r["name"] == "device_fault"]
+    assert len(faults) == 1 and explained in faults[0]["reason"]
+    assert "force zeroed" in faults[0]["reason"]
+    assert stream[-1]["kind"] == records.STOP and stream[-1]["status"] == "failed"
+    # Host side: nothing but zero is commanded now. Board side: zero from the fault on.
+    assert drv.commanded_force_n == 0.0 and drv.fault
+    # A lost sample cannot be answered: the board holds its last command over
+    # its period (at most 3, then its watchdog zeroes), as a free-running board would.
+    applied = np.array(peer.applied)
+    held = fault.n if fault.kind == "drop" else 1
+    assert len(applied) >= FAULT_AT
+    assert np.all(applied[FAULT_AT + held:] == 0.0)
+    assert np.any(applied[:FAULT_AT] != 0.0)  # the run really pushed before the fault
+    assert peer.error is None
+
+
+def test_a_tolerated_drop_is_flagged_counted_and_the_run_goes_on():
+    rig = make_rig(tolerate_drops=1)
+    drv, peer = connect_sim_serial(rig, seed=11, faults=[Fault("flip", FAULT_AT)])
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=rig.sample_time_s)
+    excitation = np.random.default_rng(1).normal(0.0, 0.5, 1000)
+    stream = []
+    with drv:
+        outcome = run_loop(drv, HapticLoop(ve, SafetyConfig.from_rig(rig)), excitation, stream.append)
+        counters = drv.counters()
+    assert outcome.status == "completed" and outcome.n_done == 1000
+    data = records.concat_pages(stream)
+    gaps = [r for r in stream if r["kind"] == records.EVENT and r["name"] == "seq_gap"]
+    assert len(gaps) == 1  # the loop records the gap as an event too
+    assert np.count_nonzero(np.diff(data["seq"]) == 2) == 1
+    assert np.count_nonzero(data["flags"] & DEVICE) == 1  # the flagged sample after the loss
+    assert counters["lost"] == 1 and counters["crc_errors"] + counters["bad_frames"] >= 1
+
+
+def test_stale_limit_is_within_three_periods_on_a_fake_clock():
+    """Silence after the last sample trips at the first poll past stale_periods (<= 3 T)."""
+    rig = make_rig(T=0.001)
+    now = [0.0]
+
+    class SilentPort:
+        port = "fake"
+        in_waiting = 0
+        timeout = write_timeout = None
+
+        def read(self, n):
+            now[0] += self.timeout  # a blocking read that waited its whole timeout
+            return b""
+
+        def close(self):
+            pass
+
+    for stale_periods in (1, 2.5, 3):
+        cfg = SerialConfig.from_rig(rig, stale_periods=stale_periods)
+        drv = SerialStream(SilentPort(), cfg, rig, clock=lambda: now[0])
+        drv._ready.append(None)  # one sample queued: the stream was live at t = 0
+        drv._last_arrival = now[0]
+        drv.enable(0.1)
+        drv._ready.clear()
+        with pytest.raises(DeviceFault, match="stale") as exc:
+            drv.read(1.0)
+        silent = now[0] - drv._last_arrival
+        assert stale_periods * rig.sample_time_s <= silent <= stale_periods * rig.sample_time_s + drv._poll_s
+        assert silent <= 3.25 * rig.sample_time_s
+        assert "force zeroed" in str(exc.value) and drv.commanded_force_n == 0.0
+
+
+def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board():
+    # 10 ms periods keep a Python board on a shared machine on time.
+    rig = make_rig(T=0.01, stale_periods=3)
+    drv, peer = connect_sim_serial(rig, realtime=True, seed=3, faults=[Fault("stall", 60, seconds=0.2)])
+    with drv:
+        drv.enable(0.5)
+        with pytest.raises(DeviceFault, match="stale") as exc:
+            for _ in range(200):
+                drv.read(0.5)
+                drv.command(0.3)
+        silent_ms = float(str(exc.value).split("no sample for ")[1].split(" ms")[0])
+        assert silent_ms >= 30.0  # 3 periods; how much later is scheduling (bench_serial measures it)
+    # Board watchdog: a host that stops answering gets zero force within 3 periods.
+    drv, peer = connect_sim_serial(rig, realtime=True, seed=3)
+    with drv:
+        drv.enable(0.5)
+        for _ in range(30):
+            drv.read(0.5)
+            drv.command(0.3)
+        k_last = peer.k
+        for _ in range(10):
+            drv.read(0.5)  # reading on, commanding nothing: a frozen control thread
+        applied = np.array(peer.applied)
+    assert np.all(applied[k_last + 4:] == 0.0) and applied[k_last - 1] == pytest.approx(0.3)
+    assert peer.watchdog_zeroed >= 5
+
+
+def test_emergency_stop_latches_until_the_operator_enables_again():
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=2)
+    with drv:
+        drv.enable(0.5)
+        drv.read(0.5)
+        drv.command(0.4)
+        drv.emergency_stop()
+        drv.emergency_stop()  # never raises, idempotent
+        assert drv.commanded_force_n == 0.0
+        with pytest.raises(DeviceFault, match="emergency stop; force zeroed"):
+            drv.read(0.5)
+        drv.command(1.0)
+        assert drv.commanded_force_n == 0.0
+        drv.enable(0.5)  # the operator's action clears it
+        drv.read(0.5)
+        drv.command(0.4)
+        assert drv.commanded_force_n == 0.4
+
+
+def test_non_finite_command_faults_with_zero_force():
+    drv, peer = connect_sim_serial(make_rig(), seed=2)
+    with drv:
+        drv.enable(0.5)
+        drv.read(0.5)
+        with pytest.raises(DeviceFault, match="non-finite force command nan"):
+            drv.command(math.nan)
+        assert drv.commanded_force_n == 0.0
+
+
+def test_reboot_then_operator_re_enable_accepts_the_new_zero():
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=2, faults=[Fault("reboot", FAULT_AT)])
+    with drv:
+        drv.enable(0.5)
+        with pytest.raises(DeviceFault, match="rebooted"):
+            for _ in range(2 * FAULT_AT):
+                drv.read(0.5)
+                drv.command(0.2)
+        drv.enable(0.5)
+        s = drv.read(0.5)
+        assert drv.counters()["reboots"] == 1
+        assert abs(s.position_m) < 1e-3  # counts restarted at the board's new zero
+        assert s.t_s < 1.0  # micros() restarted
+
+
+def test_link_errors_before_enable_are_counted_not_faults():
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=2, faults=[Fault("flip", 20), Fault("garbage", 22, n=30)])
+    with drv:
+        flags = []
+        for _ in range(30):
+            flags.append(drv.read(0.5).flags)
+            drv.command(0.0)  # a lock-step board waits for an answer to every sample
+        assert drv.fault is None
+        assert any(f & FLAG_LOST for f in flags) and any(f & FLAG_LINK_ERRORS for f in flags)
+        drv.enable(0.5)
+        assert drv.read(0.5).flags == 0
