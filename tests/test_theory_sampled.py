@@ -12,6 +12,8 @@ from collections import deque
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.optimize import brentq
 from scipy.signal import dlsim
 
@@ -207,3 +209,20 @@ def test_undamped_device_cannot_render_a_stable_spring():
     # open loop, no damping: a marginal double integrator, not called stable
     st = theory.stability(plant, VirtualEnvironment())
     assert not st.stable and st.spectral_radius == pytest.approx(1.0, abs=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(m=st.floats(0.01, 2.0), b=st.floats(0.0, 5.0), K=st.floats(0.0, 500.0),
+       B=st.floats(0.0, 5.0), w0=st.one_of(st.just(math.inf), st.floats(10.0, 5000.0)),
+       n=st.integers(0, 6), T=st.sampled_from([1e-4, 5e-4, 1e-3, 4e-3]))
+def test_closed_form_equals_state_space_for_any_loop(m, b, K, B, w0, n, T):
+    """Two derivations of the same loop: z_sampled's transfer-function algebra and
+    closed_loop's state matrices (whose time response matches the simulator above)."""
+    plant = Plant(m, b)
+    ve = VirtualEnvironment("spring-damper", K=K, B=B, w0=w0, T=T, td=n * T)
+    loop = theory.closed_loop(plant, ve)
+    w = np.array([0.3, 7.0, 90.0, 0.9 * math.pi / T])
+    I = np.eye(loop.A.shape[0])
+    G = np.array([(loop.C @ np.linalg.solve(np.exp(1j * wi * T) * I - loop.A, loop.B))[0, 0]
+                  for wi in w])
+    np.testing.assert_allclose(theory.z_sampled(plant, ve, w), 1 / (1j * w * G), rtol=1e-7)
