@@ -156,8 +156,9 @@ def table(s: dict) -> str:
     ve, pl = s["ve"], s["plant"]
     head = [
         f"{ve['kind']} VE, {s['model']} model: m = {pl['m']:g} kg, b = {pl['b']:g} N s/m, "
-        f"K = {ve['K']:g} N/m, B = {ve['B']:g} N s/m, w0 = {_fmt(ve['w0'], 'g')} rad/s, "
-        f"T = {ve['T']:g} s",
+        + "".join(f"{name} = {_fmt(ve[name], 'g')} {unit}, " for name, unit in
+                  (("K", "N/m"), ("B", "N s/m"), ("w0", "rad/s")) if name in USES[ve["kind"]])
+        + f"T = {ve['T']:g} s",
         _headline(s),
         f"ws* = {_fmt(s['ws_star'])} rad/s, wb* = {_fmt(s['wb_star'])} rad/s",
         "",
@@ -166,9 +167,10 @@ def table(s: dict) -> str:
     ]
     Z = np.asarray(s["Z_re"]) + 1j * np.asarray(s["Z_im"])
     phase = np.degrees(np.unwrap(np.angle(Z)))
+    # ES where Im Z < 0, EM where Im Z > 0 (paper Figure 2); the JSON keeps both signed
     rows = [
         f"{w:10.4g} {20 * np.log10(abs(z)):8.2f} {ph:8.2f} {z.real:10.4g} {z.imag:10.4g} "
-        f"{es:10.4g} {ed:10.4g} {em:10.4g}"
+        f"{_fmt(es if z.imag < 0 else None):>10} {ed:10.4g} {_fmt(em if z.imag > 0 else None):>10}"
         for w, z, ph, es, ed, em in zip(s["w"], Z, phase, s["ES"], s["ED"], s["EM"])
     ]
     return "\n".join(head + rows)
