@@ -208,6 +208,8 @@ class CanopenDrive:
         self._tpdo1_id, self._tpdo2_id, self._rpdo1_id = 0x180 + id_, 0x280 + id_, 0x200 + id_
         self._emcy_id, self._hb_id = 0x80 + id_, 0x700 + id_
         self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
+        self._rpdo_msg = can.Message(arbitration_id=self._rpdo1_id, data=bytes(4),
+                                     is_extended_id=False)
         self._host_hb_msg = can.Message(arbitration_id=0x700 + config.host_node_id,
                                         data=bytes([5]), is_extended_id=False)
 
@@ -700,8 +702,9 @@ class CanopenDrive:
         p = round(force_n * self._force_to_permille)
         p = self._max_permille if p > self._max_permille else (
             -self._max_permille if p < -self._max_permille else p)
-        self._send(can.Message(arbitration_id=self._rpdo1_id,
-                               data=RPDO1.pack(p, self._controlword), is_extended_id=False))
+        msg = self._rpdo_msg  # reused: buses copy or serialise a frame when sending it
+        msg.data = RPDO1.pack(p, self._controlword)
+        self._send(msg)
 
     def identity(self) -> dict:
         return dict(self._identity)
@@ -734,6 +737,35 @@ class CanopenDrive:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def frame_bits(n_bytes: int) -> tuple[int, int]:
+    """(nominal, worst-case) bits on the wire of a CAN 2.0A data frame with ``n_bytes``.
+
+    47 + 8n bits: SOF, 11-bit id, RTR, IDE, r0, DLC, data, CRC 15 + delimiter, ACK
+    slot + delimiter, EOF 7, intermission 3 (ISO 11898-1); bit stuffing adds at
+    most one bit per four after the first in the 34 + 8n bits from SOF to CRC.
+    """
+    nominal = 47 + 8 * n_bytes
+    return nominal, nominal + (34 + 8 * n_bytes - 1) // 4
+
+
+def bus_load(config: CanopenConfig, sample_time_s: float) -> dict:
+    """Bus load of this driver's traffic at ``config.bitrate`` (fraction of capacity)."""
+    rate = 1.0 / sample_time_s
+    traffic = [  # (name, data bytes, frames per second)
+        ("SYNC", 0, rate),
+        ("TPDO1 0x6064+0x6041+0x6077", 8, rate),
+        ("TPDO2 0x606C", 4, rate / config.velocity_tpdo_every),
+        ("RPDO1 0x6071+0x6040", 4, rate),
+        ("host heartbeat", 1, 1000.0 / config.host_heartbeat_ms),
+        ("drive heartbeat", 1, 1000.0 / config.drive_heartbeat_ms),
+    ]
+    nominal = sum(frame_bits(n)[0] * f for _, n, f in traffic)
+    worst = sum(frame_bits(n)[1] * f for _, n, f in traffic)
+    return {"bitrate": config.bitrate, "frames": [(name, n, f) for name, n, f in traffic],
+            "bits_per_s_nominal": nominal, "bits_per_s_worst": worst,
+            "load_nominal": nominal / config.bitrate, "load_worst": worst / config.bitrate}
 
 
 def open_canopen(rig, realtime: bool = True, **options) -> CanopenDrive:

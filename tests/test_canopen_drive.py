@@ -222,3 +222,13 @@ def test_devices_fault_reset_on_the_simulated_drive(capsys):
 
     assert main(["devices", "--fault-reset", "--sim"]) == 0
     assert "SWITCH ON DISABLED -> SWITCH ON DISABLED" in capsys.readouterr().out
+
+
+def test_bus_load_of_the_mapping():
+    from drivers.canopen_drive import bus_load, frame_bits
+
+    assert frame_bits(0) == (47, 47 + 8) and frame_bits(8) == (111, 111 + 24)
+    load = bus_load(CanopenConfig(), 0.001)
+    # Per ms: SYNC 47, TPDO1 111, TPDO2 79, RPDO1 79 bits; heartbeats 55 bits at 50 + 10 Hz.
+    assert load["bits_per_s_nominal"] == pytest.approx(316_000 + 55 * 60)
+    assert 0.31 < load["load_nominal"] < load["load_worst"] < 0.40

@@ -1,0 +1,155 @@
+"""Cost and timing of the CANopen path on python-can's virtual bus; bus load of the mapping.
+
+1. CPU per loop cycle (goal <= 60 us): ``read()`` (SYNC, host heartbeat when
+   due, pump until the TPDO) + ``command()`` (RPDO) against the simulated drive
+   in lock-step, as ``thread_time`` of the host thread, and the whole process
+   (host + simulated drive thread). Floor, measured in the same run: the
+   host's share of the frames alone (two sends, two receives of ready frames
+   on a virtual bus, no drive behind).
+2. The same through ``labbench.loop.run_loop`` (VE, safety, pages): host CPU per sample.
+3. Period jitter at 1 kHz: the paced driver (``realtime=True``), periods between
+   returned samples: p50 / p99 / max and late ticks; once with the configured
+   stale-TPDO limit (3 periods: on a loaded machine the simulated drive's thread
+   can miss it, and the run stops with the fault, as it must), once with a
+   limit of 100 periods to see the whole timing distribution.
+4. Bus load at 1 Mbit/s of the mapping, from frame bits with a stuffing bound.
+
+    .venv/bin/python bench/bench_canopen.py [--cycles 5000] [--paced-s 3]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+import uuid
+
+import can
+import numpy as np
+
+from drivers.canopen_drive import bus_load
+from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.device import DeviceFault
+from labbench.rig import Rig, rig_from_dict
+from labbench.ve import VirtualEnvironment
+from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
+
+GOAL_US = 60.0
+
+
+def frames_floor(n: int) -> float:
+    """Host thread CPU [s] per cycle for 2 sends + 2 receives of already queued frames."""
+    ch = f"bench-{uuid.uuid4().hex[:6]}"
+    a, b = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+    sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+    rpdo = can.Message(arbitration_id=0x201, data=bytes(4), is_extended_id=False)
+    tpdo = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+    try:
+        c0 = time.thread_time()
+        for _ in range(n):
+            a.send(sync)
+            b.send(tpdo)
+            b.send(tpdo)  # TPDO2 stands in: same recv cost
+            a.recv(0)
+            a.recv(0)
+            a.send(rpdo)
+            b.recv(0)
+            b.recv(0)
+        total = time.thread_time() - c0
+    finally:
+        a.shutdown()
+        b.shutdown()
+    # a's share: 2 sends + 2 receives; b's sends and receives are the drive's.
+    return total / n / 2
+
+
+def open_drive(rig, realtime=False):
+    config = sim_config(rig)
+    peer, bus = start_sim_drive(rig, config)
+    return connect_driver(rig, config, peer, bus, realtime=realtime)
+
+
+def driver_cycles(rig, n: int) -> tuple[float, float, float]:
+    """(host thread CPU, process CPU, wall) per read+command cycle, lock-step.
+
+    The cycle includes ``read_raw`` and ``command`` only (no VE, no pages)."""
+    with open_drive(rig) as d:
+        d.enable()
+        for _ in range(3):
+            d.read(1.0)
+            d.command(0.0)
+        forces = (0.3 * np.random.default_rng(0).standard_normal(n)).tolist()
+        w0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
+        for f in forces:
+            x = d.read_raw(1.0)[2]
+            d.command(f - 200.0 * x)  # a stiff spring keeps the handle inside its limits
+        return ((time.thread_time() - c0) / n, (time.process_time() - p0) / n,
+                (time.perf_counter() - w0) / n)
+
+
+def loop_cycles(rig, n: int) -> tuple[float, float]:
+    """(host thread CPU, process CPU) per sample through run_loop, lock-step."""
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=rig.sample_time_s)
+    exc = 0.3 * np.random.default_rng(1).standard_normal(n)
+    with open_drive(rig) as d:
+        c0, p0 = time.thread_time(), time.process_time()
+        out = run_loop(d, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc, lambda r: None)
+        assert out.status == "completed", out
+        return (time.thread_time() - c0) / n, (time.process_time() - p0) / n
+
+
+def paced_periods(rig, seconds: float) -> tuple[np.ndarray, int, str]:
+    """Periods between samples of the paced driver; stops at a device fault (reported)."""
+    n = int(seconds / rig.sample_time_s)
+    stamps = []
+    fault = ""
+    with open_drive(rig, realtime=True) as d:
+        d.enable()
+        try:
+            for _ in range(n):
+                x = d.read_raw(1.0)[2]
+                stamps.append(time.perf_counter())
+                d.command(-200.0 * x)
+        except DeviceFault as exc:
+            fault = str(exc)
+        late = d.counters["late_ticks"]
+    return np.diff(stamps), late, fault
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cycles", type=int, default=5000)
+    ap.add_argument("--paced-s", type=float, default=3.0)
+    args = ap.parse_args()
+    rig = Rig()
+    floor = frames_floor(args.cycles)
+    host, proc, wall = driver_cycles(rig, args.cycles)
+    lhost, lproc = loop_cycles(rig, args.cycles)
+    us = 1e6
+    print(f"CANopen path on the virtual bus, {args.cycles} cycles, lock-step")
+    print(f"  floor (host share of 4 frames, no drive)  {floor * us:7.1f} us")
+    print(f"  driver read+command, host thread CPU      {host * us:7.1f} us  "
+          f"({host / floor:.2f}x floor; goal <= {GOAL_US:g} us: "
+          f"{'met' if host * us <= GOAL_US else 'NOT met'})")
+    print(f"  driver read+command, process CPU          {proc * us:7.1f} us  "
+          f"(host + simulated drive; {proc / floor:.2f}x floor)")
+    print(f"  driver read+command, wall                 {wall * us:7.1f} us")
+    print(f"  run_loop per sample, host thread CPU      {lhost * us:7.1f} us  ({lhost / floor:.2f}x floor)")
+    print(f"  run_loop per sample, process CPU          {lproc * us:7.1f} us")
+    for label, stale in (("stale limit 3 periods (as configured)", 3),
+                         ("stale limit 100 periods (timing only)", 100)):
+        prig = rig_from_dict({"canopen": {"stale_periods": stale}})
+        periods, late, fault = paced_periods(prig, args.paced_s)
+        p = periods * 1e3
+        print(f"paced at 1 kHz, {label}: {len(p) + 1} samples; period p50 "
+              f"{np.percentile(p, 50):.3f} ms, p99 {np.percentile(p, 99):.3f} ms, "
+              f"max {p.max():.3f} ms, late ticks {late}"
+              + (f"; stopped by: {fault}" if fault else ""))
+    load = bus_load(sim_config(rig), rig.sample_time_s)
+    print(f"bus load at {load['bitrate'] / 1e6:g} Mbit/s: {load['load_nominal'] * 100:.1f} % "
+          f"nominal, {load['load_worst'] * 100:.1f} % with worst-case stuffing")
+    for name, n_bytes, rate in load["frames"]:
+        print(f"  {name:<28} {n_bytes} bytes  {rate:7.1f} /s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
