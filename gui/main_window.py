@@ -514,6 +514,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def _show_results(self, results: dict):
         if results.get("error"):
             self.show_error(str(results["error"]))
+        summary = scalar_summary(results)
+        if summary:
+            self.log.add("info", "results: " + summary)
         ident = results.get("identification")
         if isinstance(ident, dict) and ident:
             data = self.buffer.snapshot()
@@ -580,6 +583,19 @@ class MainWindow(QtWidgets.QMainWindow):
             except Exception:  # noqa: BLE001 - closing anyway
                 log.exception("device close failed")
         super().closeEvent(event)
+
+
+def scalar_summary(results: dict, prefix: str = "", depth: int = 2) -> str:
+    """``key value`` pairs of the numbers and words in a results dict (arrays and lists left out)."""
+    parts = []
+    for k, v in results.items():
+        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory"):
+            parts.append(scalar_summary(v, f"{prefix}{k}.", depth - 1))
+        elif isinstance(v, float):
+            parts.append(f"{prefix}{k} {v:.4g}")
+        elif isinstance(v, (int, str)) or v is None:
+            parts.append(f"{prefix}{k} {v}")
+    return ", ".join(p for p in parts if p)
 
 
 def ve_from_meta(meta: dict) -> VirtualEnvironment | None:

@@ -23,7 +23,20 @@ UNITS = {
     "_s": ("s", 0.0), "_hz": ("Hz", 0.0), "_n": ("N", 0.0), "_m": ("m", 0.0), "_j": ("J", 0.0),
     "_rad_s": ("rad/s", 0.0), "_n_per_s": ("N/s", 0.0), "_m_s": ("m/s", 0.0),
 }
-CHOICES = {"kind": list(VE_KINDS), "ve": list(VE_KINDS), "sweep": ["log", "linear"]}
+def choices() -> dict[str, list[str]]:
+    """Text fields with a fixed set of values: shown as drop-down lists."""
+    from labbench.analysis.identify import MODEL_CHOICES
+    from protocols.excitation import SWEEPS
+    from protocols.stability_probe import PROBE_KINDS, VARIABLES
+
+    out = {"ve": list(dict.fromkeys([*VE_KINDS, *PROBE_KINDS])), "sweep": list(SWEEPS),
+           "variable": list(VARIABLES), "model": list(MODEL_CHOICES)}
+    try:
+        from labbench.analysis.etfe import ESTIMATORS
+        out["estimator"] = list(ESTIMATORS)
+    except ImportError:  # the estimator field stays free text
+        pass
+    return out
 
 
 def _unit(name: str):
@@ -36,14 +49,15 @@ def _unit(name: str):
     return ("", None, name.replace("_", " "))
 
 
-def params_from_config(config: dict) -> list[dict]:
+def params_from_config(config: dict, choice_lists: dict | None = None) -> list[dict]:
     """ParameterTree children for a (nested) config dict of numbers, bools, strings and lists."""
+    lists = choices() if choice_lists is None else choice_lists
     children = []
     for name, value in config.items():
         unit, low, label = _unit(name)
         item = {"name": name, "title": f"{label} [{unit}]" if unit else label, "tip": name}
         if isinstance(value, dict):
-            item.update(type="group", children=params_from_config(value))
+            item.update(type="group", children=params_from_config(value, lists))
         elif isinstance(value, bool):
             item.update(type="bool", value=value)
         elif isinstance(value, int):
@@ -51,12 +65,15 @@ def params_from_config(config: dict) -> list[dict]:
         elif isinstance(value, float):
             item.update(type="float", value=value, dec=True, step=1.0, minStep=1e-9,
                         limits=(low if low is not None else -math.inf, math.inf))
+        elif name in lists and (value is None or isinstance(value, str)):
+            # "" stands for None: the protocol's default
+            options = ([""] if value is None else []) + lists[name]
+            item.update(type="list", limits=options, value="" if value is None else value,
+                        optional_choice=value is None)
         elif value is None:  # optional number: empty text = the protocol's default / none
             item.update(type="str", value="", optional_number=True,
                         tip="empty: not set (default, or no filter for w0)")
             item["title"] += " (opt.)"
-        elif isinstance(value, str) and name in CHOICES:
-            item.update(type="list", limits=CHOICES[name], value=value)
         elif isinstance(value, str):
             item.update(type="str", value=value)
         elif isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) for v in value):
@@ -76,6 +93,8 @@ def values_of(param: Parameter) -> dict:
         elif child.opts.get("list_of_numbers"):
             out[child.name()] = [_number(child.name(), v) for v in str(child.value()).split(",")
                                  if v.strip()]
+        elif child.opts.get("optional_choice"):
+            out[child.name()] = child.value() or None
         elif child.opts.get("optional_number"):
             text = str(child.value()).strip()
             out[child.name()] = _number(child.name(), text) if text else None

@@ -37,3 +37,78 @@ class ShotWhen(QtCore.QObject):
             self.timer.stop()
             # let the last redraw land before grabbing
             QtCore.QTimer.singleShot(self.settle_ms, lambda: self.done(ok, grab(self.widget, self.path)))
+
+
+def _wait(app, cond, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        app.processEvents()
+        if cond():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def docs_screenshots(out_dir, seconds: float = 30.0) -> list[Path]:
+    """The screenshots of docs/gui.md: live ETFE, Bode tab, identification, sessions, a refusal.
+
+    Runs real protocols on the real-time simulator (``python -m gui.screenshot DIR``;
+    under Xvfb for a real X server's rendering).
+    """
+    import tempfile
+
+    from gui.app import demo_finished, start_demo, tune_interpreter
+    from gui.main_window import MainWindow
+    from labbench.rig import Rig
+
+    tune_interpreter()
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
+    out = Path(out_dir)
+    win = MainWindow(Rig(), Path(tempfile.mkdtemp(prefix="labbench-shots-")))
+    win.show()
+    shots = []
+
+    def settle_and_grab(name):
+        _wait(app, lambda: False, 0.5)
+        shots.append(grab(win, out / name))
+
+    start_demo(win, {"duration_s": seconds, "seed": 1})
+    if not _wait(app, lambda: win.impedance.updates >= 3 and win.buffer.n > seconds * 400, 4 * seconds):
+        raise RuntimeError("live estimate did not appear")
+    settle_and_grab("live-etfe-running.png")
+    if not _wait(app, lambda: demo_finished(win), 4 * seconds + 60):
+        raise RuntimeError("demo run did not finish")
+    settle_and_grab("demo-etfe.png")
+    win.impedance.setCurrentIndex(1)
+    settle_and_grab("bode.png")
+    win.impedance.setCurrentIndex(0)
+
+    win.last_run = None
+    win.protocol_panel.choice.setCurrentText("chirp-id")
+    win.protocol_panel.set_value(("f0_hz",), 0.2)
+    win.protocol_panel.set_value(("duration_s",), 20.0)
+    win.start_protocol()
+    if not _wait(app, lambda: win.last_run is not None and win.mode == "idle", 200):
+        raise RuntimeError("chirp-id run did not finish")
+    win.tabs.setCurrentWidget(win.id_view)
+    settle_and_grab("identification.png")
+
+    win.tabs.setCurrentWidget(win.sessions)
+    _wait(app, lambda: len(win.sessions.paths) >= 2, 10)
+    settle_and_grab("sessions.png")
+
+    win.tabs.setCurrentIndex(0)
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("ve",), "spring")
+    win.protocol_panel.set_value(("K",), 5000.0)
+    win.start_protocol()
+    settle_and_grab("refused-unstable.png")
+    win.close()
+    return shots
+
+
+if __name__ == "__main__":
+    import sys
+
+    for p in docs_screenshots(sys.argv[1] if len(sys.argv) > 1 else "docs/screenshots"):
+        print(p)
