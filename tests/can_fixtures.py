@@ -11,8 +11,9 @@ FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2, "heartbeat_consumer_ms"
         "rpdo_timeout_ms": 300}
 
 
-def make_rig(**canopen):
-    return rig_from_dict({"canopen": {**FAST, **canopen}}, source="test-rig")
+def make_rig(sim: dict | None = None, **canopen):
+    tables = {"canopen": {**FAST, **canopen}, **({"sim": sim} if sim else {})}
+    return rig_from_dict(tables, source="test-rig")
 
 
 @pytest.fixture(autouse=True)

@@ -232,3 +232,39 @@ def test_bus_load_of_the_mapping():
     # Per ms: SYNC 47, TPDO1 111, TPDO2 79, RPDO1 79 bits; heartbeats 55 bits at 50 + 10 Hz.
     assert load["bits_per_s_nominal"] == pytest.approx(316_000 + 55 * 60)
     assert 0.31 < load["load_nominal"] < load["load_worst"] < 0.40
+
+
+# ------------------------------------------- the same protocol, two devices
+def run_protocol(device, rig, **options):
+    from labbench.devices import open_device
+    from labbench.records import concat_pages
+    from labbench.runner import run
+    from protocols import make_protocol
+
+    records = []
+    result = run(open_device(device, rig), make_protocol("etfe", **options), [records.append],
+                 rig=rig)
+    return result, concat_pages(records), records
+
+
+def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypatch):
+    """5 s of the white-noise protocol through the runner, on ``sim`` and on ``sim-canopen``.
+
+    Both quantise position to encoder counts; the CANopen path also quantises the
+    torque to 1 per-mille of 100 mN m (1 mN at the handle). That error (at most
+    0.5 mN a sample) moves the handle by micrometres, so positions may differ by
+    one count where the true position sits next to a count boundary, never more.
+    """
+    from protocols.white_noise import WhiteNoiseEtfe
+
+    monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
+    rig = make_rig(sim={"quantize": True})
+    (r_sim, a, _), (r_can, b, recs) = (run_protocol(d, rig, duration_s=5.0, seed=11)
+                                       for d in ("sim", "sim-canopen"))
+    assert r_sim.status == r_can.status == "success", (r_sim.reason, r_can.reason)
+    assert recs[0]["device"]["kind"] == "canopen"
+    assert np.array_equal(a["excitation"], b["excitation"]) and len(a["t"]) == 5000
+    dc = np.round((a["position"] - b["position"]) / rig.metres_per_count)
+    assert np.abs(dc).max() <= 1
+    assert np.mean(dc != 0) < 0.10
+    assert np.std(a["position"]) / rig.metres_per_count > 20  # the handle really moved
