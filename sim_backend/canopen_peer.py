@@ -160,14 +160,11 @@ class SimCanopenDrive:
 
     def _statusword(self) -> int:
         extra = cia402.SW_REMOTE
-        if self.state in cia402.TORQUE_STATES or self.state in (State.SWITCHED_ON,):
+        if self.state in cia402.TORQUE_STATES or self.state is State.SWITCHED_ON:
             extra |= cia402.SW_VOLTAGE_ENABLED
-        if abs(self.target_permille) > self.torque_permille_limit() and self.state is State.OPERATION_ENABLED:
+        if self.state is State.OPERATION_ENABLED and abs(self.target_permille) > self._get(0x6072):
             extra |= cia402.SW_INTERNAL_LIMIT
         return cia402.encode_status(self.state, extra)
-
-    def torque_permille_limit(self) -> int:
-        return self._get(0x6072)
 
     # ------------------------------------------------------------ 402 behaviour
     def _controlword(self, cw: int) -> None:
@@ -187,7 +184,7 @@ class SimCanopenDrive:
 
     def _apply_torque(self) -> None:
         if self.state is State.OPERATION_ENABLED:
-            lim = self.torque_permille_limit()
+            lim = self._get(0x6072)
             self.torque_permille = max(-lim, min(lim, self.target_permille))
         else:
             self.torque_permille = 0
@@ -205,14 +202,10 @@ class SimCanopenDrive:
         """Reaction of 0x6007 to a lost host (heartbeat or RPDO timeout)."""
         option = self._get(0x6007)
         self.events.append(f"connection lost ({why}), 0x6007 = {option}")
-        if option == 1 or self.state is not State.OPERATION_ENABLED:
-            self._fault(code, why) if option == 1 else None
-        elif option == 2:
-            self._controlword(0x00)  # disable voltage
-        elif option == 3:
-            self._controlword(0x02)  # quick stop
-        if option == 0:
-            self.events.append("0x6007 = 0: no reaction, torque stays")
+        if option == 1:
+            self._fault(code, why)
+        elif option in (2, 3) and self.state is State.OPERATION_ENABLED:
+            self._controlword(0x00 if option == 2 else 0x02)  # disable voltage / quick stop
 
     # ------------------------------------------------------------------ the bus
     def _send(self, can_id: int, data: bytes) -> None:

@@ -194,3 +194,18 @@ def test_dead_receive_thread_in_service_phase(drive):
     with pytest.raises(DeviceFault, match="receive thread died: .*crashed"):
         drive.enable()
     assert drive.peer.torque_permille == 0
+
+
+def test_emergency_stop_from_another_thread_mid_run(drive):
+    import threading
+
+    def estop(peer):
+        t = threading.Thread(target=drive.emergency_stop)
+        t.start()
+        t.join(1.0)
+
+    outcome, events = run_with_fault(drive, estop)
+    assert_fault_event(outcome, events, "emergency stop")
+    assert_force_zero(drive.peer)
+    with pytest.raises(DeviceFault, match="latched fault: emergency stop"):
+        drive.enable()
