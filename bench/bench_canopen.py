@@ -132,7 +132,8 @@ def main() -> int:
     print(f"  driver read+command, process CPU          {proc * us:7.1f} us  "
           f"(host + simulated drive; {proc / floor:.2f}x floor)")
     print(f"  driver read+command, wall                 {wall * us:7.1f} us")
-    print(f"  run_loop per sample, host thread CPU      {lhost * us:7.1f} us  ({lhost / floor:.2f}x floor)")
+    print(f"  run_loop per sample, host thread CPU      {lhost * us:7.1f} us  "
+          f"({lhost / floor:.2f}x floor)")
     print(f"  run_loop per sample, process CPU          {lproc * us:7.1f} us")
     for label, stale in (("stale limit 3 periods (as configured)", 3),
                          ("stale limit 100 periods (timing only)", 100)):

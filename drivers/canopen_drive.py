@@ -290,7 +290,8 @@ class CanopenDrive:
             raise UserError(f"node {cfg.node_id}: motor rated torque 0x6076 is 0")
         # per-mille of rated torque per newton at the handle
         self._force_to_permille = self.rig.lever_arm_m / (self._rated_mnm * 1e-3) * 1000.0
-        self._max_permille = min(32767, max(1, round(self.rig.force_limit_n * self._force_to_permille)))
+        limit = round(self.rig.force_limit_n * self._force_to_permille)
+        self._max_permille = min(32767, max(1, limit))
         self._map_pdos()
         self._select_mode()
         for index, sub, fmt, value in self._safety_objects():

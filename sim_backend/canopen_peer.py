@@ -196,7 +196,8 @@ class SimCanopenDrive:
         self.error_code = code
         self._rpdo_last = None
         self.events.append(f"fault 0x{code:04X}: {why}")
-        self._send(0x80 + self.node_id, emcy.encode(code, 0x01 | (0x10 if code >> 8 == 0x81 else 0)))
+        register = 0x01 | (0x10 if code >> 8 == 0x81 else 0)  # generic (+ communication)
+        self._send(0x80 + self.node_id, emcy.encode(code, register))
 
     def _abort_connection(self, code: int, why: str) -> None:
         """Reaction of 0x6007 to a lost host (heartbeat or RPDO timeout)."""
@@ -298,7 +299,8 @@ class SimCanopenDrive:
             self._hb_next = now + self._get(0x1017) * 1e-3
         consumer = self._get(0x1016, 1)
         limit_ms = consumer & 0xFFFF
-        if limit_ms and self._host_hb_last is not None and now - self._host_hb_last > limit_ms * 1e-3:
+        last = self._host_hb_last
+        if limit_ms and last is not None and now - last > limit_ms * 1e-3:
             self._host_hb_last = None  # re-armed by the next host heartbeat
             self._abort_connection(0x8130, f"no host heartbeat for {limit_ms} ms")
         if (self._rpdo is not None and self._rpdo[3] and self._rpdo_last is not None

@@ -8,7 +8,7 @@ import pytest
 from drivers import emcy
 from drivers.canopen_drive import CanopenConfig, open_canopen
 from drivers.cia402 import State
-from labbench.device import Device, DeviceFault
+from labbench.device import Device
 from labbench.errors import UserError
 from labbench.rig import Rig
 from sim_backend.plant import MassDamperPlant
@@ -18,7 +18,8 @@ from tests.can_fixtures import connect, drive, make_rig, no_bus_left_open, sim_p
 # ------------------------------------------------------------------ config
 @pytest.mark.parametrize("section,field", [
     ({"node_id": 0}, "node_id"), ({"node_id": 128}, "node_id"), ({"node_id": "1"}, "node_id"),
-    ({"bitrate": True}, "bitrate"), ({"mode": "csp"}, "mode"), ({"sdo_timeout_s": -1}, "sdo_timeout_s"),
+    ({"bitrate": True}, "bitrate"), ({"mode": "csp"}, "mode"),
+    ({"sdo_timeout_s": -1}, "sdo_timeout_s"),
     ({"heartbeat_consumer_ms": 10, "host_heartbeat_ms": 20}, "heartbeat_consumer_ms"),
     ({"host_node_id": 1}, "host_node_id"), ({"nodeid": 3}, "nodeid"),
     ({"eds": "/no/such/file.eds"}, "eds"), ({"interface": 3}, "interface"),

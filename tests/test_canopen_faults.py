@@ -11,7 +11,7 @@ from labbench.device import DeviceFault
 from labbench.errors import UserError
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.ve import VirtualEnvironment
-from tests.can_fixtures import connect, drive, make_rig, no_bus_left_open, sim_parts  # noqa: F401
+from tests.can_fixtures import connect, drive, no_bus_left_open, sim_parts  # noqa: F401
 
 N = 1500
 FAULT_AT = 400  # sample index (a page boundary) where the fault is injected
