@@ -278,3 +278,51 @@ def test_period_mismatch_is_a_user_error():
     with drv, pytest.raises(UserError, match="every 1.000 ms but the rig's sample_time_s is 2.000 ms"):
         drv.wait_for_stream(1.0)
     assert math.isfinite(plant.position)
+
+
+# -- the same protocol on the plain simulator and through the serial driver ------------------
+def run_protocol(device, rig, **options):
+    from labbench.devices import open_device
+    from labbench.records import concat_pages
+    from labbench.runner import run
+    from protocols import make_protocol
+
+    stream = []
+    result = run(open_device(device, rig), make_protocol("etfe", **options), [stream.append], rig=rig)
+    return result, concat_pages(stream), stream
+
+
+def etfe_rig(**serial_table):
+    # Lock-step board time is virtual: a generous loop watchdog keeps this loaded
+    # shared machine's scheduling hiccups from reading as a frozen loop.
+    return rig_from_dict({"sim": {"quantize": True}, "serial": serial_table,
+                          "safety": {"watchdog_s": 2.0}}, source="etfe-rig")
+
+
+@pytest.mark.parametrize("fmt", ["binary", "ascii"])
+def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypatch, fmt):
+    """5 s of the white-noise protocol through the runner on ``sim`` and ``sim-serial``.
+
+    Both quantise position to encoder counts; the serial path also carries the
+    force as float32 (relative error 6e-8), which can move a position across a
+    count boundary, never by more than one count.
+    """
+    from protocols.white_noise import WhiteNoiseEtfe
+
+    monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
+    rig = etfe_rig(format=fmt)
+    (r_sim, a, _), (r_ser, b, stream) = (run_protocol(d, rig, duration_s=5.0, seed=11)
+                                         for d in ("sim", "sim-serial"))
+    assert r_sim.status == r_ser.status == "success", (r_sim.reason, r_ser.reason)
+    assert stream[0]["device"]["kind"] == "sim-serial"
+    assert np.array_equal(a["excitation"], b["excitation"]) and len(b["t"]) == 5000
+    assert np.all(np.diff(b["seq"]) == 1) and np.allclose(np.diff(b["t"]), rig.sample_time_s)
+    dc = np.round((a["position"] - b["position"]) / rig.metres_per_count)
+    assert np.abs(dc).max() <= 1
+    assert np.mean(dc != 0) < 0.01
+    assert np.std(a["position"]) / rig.metres_per_count > 20  # the handle really moved
+    # One count q of position moves the VE force by at most K q + 2 B (1 - a) q / T
+    # (spring term, plus the filtered backward difference over two steps).
+    q, T = rig.metres_per_count, rig.sample_time_s
+    one_count_n = 50.0 * q + 2 * 1.0 * (1 - math.exp(-125.0 * T)) * q / T
+    assert np.max(np.abs(a["command"] - b["command"])) <= one_count_n * 1.001
