@@ -201,6 +201,11 @@ class CanopenDrive:
         self._max_permille = 0
         self._force_to_permille = 0.0
         self._seq = -1
+        # Per-cycle constants.
+        self._mpc = rig.metres_per_count
+        self._hb_period = config.host_heartbeat_ms * 1e-3
+        self._tpdo_wait = (config.stale_periods * self.T if realtime
+                           else config.lockstep_timeout_s)
         self.velocity_m_s = 0.0
         self.torque_actual_n = 0.0
         self.counters = {"error_frames": 0, "emcy": 0, "stray_frames": 0, "late_ticks": 0}
@@ -613,15 +618,12 @@ class CanopenDrive:
                 self.counters["late_ticks"] += 1
                 self._next_tick = now  # re-phase instead of bursting SYNCs to catch up
             self._next_tick += self.T
-            wait = self.config.stale_periods * self.T
-        else:
-            wait = self.config.lockstep_timeout_s
-        wait = min(wait, timeout)
+        wait = min(self._tpdo_wait, timeout)
         bus = self._bus
         if bus.state is can.BusState.ERROR:
             self._fail("CAN controller is bus-off (error state)")
         self._send(self._sync_msg)
-        if now - self._last_hb >= self.config.host_heartbeat_ms * 1e-3:
+        if now - self._last_hb >= self._hb_period:
             self._send(self._host_hb_msg)
             self._last_hb = now
         deadline = now + wait
@@ -646,7 +648,7 @@ class CanopenDrive:
         self.torque_actual_n = torque / self._force_to_permille
         flags = (FLAG_WARNING if status & cia402.SW_WARNING else 0) | (
             FLAG_INTERNAL_LIMIT if status & cia402.SW_INTERNAL_LIMIT else 0)
-        return self._seq, self._seq * self.T, counts * self.rig.metres_per_count, flags
+        return self._seq, self._seq * self.T, counts * self._mpc, flags
 
     def _not_enabled(self, status: int) -> None:
         """A TPDO statusword other than OPERATION ENABLED: fault unless still on the way."""
