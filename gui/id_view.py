@@ -10,9 +10,9 @@ from gui.live_plots import COLOURS
 
 def _fmt(v) -> str:
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return f"{v:.5g}"
     if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
-        return f"[{v[0]:.4g}, {v[1]:.4g}]"
+        return f"[{v[0]:.5g}, {v[1]:.5g}]"
     return str(v)
 
 
@@ -51,13 +51,15 @@ class IdView(QtWidgets.QWidget):
         self.plot.addLegend(offset=(-10, 5))
         self.plot.setClipToView(True)
         self.plot.setDownsampling(auto=True, mode="peak")
-        self.measured = self.plot.plot(pen=pg.mkPen(COLOURS["excitation"], width=1),
+        # wide light pen under a thin one: both stay visible where the fit is exact
+        self.measured = self.plot.plot(pen=pg.mkPen("#9ab8d8", width=4),
                                        name="measured (mean of the two holds)")
         self.model = self.plot.plot(pen=pg.mkPen(COLOURS["theory"], width=1), name="model")
         self.chosen = QtWidgets.QLabel("no identification yet: run chirp-ID, or open a session and press Re-analyse")
         self.chosen.setWordWrap(True)
         self.table = QtWidgets.QTableWidget(0, 0)
-        self.table.horizontalHeader().setStretchLastSection(True)
+        self.flags = QtWidgets.QLabel("")
+        self.flags.setWordWrap(True)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         split = QtWidgets.QSplitter()
         split.addWidget(self.plot)
@@ -65,6 +67,7 @@ class IdView(QtWidgets.QWidget):
         lay = QtWidgets.QVBoxLayout(side)
         lay.addWidget(self.chosen)
         lay.addWidget(self.table, 1)
+        lay.addWidget(self.flags)
         split.addWidget(side)
         split.setSizes([700, 400])
         QtWidgets.QVBoxLayout(self).addWidget(split)
@@ -88,7 +91,7 @@ class IdView(QtWidgets.QWidget):
             for k in ("rms_residual", "explained", "n_used", "cutoff_hz", "model"):
                 if k in res:
                     col(k, {})[method] = res[k]
-            col("flags", {})[method] = ", ".join(res.get("flags") or []) or "none"
+            col("warnings", {})[method] = len(res.get("flags") or [])
         keys = list(rows)
         self.table.setRowCount(len(keys))
         self.table.setColumnCount(len(results))
@@ -98,6 +101,8 @@ class IdView(QtWidgets.QWidget):
             for r, k in enumerate(keys):
                 self.table.setItem(r, c, QtWidgets.QTableWidgetItem(_fmt(rows[k].get(method, ""))))
         self.table.resizeColumnsToContents()
+        self.flags.setText("<br>".join(f"<b>{m}</b>: {f}" for m, res in results.items()
+                                       for f in res.get("flags") or []))
         first = next(iter(results.values()))
         sel = first.get("selection") or {}
         why = sel.get("criterion", "")

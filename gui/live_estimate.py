@@ -136,8 +136,10 @@ class LiveEstimator:
         try:
             return f.result()
         except Exception as exc:  # noqa: BLE001 - shown in the window, never raised into Qt
-            self.last_error = f"live estimate failed: {type(exc).__name__}: {exc}"
-            log.exception("live estimate failed")
+            message = f"live estimate failed: {type(exc).__name__}: {exc}"
+            if message != self.last_error:  # one traceback per distinct failure
+                log.exception("live estimate failed")
+            self.last_error = message
             return None
 
     def shutdown(self) -> None:

@@ -507,7 +507,8 @@ class MainWindow(QtWidgets.QMainWindow):
         t0, n0 = self._rate
         if now - t0 >= 1.0:
             rate = (self.buffer.n - n0) / (now - t0)
-            self.status["loop rate"].setText(f"loop rate: {rate:.0f} Hz")
+            text = f"{rate:.0f} Hz" if self.mode != "idle" else "-"
+            self.status["loop rate"].setText(f"loop rate: {text}")
             self._rate = (now, self.buffer.n)
         self.status["mode"].setText(f"mode: {self.mode}")
 
