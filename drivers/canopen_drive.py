@@ -771,8 +771,11 @@ def bus_load(config: CanopenConfig, sample_time_s: float) -> dict:
             "load_nominal": nominal / config.bitrate, "load_worst": worst / config.bitrate}
 
 
-def open_canopen(rig, realtime: bool = True, **options) -> CanopenDrive:
-    """Registry factory (``--device canopen``): the drive described by ``rig``'s ``[canopen]``."""
+def open_canopen(rig, realtime: bool = True, seed=None, **options) -> CanopenDrive:
+    """Registry factory (``--device canopen``): the drive described by ``rig``'s ``[canopen]``.
+
+    ``seed`` is accepted (and unused) so that every device opens with the same call.
+    """
     if options:
         raise UserError(f"canopen device takes no option(s) {', '.join(sorted(options))}")
     config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)

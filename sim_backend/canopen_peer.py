@@ -33,7 +33,6 @@ from canopen.sdo import SdoAbortedError
 from drivers import cia402, emcy
 from drivers.canopen_drive import MODE_BITS, CanopenConfig, CanopenDrive
 from drivers.cia402 import State
-from labbench.errors import UserError
 from sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
@@ -355,10 +354,10 @@ class SimCanopenDrive:
         self.bus.shutdown()
 
 
-def plant_for(rig, seed=None) -> SimDevice:
-    """The handle behind the drive: the plain simulator of ``[sim]`` (mass, damping,
-    friction, noise, delay), stepped once per SYNC."""
-    plant = open_sim(rig, realtime=False, seed=seed)
+def plant_for(rig, seed=None, **options) -> SimDevice:
+    """The handle behind the drive: the plain simulator of ``[sim]`` and ``options``
+    (mass, damping, friction, noise, delay), stepped once per SYNC."""
+    plant = open_sim(rig, realtime=False, seed=seed, **options)
     plant.enable()
     return plant
 
@@ -377,11 +376,12 @@ def sim_config(rig) -> CanopenConfig:
     return CanopenConfig.from_section(section, source=rig.source)
 
 
-def start_sim_drive(rig, config: CanopenConfig,
-                    seed=None) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
+def start_sim_drive(rig, config: CanopenConfig, seed=None,
+                    **options) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
     """A running simulated drive on a fresh ``virtual`` channel, and the host's bus to it."""
     channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
-    peer = SimCanopenDrive(channel, config.node_id, plant_for(rig, seed), rig.metres_per_count,
+    plant = plant_for(rig, seed, **options)
+    peer = SimCanopenDrive(channel, config.node_id, plant, rig.metres_per_count,
                            rig.lever_arm_m, rig.sample_time_s).start()
     try:
         return peer, FaultyVirtualBus(channel=channel)
@@ -406,10 +406,9 @@ def connect_driver(rig, config, peer, host_bus, realtime: bool = False) -> Canop
 def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
-    ``seed`` seeds the simulated handle's force noise (``[sim] force_noise_n``).
+    ``seed`` and ``options`` are those of the plain simulator (``sim_backend.sim_device``),
+    applied to the handle behind the drive.
     """
-    if options:
-        raise UserError(f"sim-canopen device takes no option(s) {', '.join(sorted(options))}")
     config = sim_config(rig)
-    peer, host_bus = start_sim_drive(rig, config, seed)
+    peer, host_bus = start_sim_drive(rig, config, seed, **options)
     return connect_driver(rig, config, peer, host_bus, realtime)

@@ -269,3 +269,12 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
     assert np.abs(dc).max() <= 1
     assert np.mean(dc != 0) < 0.10
     assert np.std(a["position"]) / rig.metres_per_count > 20  # the handle really moved
+
+
+def test_sim_canopen_takes_the_plain_simulator_options():
+    from sim_backend.canopen_peer import open_sim_canopen
+
+    with pytest.raises(UserError, match="sim option nonsense: unknown"):
+        open_sim_canopen(make_rig(), nonsense=1)
+    with open_sim_canopen(make_rig(), seed=4, coulomb_n=0.02, m=0.2) as d:
+        assert d.peer.plant.options["coulomb_n"] == 0.02 and d.peer.plant.options["m"] == 0.2
