@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import threading
 import time
-from itertools import chain
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Callable
 
 import numpy as np
@@ -322,6 +322,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
             if not enabled and not flags & (GATED | TRIPPED):
                 device.enable(timeout=wd)
                 enabled = True
+                prev = clock()  # the enable call is not a loop overrun
                 event(t_s, "enabled", f"enable gate opened at |force| = {abs(row[6]):.3g} N")
             command(row[6])
             if extra:
