@@ -134,8 +134,9 @@ class SimDevice:
         """Next sample as ``(seq, t_s, position_m, flags)``; advances the plant one T.
 
         The step holds the applied force: exact ZOH for the linear part, Coulomb
-        friction solved inside the step (one method, no helper calls: this runs
-        once per simulated sample).
+        friction solved inside the step. Written out in one method (a helper is
+        called only in a step where the velocity reaches zero): it runs once per
+        simulated sample.
         """
         if self.closed:
             raise DeviceFault("simulated device is closed")

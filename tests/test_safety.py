@@ -235,3 +235,13 @@ def test_safety_settings_come_from_the_rig_with_one_clear_error_each():
 def test_flag_names():
     assert flag_names(CLAMP | TRIPPED) == ["clamp", "tripped"]
     assert flag_names(0) == []
+
+
+def test_rig_nominal_model_fields_are_validated():
+    rig = rig_from_dict({"rig": {"nominal_mass_kg": 0.2, "nominal_damping_ns_m": 0}})
+    assert rig.nominal_plant == Plant(0.2, 0.0) and Rig().nominal_plant == PLANT
+    assert rig.as_dict()["nominal_mass_kg"] == 0.2
+    for field, value in (("nominal_mass_kg", 0), ("nominal_damping_ns_m", -0.1),
+                         ("nominal_damping_ns_m", "x")):
+        with pytest.raises(UserError, match=field):
+            rig_from_dict({"rig": {field: value}})
