@@ -423,8 +423,12 @@ class SerialStream:
         raise DeviceFault(self._fault)
 
 
-def open_serial(rig, port: str | None = None) -> SerialStream:
-    """Open the board of ``rig``'s ``[serial]`` table (``port`` overrides it) and wait for its stream."""
+def open_serial(rig, realtime: bool = True, seed: int | None = None, port: str | None = None) -> SerialStream:
+    """Open the board of ``rig``'s ``[serial]`` table (``port`` overrides it) and wait for its stream.
+
+    ``realtime`` and ``seed`` are accepted (and unused: hardware is always real
+    time) so that every device opens with the same call.
+    """
     import serial
 
     config = SerialConfig.from_rig(rig, **({"port": port} if port else {}))
