@@ -39,6 +39,7 @@ _OPTIONS = {
     "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
 }
 _NOISE_BLOCK = 4096
+ESTOP_LATCHED = 1  # bit of a sample's flags: the emergency stop is latched, force is off
 
 
 def _num(v) -> bool:
@@ -98,6 +99,7 @@ class SimDevice:
         self.estopped = False
         self._active = False  # enabled and not emergency-stopped: read at apply time
         self.closed = False
+        self.health = 0  # sample flags: ESTOP_LATCHED once emergency-stopped
 
     # -- Device protocol -------------------------------------------------------------
     def describe(self) -> DeviceDescription:
@@ -123,6 +125,7 @@ class SimDevice:
         self._active = False
         self.estopped = True
         self._u = 0.0
+        self.health = ESTOP_LATCHED
 
     def command(self, force_n: float) -> None:
         self._u = force_n
@@ -181,7 +184,7 @@ class SimDevice:
         q = self._q
         if q:
             x = math.floor(x / q + 0.5) * q
-        return k, k * self.T, x, 0
+        return k, k * self.T, x, self.health
 
     def close(self) -> None:
         self.emergency_stop()

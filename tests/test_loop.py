@@ -173,7 +173,7 @@ def test_stop_and_emergency_stop_from_another_thread_zero_force_at_once():
     th.start()
     time.sleep(0.15)
     dev.emergency_stop()  # the GUI's E-STOP: force off at the device now ...
-    assert dev.describe() and dev.read_raw.__self__._active is False
+    assert dev.estopped and dev._active is False
     stop.set()  # ... and the loop ends at its next sample
     th.join(timeout=5.0)
     assert not th.is_alive()

@@ -10,7 +10,7 @@ from labbench.device import DeviceFault, Sample
 from labbench.devices import open_device
 from labbench.errors import UserError
 from labbench.rig import Rig, rig_from_dict
-from sim_backend.sim_device import open_sim
+from sim_backend.sim_device import ESTOP_LATCHED, open_sim
 
 M, B, T = 0.094, 0.10, 0.001
 
@@ -163,7 +163,7 @@ def test_disabled_and_emergency_stopped_device_applies_no_force():
     assert dev.applied_n == 1.0
     dev.emergency_stop()
     dev.command(1.0)  # a late command from the loop thread is ignored
-    dev.read_raw(1.0)
+    assert dev.read_raw(1.0)[3] == ESTOP_LATCHED  # and the samples say so
     assert dev.applied_n == 0.0
     with pytest.raises(DeviceFault):
         dev.enable()
