@@ -474,8 +474,10 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
     per_page = int((top - bottom) / line_h)
     with PdfPages(path) as pdf:
         pdf.infodict()["Title"] = title
-        lines: list[tuple[str, dict]] = [(t, dict(size=12, weight="bold", family="sans-serif"))
-                                         for t in textwrap.wrap(title, 80)] + [("", {})]
+        big = dict(size=11, weight="bold", family="sans-serif")  # two line slots each
+        lines: list[tuple[str, dict]] = []
+        for t in textwrap.wrap(title, 90):
+            lines += [(t, big), ("", {})]
         first_heading = True
 
         def flush_text():
@@ -494,7 +496,7 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
                 if not first_heading:
                     flush_text()  # each session starts on a new page
                 first_heading = False
-                lines += [(b.text, dict(size=11, weight="bold", family="sans-serif")), ("", {})]
+                lines += [("", {}), (b.text, big), ("", {})]
             elif isinstance(b, Text):
                 lines += [(w, {}) for w in textwrap.wrap(b.text, 110)] + [("", {})]
             elif isinstance(b, Table):
