@@ -8,7 +8,10 @@ the same process: an empty Python loop of the same length. Both wall time and
 this thread's CPU time are given (the machine is shared: CPU time is what the
 code costs, wall time what a user waits). Best of ``--repeat`` runs.
 
-    .venv/bin/python bench/bench_sim.py [--repeat 3] [--samples 120000]
+Then a paced run (``realtime=True``, as the GUI and ``--realtime`` use it) of
+``--paced-s`` seconds: loop period p50/p99/max and overruns at 1 kHz.
+
+    .venv/bin/python bench/bench_sim.py [--repeat 3] [--samples 120000] [--paced-s 5]
 """
 from __future__ import annotations
 
@@ -35,6 +38,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--samples", type=int, default=120_000)
+    ap.add_argument("--paced-s", type=float, default=5.0)
     args = ap.parse_args()
     n = args.samples
     rig = Rig()
@@ -74,6 +78,16 @@ def main() -> int:
         ratio = T / per
         verdict = "meets" if ratio >= GOAL else "BELOW"
         print(f"  faster than real time ({label}): {ratio:7.1f}x  ({verdict} the {GOAL:.0f}x goal)")
+
+    m = int(args.paced_s / T)
+    if m > 0:
+        dev = open_sim(rig, realtime=True, coulomb_n=0.02, quantize=True, seed=0)
+        out = run_loop(dev, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc[:m], lambda rec: None)
+        t = out.timing
+        print(f"paced run, {m} samples at {1 / T:.0f} Hz: {out.status} {out.reason}".rstrip())
+        print(f"  loop period p50 {t['p50_s'] * 1e3:.3f} ms  p99 {t['p99_s'] * 1e3:.3f} ms"
+              f"  max {t['max_s'] * 1e3:.3f} ms  overruns (> 1.5 T) {t['overruns']}"
+              f"  real-time factor {t['realtime_factor']:.4f}")
     return 0
 
 
