@@ -254,7 +254,7 @@ class ArduinoPeer:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
-                for seq, value in self._take_commands(self._read_master(left)):
+                for seq, value in self._take_commands(self._read_master(min(left, 0.02))):
                     if self.fmt == "ascii" or seq == want:
                         force = value / self._unit
         if force is None:
