@@ -77,11 +77,13 @@ class HapticLoop:
         """One sample through the chain; returns the force to command for step k."""
         return self.advance(seq, t_s, position_m, excitation_n)[6]
 
-    def __getattr__(self, name):
-        state = self.__dict__["_state"]()
-        if name in state:
-            return state[name]
-        raise AttributeError(name)
+    def __getattr__(self, name):  # only called for names not set in __init__
+        state = self.__dict__.get("_state")
+        if state is not None:
+            values = state()
+            if name in values:
+                return values[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 
 def _chain(ve: VirtualEnvironment, s: SafetyConfig):
