@@ -13,6 +13,7 @@ and noisy; absolute numbers drift, ratios much less):
 
 Run: ``.venv/bin/python bench/bench_serial.py``.
 """
+
 from __future__ import annotations
 
 import os
@@ -24,7 +25,6 @@ import numpy as np
 import serial
 
 from drivers import framing
-from drivers.serial_stream import SerialConfig, SerialStream
 from labbench.device import DeviceFault
 from labbench.rig import Rig, rig_from_dict
 from sim_backend.arduino_peer import Fault, connect_sim_serial
@@ -47,22 +47,30 @@ def parse_rates() -> None:
     t = np.cumsum(rng.integers(990, 1010, N))
     c = np.cumsum(rng.integers(-30, 30, N))
     ascii_buf = b"".join(framing.format_ascii(int(a), int(b)) for a, b in zip(t, c))
-    bin_buf = b"".join(framing.encode_sample(k, int(a), int(b)) for k, (a, b) in enumerate(zip(t, c)))
+    bin_buf = b"".join(
+        framing.encode_sample(k, int(a), int(b)) for k, (a, b) in enumerate(zip(t, c))
+    )
     chunk = 4096
 
     def feed(parser, buf):
         for i in range(0, len(buf), chunk):
-            parser.feed(buf[i:i + chunk])
+            parser.feed(buf[i : i + chunk])
 
     floor_a = best_of(lambda: ascii_buf.split(b"\n"))
     floor_b = best_of(lambda: bin_buf.split(b"\x00"))
     t_a = best_of(lambda: feed(framing.AsciiSampleParser(), ascii_buf))
     t_b = best_of(lambda: feed(framing.BinarySampleParser(), bin_buf))
     print("1. parse cost per sample (4096-byte chunks)")
-    print(f"   ASCII : {t_a / N * 1e6:6.2f} us/line   = {t_a / floor_a:5.1f} x bare split "
-          f"({floor_a / N * 1e9:.0f} ns), {N / t_a / 1e3:.0f} k lines/s, {len(ascii_buf) / N:.1f} B/sample")
-    print(f"   binary: {t_b / N * 1e6:6.2f} us/frame  = {t_b / floor_b:5.1f} x bare split "
-          f"({floor_b / N * 1e9:.0f} ns), {N / t_b / 1e3:.0f} k frames/s, {len(bin_buf) / N:.1f} B/sample")
+    print(
+        f"   ASCII : {t_a / N * 1e6:6.2f} us/line   = {t_a / floor_a:5.1f} x bare split "
+        f"({floor_a / N * 1e9:.0f} ns), {N / t_a / 1e3:.0f} k lines/s, "
+        f"{len(ascii_buf) / N:.1f} B/sample"
+    )
+    print(
+        f"   binary: {t_b / N * 1e6:6.2f} us/frame  = {t_b / floor_b:5.1f} x bare split "
+        f"({floor_b / N * 1e9:.0f} ns), {N / t_b / 1e3:.0f} k frames/s, "
+        f"{len(bin_buf) / N:.1f} B/sample"
+    )
     print(f"   binary / ASCII time per sample: {t_b / t_a:.2f}")
 
 
@@ -97,8 +105,10 @@ def read_styles(n=20_000) -> None:
     t_line = through_pty(by_readline)
     t_chunk = through_pty(by_chunks)
     print("2. host reading ASCII lines from a pty")
-    print(f"   readline(): {n / t_line / 1e3:6.0f} k lines/s; read(in_waiting) + parser: "
-          f"{n / t_chunk / 1e3:6.0f} k lines/s  -> {t_line / t_chunk:.1f} x faster")
+    print(
+        f"   readline(): {n / t_line / 1e3:6.0f} k lines/s; read(in_waiting) + parser: "
+        f"{n / t_chunk / 1e3:6.0f} k lines/s  -> {t_line / t_chunk:.1f} x faster"
+    )
 
 
 def end_to_end(n=5000) -> None:
@@ -116,7 +126,7 @@ def end_to_end(n=5000) -> None:
     print(f"   plain simulator (floor): {floor / n * 1e6:7.1f} us/cycle")
     for fmt in ("binary", "ascii"):
         r = rig_from_dict({"serial": {"format": fmt}})
-        drv, peer = connect_sim_serial(r, seed=1)
+        drv, _peer = connect_sim_serial(r, seed=1)
         with drv:
             drv.enable(1.0)
             stamps = np.empty(n)
@@ -127,9 +137,12 @@ def end_to_end(n=5000) -> None:
                 drv.command(0.1)
             wall = time.perf_counter() - t0
         d = np.diff(stamps) * 1e6
-        print(f"   sim-serial {fmt:6s}: {wall / n * 1e6:7.1f} us/cycle = {wall / floor:5.1f} x floor, "
-              f"{n / wall:6.0f} samples/s; cycle p50 {np.percentile(d, 50):.0f} us, "
-              f"p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us")
+        print(
+            f"   sim-serial {fmt:6s}: {wall / n * 1e6:7.1f} us/cycle = "
+            f"{wall / floor:5.1f} x floor, "
+            f"{n / wall:6.0f} samples/s; cycle p50 {np.percentile(d, 50):.0f} us, "
+            f"p99 {np.percentile(d, 99):.0f} us, max {d.max():.0f} us"
+        )
 
 
 def stale_detection(trials=5) -> None:
@@ -137,7 +150,9 @@ def stale_detection(trials=5) -> None:
     T = rig.sample_time_s
     silent, tripped = [], 0
     for i in range(trials):
-        drv, peer = connect_sim_serial(rig, realtime=True, seed=i, faults=[Fault("stall", 400, seconds=0.05)])
+        drv, _peer = connect_sim_serial(
+            rig, realtime=True, seed=i, faults=[Fault("stall", 400, seconds=0.05)]
+        )
         with drv:
             try:
                 drv.enable(0.5)
@@ -149,10 +164,16 @@ def stale_detection(trials=5) -> None:
                 if "stale" in msg:
                     tripped += 1
                     silent.append(float(msg.split("no sample for ")[1].split(" ms")[0]) * 1e-3 / T)
-    print("4. free-running board at 1 kHz, board stalls: silence before force zero (stale_periods 2.5)")
+    print(
+        "4. free-running board at 1 kHz, board stalls: "
+        "silence before force zero (stale_periods 2.5)"
+    )
     if silent:
-        print(f"   {tripped}/{trials} trips on stale; silence {np.min(silent):.2f} .. {np.max(silent):.2f} "
-              f"periods (limit 2.5, poll T/4: ideal <= 2.75)")
+        print(
+            f"   {tripped}/{trials} trips on stale; "
+            f"silence {np.min(silent):.2f} .. {np.max(silent):.2f} "
+            f"periods (limit 2.5, poll T/4: ideal <= 2.75)"
+        )
     else:
         print("   no stale trip observed (another fault came first)")
 

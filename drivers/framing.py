@@ -8,13 +8,16 @@ Two board -> host forms (docs/serial-protocol.md is the user-facing spec):
   frame and a CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection) over
   the payload. Little-endian payloads:
 
-  sample  (board -> host, 14 bytes): ``'S' u8 | seq u16 | micros u32 | count i32 | status u8 | crc u16``
-  command (host -> board,  9 bytes): ``'F' u8 | seq u16 | value f32 | crc u16``
+  sample  (board -> host, 14 bytes):
+  ``'S' u8 | seq u16 | micros u32 | count i32 | status u8 | crc u16``
+  command (host -> board,  9 bytes):
+  ``'F' u8 | seq u16 | value f32 | crc u16``
 
 The parsers take arbitrary chunks, keep the partial tail, never raise on bad
 input, and count what they threw away, so a stream resynchronises by itself
 after garbage or the boot noise of a board that reset on DTR.
 """
+
 from __future__ import annotations
 
 import binascii
@@ -73,7 +76,7 @@ def cobs_decode(data: bytes) -> bytes | None:
         end = i + code
         if code == 0 or end > n:
             return None
-        block = data[i + 1:end]
+        block = data[i + 1 : end]
         if 0 in block:
             return None
         out += block
@@ -176,7 +179,9 @@ class BinarySampleParser(FrameParser):
         super().__init__(SAMPLE_TYPE, SAMPLE_PAYLOAD_LEN)
 
     def feed(self, data: bytes) -> list[RawSample]:
-        return [RawSample(*_SAMPLE.unpack(p)[1:], skipped) for p, skipped in self.feed_payloads(data)]
+        return [
+            RawSample(*_SAMPLE.unpack(p)[1:], skipped) for p, skipped in self.feed_payloads(data)
+        ]
 
 
 class CommandParser(FrameParser):

@@ -14,15 +14,18 @@ Units: position = ``direction * count * rig.metres_per_count`` [m] at the
 handle; the force command is sent in N at the handle (``command_units = "N"``)
 or as joint torque ``F * lever_arm_m`` in N m (``"N*m"``).
 """
+
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import statistics
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 from drivers import framing
 from drivers.unwrap import Unwrapper
@@ -31,7 +34,9 @@ from labbench.errors import UserError
 
 # Sample.flags bits of this device (0 = healthy).
 FLAG_LOST = 1  # samples were lost right before this one (seq / time gap)
-FLAG_LINK_ERRORS = 2  # bytes were discarded (CRC, framing, malformed line) since the previous sample
+FLAG_LINK_ERRORS = (
+    2  # bytes were discarded (CRC, framing, malformed line) since the previous sample
+)
 FLAG_BOARD_WATCHDOG = 4  # the board reports it zeroed its output (no command in time)
 FLAG_BOARD_BAD_COMMAND = 8  # the board discarded a corrupt command frame
 FLAG_BACKLOG = 16  # more samples were already waiting behind this one (host is late)
@@ -56,12 +61,14 @@ class SerialConfig:
     sync_timeout_s: float = 3.0  # wait for the first samples after opening (board boot)
 
     @classmethod
-    def from_rig(cls, rig, **overrides) -> "SerialConfig":
+    def from_rig(cls, rig, **overrides) -> SerialConfig:
         table = {**rig.section("serial"), **overrides}
         unknown = set(table) - set(cls.__dataclass_fields__)
         if unknown:
-            raise UserError(f"{rig.source}: unknown field(s) in [serial]: {', '.join(sorted(unknown))}"
-                            f" (known: {', '.join(cls.__dataclass_fields__)})")
+            raise UserError(
+                f"{rig.source}: unknown field(s) in [serial]: {', '.join(sorted(unknown))}"
+                f" (known: {', '.join(cls.__dataclass_fields__)})"
+            )
         checks = {
             "port": (lambda v: isinstance(v, str), "a string (device path or pyserial URL)"),
             "baudrate": (lambda v: _is_int(v) and v > 0, "a positive integer"),
@@ -72,7 +79,10 @@ class SerialConfig:
             "command_units": (lambda v: v in ("N", "N*m"), '"N" or "N*m"'),
             "stale_periods": (lambda v: _is_num(v) and 1 <= v <= 3, "a number from 1 to 3"),
             "tolerate_drops": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-            "sync_timeout_s": (lambda v: _is_num(v) and 0 < v <= 60, "a number of seconds in (0, 60]"),
+            "sync_timeout_s": (
+                lambda v: _is_num(v) and 0 < v <= 60,
+                "a number of seconds in (0, 60]",
+            ),
         }
         for name, value in table.items():
             ok, what = checks[name]
@@ -136,13 +146,21 @@ class StreamDecoder:
             else:
                 seq = round(t_us / self._T_us)
                 went_back = False
-                if self._last_seq is not None and seq <= self._last_seq and self._time.last_step >= 0:
+                if (
+                    self._last_seq is not None
+                    and seq <= self._last_seq
+                    and self._time.last_step >= 0
+                ):
                     self.duplicates += 1  # two lines in one period: keep the first
                     continue
             if self._time.last_step < 0 or went_back:
                 self.reboots += 1
-                out.append(Reboot(f"board rebooted: time went from {t_prev} us to {raw.t_us} us"
-                                  + (f", sequence to {raw.seq}" if self.binary else "")))
+                out.append(
+                    Reboot(
+                        f"board rebooted: time went from {t_prev} us to {raw.t_us} us"
+                        + (f", sequence to {raw.seq}" if self.binary else "")
+                    )
+                )
                 self.reset()
                 t_us = self._time.update(raw.t_us)
                 seq = self._seq.update(raw.seq) if self.binary else round(t_us / self._T_us)
@@ -161,10 +179,19 @@ class StreamDecoder:
 
     def counters(self) -> dict:
         p = self.parser
-        link = ({"crc_errors": p.crc_errors, "bad_frames": p.bad_frames} if self.binary
-                else {"malformed_lines": p.malformed, "comment_lines": p.comments})
-        return {"samples": self.samples, "lost": self.lost, "reboots": self.reboots,
-                "duplicates": self.duplicates, "garbage_bytes": p.garbage_bytes, **link}
+        link = (
+            {"crc_errors": p.crc_errors, "bad_frames": p.bad_frames}
+            if self.binary
+            else {"malformed_lines": p.malformed, "comment_lines": p.comments}
+        )
+        return {
+            "samples": self.samples,
+            "lost": self.lost,
+            "reboots": self.reboots,
+            "duplicates": self.duplicates,
+            "garbage_bytes": p.garbage_bytes,
+            **link,
+        }
 
 
 def _with_flags(s: Sample, bits: int) -> Sample:
@@ -185,9 +212,17 @@ class SerialStream:
     after it, every sample in order.
     """
 
-    def __init__(self, port, config: SerialConfig, rig, on_close: Callable[[], None] | None = None,
-                 stale_s: float | None = None, paced: bool = True, kind: str = "serial",
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        port,
+        config: SerialConfig,
+        rig,
+        on_close: Callable[[], None] | None = None,
+        stale_s: float | None = None,
+        paced: bool = True,
+        kind: str = "serial",
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.port = port
         self.config = config
         self.rig = rig
@@ -226,8 +261,13 @@ class SerialStream:
             sample_time_s=self.T,
             force_limit_n=self.rig.force_limit_n if c.force_command else 0.0,
             position_limits_m=tuple(self.rig.position_limits_m),
-            details={"config": asdict(c), "counters": self.counters(), "paced": self._paced,
-                     "stale_s": self._stale_s, "metres_per_count": self.rig.metres_per_count},
+            details={
+                "config": asdict(c),
+                "counters": self.counters(),
+                "paced": self._paced,
+                "stale_s": self._stale_s,
+                "metres_per_count": self.rig.metres_per_count,
+            },
         )
 
     def counters(self) -> dict:
@@ -246,9 +286,11 @@ class SerialStream:
         while len(good) < SYNC_SAMPLES:
             if self._clock() >= deadline:
                 raise UserError(
-                    f"no {self.config.format} sample stream on {self.port.port or self.config.port} within "
-                    f"{timeout:g} s (got {len(good)} good samples; counters {self._decoder.counters()}): "
-                    "check port, baudrate, format and that the board runs the labbench sketch")
+                    f"no {self.config.format} sample stream on "
+                    f"{self.port.port or self.config.port} within {timeout:g} s (got {len(good)} "
+                    f"good samples; counters {self._decoder.counters()}): "
+                    "check port, baudrate, format and that the board runs the labbench sketch"
+                )
             for item in self._decoder.feed(self._read_chunk()):
                 if isinstance(item, Reboot) or item.lost:
                     good.clear()
@@ -256,10 +298,12 @@ class SerialStream:
                     good.append(item.sample)
                     self._last_seq = item.sample.seq
                     self._send(0.0)  # keeps a lock-step board moving and its watchdog fed
-        period = statistics.median(b.t_s - a.t_s for a, b in zip(good, good[1:]))
+        period = statistics.median(b.t_s - a.t_s for a, b in itertools.pairwise(good))
         if abs(period - self.T) > PERIOD_TOLERANCE * self.T:
-            raise UserError(f"the board streams every {period * 1e3:.3f} ms but the rig's "
-                            f"sample_time_s is {self.T * 1e3:.3f} ms")
+            raise UserError(
+                f"the board streams every {period * 1e3:.3f} ms but the rig's "
+                f"sample_time_s is {self.T * 1e3:.3f} ms"
+            )
         self._last_arrival = self._clock()
 
     def enable(self, timeout: float = 1.0) -> None:
@@ -278,8 +322,10 @@ class SerialStream:
         deadline = self._clock() + timeout
         while not self._ready and self._clock() - self._last_arrival > self._stale_s:
             if self._clock() >= deadline:
-                raise DeviceFault(f"cannot enable: no serial sample within {timeout:g} s "
-                                  f"(counters {self.counters()})")
+                raise DeviceFault(
+                    f"cannot enable: no serial sample within {timeout:g} s "
+                    f"(counters {self.counters()})"
+                )
             self._ingest(self._read_chunk())
         self._fault = None
         self._force = 0.0
@@ -302,11 +348,15 @@ class SerialStream:
         while not self._ready:
             if self._enabled and now - self._last_arrival >= self._stale_s:
                 self.stale_trips += 1
-                self._trip(f"serial stream stale: no sample for {(now - self._last_arrival) * 1e3:.2f} ms "
-                           f"({self._stale_s * 1e3:.2f} ms allowed) after seq {self._last_seq}")
+                self._trip(
+                    f"serial stream stale: no sample for {(now - self._last_arrival) * 1e3:.2f} ms "
+                    f"({self._stale_s * 1e3:.2f} ms allowed) after seq {self._last_seq}"
+                )
             if now >= deadline:
                 if self._enabled:
-                    self._trip(f"no serial sample within the read timeout of {timeout * 1e3:.1f} ms")
+                    self._trip(
+                        f"no serial sample within the read timeout of {timeout * 1e3:.1f} ms"
+                    )
                 raise TimeoutError(f"no serial sample within {timeout:g} s")
             self._ingest(self._read_chunk())
             now = self._clock()
@@ -389,8 +439,10 @@ class SerialStream:
                     self._latch(reason)
                 continue
             if self._enabled and item.lost > self.config.tolerate_drops:
-                reason = reason or (f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
-                                    f"({self.config.tolerate_drops} tolerated)")
+                reason = reason or (
+                    f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
+                    f"({self.config.tolerate_drops} tolerated)"
+                )
                 self._latch(reason)
             self._ready.append(item.sample)
             self._last_arrival = arrival
@@ -423,8 +475,12 @@ class SerialStream:
         raise DeviceFault(self._fault)
 
 
-def open_serial(rig, realtime: bool = True, seed: int | None = None, port: str | None = None) -> SerialStream:
-    """Open the board of ``rig``'s ``[serial]`` table (``port`` overrides it) and wait for its stream.
+def open_serial(
+    rig, realtime: bool = True, seed: int | None = None, port: str | None = None
+) -> SerialStream:
+    """Open the board of ``rig``'s ``[serial]`` table and wait for its stream.
+
+    ``port`` overrides the table's port.
 
     ``realtime`` and ``seed`` are accepted (and unused: hardware is always real
     time) so that every device opens with the same call.
@@ -433,7 +489,7 @@ def open_serial(rig, realtime: bool = True, seed: int | None = None, port: str |
 
     config = SerialConfig.from_rig(rig, **({"port": port} if port else {}))
     if not config.port:
-        raise UserError(f"{rig.source}: [serial] port is not set (e.g. port = \"/dev/ttyACM0\")")
+        raise UserError(f'{rig.source}: [serial] port is not set (e.g. port = "/dev/ttyACM0")')
     try:
         ser = serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
     except (serial.SerialException, ValueError) as exc:

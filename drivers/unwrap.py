@@ -6,6 +6,7 @@ from modular differences: the true step is the representative of
 bits wide and wraps every 2**32 us = 71.6 min; a 16-bit encoder counter wraps
 every 65536 counts.
 """
+
 from __future__ import annotations
 
 

@@ -26,6 +26,7 @@ Pacing and delay (sample k = position at the start of period k):
 
 Faults are scheduled by sample index (``schedule``) so tests are repeatable.
 """
+
 from __future__ import annotations
 
 import errno
@@ -70,10 +71,25 @@ class ArduinoPeer:
     than zero (e.g. just before a wrap).
     """
 
-    def __init__(self, plant, T: float, metres_per_count: float, *, fmt: str = "binary",
-                 count_bits: int = 32, direction: int = 1, unit: float = 1.0, realtime: bool = False,
-                 delay_samples: int = 0, lockstep_timeout_s: float = 1.0, boot_noise: bool = True,
-                 t0_us: int = 0, count0: int = 0, seed: int | None = None, faults=()):
+    def __init__(
+        self,
+        plant,
+        T: float,
+        metres_per_count: float,
+        *,
+        fmt: str = "binary",
+        count_bits: int = 32,
+        direction: int = 1,
+        unit: float = 1.0,
+        realtime: bool = False,
+        delay_samples: int = 0,
+        lockstep_timeout_s: float = 1.0,
+        boot_noise: bool = True,
+        t0_us: int = 0,
+        count0: int = 0,
+        seed: int | None = None,
+        faults=(),
+    ):
         self.plant, self.T = plant, T
         self.fmt, self.count_bits, self.direction = fmt, count_bits, direction
         self._mpc, self._unit = metres_per_count, unit
@@ -87,7 +103,7 @@ class ArduinoPeer:
         self.samples_sent = 0
         self._pending = deque([0.0] * delay_samples)
         self._latest = 0.0  # newest command [N at the handle]
-        self._latest_at = -10**9  # sample index when it arrived
+        self._latest_at = -(10**9)  # sample index when it arrived
         self._status = 0
         self._intact = False
         self.commands = framing.CommandParser()
@@ -134,7 +150,9 @@ class ArduinoPeer:
     def boot(self) -> None:
         """What a board sends after reset: bootloader noise, then the banner."""
         if self.boot_noise:
-            noise = self._rng.integers(0, 256, int(self._rng.integers(8, 64)), dtype=np.uint8).tobytes()
+            noise = self._rng.integers(
+                0, 256, int(self._rng.integers(8, 64)), dtype=np.uint8
+            ).tobytes()
             self._write(noise + b"\r\n")
         # A zero after the banner ends whatever frame the noise started (binary form).
         self._write(BANNER + (b"\x00" if self.fmt == "binary" else b""))
@@ -143,7 +161,9 @@ class ArduinoPeer:
         """Bytes of sample k (position now, time and count as the board holds them)."""
         t_us = (self._t0_us + round(k * self.T * 1e6)) % (1 << 32)
         seq = k - self._k_boot
-        count = self._count0 + self.direction * math.floor((self.plant.position - self._zero_x) / self._mpc + 0.5)
+        count = self._count0 + self.direction * math.floor(
+            (self.plant.position - self._zero_x) / self._mpc + 0.5
+        )
         bits = self.count_bits
         count &= (1 << bits) - 1
         if count >> (bits - 1):
@@ -309,9 +329,19 @@ class ArduinoPeer:
         self._master = self._slave = None
 
 
-def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, faults=(), plant=None,
-                       delay_samples: int = 0, t0_us: int = 0, count0: int = 0,
-                       boot_noise: bool = True, lockstep_timeout_s: float = 1.0, sim: dict | None = None):
+def connect_sim_serial(
+    rig,
+    realtime: bool = False,
+    seed: int | None = None,
+    faults=(),
+    plant=None,
+    delay_samples: int = 0,
+    t0_us: int = 0,
+    count0: int = 0,
+    boot_noise: bool = True,
+    lockstep_timeout_s: float = 1.0,
+    sim: dict | None = None,
+):
     """The real ``SerialStream`` on a pty to a started ``ArduinoPeer``: ``(driver, peer)``.
 
     Driver settings come from ``rig``'s ``[serial]`` table (port and
@@ -329,10 +359,23 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
     if plant is None:
         plant = SimPlant(rig, seed=seed, **(sim or {}))
     unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
-    peer = ArduinoPeer(plant, T, rig.metres_per_count, fmt=config.format, count_bits=config.count_bits,
-                       direction=config.direction, unit=unit, realtime=realtime,
-                       delay_samples=delay_samples, lockstep_timeout_s=lockstep_timeout_s,
-                       boot_noise=boot_noise, t0_us=t0_us, count0=count0, seed=seed, faults=faults)
+    peer = ArduinoPeer(
+        plant,
+        T,
+        rig.metres_per_count,
+        fmt=config.format,
+        count_bits=config.count_bits,
+        direction=config.direction,
+        unit=unit,
+        realtime=realtime,
+        delay_samples=delay_samples,
+        lockstep_timeout_s=lockstep_timeout_s,
+        boot_noise=boot_noise,
+        t0_us=t0_us,
+        count0=count0,
+        seed=seed,
+        faults=faults,
+    )
     path = peer.open_pty()
     try:
         ser = serial.Serial(path, baudrate=config.baudrate, timeout=0)
@@ -342,8 +385,15 @@ def connect_sim_serial(rig, realtime: bool = False, seed: int | None = None, fau
     # A lock-step board's time is virtual (its plant waits for the host), so a few
     # periods of wall time mean nothing there: the host's stale limit is half the
     # board's own wait for a command instead.
-    driver = SerialStream(ser, config, rig, on_close=peer.close, paced=realtime,
-                          stale_s=None if realtime else lockstep_timeout_s / 2, kind="sim-serial")
+    driver = SerialStream(
+        ser,
+        config,
+        rig,
+        on_close=peer.close,
+        paced=realtime,
+        stale_s=None if realtime else lockstep_timeout_s / 2,
+        kind="sim-serial",
+    )
     peer.start()
     try:
         driver.wait_for_stream(config.sync_timeout_s)
@@ -382,5 +432,8 @@ def default_plant(rig):
 
 
 def open_sim_serial(rig, realtime: bool = False, seed: int | None = None, **sim_options):
-    """Device registry factory for ``--device sim-serial`` (``sim_options``: as for ``--device sim``)."""
+    """Device registry factory for ``--device sim-serial``.
+
+    ``sim_options`` are those of ``--device sim`` (``sim_backend.sim_device``).
+    """
     return connect_sim_serial(rig, realtime=realtime, seed=seed, sim=sim_options)[0]

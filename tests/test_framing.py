@@ -1,11 +1,21 @@
 """Wire formats of the serial encoder stream against known vectors and exhaustive corruption."""
+
 import struct
 
 import pytest
 
 from drivers import framing
-from drivers.framing import (AsciiSampleParser, BinarySampleParser, CommandParser, RawSample,
-                             cobs_decode, cobs_encode, crc16, encode_command, encode_sample)
+from drivers.framing import (
+    AsciiSampleParser,
+    BinarySampleParser,
+    CommandParser,
+    RawSample,
+    cobs_decode,
+    cobs_encode,
+    crc16,
+    encode_command,
+    encode_sample,
+)
 
 
 def test_crc16_ccitt_false_check_value():
@@ -13,21 +23,29 @@ def test_crc16_ccitt_false_check_value():
     assert crc16(b"123456789") == 0x29B1
 
 
-@pytest.mark.parametrize("raw, encoded", [
-    (b"\x00", b"\x01\x01"),
-    (b"\x00\x00", b"\x01\x01\x01"),
-    (b"\x11\x22\x00\x33", b"\x03\x11\x22\x02\x33"),
-    (b"\x11\x22\x33\x44", b"\x05\x11\x22\x33\x44"),
-    (b"\x11\x00\x00\x00", b"\x02\x11\x01\x01\x01"),
-    (b"", b"\x01"),
-])
+@pytest.mark.parametrize(
+    "raw, encoded",
+    [
+        (b"\x00", b"\x01\x01"),
+        (b"\x00\x00", b"\x01\x01\x01"),
+        (b"\x11\x22\x00\x33", b"\x03\x11\x22\x02\x33"),
+        (b"\x11\x22\x33\x44", b"\x05\x11\x22\x33\x44"),
+        (b"\x11\x00\x00\x00", b"\x02\x11\x01\x01\x01"),
+        (b"", b"\x01"),
+    ],
+)
 def test_cobs_known_vectors(raw, encoded):
     assert cobs_encode(raw) == encoded
     assert cobs_decode(encoded) == raw
 
 
 def test_cobs_long_runs_round_trip():
-    for data in (bytes(range(1, 255)), bytes(range(256)) * 3, b"\x00" * 300, bytes(range(1, 256)) * 2):
+    for data in (
+        bytes(range(1, 255)),
+        bytes(range(256)) * 3,
+        b"\x00" * 300,
+        bytes(range(1, 256)) * 2,
+    ):
         enc = cobs_encode(data)
         assert 0 not in enc
         assert cobs_decode(enc) == data
@@ -50,7 +68,10 @@ def test_sample_frame_layout():
 def test_sample_and_command_round_trip_with_wrapping_fields():
     p = BinarySampleParser()
     stream = encode_sample(70000, 2**32 + 7, 2**31 + 3) + encode_sample(1, 2, -(2**31))
-    assert p.feed(stream) == [RawSample(70000 % 65536, 7, -(2**31) + 3, 0), RawSample(1, 2, -(2**31), 0)]
+    assert p.feed(stream) == [
+        RawSample(70000 % 65536, 7, -(2**31) + 3, 0),
+        RawSample(1, 2, -(2**31), 0),
+    ]
     c = CommandParser()
     assert c.feed(encode_command(65537, 1.5)) == [(1, 1.5)]
 
@@ -97,8 +118,19 @@ ACCEPTED = [
     (b"4294967295,65535\n", (4294967295, 65535)),
     (b"0,-2147483648\n", (0, -2147483648)),
 ]
-REJECTED = [b"123,456,789\n", b"abc\n", b"1.5,3\n", b"+1,2\n", b"123,\n", b"4294967296,1\n",
-            b"1_000,2\n", b"12,,3\n", b"-1,2\n", b"123,4x\n", b"\xff\xfe,1\n"]
+REJECTED = [
+    b"123,456,789\n",
+    b"abc\n",
+    b"1.5,3\n",
+    b"+1,2\n",
+    b"123,\n",
+    b"4294967296,1\n",
+    b"1_000,2\n",
+    b"12,,3\n",
+    b"-1,2\n",
+    b"123,4x\n",
+    b"\xff\xfe,1\n",
+]
 
 
 @pytest.mark.parametrize("line, expected", ACCEPTED)

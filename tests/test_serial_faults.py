@@ -4,6 +4,7 @@ Faults are scheduled on the simulated board by sample index (boot = 0; the
 driver's sync at open takes the first samples), so every run is repeatable.
 The whole chain runs: real driver on a pty, labbench.runner, labbench.loop.
 """
+
 import math
 
 import numpy as np
@@ -26,25 +27,32 @@ FAULT_AT = 400  # board sample index: well inside the run, after the enable gate
 def make_rig(T=0.001, **serial_table):
     # A lock-step board's time is virtual: the loop watchdog must not judge this
     # shared machine's scheduling hiccups (tens of ms under load) as a frozen loop.
-    return rig_from_dict({"rig": {"sample_time_s": T}, "serial": serial_table,
-                          "safety": {"watchdog_s": 2.0}}, source="test.toml")
+    return rig_from_dict(
+        {"rig": {"sample_time_s": T}, "serial": serial_table, "safety": {"watchdog_s": 2.0}},
+        source="test.toml",
+    )
 
 
 def run_etfe(drv, rig, duration_s=1.0, seed=5):
-    protocol = make_protocol("etfe", duration_s=duration_s, seed=seed, sample_time_s=rig.sample_time_s)
+    protocol = make_protocol(
+        "etfe", duration_s=duration_s, seed=seed, sample_time_s=rig.sample_time_s
+    )
     stream = []
     result = run(drv, protocol, [stream.append], rig=rig)
     return result, stream
 
 
-@pytest.mark.parametrize("fault, explained", [
-    (Fault("flip", FAULT_AT), "1 serial sample(s) lost before seq"),
-    (Fault("drop", FAULT_AT, n=3), "3 serial sample(s) lost before seq"),
-    (Fault("garbage", FAULT_AT, n=40), "1 serial sample(s) lost before seq"),
-    (Fault("reboot", FAULT_AT), "board rebooted: time went from"),
-    (Fault("stall", FAULT_AT, seconds=0.8), "serial stream stale: no sample for"),
-    (Fault("unplug", FAULT_AT), "serial port lost"),
-])
+@pytest.mark.parametrize(
+    "fault, explained",
+    [
+        (Fault("flip", FAULT_AT), "1 serial sample(s) lost before seq"),
+        (Fault("drop", FAULT_AT, n=3), "3 serial sample(s) lost before seq"),
+        (Fault("garbage", FAULT_AT, n=40), "1 serial sample(s) lost before seq"),
+        (Fault("reboot", FAULT_AT), "board rebooted: time went from"),
+        (Fault("stall", FAULT_AT, seconds=0.8), "serial stream stale: no sample for"),
+        (Fault("unplug", FAULT_AT), "serial port lost"),
+    ],
+)
 def test_fault_during_a_run_zeroes_force_and_is_recorded(fault, explained):
     rig = make_rig()
     drv, peer = connect_sim_serial(rig, seed=11, faults=[fault])
@@ -61,19 +69,21 @@ def test_fault_during_a_run_zeroes_force_and_is_recorded(fault, explained):
     applied = np.array(peer.applied)
     held = fault.n if fault.kind == "drop" else 1
     assert len(applied) >= FAULT_AT
-    assert np.all(applied[FAULT_AT + held:] == 0.0)
+    assert np.all(applied[FAULT_AT + held :] == 0.0)
     assert np.any(applied[:FAULT_AT] != 0.0)  # the run really pushed before the fault
     assert peer.error is None
 
 
 def test_a_tolerated_drop_is_flagged_counted_and_the_run_goes_on():
     rig = make_rig(tolerate_drops=1)
-    drv, peer = connect_sim_serial(rig, seed=11, faults=[Fault("flip", FAULT_AT)])
+    drv, _peer = connect_sim_serial(rig, seed=11, faults=[Fault("flip", FAULT_AT)])
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=rig.sample_time_s)
     excitation = np.random.default_rng(1).normal(0.0, 0.5, 1000)
     stream = []
     with drv:
-        outcome = run_loop(drv, HapticLoop(ve, SafetyConfig.from_rig(rig)), excitation, stream.append)
+        outcome = run_loop(
+            drv, HapticLoop(ve, SafetyConfig.from_rig(rig)), excitation, stream.append
+        )
         counters = drv.counters()
     assert outcome.status == "completed" and outcome.n_done == 1000
     data = records.concat_pages(stream)
@@ -111,7 +121,11 @@ def test_stale_limit_is_within_three_periods_on_a_fake_clock():
         with pytest.raises(DeviceFault, match="stale") as exc:
             drv.read(1.0)
         silent = now[0] - drv._last_arrival
-        assert stale_periods * rig.sample_time_s <= silent <= stale_periods * rig.sample_time_s + drv._poll_s
+        assert (
+            stale_periods * rig.sample_time_s
+            <= silent
+            <= stale_periods * rig.sample_time_s + drv._poll_s
+        )
         assert silent <= 3.25 * rig.sample_time_s
         assert "force zeroed" in str(exc.value) and drv.commanded_force_n == 0.0
 
@@ -119,7 +133,9 @@ def test_stale_limit_is_within_three_periods_on_a_fake_clock():
 def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board():
     # 10 ms periods keep a Python board on a shared machine on time.
     rig = make_rig(T=0.01, stale_periods=3)
-    drv, peer = connect_sim_serial(rig, realtime=True, seed=3, faults=[Fault("stall", 60, seconds=0.2)])
+    drv, peer = connect_sim_serial(
+        rig, realtime=True, seed=3, faults=[Fault("stall", 60, seconds=0.2)]
+    )
     with drv:
         drv.enable(0.5)
         with pytest.raises(DeviceFault, match="stale") as exc:
@@ -127,7 +143,9 @@ def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board
                 drv.read(0.5)
                 drv.command(0.3)
         silent_ms = float(str(exc.value).split("no sample for ")[1].split(" ms")[0])
-        assert silent_ms >= 30.0  # 3 periods; how much later is scheduling (bench_serial measures it)
+        assert (
+            silent_ms >= 30.0
+        )  # 3 periods; how much later is scheduling (bench_serial measures it)
     # Board watchdog: a host that stops answering gets zero force within 3 periods.
     drv, peer = connect_sim_serial(rig, realtime=True, seed=3)
     with drv:
@@ -139,13 +157,13 @@ def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board
         for _ in range(10):
             drv.read(0.5)  # reading on, commanding nothing: a frozen control thread
         applied = np.array(peer.applied)
-    assert np.all(applied[k_last + 4:] == 0.0) and applied[k_last - 1] == pytest.approx(0.3)
+    assert np.all(applied[k_last + 4 :] == 0.0) and applied[k_last - 1] == pytest.approx(0.3)
     assert peer.watchdog_zeroed >= 5
 
 
 def test_emergency_stop_latches_until_the_operator_enables_again():
     rig = make_rig()
-    drv, peer = connect_sim_serial(rig, seed=2)
+    drv, _peer = connect_sim_serial(rig, seed=2)
     with drv:
         drv.enable(0.5)
         drv.read(0.5)
@@ -164,7 +182,7 @@ def test_emergency_stop_latches_until_the_operator_enables_again():
 
 
 def test_non_finite_command_faults_with_zero_force():
-    drv, peer = connect_sim_serial(make_rig(), seed=2)
+    drv, _peer = connect_sim_serial(make_rig(), seed=2)
     with drv:
         drv.enable(0.5)
         drv.read(0.5)
@@ -175,7 +193,7 @@ def test_non_finite_command_faults_with_zero_force():
 
 def test_reboot_then_operator_re_enable_accepts_the_new_zero():
     rig = make_rig()
-    drv, peer = connect_sim_serial(rig, seed=2, faults=[Fault("reboot", FAULT_AT)])
+    drv, _peer = connect_sim_serial(rig, seed=2, faults=[Fault("reboot", FAULT_AT)])
     with drv:
         drv.enable(0.5)
         with pytest.raises(DeviceFault, match="rebooted"):
@@ -191,7 +209,9 @@ def test_reboot_then_operator_re_enable_accepts_the_new_zero():
 
 def test_link_errors_before_enable_are_counted_not_faults():
     rig = make_rig()
-    drv, peer = connect_sim_serial(rig, seed=2, faults=[Fault("flip", 20), Fault("garbage", 22, n=30)])
+    drv, _peer = connect_sim_serial(
+        rig, seed=2, faults=[Fault("flip", 20), Fault("garbage", 22, n=30)]
+    )
     with drv:
         flags = []
         for _ in range(30):

@@ -2,6 +2,7 @@
 
 The default run is short; ``-m slow`` runs the same properties with many more examples.
 """
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -37,7 +38,11 @@ def decoder(fmt="binary", count_bits=32):
 
 # -- any bytes at all -------------------------------------------------------------------
 def _any_bytes(data, cuts):
-    for parser in (framing.BinarySampleParser(), framing.CommandParser(), framing.AsciiSampleParser()):
+    for parser in (
+        framing.BinarySampleParser(),
+        framing.CommandParser(),
+        framing.AsciiSampleParser(),
+    ):
         feed_all(parser, chunked(data, cuts))  # must not raise
         assert len(parser._buf) <= max(framing.SAMPLE_FRAME_LEN, framing.ASCII_MAX_LINE)
     for fmt in ("binary", "ascii"):
@@ -76,7 +81,7 @@ def _frames_and_garbage(frames, garbage, cuts):
     assert p.frames == len(frames)
     skipped = sum(g.skipped for g in got)
     assert skipped == p.errors  # every discarded piece is reported before the next good frame
-    assert skipped >= sum(1 for g in garbage[:len(frames)] if g.strip(b"\x00"))
+    assert skipped >= sum(1 for g in garbage[: len(frames)] if g.strip(b"\x00"))
 
 
 @SHORT
@@ -122,28 +127,41 @@ def _losses_and_flips(n, start_seq, start_t, drops, flips, cuts):
 
 
 @SHORT
-@given(st.integers(2, 60), st.integers(0, 65535), st.integers(0, 2**32 - 1 - 70_000),
-       st.sets(st.integers(0, 60), max_size=10), st.dictionaries(st.integers(0, 60), st.integers(0, 10**6),
-                                                                 max_size=10),
-       st.lists(st.integers(0, 5000), max_size=10))
+@given(
+    st.integers(2, 60),
+    st.integers(0, 65535),
+    st.integers(0, 2**32 - 1 - 70_000),
+    st.sets(st.integers(0, 60), max_size=10),
+    st.dictionaries(st.integers(0, 60), st.integers(0, 10**6), max_size=10),
+    st.lists(st.integers(0, 5000), max_size=10),
+)
 def test_losses_and_flips_are_counted(n, start_seq, start_t, drops, flips, cuts):
     _losses_and_flips(n, start_seq, start_t, drops, flips, cuts)
 
 
 @pytest.mark.slow
 @LONG
-@given(st.integers(2, 300), st.integers(0, 65535), st.integers(0, 2**32 - 1 - 400_000),
-       st.sets(st.integers(0, 300), max_size=40), st.dictionaries(st.integers(0, 300), st.integers(0, 10**6),
-                                                                  max_size=40),
-       st.lists(st.integers(0, 50_000), max_size=40))
+@given(
+    st.integers(2, 300),
+    st.integers(0, 65535),
+    st.integers(0, 2**32 - 1 - 400_000),
+    st.sets(st.integers(0, 300), max_size=40),
+    st.dictionaries(st.integers(0, 300), st.integers(0, 10**6), max_size=40),
+    st.lists(st.integers(0, 50_000), max_size=40),
+)
 def test_losses_and_flips_are_counted_long(n, start_seq, start_t, drops, flips, cuts):
     _losses_and_flips(n, start_seq, start_t, drops, flips, cuts)
 
 
 # -- ASCII lines between junk lines ---------------------------------------------------------
 junk_line = st.binary(max_size=30).filter(
-    lambda b: b"\n" not in b and framing.ASCII_LINE.fullmatch(b) is None
-    and not b.strip(b" \t\r").startswith(b"#") and b.strip(b" \t\r") != b"")
+    lambda b: (
+        b"\n" not in b
+        and framing.ASCII_LINE.fullmatch(b) is None
+        and not b.strip(b" \t\r").startswith(b"#")
+        and b.strip(b" \t\r") != b""
+    )
+)
 
 
 def _ascii(samples, junk, cuts):
@@ -159,15 +177,21 @@ def _ascii(samples, junk, cuts):
 
 
 @SHORT
-@given(st.lists(st.tuples(u32, i32), max_size=30), st.lists(junk_line, max_size=30),
-       st.lists(st.integers(0, 3000), max_size=10))
+@given(
+    st.lists(st.tuples(u32, i32), max_size=30),
+    st.lists(junk_line, max_size=30),
+    st.lists(st.integers(0, 3000), max_size=10),
+)
 def test_ascii_lines_survive_junk_lines(samples, junk, cuts):
     _ascii(samples, junk, cuts)
 
 
 @pytest.mark.slow
 @LONG
-@given(st.lists(st.tuples(u32, i32), max_size=200), st.lists(junk_line, max_size=200),
-       st.lists(st.integers(0, 30_000), max_size=40))
+@given(
+    st.lists(st.tuples(u32, i32), max_size=200),
+    st.lists(junk_line, max_size=200),
+    st.lists(st.integers(0, 30_000), max_size=40),
+)
 def test_ascii_lines_survive_junk_lines_long(samples, junk, cuts):
     _ascii(samples, junk, cuts)

@@ -1,4 +1,5 @@
-"""Serial driver: unwrapping, configuration, decoding, and the real driver against the simulated board."""
+"""Serial driver: unwrapping, configuration, decoding; the driver against the simulated board."""
+
 import math
 import os
 
@@ -7,8 +8,16 @@ import pytest
 import serial
 
 from drivers import framing
-from drivers.serial_stream import (FLAG_LINK_ERRORS, FLAG_LOST, Decoded, Reboot, SerialConfig,
-                                   SerialStream, StreamDecoder, open_serial)
+from drivers.serial_stream import (
+    FLAG_LINK_ERRORS,
+    FLAG_LOST,
+    Decoded,
+    Reboot,
+    SerialConfig,
+    SerialStream,
+    StreamDecoder,
+    open_serial,
+)
 from drivers.unwrap import Unwrapper, wrap_delta
 from labbench.device import Device, DeviceFault
 from labbench.errors import UserError
@@ -18,7 +27,9 @@ from sim_backend.plant import MassDamperPlant
 
 
 def make_rig(**serial_table):
-    return rig_from_dict({"rig": {"sample_time_s": 0.001}, "serial": serial_table}, source="test.toml")
+    return rig_from_dict(
+        {"rig": {"sample_time_s": 0.001}, "serial": serial_table}, source="test.toml"
+    )
 
 
 # -- unwrapping -------------------------------------------------------------------------
@@ -53,11 +64,24 @@ def test_wrap_delta():
 
 
 # -- configuration ----------------------------------------------------------------------
-@pytest.mark.parametrize("field, value", [
-    ("baudrate", 0), ("baudrate", 9600.5), ("format", "hex"), ("count_bits", 24), ("direction", 2),
-    ("force_command", "yes"), ("command_units", "Nm"), ("stale_periods", 4), ("stale_periods", 0.5),
-    ("tolerate_drops", -1), ("sync_timeout_s", 0), ("port", 3), ("count_bits", True),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("baudrate", 0),
+        ("baudrate", 9600.5),
+        ("format", "hex"),
+        ("count_bits", 24),
+        ("direction", 2),
+        ("force_command", "yes"),
+        ("command_units", "Nm"),
+        ("stale_periods", 4),
+        ("stale_periods", 0.5),
+        ("tolerate_drops", -1),
+        ("sync_timeout_s", 0),
+        ("port", 3),
+        ("count_bits", True),
+    ],
+)
 def test_config_rejects_each_bad_field_in_one_line(field, value):
     with pytest.raises(UserError) as exc:
         SerialConfig.from_rig(make_rig(**{field: value}))
@@ -99,7 +123,9 @@ def _decoder(**table):
 def test_decoder_binary_gaps_reboot_and_calibration():
     dec, rig = _decoder(direction=-1)
     frames = [framing.encode_sample(k, 1000 * k, 10 * k) for k in (65534, 65535, 65536, 65539)]
-    out = dec.feed(b"".join(frames) + b"\x17junk\x00" + framing.encode_sample(65540, 65_540_000, 655_400))
+    out = dec.feed(
+        b"".join(frames) + b"\x17junk\x00" + framing.encode_sample(65540, 65_540_000, 655_400)
+    )
     samples = [d.sample for d in out]
     assert [s.seq for s in samples] == [65534, 65535, 65536, 65539, 65540]
     assert [d.lost for d in out] == [0, 0, 0, 2, 0]
@@ -128,7 +154,7 @@ def _oracle_positions(rig, forces, delay=0):
     plant = default_plant(rig)
     applied = [0.0] * delay + list(forces)
     xs = []
-    for f in applied[:len(forces)]:
+    for f in applied[: len(forces)]:
         xs.append(plant.position)
         plant.step(f)
     return np.round(np.array(xs) / rig.metres_per_count) * rig.metres_per_count
@@ -179,7 +205,7 @@ def test_command_units_newton_metre_reach_the_plant_as_newton():
 
 def test_force_is_clamped_to_the_rig_limit_and_zero_when_disabled():
     rig = make_rig()
-    drv, peer = connect_sim_serial(rig, seed=1)
+    drv, _peer = connect_sim_serial(rig, seed=1)
     with drv:
         drv.command(1.0)  # not enabled: held at zero
         assert drv.commanded_force_n == 0.0
@@ -195,7 +221,7 @@ def test_force_is_clamped_to_the_rig_limit_and_zero_when_disabled():
 def test_sixteen_bit_counter_and_micros_wrap_through_the_pty():
     rig = make_rig(count_bits=16, format="binary")
     # Start 0.3 s before micros() wraps and 20 counts below the 16-bit limit.
-    drv, peer = connect_sim_serial(rig, seed=2, t0_us=2**32 - 300_000, count0=32_740)
+    drv, _peer = connect_sim_serial(rig, seed=2, t0_us=2**32 - 300_000, count0=32_740)
     forces = [2.0] * 300 + [-2.0] * 300
     with drv:
         drv.enable(1.0)
@@ -204,14 +230,16 @@ def test_sixteen_bit_counter_and_micros_wrap_through_the_pty():
     assert np.allclose(np.diff(t), rig.sample_time_s, atol=1e-6)
     assert t[0] < 2**32 * 1e-6 < t[-1]  # crossed the micros() wrap
     counts = np.array([round(s.position_m / rig.metres_per_count) for s in samples])
-    assert np.all(np.abs(np.diff(counts)) < 1000) and counts.max() > 32_767  # crossed the counter wrap
+    assert (
+        np.all(np.abs(np.diff(counts)) < 1000) and counts.max() > 32_767
+    )  # crossed the counter wrap
     expect = _oracle_positions(rig, forces) / rig.metres_per_count + counts[0]
     assert np.array_equal(counts, expect)
 
 
 def test_boot_noise_on_open_is_skipped_and_counted():
     rig = make_rig(format="ascii")
-    drv, peer = connect_sim_serial(rig, seed=7)
+    drv, _peer = connect_sim_serial(rig, seed=7)
     with drv:
         c = drv.counters()
         assert c["garbage_bytes"] > 0 or c["malformed_lines"] > 0
@@ -238,7 +266,8 @@ def test_loop_url_port_carries_board_bytes_to_the_driver():
             xs.append(plant.position)
             peer.emit(1, force_n=0.0)
             assert drv.read(0.5).position_m == pytest.approx(
-                round(xs[-1] / rig.metres_per_count) * rig.metres_per_count)
+                round(xs[-1] / rig.metres_per_count) * rig.metres_per_count
+            )
     assert xs[-1] > xs[0] + 0.001  # the plant was moving, so positions really changed
 
 
@@ -254,7 +283,11 @@ def test_realtime_board_applies_each_answer_one_period_later():
             sent[s.seq] = 0.01 * (i + 1)
             drv.command(sent[s.seq])
     # peer.applied[k] is the force of period k since boot; the answer to k lands in k+1.
-    hits = [peer.applied[k + 1] == pytest.approx(f) for k, f in sent.items() if k + 1 < len(peer.applied)]
+    hits = [
+        peer.applied[k + 1] == pytest.approx(f)
+        for k, f in sent.items()
+        if k + 1 < len(peer.applied)
+    ]
     assert len(hits) > 50 and sum(hits) >= 0.8 * len(hits)
 
 
@@ -272,10 +305,17 @@ def test_period_mismatch_is_a_user_error():
     plant = default_plant(rig)
     peer = ArduinoPeer(plant, 0.001, rig.metres_per_count, seed=1)  # board runs at 1 kHz
     path = peer.open_pty()
-    drv = SerialStream(serial.Serial(path, timeout=0), SerialConfig.from_rig(rig, force_command=True),
-                       rig, on_close=peer.close)
+    drv = SerialStream(
+        serial.Serial(path, timeout=0),
+        SerialConfig.from_rig(rig, force_command=True),
+        rig,
+        on_close=peer.close,
+    )
     peer.start()
-    with drv, pytest.raises(UserError, match="every 1.000 ms but the rig's sample_time_s is 2.000 ms"):
+    with (
+        drv,
+        pytest.raises(UserError, match="every 1.000 ms but the rig's sample_time_s is 2.000 ms"),
+    ):
         drv.wait_for_stream(1.0)
     assert math.isfinite(plant.position)
 
@@ -288,15 +328,19 @@ def run_protocol(device, rig, **options):
     from protocols import make_protocol
 
     stream = []
-    result = run(open_device(device, rig), make_protocol("etfe", **options), [stream.append], rig=rig)
+    result = run(
+        open_device(device, rig), make_protocol("etfe", **options), [stream.append], rig=rig
+    )
     return result, concat_pages(stream), stream
 
 
 def etfe_rig(**serial_table):
     # Lock-step board time is virtual: a generous loop watchdog keeps this loaded
     # shared machine's scheduling hiccups from reading as a frozen loop.
-    return rig_from_dict({"sim": {"quantize": True}, "serial": serial_table,
-                          "safety": {"watchdog_s": 2.0}}, source="etfe-rig")
+    return rig_from_dict(
+        {"sim": {"quantize": True}, "serial": serial_table, "safety": {"watchdog_s": 2.0}},
+        source="etfe-rig",
+    )
 
 
 @pytest.mark.parametrize("fmt", ["binary", "ascii"])
@@ -311,8 +355,9 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
 
     monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
     rig = etfe_rig(format=fmt)
-    (r_sim, a, _), (r_ser, b, stream) = (run_protocol(d, rig, duration_s=5.0, seed=11)
-                                         for d in ("sim", "sim-serial"))
+    (r_sim, a, _), (r_ser, b, stream) = (
+        run_protocol(d, rig, duration_s=5.0, seed=11) for d in ("sim", "sim-serial")
+    )
     assert r_sim.status == r_ser.status == "success", (r_sim.reason, r_ser.reason)
     assert stream[0]["device"]["kind"] == "sim-serial"
     assert np.array_equal(a["excitation"], b["excitation"]) and len(b["t"]) == 5000
@@ -343,8 +388,10 @@ def test_full_etfe_through_the_serial_driver_matches_the_plain_simulator():
     assert len(b["t"]) == 120_000 and np.all(np.diff(b["seq"]) == 1)
     dc = np.round((a["position"] - b["position"]) / rig.metres_per_count)
     assert np.abs(dc).max() <= 1 and np.mean(dc != 0) < 0.01
-    za, zb = (np.asarray(r.results["etfe"]["Z_re"]) + 1j * np.asarray(r.results["etfe"]["Z_im"])
-              for r in (r_sim, r_ser))
+    za, zb = (
+        np.asarray(r.results["etfe"]["Z_re"]) + 1j * np.asarray(r.results["etfe"]["Z_im"])
+        for r in (r_sim, r_ser)
+    )
     w = np.asarray(r_sim.results["etfe"]["w"])
     band = (w >= 2.0) & (w <= 100.0)
     between = np.median(np.abs(za[band] - zb[band]) / np.abs(za[band]))
