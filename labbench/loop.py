@@ -218,7 +218,8 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     The device is enabled here, at the sample where the enable gate opens, and
     is commanded to zero and disabled on every way out. ``stop`` may be set from
     any thread (GUI, Ctrl-C): the loop commands zero at its next sample and
-    returns "aborted"; for an emergency stop call ``device.emergency_stop()``
+    returns "aborted" (so does Ctrl-C in this thread, keeping the samples so far);
+    for an emergency stop call ``device.emergency_stop()``
     first, which zeroes the force at the device at once. Pages are numbered from
     ``first_page`` (several runs can share one stream). Devices may offer
     ``read_raw(timeout) -> (seq, t_s, position_m, flags)`` as a fast form of
@@ -268,6 +269,11 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
         if progress is not None:
             progress(pages[1], n)
 
+    def last_event(t_s, name, reason):
+        """The event that ends the run, after the samples that led to it."""
+        flush()
+        event(t_s, name, reason)
+
     def noisy(i, t_s, seq, flags):
         """Slow path: count saturations, emit events (clamp and rate at most once a second)."""
         for bit, key, name in ((CLAMP, "clamp", "force clamp engaged"),
@@ -299,7 +305,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
             if stop_set():
                 command(0.0)
                 status, reason = "aborted", "stop requested"
-                event(t_s, "stop", reason)
+                last_event(t_s, "stop", reason)
                 break
             try:
                 seq, t_s, x, dflags = raw(wd)
@@ -307,7 +313,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                 command(0.0)
                 status, reason = "tripped", f"watchdog: no sample within {wd:g} s"
                 loop.trip("watchdog", reason)
-                event(t_s, "watchdog", reason)
+                last_event(t_s, "watchdog", reason)
                 break
             now = clock()
             stamps[i + 1] = now
@@ -335,7 +341,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                 noisy(i, t_s, seq, flags)
                 if flags & TRIPPED:
                     status, reason = "tripped", loop.trip_reason
-                    event(t_s, loop.trip_name, reason)
+                    last_event(t_s, loop.trip_name, reason)
                     break
             left -= 1
             if not left:
@@ -344,7 +350,11 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     except DeviceFault as exc_:
         status, reason = "fault", f"device fault: {exc_}"
         _safe(device.emergency_stop)
-        event(t_s, "device_fault", reason)
+        last_event(t_s, "device_fault", reason)
+    except KeyboardInterrupt:  # Ctrl-C ends the loop like the stop event, samples kept
+        _safe(lambda: device.command(0.0))
+        status, reason = "aborted", "interrupted (Ctrl-C)"
+        last_event(t_s, "stop", reason)
     finally:
         _safe(lambda: device.command(0.0))
         _safe(lambda: device.disable(timeout=wd))

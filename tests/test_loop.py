@@ -182,3 +182,19 @@ def test_stop_and_emergency_stop_from_another_thread_zero_force_at_once():
     assert dev.applied_n == 0.0
     events = [p for p in results["pages"] if p["kind"] == records.EVENT]
     assert events[-1]["name"] == "stop"
+
+
+def test_ctrl_c_ends_the_loop_like_stop_and_keeps_the_samples():
+    dev = open_sim(Rig())
+    real_read = dev.read_raw
+
+    def read_raw(timeout):
+        if real_read.__self__._k == 249:
+            raise KeyboardInterrupt
+        return real_read(timeout)
+
+    dev.read_raw = read_raw
+    out, pages, data = run(VES[1], noise(1000), device=dev)
+    assert out.status == "aborted" and "Ctrl-C" in out.reason and out.n_done == 250
+    assert len(data["t"]) == 250 and dev._u == 0.0 and dev.enabled is False
+    assert pages[-1]["kind"] == records.EVENT and pages[-1]["name"] == "stop"
