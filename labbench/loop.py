@@ -33,17 +33,26 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import chain
-from typing import Callable
 
 import numpy as np
 
 from labbench import records
 from labbench.device import DeviceFault
 from labbench.errors import UserError
-from labbench.safety import (CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED,
-                             SafetyConfig)
+from labbench.safety import (
+    CLAMP,
+    DEVICE,
+    FADE,
+    GATED,
+    OVERRUN,
+    RATE,
+    SEQ_GAP,
+    TRIPPED,
+    SafetyConfig,
+)
 from labbench.ve import VirtualEnvironment
 
 __all__ = ["HapticLoop", "LoopOutcome", "SafetyConfig", "run_loop"]
@@ -375,5 +384,5 @@ def _safe(call) -> None:
     """Best effort on the way out: a failing device must not mask the first error."""
     try:
         call()
-    except Exception:  # noqa: BLE001 - shutting down; the outcome already says what failed
+    except Exception:  # noqa: BLE001, S110 - shutting down; the outcome already says what failed
         pass

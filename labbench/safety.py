@@ -79,7 +79,7 @@ class SafetyConfig:
         object.__setattr__(self, "position_limits_m", (float(lim[0]), float(lim[1])))
 
     @classmethod
-    def from_rig(cls, rig, **overrides) -> "SafetyConfig":
+    def from_rig(cls, rig, **overrides) -> SafetyConfig:
         """Limits of ``rig`` ([rig] fields plus its optional [safety] table), then ``overrides``."""
         settings = {
             "force_limit_n": rig.force_limit_n,

@@ -61,7 +61,7 @@ def sim_options(rig, **options) -> dict:
     return settings
 
 
-def open_sim(rig, realtime: bool = False, seed: int | None = None, **options) -> "SimDevice":
+def open_sim(rig, realtime: bool = False, seed: int | None = None, **options) -> SimDevice:
     """Open the simulated device for ``rig`` (registered as "sim" in ``labbench.devices``)."""
     return SimDevice(rig, realtime=realtime, seed=seed, **options)
 

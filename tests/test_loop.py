@@ -97,7 +97,7 @@ def test_step_and_advance_agree_and_state_is_readable():
         assert loop_b.step(k, k * ve.T, x, f) == row[6]
         assert (loop_b.velocity, loop_b.ve_force, loop_b.excitation, loop_b.flags) == row[3:6] + (row[7],)
     with pytest.raises(AttributeError):
-        loop_a.no_such_thing
+        _ = loop_a.no_such_thing
 
 
 def test_recorded_run_replays_through_a_fresh_chain_bit_for_bit():

@@ -9,8 +9,7 @@ from labbench.device import DeviceDescription, DeviceFault, Sample
 from labbench.errors import UserError
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig, rig_from_dict
-from labbench.safety import (CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED,
-                             flag_names)
+from labbench.safety import CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED, flag_names
 from labbench.theory import k_max, stability
 from labbench.ve import Plant, VirtualEnvironment
 from sim_backend.sim_device import open_sim
@@ -20,9 +19,9 @@ NONE = VirtualEnvironment("none")
 
 
 def safety(**kw):
-    base = dict(force_limit_n=5.0, force_rate_limit_n_per_s=1e9, velocity_limit_m_s=100.0,
-                position_limits_m=(-10.0, 10.0), energy_limit_j=1e3, watchdog_s=0.05,
-                nominal_damping_ns_m=PLANT.b)
+    base = {"force_limit_n": 5.0, "force_rate_limit_n_per_s": 1e9, "velocity_limit_m_s": 100.0,
+            "position_limits_m": (-10.0, 10.0), "energy_limit_j": 1e3, "watchdog_s": 0.05,
+            "nominal_damping_ns_m": PLANT.b}
     return SafetyConfig(**{**base, **kw})
 
 
@@ -86,7 +85,7 @@ def test_force_clamp_holds_the_limit_and_reports_it():
 
 
 def test_force_rate_limit_ramps_a_step():
-    out, d, events, _ = run(NONE, [0.0] + [3.0] * 10, safety(force_rate_limit_n_per_s=500.0))
+    _, d, events, _ = run(NONE, [0.0] + [3.0] * 10, safety(force_rate_limit_n_per_s=500.0))
     np.testing.assert_allclose(d["command"], [0, .5, 1, 1.5, 2, 2.5, 3, 3, 3, 3, 3], atol=1e-12)
     assert list(d["flags"][1:6] & RATE) == [RATE] * 5 and not np.any(d["flags"][6:])
     assert "rate" in [e["name"] for e in events]
@@ -141,7 +140,7 @@ def test_energy_observer_stays_quiet_on_the_papers_spring_damper():
 
 def test_watchdog_zeroes_force_when_samples_stop():
     dev = Faulty(at=30, fault="timeout")
-    out, d, events, _ = run(NONE, [0.0] + [0.5] * 99, safety(), device=dev)
+    out, _, events, _ = run(NONE, [0.0] + [0.5] * 99, safety(), device=dev)
     assert out.status == "tripped" and "no sample" in out.reason and out.n_done == 30
     assert events[-1]["name"] == "watchdog"
     assert dev.commands[-1] == 0.0 and dev.calls[-1] == "disable"
@@ -150,7 +149,7 @@ def test_watchdog_zeroes_force_when_samples_stop():
 
 def test_watchdog_trips_on_a_paced_loop_overrun():
     dev = Faulty(at=20, fault="late", paced=True)
-    out, d, events, _ = run(NONE, [0.0] + [0.5] * 99, safety(), device=dev)
+    out, d, _, _ = run(NONE, [0.0] + [0.5] * 99, safety(), device=dev)
     assert out.status == "tripped" and "loop period" in out.reason
     assert d["flags"][-1] & OVERRUN and d["flags"][-1] & TRIPPED and d["command"][-1] == 0.0
     assert out.timing["overruns"] >= 1 and out.timing["max_s"] >= 0.08
@@ -205,14 +204,14 @@ def test_enable_gate_waits_until_the_handle_leaves_the_wall():
     path = np.linspace(0.05, -0.01, 121)
     dev = Scripted(path)
     cfg = safety(enable_force_threshold_n=0.2)
-    out, d, events, _ = run(VirtualEnvironment("spring", K=50.0), np.full(120, 0.05), cfg,
-                            device=dev)
+    _, d, events, _ = run(VirtualEnvironment("spring", K=50.0), np.full(120, 0.05), cfg,
+                          device=dev)
     k = dev.enabled_at
     assert k == int(np.argmax(np.abs(0.05 - 50.0 * path) <= 0.2))  # first sample |u| <= 0.2 N
     assert np.all(d["command"][:k] == 0.0) and np.all(d["flags"][:k] & GATED)
     assert np.all(d["excitation"][:k] == 0.0) and d["excitation"][k] == 0.05
     assert abs(d["command"][k]) <= 0.2 and not d["flags"][k] & GATED
-    assert [e["name"] for e in events][0] == "enabled"
+    assert events[0]["name"] == "enabled"
 
 
 def test_safety_settings_come_from_the_rig_with_one_clear_error_each():

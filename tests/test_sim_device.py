@@ -36,7 +36,7 @@ def test_open_loop_step_matches_analytic_solution():
 
 
 def coulomb_truth(x0, v0, u, fc, t_end, m=M, b=B):
-    """Reference: m v' = u - b v - fc sign(v), stick while |u| <= fc, by an ODE solver with events."""
+    """Reference: m v' = u - b v - fc sign(v), sticking while |u| <= fc; ODE solver with events."""
     t, x, v = 0.0, x0, v0
     while t < t_end - 1e-15:
         if v == 0.0:
