@@ -377,6 +377,10 @@ class SerialStream:
         lim = self.rig.force_limit_n
         self._force = min(max(force_n, -lim), lim)
         self._send(self._force)
+        if self._fault is not None and self._force:
+            # emergency_stop() from another thread raced this command: undo it at once.
+            self._force = 0.0
+            self._send(0.0)
 
     @property
     def commanded_force_n(self) -> float:

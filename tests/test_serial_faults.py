@@ -131,8 +131,8 @@ def test_stale_limit_is_within_three_periods_on_a_fake_clock():
 
 
 def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board():
-    # 10 ms periods keep a Python board on a shared machine on time.
-    rig = make_rig(T=0.01, stale_periods=3)
+    # 20 ms periods keep a Python board on a shared machine on time.
+    rig = make_rig(T=0.02, stale_periods=3)
     drv, peer = connect_sim_serial(
         rig, realtime=True, seed=3, faults=[Fault("stall", 60, seconds=0.2)]
     )
@@ -143,10 +143,10 @@ def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board
                 drv.read(0.5)
                 drv.command(0.3)
         silent_ms = float(str(exc.value).split("no sample for ")[1].split(" ms")[0])
-        assert (
-            silent_ms >= 30.0
-        )  # 3 periods; how much later is scheduling (bench_serial measures it)
-    # Board watchdog: a host that stops answering gets zero force within 3 periods.
+        # At least 3 periods; how much later is scheduling (bench_serial measures it).
+        assert silent_ms >= 60.0
+    # Board watchdog: a host that stops answering gets zero force after 3 periods
+    # (counted from the tick at which its last command arrived: k_last or the next).
     drv, peer = connect_sim_serial(rig, realtime=True, seed=3)
     with drv:
         drv.enable(0.5)
@@ -157,7 +157,7 @@ def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board
         for _ in range(10):
             drv.read(0.5)  # reading on, commanding nothing: a frozen control thread
         applied = np.array(peer.applied)
-    assert np.all(applied[k_last + 4 :] == 0.0) and applied[k_last - 1] == pytest.approx(0.3)
+    assert np.all(applied[k_last + 5 :] == 0.0) and applied[k_last - 1] == pytest.approx(0.3)
     assert peer.watchdog_zeroed >= 5
 
 
@@ -221,3 +221,27 @@ def test_link_errors_before_enable_are_counted_not_faults():
         assert any(f & FLAG_LOST for f in flags) and any(f & FLAG_LINK_ERRORS for f in flags)
         drv.enable(0.5)
         assert drv.read(0.5).flags == 0
+
+
+def test_emergency_stop_from_another_thread_mid_run():
+    import threading
+
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=4)
+    ve = VirtualEnvironment("spring", K=50.0, T=rig.sample_time_s)
+    excitation = 0.3 * np.sin(2 * np.pi * 2.0 * rig.sample_time_s * np.arange(20_000))
+    stream = []
+    timer = threading.Timer(0.3, drv.emergency_stop)
+    with drv:
+        timer.start()
+        outcome = run_loop(
+            drv, HapticLoop(ve, SafetyConfig.from_rig(rig)), excitation, stream.append
+        )
+        timer.join()
+        k_stop = peer.k
+    assert outcome.status == "fault" and "emergency stop; force zeroed" in outcome.reason
+    events = [r for r in stream if r["kind"] == records.EVENT and r["name"] == "device_fault"]
+    assert len(events) == 1 and "emergency stop" in events[0]["reason"]
+    applied = np.array(peer.applied)
+    assert 100 < outcome.n_done < 20_000 and np.any(applied != 0.0)
+    assert np.all(applied[k_stop:] == 0.0) and drv.commanded_force_n == 0.0

@@ -272,14 +272,14 @@ def test_loop_url_port_carries_board_bytes_to_the_driver():
 
 
 def test_realtime_board_applies_each_answer_one_period_later():
-    # 10 ms periods: the free-running board in Python is robust to scheduling noise there.
-    rig = rig_from_dict({"rig": {"sample_time_s": 0.01}, "serial": {"stale_periods": 3}})
+    # 20 ms periods: a free-running board in Python on this shared machine keeps time there.
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.02}, "serial": {"stale_periods": 3}})
     drv, peer = connect_sim_serial(rig, realtime=True, seed=4)
     sent = {}
     with drv:
         drv.enable(1.0)
         for i in range(60):
-            s = drv.read(0.1)
+            s = drv.read(0.2)
             sent[s.seq] = 0.01 * (i + 1)
             drv.command(sent[s.seq])
     # peer.applied[k] is the force of period k since boot; the answer to k lands in k+1.
