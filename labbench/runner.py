@@ -1,0 +1,226 @@
+"""Run one protocol on one device: precheck, records, the loop, analysis, safe shutdown.
+
+The whole run is one record stream (labbench.records): ``start`` -> ``descriptor``
+-> pages and events from ``labbench.loop.run_loop`` (one call per protocol
+segment, each announced by a ``segment`` event) -> ``stop``. Every consumer
+sees every record in order. Whatever happens (a refused VE, Ctrl-C, the stop
+event, a device fault, a bug) the force is set to zero, the device disabled
+and closed, and - once a start record went out - a stop record follows.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Iterable
+
+import numpy as np
+
+from labbench import records
+from labbench.cli import json_safe
+from labbench.errors import UserError
+from labbench.rig import Rig
+from protocols.base import Protocol, SegmentOutcome, precheck
+
+# run_loop outcome -> stop-record status (a trip a protocol expects is not a failure).
+_FAILED = ("tripped", "fault")
+
+
+@dataclass
+class RunResult:
+    """What ``run`` returns: stop status and reason, the protocol's results, loop timing."""
+
+    status: str  # "success" | "aborted" | "failed"
+    reason: str
+    results: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+    uid: str | None = None
+    n_samples: int = 0
+
+
+def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
+        stop: threading.Event | None = None,
+        progress: Callable[[float, str], None] | None = None, rig: Rig | None = None,
+        close: bool = True) -> RunResult:
+    """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
+
+    ``stop`` (set from another thread, e.g. a GUI's stop button) or Ctrl-C ends
+    the run with status "aborted" and zero force. ``progress(fraction, message)``
+    is called from this thread. ``rig`` gives calibration, limits and the nominal
+    plant (default: the simulated Phantom-like rig). The device is disabled and,
+    with ``close`` (default), closed on the way out. Raises UserError (before
+    anything is enabled or recorded) when the protocol's VE is unstable or its
+    plan does not fit the rig.
+    """
+    from labbench.loop import HapticLoop, SafetyConfig, run_loop
+
+    rig = rig or Rig()
+    stop = stop or threading.Event()
+    consumers = list(consumers)
+    run_state = _Run(consumers)
+    try:
+        desc = device.describe()
+        T = float(desc.sample_time_s)
+        if abs(T - protocol.ve.T) > 1e-9 * T:
+            raise UserError(f"the device samples every {T:g} s but the protocol assumes "
+                            f"{protocol.ve.T:g} s (set sample_time_s)")
+        if protocol.allow_unstable and not str(desc.kind).startswith("sim"):
+            raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
+        plant = protocol.plant(rig)
+        check = precheck(protocol, plant, rig)
+        safety = SafetyConfig.from_rig(rig)
+        start = records.start_record(
+            rig.as_dict(), protocol.describe(), protocol.seed,
+            device=asdict(desc), plant={"m": plant.m, "b": plant.b},
+            precheck=json_safe(check), safety=safety.as_dict())
+        run_state.uid = start["uid"]
+        run_state.emit(start)
+        run_state.emit(records.descriptor_record(T))
+        meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
+                "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
+                "protocol": protocol.describe(), "force_hold": "zoh"}
+
+        total = max(int(protocol.n_samples), 1)
+        gen = protocol.segments(plant)
+        segment = next(gen)
+        while True:
+            first = run_state.n_samples
+            run_state.emit(records.event_record(
+                run_state.last_t, "segment", segment.label, role=segment.role,
+                ve=segment.ve.as_dict(),
+                n_samples=int(len(segment.excitation))))
+
+            def on_progress(n_done, n_total, _first=first, _label=segment.label):
+                if progress is not None:
+                    progress(min((_first + n_done) / total, 1.0), _label)
+
+            outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
+                               run_state.emit, stop=stop, progress=on_progress,
+                               first_page=len(run_state.pages))
+            run_state.segments.append({
+                "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
+                "start": first,
+                "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
+                "timing": dict(outcome.timing)})
+            if outcome.status == "aborted":
+                return run_state.finish("aborted", outcome.reason or "stopped")
+            if outcome.status in _FAILED and not (outcome.status == "tripped"
+                                                   and segment.trip_expected):
+                return run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
+            try:
+                segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
+                                                  run_state.data(first)))
+            except StopIteration:
+                break
+        _stop_device(device, close=False)
+        if progress is not None:
+            progress(1.0, "analysis")
+        meta["segments"] = run_state.segments
+        try:
+            run_state.results = protocol.analyze(run_state.data(0), meta)
+        except UserError as exc:
+            run_state.results = {"error": f"analysis: {exc}"}
+        return run_state.finish("success", "completed")
+    except KeyboardInterrupt:
+        _stop_device(device, close=False)
+        return run_state.finish("aborted", "interrupted (Ctrl-C)")
+    except UserError:
+        _stop_device(device, close=False)
+        if run_state.started:
+            run_state.finish("failed", "refused")
+        raise
+    except Exception as exc:
+        _stop_device(device, close=False)
+        if run_state.started:
+            run_state.finish("failed", f"{type(exc).__name__}: {exc}")
+        raise
+    finally:
+        _stop_device(device, close=close)
+
+
+class _Run:
+    """Fans records out, keeps the page data and segment table, writes the stop record once."""
+
+    def __init__(self, consumers: list):
+        self.consumers = consumers
+        self.pages: list[dict] = []
+        self.events: list[dict] = []
+        self.segments: list[dict] = []
+        self.results: dict = {}
+        self.uid: str | None = None
+        self.started = False
+        self.finished: RunResult | None = None
+        self.n_samples = 0
+        self.last_t = 0.0
+
+    def emit(self, rec: dict) -> None:
+        kind = rec["kind"]
+        if kind == records.START:
+            self.started = True
+        elif kind == records.PAGE:
+            self.pages.append(rec["data"])
+            t = rec["data"]["t"]
+            self.n_samples += len(t)
+            if len(t):
+                self.last_t = float(t[-1])
+        elif kind == records.EVENT:
+            self.events.append(rec)
+        for c in self.consumers:
+            c(rec)
+
+    def data(self, first: int) -> dict[str, np.ndarray]:
+        """Channels of every sample from index ``first`` on."""
+        joined = records.concat_pages({"kind": records.PAGE, "data": d} for d in self.pages)
+        return {k: v[first:] for k, v in joined.items()}
+
+    def timing(self) -> dict:
+        """Loop timing over all segments: worst p99/max, median of p50, total overruns."""
+        parts = [s["timing"] for s in self.segments if s.get("timing")]
+        if not parts:
+            return {}
+        out = {"segments": len(parts)}
+        for key, agg in (("p50_s", np.median), ("p99_s", max), ("max_s", max), ("overruns", sum)):
+            vals = [p[key] for p in parts if p.get(key) is not None]
+            if vals:
+                out[key] = agg(vals)
+        return json_safe(out)
+
+    def finish(self, status: str, reason: str) -> RunResult:
+        if self.finished is None:
+            timing = self.timing()
+            self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
+                                          timing=timing, results=summarize(self.results)))
+            self.finished = RunResult(status, reason, self.results, timing, self.uid,
+                                      self.n_samples)
+        return self.finished
+
+
+def summarize(results: dict, max_len: int = 64):
+    """The results without long arrays (for the stop record; the data are in the pages)."""
+    if isinstance(results, dict):
+        return {k: summarize(v, max_len) for k, v in results.items()
+                if not (_is_seq(v) and len(v) > max_len)}
+    if isinstance(results, (list, tuple)):
+        return [summarize(v, max_len) for v in results]
+    return json_safe(results)
+
+
+def _is_seq(v) -> bool:
+    return isinstance(v, (list, tuple, np.ndarray))
+
+
+def _stop_device(device, close: bool, timeout: float = 1.0) -> None:
+    """Force to zero, disable, optionally close; falls back to emergency_stop, never raises."""
+    try:
+        device.command(0.0)
+        device.disable(timeout=timeout)
+    except Exception:  # noqa: BLE001 - shutting down: the e-stop below is the fallback
+        try:
+            device.emergency_stop()
+        except Exception:  # noqa: BLE001
+            pass
+    if close:
+        try:
+            device.close()
+        except Exception:  # noqa: BLE001
+            pass
+

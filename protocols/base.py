@@ -1,0 +1,207 @@
+"""What every protocol shares: validated config fields, segments, the stability precheck.
+
+A protocol is plain data (a frozen config dataclass, SI units in the field
+names) plus steps: ``segments()`` is a generator of ``Segment`` (a VE and the
+exogenous force to apply with it); the runner sends each segment's outcome
+back, so a protocol like the stability probe can decide its next step from
+the last one. ``analyze(data, meta)`` turns the recorded channels into results.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Generator
+
+import numpy as np
+
+from labbench.errors import UserError
+from labbench.ve import Plant, VirtualEnvironment
+
+# The paper's Phantom Premium 1.5 fit (Table 1, l2): used when a rig names no nominal plant.
+DEFAULT_PLANT = Plant(0.094, 0.10)
+
+
+def number(name: str, value, unit: str, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False, none_ok: bool = False):
+    """Validate one numeric config field; one UserError naming field, value and unit."""
+    if value is None and none_ok:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise UserError(f"{name} must be a number [{unit}], got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise UserError(f"{name} must be finite [{unit}], got {value!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise UserError(f"{name} must be {'>' if lo_open else '>='} {lo:g} {unit}, got {v:g}")
+    if hi is not None and v > hi:
+        raise UserError(f"{name} must be <= {hi:g} {unit}, got {v:g}")
+    return v
+
+
+def integer(name: str, value, lo: int | None = None, none_ok: bool = False):
+    if value is None and none_ok:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise UserError(f"{name} must be a whole number, got {value!r}")
+    if lo is not None and value < lo:
+        raise UserError(f"{name} must be >= {lo}, got {value}")
+    return int(value)
+
+
+def choice(name: str, value, options: tuple[str, ...]):
+    if value not in options:
+        raise UserError(f"{name} must be one of {', '.join(options)}, got {value!r}")
+    return value
+
+
+class Config:
+    """Mixin for frozen config dataclasses: ``check()`` validates, ``as_dict()`` serialises."""
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:  # pragma: no cover - every config overrides it
+        raise NotImplementedError
+
+    def _set(self, name: str, value) -> None:
+        object.__setattr__(self, name, value)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+    @classmethod
+    def from_options(cls, protocol: str, options: dict):
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise UserError(f"unknown option(s) for {protocol}: {', '.join(unknown)}; "
+                            f"known: {', '.join(sorted(known))}")
+        return cls(**options)
+
+
+def check_ve_fields(cfg) -> None:
+    """Shared VE fields of a config: ve kind, K, B, w0_rad_s, td_s (via VirtualEnvironment)."""
+    cfg._set("K", number("K", cfg.K, "N/m", lo=0))
+    cfg._set("B", number("B", cfg.B, "N s/m", lo=0))
+    cfg._set("w0_rad_s", number("w0_rad_s", cfg.w0_rad_s, "rad/s", lo=0, lo_open=True, none_ok=True))
+    cfg._set("td_s", number("td_s", cfg.td_s, "s", lo=0))
+
+
+def make_ve(kind: str, K: float, B: float, w0_rad_s: float | None, T: float, td_s: float):
+    ve = VirtualEnvironment(kind, K, B, math.inf if w0_rad_s is None else w0_rad_s, T, td_s)
+    ve.delay_samples  # noqa: B018 - raises UserError when td is not whole samples
+    return ve
+
+
+def check_plant_fields(cfg) -> None:
+    cfg._set("plant_m_kg", number("plant_m_kg", cfg.plant_m_kg, "kg", lo=0, lo_open=True, none_ok=True))
+    cfg._set("plant_b", number("plant_b", cfg.plant_b, "N s/m", lo=0, none_ok=True))
+
+
+def nominal_plant(rig=None, m: float | None = None, b: float | None = None) -> Plant:
+    """The plant a protocol assumes: given m, b first (e.g. identified), then the
+    rig's nominal model (``Rig.nominal_plant``), then the paper's Phantom fit."""
+    base = rig.nominal_plant if rig is not None else DEFAULT_PLANT
+    return Plant(base.m if m is None else float(m), base.b if b is None else float(b))
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One stretch of a run: the VE rendered and the exogenous force per sample [N]."""
+
+    label: str
+    ve: VirtualEnvironment
+    excitation: np.ndarray
+    # A safety trip ends the run unless the protocol expects trips (the stability probe).
+    trip_expected: bool = False
+    role: str = "probe"  # "probe": measured data; "home": repositioning between steps
+
+
+@dataclass
+class SegmentOutcome:
+    """What the runner sends back to ``segments()`` after a segment."""
+
+    status: str  # run_loop status: "completed", "tripped", "aborted", "fault"
+    reason: str
+    data: dict  # channel -> array of this segment only
+
+
+class Protocol:
+    """Base class: subclasses set ``name``, ``config`` and implement the steps."""
+
+    name: str = ""
+    config: Any = None
+
+    @property
+    def ve(self) -> VirtualEnvironment:
+        """The VE the protocol starts with (checked against the stability boundary)."""
+        raise NotImplementedError
+
+    @property
+    def n_samples(self) -> int:
+        """Planned samples (an upper bound for adaptive protocols; used for progress)."""
+        raise NotImplementedError
+
+    @property
+    def allow_unstable(self) -> bool:
+        return bool(getattr(self.config, "allow_unstable", False))
+
+    @property
+    def seed(self) -> int | None:
+        return getattr(self.config, "seed", None)
+
+    def plant(self, rig=None) -> Plant:
+        return nominal_plant(rig, getattr(self.config, "plant_m_kg", None),
+                             getattr(self.config, "plant_b", None))
+
+    def vetted_ves(self, plant: Plant) -> list[VirtualEnvironment]:
+        """Every VE the protocol will render before it learns anything (precheck checks them)."""
+        return [self.ve]
+
+    def check_plan(self, plant: Plant, rig=None) -> dict:
+        """Protocol-specific checks beyond stability (e.g. predicted excursion); extra numbers."""
+        return {}
+
+    def segments(self, plant: Plant) -> Generator[Segment, SegmentOutcome, None]:
+        """The run's steps; ``plant`` is the one the precheck used."""
+        raise NotImplementedError
+
+    def analyze(self, data: dict[str, np.ndarray], meta: dict) -> dict:
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        return {"protocol": self.name, **self.config.as_dict()}
+
+
+def precheck(protocol: Protocol, plant: Plant, rig=None) -> dict:
+    """Check the protocol's VE(s) against the exact sampled stability boundary.
+
+    Uses ``labbench.theory.stability`` (spectral radius of the exact sampled loop)
+    and ``k_max`` / ``k_max_approx`` for the numbers shown. Raises UserError
+    for an unstable VE unless the protocol's ``allow_unstable`` is set (the
+    runner allows that on a simulator only). Returns the numbers for the start record.
+    """
+    from labbench import theory
+
+    report = {"plant": {"m": plant.m, "b": plant.b}, "checks": []}
+    for ve in protocol.vetted_ves(plant):
+        st = theory.stability(plant, ve)
+        km = theory.k_max(plant, ve)
+        ka = theory.k_max_approx(plant, ve)
+        entry = {"ve": ve.as_dict(), "stable": bool(st.stable),
+                 "spectral_radius": float(st.spectral_radius), "k_max": km, "k_max_approx": ka}
+        report["checks"].append(entry)
+        if not st.stable and not protocol.allow_unstable:
+            bound = f"K_max = {km:.4g} N/m (exact sampled)" if km is not None else "no stable K"
+            approx = f", paper approx. {ka:.4g} N/m" if ka is not None else ""
+            raise UserError(
+                f"refusing unstable {ve.kind} VE K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
+                f"td = {ve.td * 1e3:g} ms on m = {plant.m:g} kg, b = {plant.b:g} N s/m: "
+                f"spectral radius {st.spectral_radius:.6f} >= 1; {bound}{approx}")
+    report["stable"] = all(c["stable"] for c in report["checks"])
+    report.update(protocol.check_plan(plant, rig))
+    return report
