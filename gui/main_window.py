@@ -84,11 +84,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_run = None  # RunResult of the last run
         self._drawn_version = -1
         self._estimated_version = -1
-        self._final_estimate_pending = False
         self._rate = (time.monotonic(), 0)
         self._pending_start = False
         self._estimator_error_shown = None
         self._run_started = time.monotonic()
+        self._acquisition: threading.Thread | None = None  # the run or replay thread
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -329,8 +329,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
         self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
-        start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event, self.session_dir,
-                  start_extra={"gui_settings": self.protocol_panel.state()})
+        self._acquisition = start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event,
+                                      self.session_dir,
+                                      start_extra={"gui_settings": self.protocol_panel.state()})
 
     @guarded
     def stop_run(self):
@@ -438,7 +439,6 @@ class MainWindow(QtWidgets.QMainWindow):
     def _run_finished(self):
         self.mode = "idle"
         self.protocol_panel.set_running(False)
-        self._final_estimate_pending = True
         self._estimate_tick()
 
     def _on_reanalyse_done(self, value):
@@ -554,7 +554,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.mode = "replay"
         self.tabs.setCurrentIndex(0)
         self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
-        start_replay(self.mailbox, path, speed, self.stop_event)
+        self._acquisition = start_replay(self.mailbox, path, speed, self.stop_event)
 
     @guarded
     def reanalyse(self, path: str, estimator: str):
@@ -576,6 +576,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_event.set()
         for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
             t.stop()
+        if self._acquisition is not None:  # let the runner zero the force and disable first
+            self._acquisition.join(timeout=3.0)
         self.estimator.shutdown()
         dev, self.device = self.device, None
         if dev is not None:
