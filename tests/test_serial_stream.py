@@ -398,3 +398,31 @@ def test_full_etfe_through_the_serial_driver_matches_the_plain_simulator():
     scatter = r_sim.results["deviation_vs_sampled"]["median_rel"]
     assert between < 0.1 * scatter, (between, scatter)
     assert r_ser.results["deviation_vs_sampled"]["median_rel"] == pytest.approx(scatter, rel=0.1)
+
+
+def test_hardware_path_opens_a_board_by_port_path():
+    """``--device serial``: the registry opens the port named in the rig, as for real hardware."""
+    from labbench.devices import open_device
+
+    T = 0.02  # a free-running Python board keeps time at 20 ms on this shared machine
+    probe = rig_from_dict({"rig": {"sample_time_s": T}})
+    peer = ArduinoPeer(default_plant(probe), T, probe.metres_per_count, realtime=True, seed=5)
+    path = peer.open_pty()
+    rig = rig_from_dict(
+        {"rig": {"sample_time_s": T}, "serial": {"port": path, "force_command": True}},
+        source="hw.toml",
+    )
+    peer.start()
+    try:
+        with open_device("serial", rig, realtime=True, seed=1) as drv:
+            d = drv.describe()
+            assert d.kind == "serial" and d.details["paced"] and path in d.name
+            drv.enable(0.5)
+            seqs = []
+            for _ in range(15):
+                seqs.append(drv.read(0.5).seq)
+                drv.command(0.2)
+            assert seqs == list(range(seqs[0], seqs[0] + 15))
+    finally:
+        peer.close()
+    assert np.any(np.abs(np.array(peer.applied) - 0.2) < 1e-6)  # the commands reached the board
