@@ -44,6 +44,7 @@ import numpy as np
 from drivers import framing
 
 BANNER = b"#labbench encoder v1\r\n"
+APPLIED_KEPT = 1_000_000  # periods of applied force kept (about 17 min at 1 kHz)
 FAULT_KINDS = ("garbage", "flip", "drop", "stall", "unplug", "reboot")
 
 
@@ -108,7 +109,9 @@ class ArduinoPeer:
         self._intact = False
         self.commands = framing.CommandParser()
         self.watchdog_zeroed = 0  # periods the watchdog forced zero
-        self.applied: list[float] = []  # force applied per period (tests read it)
+        # Force applied in each period since start (tests index it by k); bounded
+        # so a board left running for hours does not grow without limit.
+        self.applied: deque[float] = deque(maxlen=APPLIED_KEPT)
         self._faults: dict[int, list[Fault]] = {}
         for f in faults:
             self.schedule(f)

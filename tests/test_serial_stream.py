@@ -200,7 +200,7 @@ def test_command_units_newton_metre_reach_the_plant_as_newton():
         _run(drv, [0.25] * 20)
         drv.read(1.0)
         # The board received torque 0.25 * lever_arm and converted it back.
-        assert peer.applied[-20:] == pytest.approx([0.25] * 20, rel=1e-6)
+        assert list(peer.applied)[-20:] == pytest.approx([0.25] * 20, rel=1e-6)
 
 
 def test_force_is_clamped_to_the_rig_limit_and_zero_when_disabled():
