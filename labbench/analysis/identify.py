@@ -1,0 +1,283 @@
+"""Identify the device: f = m x'' + b x' [+ Fc sign(x')] [+ f0] (paper sec. 4.1,
+eqs. 10-11 with x' and x'' put back where the physics has them).
+
+Pipeline: derivatives of position by zero-phase filtered central differences
+(``derivatives``); the force of a zero-order-hold record is averaged over the
+two hold intervals around each sample, which makes the second difference of a
+ZOH-driven mass exact; then l2 (least squares) or l1 (exact LAD, ``l1``).
+
+Model selection (``model="auto"``): blocked 5-fold cross-validation (folds are
+interleaved contiguous blocks, so correlated neighbours do not leak between
+training and test). A larger model replaces a smaller one only if its CV loss
+(the method's own: squared or absolute residual) is lower, fold by fold, by a
+log-ratio above two standard errors of the fold log-ratios and above 0.5 %, and by
+more than a floor set by the force itself ((0.1 % of the force rms)^2 for l2,
+0.1 % of the mean |force| for l1): a term that changes no prediction by more
+than that is not worth a parameter, however well exact data pin it down.
+
+95 % intervals: delete-one-block jackknife over 10 contiguous blocks (robust
+to the strong serial correlation of filtered residuals; Kunsch 1989),
+theta +- t(0.975, 9) * SE_jack.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage, stats
+
+from labbench.analysis import l1
+from labbench.analysis.dataio import Recording
+from labbench.analysis.derivatives import default_cutoff, differentiate
+from labbench.errors import UserError
+
+MODELS = ("mb", "mbc", "mbco")
+MODEL_CHOICES = MODELS + ("auto",)
+METHODS = ("l2", "l1")
+SOLVERS = ("fast", "cvxpy")
+TERMS = {"mb": ("m", "b"), "mbc": ("m", "b", "coulomb"), "mbco": ("m", "b", "coulomb", "offset")}
+CV_FOLDS, CV_BLOCKS = 5, 20
+JACKKNIFE_BLOCKS = 10
+MIN_GAIN_SE, MIN_GAIN_REL, MIN_GAIN_FORCE = 2.0, 0.005, 1e-3
+SHORT_RECORD = 2000  # samples used
+WIDE_CI_REL = 0.10  # half-width of the m or b interval, relative
+OUTLIER_SIGMAS, OUTLIER_BLOCK = 8.0, 256
+QUANT_NOISE_REL = 0.02  # encoder noise in x'' relative to the x'' signal
+
+
+@dataclass
+class IdResult:
+    model: str
+    method: str
+    params: dict  # m, b, coulomb, offset (absent terms: None)
+    ci95: dict  # name -> (lo, hi)
+    rms_residual: float
+    n_used: int
+    explained: float
+    cutoff_hz: float
+    flags: list = field(default_factory=list)
+    selection: dict = field(default_factory=dict)
+    residual: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def m(self) -> float:
+        return self.params["m"]
+
+    @property
+    def b(self) -> float:
+        return self.params["b"]
+
+    def as_dict(self) -> dict:
+        return {
+            "model": self.model,
+            "method": self.method,
+            **{k: self.params.get(k) for k in ("m", "b", "coulomb", "offset")},
+            "ci95": {k: list(v) for k, v in self.ci95.items()},
+            "rms_residual": self.rms_residual,
+            "n_used": self.n_used,
+            "explained": self.explained,
+            "cutoff_hz": self.cutoff_hz,
+            "flags": list(self.flags),
+            "selection": self.selection,
+        }
+
+
+@dataclass
+class _Data:
+    y: np.ndarray  # force aligned with the derivatives
+    cols: dict  # name -> regressor column
+    x: np.ndarray  # raw position (kept samples)
+    a_noise_gain: float
+    cutoff_hz: float
+
+    def design(self, model: str) -> np.ndarray:
+        return np.column_stack([self.cols[t] for t in TERMS[model]])
+
+
+def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz: float | None = None,
+             solver: str = "fast", hold: str | None = None) -> IdResult:
+    """Fit the device model to a recording (see module doc).
+
+    ``hold``: "zoh" (force held over each sample interval, the bench's own
+    records; default unless the metadata say ``force_hold=sample``) or "sample"
+    (force sampled at the same instants as position).
+    """
+    if model not in MODEL_CHOICES:
+        raise UserError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
+    if method not in METHODS:
+        raise UserError(f"unknown method {method!r}; choose l2 or l1")
+    if solver not in SOLVERS:
+        raise UserError(f"unknown solver {solver!r}; choose fast or cvxpy")
+    data = _prepare(rec, cutoff_hz, hold or str(rec.meta.get("force_hold", "zoh")))
+    fit = _fitter(method, solver)
+    selection = _select(data, fit, method) if model == "auto" else {"criterion": "given"}
+    chosen = selection.get("model", model)
+    if not _identifiable(data, chosen):
+        raise UserError(f"model {chosen} cannot be identified from this record: the velocity never "
+                        "changes sign, so Coulomb friction and a force offset look alike; use --model mbc or mb")
+    X = data.design(chosen)
+    theta = fit(X, data.y)
+    resid = data.y - X @ theta
+    ci = _jackknife_ci(X, data.y, theta, fit)
+    params = dict(zip(TERMS[chosen], (float(v) for v in theta)))
+    result = IdResult(
+        model=chosen,
+        method=method,
+        params={k: params.get(k) for k in ("m", "b", "coulomb", "offset")},
+        ci95={k: ci[i] for i, k in enumerate(TERMS[chosen])},
+        rms_residual=float(np.sqrt(np.mean(resid**2))),
+        n_used=len(data.y),
+        explained=float(1 - np.var(resid) / np.var(data.y)) if np.var(data.y) > 0 else 0.0,
+        cutoff_hz=data.cutoff_hz,
+        selection=selection,
+        residual=resid,
+    )
+    result.flags = _flags(result, data, fit, method, selection)
+    return result
+
+
+def _prepare(rec: Recording, cutoff_hz, hold: str) -> _Data:
+    if hold not in ("zoh", "sample"):
+        raise UserError(f"force_hold must be zoh or sample, got {hold!r}")
+    fs = rec.fs
+    if cutoff_hz is None:
+        cutoff_hz = default_cutoff(rec.force, fs)
+    elif not 0 < cutoff_hz < fs / 2:
+        raise UserError(f"--cutoff must be between 0 and fs/2 = {fs / 2:g} Hz, got {cutoff_hz}")
+    d = differentiate(rec.position, fs, cutoff_hz)
+    f = np.asarray(rec.force, float)
+    if hold == "zoh":  # mean of the forces held over [t-T, t) and [t, t+T)
+        f = np.concatenate([[f[0]], 0.5 * (f[1:] + f[:-1])])
+    y = f[d.keep]
+    cols = {"m": d.a, "b": d.v, "coulomb": np.sign(d.v), "offset": np.ones_like(d.v)}
+    return _Data(y, cols, np.asarray(rec.position)[d.keep], d.noise_gain[1], d.cutoff_hz)
+
+
+def _fitter(method: str, solver: str):
+    if method == "l2":
+        return lambda X, y, theta0=None: np.linalg.lstsq(X, y, rcond=None)[0]
+    if solver == "cvxpy":
+        return lambda X, y, theta0=None: l1.lad_cvxpy(X, y)
+    return l1.lad
+
+
+def _loss(method: str, r: np.ndarray) -> float:
+    return float(np.mean(r**2) if method == "l2" else np.mean(np.abs(r)))
+
+
+def _blocks(n: int, count: int) -> list[np.ndarray]:
+    edges = np.linspace(0, n, count + 1).astype(int)
+    return [np.arange(edges[i], edges[i + 1]) for i in range(count)]
+
+
+def _cv_losses(data: _Data, fit, method: str, model: str) -> np.ndarray:
+    X, y = data.design(model), data.y
+    blocks = _blocks(len(y), CV_BLOCKS)
+    losses = []
+    for k in range(CV_FOLDS):
+        test = np.concatenate(blocks[k::CV_FOLDS])
+        train = np.setdiff1d(np.arange(len(y)), test, assume_unique=True)
+        theta = fit(X[train], y[train])
+        losses.append(_loss(method, y[test] - X[test] @ theta))
+    return np.array(losses)
+
+
+def _identifiable(data: _Data, model: str) -> bool:
+    X = data.design(model)
+    return np.linalg.matrix_rank(X / np.sqrt(np.mean(X**2, axis=0))) == X.shape[1]
+
+
+def _select(data: _Data, fit, method: str) -> dict:
+    models = [m for m in MODELS if _identifiable(data, m)]
+    losses = {m: _cv_losses(data, fit, method, m) for m in models}
+    floor = _loss(method, MIN_GAIN_FORCE * np.full(1, np.sqrt(np.mean(data.y**2))))
+    if method == "l1":
+        floor = MIN_GAIN_FORCE * float(np.mean(np.abs(data.y)))
+    chosen = models[0]
+    for bigger in models[1:]:
+        ratio = np.log(losses[chosen] / losses[bigger])  # per fold; > 0 when bigger predicts better
+        se = np.std(ratio, ddof=1) / np.sqrt(len(ratio))
+        gain = losses[chosen].mean() - losses[bigger].mean()
+        if ratio.mean() > max(MIN_GAIN_SE * se, np.log1p(MIN_GAIN_REL)) and gain > floor:
+            chosen = bigger
+    return {
+        "criterion": f"blocked {CV_FOLDS}-fold cross-validation, {method} loss; a larger model must "
+        f"win by > {MIN_GAIN_SE:g} SE, > {100 * MIN_GAIN_REL:g} % and > a {100 * MIN_GAIN_FORCE:g} % force floor",
+        "model": chosen,
+        "cv_loss": {m: float(v.mean()) for m, v in losses.items()},
+    }
+
+
+def _jackknife_ci(X, y, theta, fit) -> list[tuple[float, float]]:
+    blocks = _blocks(len(y), JACKKNIFE_BLOCKS)
+    G = len(blocks)
+    reps = []
+    for blk in blocks:
+        keep = np.ones(len(y), bool)
+        keep[blk] = False
+        reps.append(fit(X[keep], y[keep], theta))
+    reps = np.array(reps)
+    se = np.sqrt((G - 1) / G * np.sum((reps - reps.mean(axis=0)) ** 2, axis=0))
+    t = stats.t.ppf(0.975, G - 1)
+    return [(float(c - t * s), float(c + t * s)) for c, s in zip(theta, se)]
+
+
+def _flags(res: IdResult, data: _Data, fit, method: str, selection: dict) -> list[str]:
+    flags = []
+    if res.n_used < SHORT_RECORD:
+        flags.append(f"short-record: only {res.n_used} samples used (< {SHORT_RECORD}); "
+                     "treat the estimates as rough")
+    for k in ("m", "b"):
+        lo, hi = res.ci95[k]
+        val = res.params[k]
+        if not (hi - lo) / 2 <= WIDE_CI_REL * abs(val):
+            flags.append(f"wide-interval: {k} 95 % interval [{lo:.4g}, {hi:.4g}] is wider than "
+                         f"+-{100 * WIDE_CI_REL:g} % (little excitation or a short record?)")
+    n_out = _count_outliers(res.residual, MIN_GAIN_FORCE * np.sqrt(np.mean(data.y**2)))
+    if n_out:
+        what = "l1 resists them" if method == "l1" else "l2 is pulled by them: try --method l1"
+        flags.append(f"force-outliers: {n_out} isolated force spikes beyond {OUTLIER_SIGMAS:g} local robust sigmas; {what}")
+    if res.params["coulomb"] is None:
+        sel = selection if "model" in selection else _select(data, fit, method)
+        if sel["model"] != "mb":
+            mbc = float(fit(data.design(sel["model"]), data.y)[2])
+            flags.append(f"unmodelled-coulomb: a Coulomb term of {mbc:.3g} N is supported by the data; "
+                         "use --model mbc or auto")
+    q = _quantum(data.x)
+    if q:
+        a_sig = np.std(data.cols["m"])
+        rel = q / np.sqrt(12) * data.a_noise_gain / max(a_sig, 1e-300)
+        if rel > QUANT_NOISE_REL:
+            flags.append(f"quantised-position: encoder step {q:.3g} m makes x'' noise {100 * rel:.1f} % "
+                         f"of its signal (m biased low by ~{100 * rel**2 / (1 + rel**2):.1f} %); "
+                         "lower --cutoff or use more excitation")
+    return flags
+
+
+def _count_outliers(r: np.ndarray, floor: float) -> int:
+    """Isolated spikes: samples whose residual departs from the 5-point running median
+    by more than OUTLIER_SIGMAS x the robust scale (1.4826 MAD) of the residual in
+    their own block of OUTLIER_BLOCK samples, and by more than ``floor``.
+
+    The running median follows smooth or step-like residuals (a chirp's growing
+    error, unmodelled friction), so only spikes such as force-sensor glitches count.
+    """
+    d = np.abs(r - ndimage.median_filter(r, size=5, mode="nearest"))
+    n = len(d) // OUTLIER_BLOCK * OUTLIER_BLOCK
+    if n == 0:
+        return 0
+    rb = r[:n].reshape(-1, OUTLIER_BLOCK)
+    scale = 1.4826 * np.median(np.abs(rb - np.median(rb, axis=1, keepdims=True)), axis=1, keepdims=True)
+    return int(np.sum(d[:n].reshape(-1, OUTLIER_BLOCK) > np.maximum(OUTLIER_SIGMAS * scale, floor)))
+
+
+def _quantum(x: np.ndarray) -> float | None:
+    """Encoder step if all positions sit on one grid (within 1e-3 of a step), else None."""
+    u = np.unique(x)
+    if len(u) < 3 or len(u) > len(x) // 4:
+        return None
+    d = np.diff(u)
+    q = float(d.min())
+    if q <= 0 or not np.allclose(d / q, np.round(d / q), atol=1e-3, rtol=0):
+        return None
+    return q

@@ -1,0 +1,115 @@
+"""Identification against exact simulated data (tests/truthdata.py)."""
+import numpy as np
+import pytest
+
+from labbench.analysis import l1
+from labbench.analysis.identify import identify
+from labbench.errors import UserError
+from truthdata import PAPER_B, PAPER_M, chirp_recording, with_noise
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return chirp_recording(n=30000)
+
+
+@pytest.mark.parametrize("method", ["l2", "l1"])
+def test_clean_chirp_within_1_percent_and_mb(clean, method):
+    r = identify(clean, method=method)
+    assert r.model == "mb"
+    assert abs(r.m / PAPER_M - 1) < 0.01 and abs(r.b / PAPER_B - 1) < 0.01
+    assert r.ci95["m"][0] <= r.m <= r.ci95["m"][1]
+    assert r.flags == []
+    d = r.as_dict()
+    assert d["coulomb"] is None and d["offset"] is None and d["n_used"] == r.n_used
+
+
+@pytest.mark.parametrize("m, b", [(0.005, 0.002), (25.0, 40.0)])
+def test_any_scale(m, b):
+    # grams to tens of kilograms: nothing tuned to the paper's device
+    rec = chirp_recording(n=20000, m=m, b=b, amp=m * 10)
+    r = identify(rec)
+    assert r.model == "mb"
+    assert abs(r.m / m - 1) < 0.01 and abs(r.b / b - 1) < 0.01
+
+
+def test_interval_covers_truth_under_noise():
+    rng = np.random.default_rng(3)
+    rec = with_noise(chirp_recording(n=30000), rng, force_noise=0.05)
+    r = identify(rec)
+    for k, truth in (("m", PAPER_M), ("b", PAPER_B)):
+        lo, hi = r.ci95[k]
+        assert lo < truth < hi, (k, lo, hi)
+        assert hi - lo < 0.1 * truth  # informative, not a vacuous interval
+
+
+def test_coulomb_selected_and_unmodelled_flagged():
+    rec = chirp_recording(n=30000, coulomb=0.05)
+    auto = identify(rec)
+    assert auto.model in ("mbc", "mbco")
+    assert abs(auto.params["coulomb"] / 0.05 - 1) < 0.2
+    assert abs(auto.m / PAPER_M - 1) < 0.01
+    forced = identify(rec, model="mb")
+    assert any(f.startswith("unmodelled-coulomb") for f in forced.flags)
+
+
+def test_offset_selected():
+    rec = chirp_recording(n=30000, coulomb=0.05, offset=0.3)
+    r = identify(rec)
+    assert r.model == "mbco"
+    assert abs(r.params["offset"] - 0.3) < 0.02
+
+
+def test_outliers_l2_flagged_l1_resists():
+    rng = np.random.default_rng(4)
+    rec = with_noise(chirp_recording(n=30000), rng, outlier_fraction=0.01, outlier_size=5.0)
+    r2 = identify(rec, method="l2", model="mb")
+    r1 = identify(rec, method="l1", model="mb")
+    assert any(f.startswith("force-outliers") for f in r2.flags)
+    assert abs(r1.m / PAPER_M - 1) < 0.005 and abs(r1.b / PAPER_B - 1) < 0.01
+    # l2 is pulled further off than l1 and knows it (flag and/or a wide interval)
+    assert abs(r2.b / PAPER_B - 1) > abs(r1.b / PAPER_B - 1)
+
+
+def test_short_record_flagged():
+    r = identify(chirp_recording(n=1200, f1=5.0))
+    assert any(f.startswith("short-record") for f in r.flags)
+
+
+def test_little_excitation_gives_wide_interval():
+    rng = np.random.default_rng(5)
+    rec = with_noise(chirp_recording(n=20000, amp=0.01), rng, force_noise=0.05)
+    r = identify(rec, model="mb")
+    assert any(f.startswith("wide-interval") for f in r.flags)
+
+
+def test_quantised_position_flagged():
+    rec = with_noise(chirp_recording(n=30000), np.random.default_rng(6), quantum=2e-3)
+    r = identify(rec, model="mb")
+    assert any(f.startswith("quantised-position") for f in r.flags)
+
+
+def test_fast_l1_is_exact_against_cvxpy():
+    rng = np.random.default_rng(7)
+    rec = with_noise(chirp_recording(n=20000), rng, force_noise=0.02, outlier_fraction=0.02,
+                     outlier_size=3.0)
+    from labbench.analysis.identify import _prepare
+
+    data = _prepare(rec, None, "zoh")
+    X, y = data.design("mbc"), data.y
+    fast, ref = l1.lad(X, y), l1.lad_cvxpy(X, y)
+    f_fast, f_ref = l1.objective(X, y, fast), l1.objective(X, y, ref)
+    assert f_fast <= f_ref * (1 + 1e-6)
+    assert np.allclose(fast, ref, rtol=1e-3, atol=1e-6)
+
+
+def test_solver_cvxpy_option_runs(clean):
+    r = identify(chirp_recording(n=4000, f1=5.0), method="l1", model="mb", solver="cvxpy")
+    assert abs(r.m / PAPER_M - 1) < 0.01
+
+
+def test_bad_options(clean):
+    with pytest.raises(UserError):
+        identify(clean, model="mbx")
+    with pytest.raises(UserError):
+        identify(clean, cutoff_hz=600.0)
