@@ -26,6 +26,8 @@ METHODS = ("l2", "l1")
 
 @dataclass(frozen=True)
 class ChirpIdConfig(Config):
+    """Chirp identification: VE off, chirp force f0-f1 Hz, l2/l1 fit of m, b (sec. 4.1)."""
+
     f0_hz: float = 0.1
     f1_hz: float = 25.0
     sweep: str = "log"
@@ -34,6 +36,7 @@ class ChirpIdConfig(Config):
     duration_s: float = 60.0
     fade_s: float = 1.0  # raised-cosine fade in and out
     model: str = "auto"  # passed to labbench.analysis.identify
+    methods: tuple = METHODS  # fits to run: "l2" (least squares), "l1" (least absolute)
     sample_time_s: float = 0.001
     plant_m_kg: float | None = None  # nominal plant for the envelope (None: the rig's)
     plant_b: float | None = None
@@ -54,6 +57,12 @@ class ChirpIdConfig(Config):
         self._set("fade_s", number("fade_s", self.fade_s, "s", lo=0, hi=self.duration_s / 2))
         if not isinstance(self.model, str) or not self.model:
             raise UserError(f"model must be a model name, got {self.model!r}")
+        methods = (self.methods,) if isinstance(self.methods, str) else tuple(self.methods)
+        if not methods:
+            raise UserError("methods must name at least one of l2, l1")
+        for m in methods:
+            choice("methods", m, METHODS)
+        self._set("methods", methods)
         check_plant_fields(self)
         if self.duration_s * self.f0_hz < 1:
             raise UserError(f"duration_s ({self.duration_s:g} s) must cover at least one period "
@@ -123,5 +132,6 @@ class ChirpId(Protocol):
         rec = recording_from_arrays(data["t"], data["command"], data["position"],
                                     {**meta, "protocol": self.name})
         fits = {method: identify(rec, model=self.config.model, method=method).as_dict()
-                for method in METHODS}
-        return {"identification": fits, "m": fits["l2"]["m"], "b": fits["l2"]["b"]}
+                for method in self.config.methods}
+        best = fits.get("l2") or fits[self.config.methods[0]]
+        return {"identification": fits, "m": best["m"], "b": best["b"]}

@@ -2,7 +2,7 @@
 
 Each step renders the VE for a few oscillation periods after a small half-sine
 force pulse and measures the growth rate sigma [1/s] of the free response
-(least-squares line through the log of its Hilbert envelope). The first step
+(least-squares line through the log of its half-cycle peaks). The first step
 with sigma > 0, or ended by a safety trip (energy observer), is unstable; the
 measured boundary is where sigma crosses zero, interpolated linearly between
 the last stable and the first unstable step. It is compared with the exact
@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import hilbert
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
@@ -35,6 +34,8 @@ PROBE_KINDS = ("spring", "spring-damper")
 
 @dataclass(frozen=True)
 class StabilityConfig(Config):
+    """Stability probe: step K (or td) up until growth or a trip; vs exact boundary."""
+
     ve: str = "spring"
     K: float = 20.0  # N/m: first K (variable K) or the fixed K (variable td)
     B: float = 0.0
@@ -87,25 +88,38 @@ class StabilityConfig(Config):
 
 
 def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
-                rel_floor: float = 0.05) -> float | None:
-    """Growth rate sigma [1/s] of an oscillation: slope of log |hilbert(x - mean x)|.
+                rel_floor: float = 0.02) -> float | None:
+    """Growth rate sigma [1/s] of an oscillation: slope of the log of its half-cycle peaks.
 
-    The first and last 10 % are dropped (Hilbert end effects) and so is any
-    envelope at or below ``floor_m`` (e.g. a few encoder counts) or below
-    ``rel_floor`` of its peak (a decay that has reached the noise floor would
-    bias sigma towards zero). None when fewer than 20 points remain.
+    The offset (friction, quantisation) is the mean of the last fifth: a decay has
+    settled there and a growth is a near zero-mean oscillation. Between
+    consecutive zero crossings of x - offset the largest |x - offset| is one
+    peak; for e^(sigma t) sin(w t + phi) the sums of consecutive peaks lie
+    exactly on a line in log scale, slope sigma. Peaks at or below ``floor_m`` (a few encoder counts)
+    or ``rel_floor`` of the largest are dropped (a decay that reached the noise
+    floor would bias sigma towards zero), and so are the partial first and last
+    half-cycles. None with fewer than 3 peaks.
     """
     x = np.asarray(x, float)
     t = np.asarray(t, float)
-    if x.size < 50:
+    if x.size < 10:
         return None
-    env = np.abs(hilbert(x - x.mean()))
-    cut = x.size // 10
-    t, env = t[cut:x.size - cut], env[cut:x.size - cut]
-    ok = env > max(floor_m, rel_floor * env.max(), 1e-12)
-    if ok.sum() < 20:
+    y = x - x[-max(x.size // 5, 1):].mean()
+    edges = np.flatnonzero(np.signbit(y[1:]) != np.signbit(y[:-1])) + 1
+    if edges.size < 3:
         return None
-    slope, _ = np.polyfit(t[ok], np.log(env[ok]), 1)
+    tp, yp = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        i = a + int(np.argmax(np.abs(y[a:b])))
+        tp.append(t[i])
+        yp.append(abs(y[i]))
+    # Consecutive peaks have opposite signs: their sum (peak to peak) is free of any
+    # error in the offset, and for the exponential it is A0 e^(sigma t_k) (1 + e^(sigma h)).
+    tp, yp = np.array(tp[:-1]), np.array(yp[:-1]) + np.array(yp[1:])
+    ok = yp > max(2 * floor_m, rel_floor * yp.max(), 1e-12)
+    if ok.sum() < 3:
+        return None
+    slope, _ = np.polyfit(tp[ok], np.log(yp[ok]), 1)
     return float(slope)
 
 

@@ -25,6 +25,8 @@ DEVIATION_BAND_RAD_S = (2.0, 100.0)
 
 @dataclass(frozen=True)
 class EtfeConfig(Config):
+    """White-noise ETFE of the closed loop with a chosen VE (sec. 4.2), theory overlay."""
+
     ve: str = "spring-damper"
     K: float = 50.0  # N/m
     B: float = 1.0  # N s/m

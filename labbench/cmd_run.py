@@ -1,0 +1,224 @@
+"""``labbench run {chirp-id,etfe,stability,demo}``: run a protocol on a device, record a session.
+
+Protocol options are generated from the protocol's config dataclass: field
+``w0_rad_s`` becomes ``--w0-rad-s`` (``none`` for an absent optional value).
+``demo`` runs chirp-ID, then the paper's ETFE (K = 50, B = 1, w0 = 125) with the
+identified m, b as theory overlay, then writes the report of both sessions.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+from dataclasses import MISSING, fields
+
+from labbench.cli import json_safe
+from labbench.devices import DEVICES, open_device
+from labbench.errors import UserError
+from labbench.progress import ProgressBar
+from labbench.rig import load_rig
+
+# Config fields the CLI sets itself (from the rig).
+_HIDDEN = ("sample_time_s",)
+_EXIT = {"success": 0, "failed": 1, "aborted": 130}
+
+
+def register(subparsers) -> None:
+    from protocols import PROTOCOLS
+
+    p = subparsers.add_parser("run", help="run a protocol on a device and record a session",
+                              description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="protocol", required=True, metavar="{chirp-id,etfe,stability,demo}")
+    for name, (_, config_cls) in PROTOCOLS.items():
+        sp = sub.add_parser(name, help=(config_cls.__doc__ or name).splitlines()[0])
+        _common(sp)
+        _config_options(sp, config_cls)
+        sp.set_defaults(func=cmd_run)
+    demo = sub.add_parser("demo", help="chirp-ID, then ETFE K=50 B=1 w0=125, then the report")
+    _common(demo)
+    demo.add_argument("--chirp-duration-s", type=float, default=60.0, help="chirp length [s]")
+    demo.add_argument("--etfe-duration-s", type=float, default=120.0, help="white-noise length [s]")
+    demo.add_argument("--seed", type=int, default=1, help="white-noise seed (default 1)")
+    demo.add_argument("--no-report", action="store_true", help="skip the HTML/PDF report")
+    demo.set_defaults(func=cmd_demo)
+
+
+def _common(sp) -> None:
+    sp.add_argument("--device", choices=list(DEVICES), default="sim", help="backend (default sim)")
+    sp.add_argument("--rig", metavar="FILE", help="rig TOML file (default: simulated Phantom-like)")
+    sp.add_argument("--realtime", action="store_true", help="pace the simulator in real time")
+    sp.add_argument("--out", metavar="DIR", default="sessions", help="session directory (./sessions)")
+    sp.add_argument("--json", action="store_true", help="print one JSON object: sessions, results")
+
+
+def _config_options(sp, config_cls) -> None:
+    """One option per config field, typed from its annotation."""
+    for f in fields(config_cls):
+        if f.name in _HIDDEN:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        ann = str(f.type)
+        default = None if f.default is MISSING else f.default
+        if ann == "bool":
+            sp.add_argument(flag, dest=f.name, action="store_true", default=argparse.SUPPRESS,
+                            help=f"(default {default})")
+            continue
+        if ann.startswith("tuple"):
+            kind = _words
+        elif ann.startswith("float"):
+            kind = _number
+        elif ann.startswith("int"):
+            kind = _whole
+        else:
+            kind = _text
+        sp.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, metavar="X",
+                        help=f"(default {','.join(default) if isinstance(default, tuple) else default})")
+
+
+def _none(text: str) -> bool:
+    return text.strip().lower() in ("none", "off", "")
+
+
+def _number(text: str):
+    if _none(text):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or none, got {text!r}") from None
+
+
+def _whole(text: str):
+    if _none(text):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or none, got {text!r}") from None
+
+
+def _text(text: str):
+    return None if _none(text) else text
+
+
+def _words(text: str) -> tuple:
+    return tuple(w.strip() for w in text.split(",") if w.strip())
+
+
+_COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json")
+
+
+def _options(args) -> dict:
+    return {k: v for k, v in vars(args).items() if k not in _COMMON}
+
+
+def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
+    """Make the protocol, open the device, run with a session writer; (result, session path)."""
+    from labbench.runner import run
+    from labbench.session import SessionWriter
+    from protocols import make_protocol
+
+    protocol = make_protocol(name, sample_time_s=rig.sample_time_s, **options)
+    dev_opts = {"seed": protocol.seed}
+    if args.realtime:
+        dev_opts["realtime"] = True
+    writer = SessionWriter(args.out)
+    try:
+        device = open_device(args.device, rig, **dev_opts)
+        with ProgressBar(name) as bar:
+            result = run(device, protocol, [writer], stop=stop, progress=bar, rig=rig)
+    finally:
+        writer.close()
+    return result, writer.path
+
+
+def cmd_run(args) -> int:
+    rig = load_rig(args.rig)
+    result, path = _run_one(args, rig, args.protocol, _options(args), threading.Event())
+    out = {"protocol": args.protocol, "status": result.status, "reason": result.reason,
+           "sessions": [str(path)], "session": str(path), "results": result.results,
+           "timing": result.timing}
+    _print(args, out, [(args.protocol, result, path)])
+    return _EXIT.get(result.status, 1)
+
+
+def cmd_demo(args) -> int:
+    """Chirp-ID, then ETFE with the paper's spring-damper and the identified m, b, then the report."""
+    for name in ("chirp_duration_s", "etfe_duration_s"):
+        if not getattr(args, name) > 0:
+            raise UserError(f"--{name.replace('_', '-')} must be positive")
+    rig = load_rig(args.rig)
+    stop = threading.Event()
+    runs = []
+    chirp, chirp_path = _run_one(args, rig, "chirp-id",
+                                 {"duration_s": args.chirp_duration_s}, stop)
+    runs.append(("chirp-id", chirp, chirp_path))
+    out = {"protocol": "demo", "sessions": [str(chirp_path)], "results": {"chirp-id": chirp.results}}
+    m, b = chirp.results.get("m"), chirp.results.get("b")
+    if chirp.status != "success" or m is None or b is None or not m > 0 or b < 0:
+        out.update(status="failed", reason=f"chirp-ID did not give a plant: {chirp.reason}")
+        _print(args, out, runs)
+        return _EXIT.get(chirp.status, 1) or 1
+    etfe, etfe_path = _run_one(args, rig, "etfe", {
+        "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
+        "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m, "plant_b": b}, stop)
+    runs.append(("etfe", etfe, etfe_path))
+    out["sessions"].append(str(etfe_path))
+    out["results"]["etfe"] = etfe.results
+    out.update(status=etfe.status, reason=etfe.reason)
+    if etfe.status == "success" and not args.no_report:
+        from labbench.report import write_report
+
+        html, pdf = write_report([chirp_path, etfe_path], args.out)
+        out["report"] = {"html": str(html), "pdf": str(pdf)}
+    _print(args, out, runs)
+    return _EXIT.get(out["status"], 1)
+
+
+def _print(args, out: dict, runs) -> None:
+    if args.json:
+        print(json.dumps(json_safe(out), allow_nan=False))
+        return
+    for name, result, path in runs:
+        print(f"{name}: {result.status} ({result.reason}); session {path}")
+        for line in summary_lines(name, result.results):
+            print("  " + line)
+    if out.get("report"):
+        print(f"report: {out['report']['html']}  {out['report']['pdf']}")
+    sys.stdout.flush()
+
+
+def summary_lines(name: str, results: dict) -> list[str]:
+    """A few human-readable lines of a protocol's results."""
+    if not results:
+        return []
+    if "error" in results:
+        return [str(results["error"])]
+    lines = []
+    if name == "chirp-id":
+        for method, r in results.get("identification", {}).items():
+            lines.append(f"{method}: m = {r['m']:.5g} kg, b = {r['b']:.5g} N s/m ({r['model']})")
+    elif name == "etfe":
+        d = results.get("deviation_vs_sampled", {})
+        p = results.get("plant", {})
+        if d.get("median_rel") is not None:
+            lines.append(f"|Z - Z_sampled| / |Z_sampled| over {d['band_rad_s'][0]:g}-"
+                         f"{d['band_rad_s'][1]:g} rad/s: median {100 * d['median_rel']:.2f} %, "
+                         f"max {100 * d['max_rel']:.2f} % (m = {p.get('m', 0):.4g} kg, "
+                         f"b = {p.get('b', 0):.4g} N s/m)")
+        bw = results.get("bandwidths", {})
+        lines.append("w_s* measured {} / predicted {} rad/s; w_b* measured {} / predicted {} rad/s".format(
+            *(_g(bw.get(k)) for k in ("ws_star_measured", "ws_star_predicted", "wb_star_measured",
+                                      "wb_star_predicted"))))
+    elif name == "stability":
+        unit = "N/m" if results.get("variable") == "K" else "s"
+        lines.append(f"boundary ({results.get('variable')}): measured {_g(results.get('measured_boundary'))}, "
+                     f"exact {_g(results.get('exact_boundary'))}, paper approx. "
+                     f"{_g(results.get('approx_boundary'))} {unit}")
+    return lines
+
+
+def _g(v) -> str:
+    return "-" if v is None else f"{v:.4g}"
+
