@@ -46,4 +46,6 @@ def _print_summary(s: dict) -> None:
         t = f"{e['t']:.3f} s" if isinstance(e["t"], (int, float)) else "-"
         print(f"event     {t}  {e['name']}: {e['reason']}")
     if s["timing"]:
-        print("timing    " + ", ".join(f"{k} {v}" for k, v in s["timing"].items()))
+        print("timing    " + ", ".join(
+            f"{k[:-2]} {v * 1e3:.3g} ms" if k.endswith("_s") and isinstance(v, float) else f"{k} {v}"
+            for k, v in s["timing"].items()))
