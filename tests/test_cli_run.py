@@ -1,0 +1,87 @@
+"""``labbench run``: JSON shape, sessions on disk, one-line errors with exit 2, the demo."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from labbench import theory
+from labbench.cli import main
+from labbench.session import read_session
+from labbench.ve import Plant, VirtualEnvironment
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _json(capsys, argv):
+    code = main(argv)
+    out = capsys.readouterr().out
+    return code, json.loads(out)
+
+
+def test_stability_json_keys_and_session(tmp_path, capsys):
+    code, out = _json(capsys, ["run", "stability", "--td-s", "0.002", "--K", "30",
+                               "--out", str(tmp_path), "--json"])
+    assert code == 0
+    assert set(out) >= {"protocol", "status", "reason", "session", "sessions", "results", "timing"}
+    assert out["status"] == "success" and out["protocol"] == "stability"
+    km = theory.k_max(Plant(0.094, 0.1), VirtualEnvironment("spring", 1.0, td=0.002))
+    assert out["results"]["exact_boundary"] == pytest.approx(km)
+    assert out["results"]["measured_boundary"] == pytest.approx(km, rel=0.01)
+    recs = list(read_session(out["session"]))
+    assert recs[0]["kind"] == "start" and recs[-1]["kind"] == "stop"
+    assert recs[-1]["status"] == "success"
+    assert recs[-1]["results"]["measured_boundary"] == pytest.approx(out["results"]["measured_boundary"])
+
+
+def test_chirp_id_json_and_human_output(tmp_path, capsys):
+    code, out = _json(capsys, ["run", "chirp-id", "--duration-s", "20", "--methods", "l2",
+                               "--out", str(tmp_path), "--json"])
+    assert code == 0
+    fit = out["results"]["identification"]["l2"]
+    assert fit["m"] == pytest.approx(0.094, rel=0.02) and fit["b"] == pytest.approx(0.10, rel=0.02)
+    assert main(["run", "chirp-id", "--duration-s", "20", "--methods", "l2", "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "chirp-id: success" in text and "l2: m = 0.094" in text
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["run", "etfe", "--K", "-3"], "K must be >= 0"),
+    (["run", "etfe", "--K", "abc"], "expected a number"),
+    (["run", "etfe", "--ve", "spring", "--K", "400", "--B", "0", "--w0-rad-s", "none"],
+     "refusing unstable spring"),
+    (["run", "etfe", "--td-s", "0.0005"], "whole number of samples"),
+    (["run", "etfe", "--device", "nope"], "invalid choice"),
+    (["run", "chirp-id", "--rig", "/nonexistent/rig.toml"], "rig file not found"),
+    (["run", "chirp-id", "--x-max-m", "0.09"], "outside the rig's window"),
+    (["run", "demo", "--etfe-duration-s", "0"], "must be positive"),
+])
+def test_bad_options_exit_2_with_one_line(tmp_path, argv, words):
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    p = subprocess.run([sys.executable, "-m", "labbench.cli", *argv, "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0], p.stderr
+    assert "Traceback" not in p.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing recorded
+
+
+def test_demo_short_produces_sessions_and_report(tmp_path, capsys):
+    code, out = _json(capsys, ["run", "demo", "--chirp-duration-s", "20", "--etfe-duration-s", "30",
+                               "--out", str(tmp_path), "--json"])
+    assert code == 0 and out["status"] == "success"
+    assert len(out["sessions"]) == 2 and all(Path(p).exists() for p in out["sessions"])
+    chirp, etfe = out["results"]["chirp-id"], out["results"]["etfe"]
+    # the ETFE overlay uses the chirp's identified plant
+    assert etfe["plant"] == {"m": chirp["m"], "b": chirp["b"]}
+    start = next(iter(read_session(out["sessions"][1])))
+    assert start["protocol"]["plant_m_kg"] == chirp["m"]
+    assert start["protocol"]["K"] == 50.0 and start["protocol"]["w0_rad_s"] == 125.0
+    assert etfe["deviation_vs_sampled"]["max_rel"] < 0.05
+    assert Path(out["report"]["html"]).stat().st_size > 0
+    assert Path(out["report"]["pdf"]).read_bytes()[:5] == b"%PDF-"
