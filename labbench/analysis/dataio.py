@@ -133,3 +133,24 @@ def _meta_value(text: str):
     except ValueError:
         return text
     return value if math.isfinite(value) or math.isinf(value) else text
+
+
+def position_quantum(x: np.ndarray) -> float | None:
+    """Encoder step [m] if all positions sit on one grid, else None.
+
+    The candidate step is the smallest non-zero change between samples; the
+    record counts as quantised when every position is a whole number of steps
+    from the first (within 1e-3 step).
+    """
+    x = np.asarray(x, float)
+    if len(x) > 4096 and position_quantum(x[:: len(x) // 2048]) is None:
+        return None  # cheap rejection on a subsample; a grid holds on every subsample
+    d = np.abs(np.diff(x))
+    d = d[d > 0]
+    if d.size == 0:
+        return None
+    q = float(d.min())
+    steps = (x - x[0]) / q
+    if np.max(np.abs(steps)) > 2**40 or np.max(np.abs(steps - np.round(steps))) > 1e-3:
+        return None
+    return q

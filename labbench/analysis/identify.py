@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage, stats
 
 from labbench.analysis import l1
-from labbench.analysis.dataio import Recording
+from labbench.analysis.dataio import Recording, position_quantum
 from labbench.analysis.derivatives import default_cutoff, differentiate
 from labbench.errors import UserError
 
@@ -243,7 +243,7 @@ def _flags(res: IdResult, data: _Data, fit, method: str, selection: dict) -> lis
             mbc = float(fit(data.design(sel["model"]), data.y)[2])
             flags.append(f"unmodelled-coulomb: a Coulomb term of {mbc:.3g} N is supported by the data; "
                          "use --model mbc or auto")
-    q = _quantum(data.x)
+    q = position_quantum(data.x)
     if q:
         a_sig = np.std(data.cols["m"])
         rel = q / np.sqrt(12) * data.a_noise_gain / max(a_sig, 1e-300)
@@ -269,15 +269,3 @@ def _count_outliers(r: np.ndarray, floor: float) -> int:
     rb = r[:n].reshape(-1, OUTLIER_BLOCK)
     scale = 1.4826 * np.median(np.abs(rb - np.median(rb, axis=1, keepdims=True)), axis=1, keepdims=True)
     return int(np.sum(d[:n].reshape(-1, OUTLIER_BLOCK) > np.maximum(OUTLIER_SIGMAS * scale, floor)))
-
-
-def _quantum(x: np.ndarray) -> float | None:
-    """Encoder step if all positions sit on one grid (within 1e-3 of a step), else None."""
-    u = np.unique(x)
-    if len(u) < 3 or len(u) > len(x) // 4:
-        return None
-    d = np.diff(u)
-    q = float(d.min())
-    if q <= 0 or not np.allclose(d / q, np.round(d / q), atol=1e-3, rtol=0):
-        return None
-    return q

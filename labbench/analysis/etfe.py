@@ -1,0 +1,295 @@
+"""Empirical transfer-function estimates of the closed-loop impedance Z = F/(jw X)
+(paper sec. 4.2): ``force`` is the exogenous force, ``position`` the sampled position.
+
+Estimators (``ESTIMATORS``):
+
+* ``paper`` - the paper's method exactly: raw ratio of the DFTs of force and
+  position over jw, smoothed in the complex domain by a Hamming window of
+  ``window`` bins (normalised weights; the DC bin is left out, see DESIGN.md).
+* ``h1-welch`` - H1 = S_fx / S_ff from Welch-averaged spectra (Hann segments
+  of 2^14 samples, 50 % overlap, linear detrend per segment; Bendat & Piersol,
+  Random Data, sec. 9.1); Z = 1 / (jw H1).
+* ``h1-log`` - H1 from the full-record DFT, cross and auto spectra averaged
+  over bands of constant relative width (log-spaced resolution), on a log grid.
+* ``lpm`` - local polynomial method (Pintelon & Schoukens, System
+  Identification, 2nd ed., sec. 7.2.2): in each band X_k = G(k) F_k + T(k) with
+  G and the leakage/transient term T both quadratic in k, fitted by least
+  squares. T absorbs the record-edge leakage that a drifting position (a pure
+  damper lets the handle wander) throws over the low frequencies, so drift does
+  not spoil the estimate. Log grid, constant relative band width.
+
+Per frequency: coherence gamma^2, a 95 % radius |dZ| (``Z_err``), and a
+low-coherence mask. Flags name the failure modes seen in the data.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import fft, signal
+
+from labbench.analysis.dataio import Recording, position_quantum
+from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.errors import UserError
+
+ESTIMATORS = ("lpm", "h1-log", "h1-welch", "paper")
+DEFAULT_ESTIMATOR = "lpm"
+GRID_PER_DECADE = 60
+REL_BAND = 0.05  # half-width of a band relative to its centre frequency
+MIN_HALF_BINS, MAX_HALF_BINS = 4, 100
+LPM_ORDER = 2
+WELCH_SEGMENT = 2**14
+LOW_COHERENCE = 0.8
+W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
+LITTLE_EXCITATION = 1e-3  # force power relative to its in-band median
+QUANT_SNR = 0.01  # quantisation noise power relative to position power
+LEAKAGE = 0.1  # edge-leakage amplitude relative to |X| that counts as drift
+R95 = float(np.sqrt(np.log(20.0)))  # 95 % radius of a circular complex Gaussian, in sigmas
+
+
+@dataclass
+class EtfeResult:
+    estimator: str
+    w: np.ndarray  # rad/s
+    Z: np.ndarray  # N s/m, complex
+    coherence: np.ndarray
+    Z_err: np.ndarray  # 95 % radius |dZ|
+    low_coherence: np.ndarray  # bool
+    flags: list = field(default_factory=list)
+    window: int | None = None
+
+    def as_dict(self) -> dict:
+        eff = effective_impedances(self.w, self.Z)
+        return {
+            "estimator": self.estimator,
+            "w": self.w,
+            "Z_re": self.Z.real,
+            "Z_im": self.Z.imag,
+            "ES": eff.ES,
+            "ED": eff.ED,
+            "EM": eff.EM,
+            "coherence": self.coherence,
+            "ws_star": measured_ws_star(self.w, eff.ES),
+            "wb_star": None,
+            "Z_err": self.Z_err,
+            "low_coherence": self.low_coherence,
+            "flags": list(self.flags),
+        }
+
+
+def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> EtfeResult:
+    """Estimate Z(jw) from a recording with the named estimator (default DEFAULT_ESTIMATOR)."""
+    estimator = estimator or DEFAULT_ESTIMATOR
+    if estimator not in ESTIMATORS:
+        raise UserError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+    if window < 3:
+        raise UserError(f"--window must be at least 3 bins, got {window}")
+    T = 1.0 / rec.fs
+    f = np.asarray(rec.force, float)
+    x = np.asarray(rec.position, float)
+    F = fft.rfft(f)
+    X = fft.rfft(x)
+    dw = 2 * np.pi / (len(f) * T)
+    if estimator == "h1-welch":
+        res = _h1_welch(f, x, rec.fs)
+    else:
+        if estimator == "paper":
+            res = _paper(F, X, dw, window)
+        elif estimator == "h1-log":
+            res = _h1_log(F, X, dw)
+        else:
+            res = _lpm(F, X, dw)
+    res.flags = _flags(res, rec, F, X)
+    return res
+
+
+# ----------------------------------------------------------------------------- estimators
+def _paper(F, X, dw, window) -> EtfeResult:
+    k = np.arange(1, len(F))  # DC left out: F/(jw X) is undefined there
+    w = k * dw
+    raw = F[k] / (1j * w * X[k])
+    h = np.hamming(window)
+    num = signal.oaconvolve(raw, h, mode="same")
+    den = signal.oaconvolve(np.ones(len(raw)), h, mode="same")
+    Z = num / den
+    # coherence and spread from the same window: weighted agreement of the raw ratios
+    Sff = signal.oaconvolve(np.abs(F[k]) ** 2, h, mode="same")
+    Sxx = signal.oaconvolve(np.abs(X[k]) ** 2, h, mode="same")
+    Sfx = signal.oaconvolve(np.conj(F[k]) * X[k], h, mode="same")
+    coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
+    n_eff = h.sum() ** 2 / np.sum(h**2)
+    err = _h1_err(Z, coh, n_eff)
+    return EtfeResult("paper", w, Z, coh, err, coh < LOW_COHERENCE, window=window)
+
+
+def _h1_err(Z, coh, n_avg):
+    """95 % radius of Z from H1 statistics: |dG|/|G| ~ sqrt((1 - g^2) / (n g^2))
+    (Bendat & Piersol, Random Data, eq. 9.52, per real component -> circular)."""
+    rel = np.sqrt(np.maximum(1 - coh, 0) / (np.maximum(coh, 1e-12) * np.maximum(n_avg, 1)))
+    return R95 * np.abs(Z) * rel
+
+
+def _h1_welch(f, x, fs) -> EtfeResult:
+    nper = min(WELCH_SEGMENT, len(f))
+    kw = dict(fs=fs, nperseg=nper, detrend="linear")
+    freq, Sff = signal.welch(f, **kw)
+    _, Sxx = signal.welch(x, **kw)
+    _, Sfx = signal.csd(f, x, **kw)
+    k = slice(1, None)
+    w = 2 * np.pi * freq[k]
+    Z = Sff[k] / (1j * w * Sfx[k])
+    coh = np.clip(np.abs(Sfx[k]) ** 2 / (Sff[k] * Sxx[k]), 0, 1)
+    n_seg = max(1, 2 * len(f) // nper - 1)
+    return EtfeResult("h1-welch", w, Z, coh, _h1_err(Z, coh, n_seg), coh < LOW_COHERENCE)
+
+
+def _grid(n_bins: int, dw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Log-spaced centre bins (GRID_PER_DECADE per decade) and their band half-widths."""
+    k_lo = MIN_HALF_BINS + 1
+    k_hi = n_bins - 1 - MAX_HALF_BINS
+    if k_hi <= k_lo:
+        raise UserError("record too short for a frequency response (need a few hundred samples)")
+    n = int(np.ceil(np.log10(k_hi / k_lo) * GRID_PER_DECADE)) + 1
+    k = np.unique(np.round(np.geomspace(k_lo, k_hi, n)).astype(int))
+    half = np.clip(np.round(REL_BAND * k).astype(int), MIN_HALF_BINS, MAX_HALF_BINS)
+    half = np.minimum(half, k - 1)
+    return k, half
+
+
+def _band_sum(values, k, half):
+    c = np.concatenate([[0], np.cumsum(values)])
+    return c[k + half + 1] - c[k - half]
+
+
+def _h1_log(F, X, dw) -> EtfeResult:
+    k, half = _grid(len(F), dw)
+    w = k * dw
+    Sff = _band_sum(np.abs(F) ** 2, k, half)
+    Sxx = _band_sum(np.abs(X) ** 2, k, half)
+    Sfx = _band_sum(np.conj(F) * X, k, half)
+    Z = Sff / (1j * w * Sfx)
+    coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
+    return EtfeResult("h1-log", w, Z, coh, _h1_err(Z, coh, 2 * half + 1), coh < LOW_COHERENCE)
+
+
+def _lpm(F, X, dw) -> EtfeResult:
+    k, half = _grid(len(F), dw)
+    w = k * dw
+    q = LPM_ORDER + 1
+    offs = np.arange(-MAX_HALF_BINS, MAX_HALF_BINS + 1)
+    inside = np.abs(offs)[None, :] <= half[:, None]
+    idx = np.clip(k[:, None] + offs[None, :], 0, len(F) - 1)
+    Fw = np.where(inside, F[idx], 0)
+    Xw = np.where(inside, X[idx], 0)
+    r = np.where(inside, offs[None, :] / half[:, None], 0.0)
+    rp = np.empty(r.shape + (2 * q - 1,))  # r^0 .. r^(2q-2), zero outside the band
+    rp[:, :, 0] = inside
+    for m in range(1, 2 * q - 1):
+        np.multiply(rp[:, :, m - 1], r, out=rp[:, :, m])
+    # Normal equations of X_j = sum_p g_p r^p F_j + sum_p t_p r^p from weighted moments
+    # (regressors F r^p for G, r^p for the transient T; masked outside the band).
+    mom_ff = _moments(np.abs(Fw) ** 2, rp)
+    mom_f = _moments(Fw, rp)
+    mom_1 = _moments(inside.astype(float), rp)
+    hank = np.add.outer(np.arange(q), np.arange(q))  # p + p'
+    M = np.empty((len(k), 2 * q, 2 * q), complex)
+    M[:, :q, :q] = mom_ff[:, hank]
+    M[:, :q, q:] = np.conj(mom_f[:, hank])
+    M[:, q:, :q] = mom_f[:, hank]
+    M[:, q:, q:] = mom_1[:, hank]
+    rhs = np.concatenate([_moments(np.conj(Fw) * Xw, rp[:, :, :q]), _moments(Xw, rp[:, :, :q])], axis=1)
+    Minv = np.linalg.inv(M)
+    theta = np.einsum("gab,gb->ga", Minv, rhs)
+    rss = np.sum(np.abs(Xw) ** 2, axis=1) - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
+    n_in = inside.sum(axis=1)
+    s2 = np.maximum(rss, 0) / np.maximum(n_in - 2 * q, 1)
+    G = theta[:, 0]
+    sG = np.sqrt(s2 * np.real(Minv[:, 0, 0]))
+    Z = 1.0 / (1j * w * G)
+    # coherence: share of the output (transient removed) that G F explains
+    explained = np.abs(G) ** 2 * mom_ff[:, 0] / n_in
+    coh = np.clip(explained / (explained + s2), 0, 1)
+    err = R95 * np.abs(Z) * sG / np.abs(G)
+    return EtfeResult("lpm", w, Z, coh, err, coh < LOW_COHERENCE)
+
+
+def _moments(weights, rp):
+    """sum_j weights[g, j] * rp[g, j, m] as batched real matmuls (complex weights split)."""
+    if np.iscomplexobj(weights):
+        return _moments(weights.real, rp) + 1j * _moments(weights.imag, rp)
+    return (weights[:, None, :] @ rp)[:, 0, :]
+
+
+def _flags(res: EtfeResult, rec: Recording, F: np.ndarray, X: np.ndarray) -> list[str]:
+    """Failure modes, each named with where it bites (frequencies in rad/s)."""
+    flags = []
+    n = len(rec.force)
+    dw = 2 * np.pi * rec.fs / n
+    w = res.w
+    duration = n / rec.fs
+    if w[0] > W_BAND[0]:
+        flags.append(f"short-record: {duration:.3g} s resolves only from {w[0]:.3g} rad/s; "
+                     f"{W_BAND[0]:g} rad/s needs about {duration * w[0] / W_BAND[0]:.0f} s")
+    low = res.low_coherence
+    if low.any():
+        flags.append(f"low-coherence: {int(low.sum())} of {len(w)} frequencies have gamma^2 < "
+                     f"{LOW_COHERENCE:g} ({_spans(w, low)} rad/s)")
+    # force power per bin around each output frequency, against its median over the band
+    Pf = _smooth_at(np.abs(F) ** 2, w, dw)
+    band = (w >= W_BAND[0]) & (w <= W_BAND[1])
+    ref = np.median(Pf[band]) if band.any() else np.median(Pf)
+    weak = Pf < LITTLE_EXCITATION * ref
+    if weak.any():
+        flags.append(f"little-excitation: force power below {100 * LITTLE_EXCITATION:g} % of its "
+                     f"median at {_spans(w, weak)} rad/s; Z there is unreliable")
+    q = position_quantum(np.asarray(rec.position))
+    if q or res.estimator != "lpm":
+        Px = _smooth_at(np.abs(_without_edge_jump(X, rec.position)) ** 2, w, dw)
+    if q:
+        noisy = n * q**2 / 12 > QUANT_SNR * Px
+        if noisy.any():
+            flags.append(f"quantised-position: encoder step {q:.3g} m; its noise exceeds "
+                         f"{100 * QUANT_SNR:g} % of the position power at {_spans(w, noisy)} rad/s")
+    if res.estimator != "lpm":
+        # record-edge leakage: the jump x[-1] - x[0] of the periodic extension adds
+        # about |jump| / (w T) to every |X_k| (lpm fits and removes this term)
+        jump = abs(float(rec.position[-1] - rec.position[0]))
+        leaky = band & (jump * rec.fs / w > LEAKAGE * np.sqrt(Px))
+        if leaky.any():
+            flags.append(f"drift: position ends {jump:.3g} m from where it started; leakage exceeds "
+                         f"{100 * LEAKAGE:g} % of |X| at {_spans(w, leaky)} rad/s for this estimator "
+                         "(lpm removes it)")
+    return flags
+
+
+def _smooth_at(power: np.ndarray, w: np.ndarray, dw: float) -> np.ndarray:
+    """Mean of a per-bin power over a band of relative half-width REL_BAND around each w."""
+    k = np.clip(np.round(w / dw).astype(int), 1, len(power) - 2)
+    half = np.clip(np.round(REL_BAND * k).astype(int), 1, k)
+    half = np.minimum(half, len(power) - 1 - k)
+    return _band_sum(power, k, half) / (2 * half + 1)
+
+
+def _without_edge_jump(X: np.ndarray, x) -> np.ndarray:
+    """DFT of x minus the ramp from x[0] to x[-1]: no edge-jump leakage.
+
+    The ramp's DFT is known in closed form: sum_n n e^{-j 2 pi k n / N} = -N / (1 - e^{-j 2 pi k / N}).
+    """
+    N = len(x)
+    jump = float(x[-1] - x[0])
+    k = np.arange(1, len(X))
+    ramp = -jump / (N - 1) * N / (-np.expm1(-2j * np.pi * k / N))
+    out = X.copy()
+    out[1:] -= ramp
+    out[0] -= jump * N / 2
+    return out
+
+
+def _spans(w: np.ndarray, mask: np.ndarray, max_spans: int = 4) -> str:
+    """Compact text of the runs of consecutive True in mask, as w ranges."""
+    m = np.concatenate([[False], mask, [False]]).astype(int)
+    starts = np.flatnonzero(np.diff(m) == 1)
+    ends = np.flatnonzero(np.diff(m) == -1) - 1
+    parts = [f"{w[a]:.3g}" if a == b else f"{w[a]:.3g}-{w[b]:.3g}" for a, b in zip(starts, ends)]
+    more = f" and {len(parts) - max_spans} more" if len(parts) > max_spans else ""
+    return ", ".join(parts[:max_spans]) + more
