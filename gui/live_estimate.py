@@ -43,7 +43,7 @@ class Estimate:
     wb_theory: float | None = None
 
     def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """(low, high) of ES, ED or EM from |Z_err| (Re and Im each move by at most |Z_err|)."""
+        """(low, high) of ES, ED or EM from the 95 % radius Z_err (Re and Im each move by at most it)."""
         scale = {"ES": self.w, "ED": np.ones_like(self.w), "EM": 1.0 / self.w}[name]
         mid = getattr(self, name)
         half = np.abs(self.Z_err) * scale

@@ -87,7 +87,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             p.addItem(pg.FillBetweenItem(lo, hi, brush=COLOURS["band"]))
             named = key == "ES"  # one legend (on ES) serves all three rows
             self.curves[key] = p.plot(pen=_pen("measured"),
-                                      name="measured (ETFE) +- Z_err" if named else None)
+                                      name="measured (ETFE), 95 % band" if named else None)
             self.curves[key + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine),
                                                   name="theory" if named else None)
             self.plots[key] = p

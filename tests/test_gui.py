@@ -70,7 +70,7 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
 
     # time traces: the last 5000 samples of the stream, per channel
     for name in ("position", "velocity", "command", "excitation"):
-        x, y = win.traces.curves[name].getData()
+        _, y = win.traces.curves[name].getOriginalDataset()
         np.testing.assert_array_equal(y, win.buffer.channel(name)[-5000:])
 
     # the session on disk holds the same stream, plus the ParameterTree state
@@ -95,14 +95,20 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     wt, yt = win.impedance.curves["ED_theory"].getData()
     Zt = theory_curve(est.plant, ve_from_meta(meta), est.theory["w"], "sampled")
     np.testing.assert_allclose(yt, Zt.real, rtol=1e-9)
-    # the ETFE follows that theory over the band the paper checks (2-100 rad/s)
+    # the ETFE follows the exact theory of the true plant over the paper's band (2-100 rad/s):
+    # the simulator is noise-free, so only estimator bias remains (0.09 % median seen here)
     band = (est.w >= 2) & (est.w <= 100)
     Zb = theory_curve(TRUTH, ve_from_meta(meta), est.w[band], "sampled")
-    assert np.median(np.abs(est.Z[band] - Zb) / np.abs(Zb)) < 0.10
-    # w_s* is marked at the measured crossing, near sqrt(K/m) = 23 rad/s
+    assert np.median(np.abs(est.Z[band] - Zb) / np.abs(Zb)) < 0.01
+    # w_s* is marked where the measured ES crosses zero, as it does on the exact theory curve
+    from labbench.effective import effective_impedances, measured_ws_star
+
+    wg = np.geomspace(1, 300, 3000)
+    ws_true = measured_ws_star(wg, effective_impedances(wg, theory_curve(
+        TRUTH, ve_from_meta(meta), wg, "sampled")).ES)
     assert win.impedance.marks["ws"].isVisible()
     assert 10 ** win.impedance.marks["ws"].value() == pytest.approx(est.ws_measured)
-    assert est.ws_measured == pytest.approx((50 / TRUTH.m) ** 0.5, rel=0.25)
+    assert est.ws_measured == pytest.approx(ws_true, rel=0.05)
 
 
 @needs_etfe
