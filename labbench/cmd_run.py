@@ -137,7 +137,8 @@ def cmd_run(args) -> int:
     rig = load_rig(args.rig)
     result, path = _run_one(args, rig, args.protocol, _options(args), threading.Event())
     out = {"protocol": args.protocol, "status": result.status, "reason": result.reason,
-           "sessions": [str(path)], "session": str(path), "results": result.results,
+           "sessions": [str(path)] if path else [], "session": str(path) if path else None,
+           "results": result.results,
            "timing": result.timing}
     _print(args, out, [(args.protocol, result, path)])
     return _EXIT.get(result.status, 1)

@@ -123,15 +123,13 @@ def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
     except KeyboardInterrupt:
         _stop_device(device, close=False)
         return run_state.finish("aborted", "interrupted (Ctrl-C)")
-    except UserError:
+    except UserError as exc:
         _stop_device(device, close=False)
-        if run_state.started:
-            run_state.finish("failed", "refused")
+        run_state.finish("failed", str(exc))
         raise
     except Exception as exc:
         _stop_device(device, close=False)
-        if run_state.started:
-            run_state.finish("failed", f"{type(exc).__name__}: {exc}")
+        run_state.finish("failed", f"{type(exc).__name__}: {exc}")
         raise
     finally:
         _stop_device(device, close=close)
@@ -187,8 +185,9 @@ class _Run:
     def finish(self, status: str, reason: str) -> RunResult:
         if self.finished is None:
             timing = self.timing()
-            self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
-                                          timing=timing, results=summarize(self.results)))
+            if self.started:  # no stream without its start record (e.g. Ctrl-C in the precheck)
+                self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
+                                              timing=timing, results=summarize(self.results)))
             self.finished = RunResult(status, reason, self.results, timing, self.uid,
                                       self.n_samples)
         return self.finished

@@ -194,3 +194,29 @@ def test_probe_segments_are_announced_and_homing_kept_apart():
 def test_summarize_drops_long_arrays_only():
     s = summarize({"a": np.arange(100), "b": 1.5, "c": {"d": [1, 2], "e": np.zeros(70)}})
     assert s == {"b": 1.5, "c": {"d": [1, 2]}}
+
+
+def test_ctrl_c_before_the_start_record_emits_nothing_and_closes():
+    spy, recs = Spy(), []
+    p = make_protocol("etfe", duration_s=2.0)
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    p.check_plan = interrupted  # Ctrl-C while the precheck runs
+    res = run(spy, p, [recs.append], rig=Rig())
+    assert res.status == "aborted" and recs == []
+    assert "enable" not in spy.calls and spy.calls[-1] == "close"
+
+
+def test_ctrl_c_during_analysis_still_ends_the_stream():
+    spy, recs = Spy(), []
+    p = make_protocol("etfe", duration_s=2.0, seed=1)
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    p.analyze = interrupted
+    res = run(spy, p, [recs.append], rig=Rig())
+    assert res.status == "aborted" and recs[-1]["kind"] == "stop"
+    assert recs[-1]["status"] == "aborted" and spy.calls[-1] == "close"
