@@ -79,3 +79,36 @@ def with_noise(rec: Recording, rng, force_noise: float = 0.0, quantum: float = 0
         f[idx] += outlier_size * rng.choice([-1.0, 1.0], len(idx))
     x = np.round(rec.position / quantum) * quantum if quantum else rec.position.copy()
     return recording_from_arrays(rec.t, f, x, rec.meta, rec.source + " (noisy)")
+
+
+def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PAPER_B,
+                          seed: int = 0, force_std: float = 1.0) -> Recording:
+    """White-noise exogenous force through the exact sampled loop (theory.closed_loop)."""
+    from scipy import signal
+
+    from labbench import theory
+    from labbench.ve import Plant
+
+    f = force_std * np.random.default_rng(seed).standard_normal(n)
+    loop = theory.closed_loop(Plant(m, b), ve)
+    _, y, _ = signal.dlsim(loop.as_dlti(), f)
+    meta = {"fs": 1.0 / ve.T, **{k: v for k, v in ve.as_dict().items() if k != "T" and v is not None}}
+    meta["ve"] = meta.pop("kind")
+    return recording_from_arrays(np.arange(n) * ve.T, f, y[:, 0], meta, "<closed-loop truth>")
+
+
+def z_truth(ve, w, m: float = PAPER_M, b: float = PAPER_B) -> np.ndarray:
+    """Exact sampled impedance at w: what an ETFE of closed_loop_recording converges to."""
+    from labbench import theory
+    from labbench.ve import Plant
+
+    return theory.z_sampled(Plant(m, b), ve, w)
+
+
+def write_csv(rec: Recording, path, extra_meta: dict | None = None) -> None:
+    """CSV in the documented layout (# key=value lines, header, rows), columns shuffled."""
+    with open(path, "w") as fh:
+        for k, v in {**rec.meta, **(extra_meta or {})}.items():
+            fh.write(f"# {k}={v}\n")
+        fh.write("position,t,force\n")
+        np.savetxt(fh, np.column_stack([rec.position, rec.t, rec.force]), delimiter=",", fmt="%.17g")

@@ -18,6 +18,9 @@ ORDER = 4  # per pass; the forward-backward magnitude is that of order 8
 # |H(f)|^2 at f = fc/3 is 1 - 1.5e-4, so the excited band passes unchanged.
 CUTOFF_FACTOR = 3.0
 FORCE_POWER_FRACTION = 0.995
+# Cap of the default cut-off (fraction of fs): central differences are then within
+# (2 pi 0.05)^2 / 6 = 1.6 % of a derivative at the cut-off, far less below it.
+MAX_CUTOFF = 0.05
 
 
 @dataclass(frozen=True)
@@ -30,23 +33,33 @@ class Derivatives:
     noise_gain: tuple[float, float]  # rms of v, a per unit white position noise
 
 
-def default_cutoff(force: np.ndarray, fs: float) -> float:
-    """Cut-off [Hz] from the data: CUTOFF_FACTOR x the band holding most force power.
+def force_band(force: np.ndarray, fs: float) -> float:
+    """Frequency [Hz] below which FORCE_POWER_FRACTION of the force power lies.
 
-    Clipped to [fs/2000, 0.4 fs] so a white excitation gets a filter just below Nyquist.
     A 5-point running median first removes isolated spikes (sensor glitches),
     whose flat spectrum would otherwise widen the band.
     """
     f = ndimage.median_filter(np.asarray(force, float), size=5, mode="nearest")
-    f = f - np.mean(f)
-    p = np.abs(np.fft.rfft(f)) ** 2
+    p = np.abs(np.fft.rfft(f - np.mean(f))) ** 2
     p[0] = 0.0
     c = np.cumsum(p)
     if c[-1] <= 0:
-        return 0.4 * fs
-    k = int(np.searchsorted(c, FORCE_POWER_FRACTION * c[-1]))
-    f_band = k * fs / len(f)
-    return float(np.clip(CUTOFF_FACTOR * f_band, fs / 2000, 0.4 * fs))
+        return fs / 2
+    return float(np.searchsorted(c, FORCE_POWER_FRACTION * c[-1]) * fs / len(f))
+
+
+def default_cutoff(force: np.ndarray, fs: float) -> float:
+    """Cut-off [Hz] from the data: CUTOFF_FACTOR x the band holding most force power.
+
+    Clipped to [fs/2000, MAX_CUTOFF x fs]: a broadband (white) excitation gets
+    a filter well below Nyquist, and the force is then filtered with it too.
+    """
+    return float(np.clip(CUTOFF_FACTOR * force_band(force, fs), fs / 2000, MAX_CUTOFF * fs))
+
+
+def lowpass(values: np.ndarray, fs: float, cutoff_hz: float) -> np.ndarray:
+    """The same zero-phase low-pass as the derivatives use (for matched filtering)."""
+    return signal.sosfiltfilt(_lowpass(cutoff_hz, fs), np.asarray(values, float))
 
 
 def _lowpass(cutoff_hz: float, fs: float):

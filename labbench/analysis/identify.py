@@ -28,7 +28,7 @@ from scipy import ndimage, stats
 
 from labbench.analysis import l1
 from labbench.analysis.dataio import Recording, position_quantum
-from labbench.analysis.derivatives import default_cutoff, differentiate
+from labbench.analysis.derivatives import CUTOFF_FACTOR, default_cutoff, differentiate, force_band, lowpass
 from labbench.errors import UserError
 
 MODELS = ("mb", "mbc", "mbco")
@@ -146,6 +146,10 @@ def _prepare(rec: Recording, cutoff_hz, hold: str) -> _Data:
         raise UserError(f"--cutoff must be between 0 and fs/2 = {fs / 2:g} Hz, got {cutoff_hz}")
     d = differentiate(rec.position, fs, cutoff_hz)
     f = np.asarray(rec.force, float)
+    if force_band(f, fs) > cutoff_hz / CUTOFF_FACTOR:
+        # force has power the derivatives will not see: filter it the same way, so the
+        # linear terms stay exact (a zero-phase filter commutes with m x'' + b x')
+        f = lowpass(f, fs, cutoff_hz)
     if hold == "zoh":  # mean of the forces held over [t-T, t) and [t, t+T)
         f = np.concatenate([[f[0]], 0.5 * (f[1:] + f[:-1])])
     y = f[d.keep]

@@ -1,0 +1,156 @@
+"""``labbench analyze``: identify the device (id) or the closed-loop impedance (etfe) from a record.
+
+FILE is a CSV (``# key=value`` metadata lines, a header naming t, force,
+position) or a recorded labbench session.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from labbench.cli import json_safe
+from labbench.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("analyze", help="identification and ETFE of recorded force/position",
+                              description=__doc__)
+    sub = p.add_subparsers(dest="analysis", required=True, parser_class=type(p))
+    from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS
+    from labbench.analysis.identify import METHODS, MODEL_CHOICES, SOLVERS
+
+    q = sub.add_parser("id", help="fit f = m x'' + b x' [+ Fc sign(x')] [+ f0]",
+                       description="Identify mass, damping (and friction, offset) with 95 % intervals.")
+    q.add_argument("file", metavar="FILE")
+    q.add_argument("--model", choices=MODEL_CHOICES, default="auto",
+                   help="mb, mbc (+Coulomb), mbco (+offset), auto (blocked cross-validation; default)")
+    q.add_argument("--method", choices=METHODS, default="l2", help="l2 least squares or l1 (exact LAD)")
+    q.add_argument("--solver", choices=SOLVERS, default="fast",
+                   help="l1 solver: fast (exact simplex steps, default) or cvxpy (cross-check)")
+    q.add_argument("--cutoff", type=float, metavar="HZ",
+                   help="derivative low-pass cut-off (default: 3x the band of the force)")
+    q.add_argument("--json", action="store_true", help="print one JSON object")
+    q.set_defaults(func=run_id)
+
+    e = sub.add_parser("etfe", help="closed-loop impedance Z = F/(jw X) and effective impedances",
+                       description="Empirical transfer-function estimate with coherence and a 95 % band.")
+    e.add_argument("file", metavar="FILE")
+    e.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
+                   help=f"default {DEFAULT_ESTIMATOR}; paper = the paper's method exactly")
+    e.add_argument("--window", type=int, default=200, metavar="N",
+                   help="Hamming window length in bins for --estimator paper (default 200)")
+    e.add_argument("--m", type=float, metavar="KG", help="device mass for the theory overlay")
+    e.add_argument("--b", type=float, metavar="NS_PER_M", help="device damping for the theory overlay")
+    e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.add_argument("--plot", metavar="FILE", help="paper-style figure (.png, .svg, .pdf)")
+    e.set_defaults(func=run_etfe)
+
+
+def run_id(args) -> int:
+    from labbench.analysis.dataio import load_recording
+    from labbench.analysis.identify import identify
+
+    rec = load_recording(args.file)
+    res = identify(rec, model=args.model, method=args.method, cutoff_hz=args.cutoff, solver=args.solver)
+    d = res.as_dict()
+    if args.json:
+        print(json.dumps(json_safe(d)))
+        return 0
+    print(f"{args.file}: model {d['model']} by {d['method']}, {d['n_used']} samples, "
+          f"derivative cut-off {d['cutoff_hz']:.3g} Hz")
+    units = {"m": "kg", "b": "N s/m", "coulomb": "N", "offset": "N"}
+    for k, unit in units.items():
+        if d[k] is not None:
+            lo, hi = d["ci95"][k]
+            print(f"  {k:8s} = {d[k]:.6g} {unit}   95 % [{lo:.6g}, {hi:.6g}]")
+    print(f"  residual rms {d['rms_residual']:.4g} N, force variance explained {100 * d['explained']:.3f} %")
+    print(f"  selection: {d['selection'].get('criterion')}")
+    for f in d["flags"]:
+        print(f"  flag: {f}")
+    return 0
+
+
+def run_etfe(args) -> int:
+    from labbench.analysis import compare
+    from labbench.analysis.dataio import load_recording
+    from labbench.analysis.etfe import etfe
+    from labbench.ve import Plant
+
+    rec = load_recording(args.file)
+    res = etfe(rec, args.estimator, args.window)
+    d = res.as_dict()
+    ve = compare.ve_from_meta(rec.meta, rec.fs)
+    cmp = None
+    m = args.m if args.m is not None else rec.meta.get("m")
+    b = args.b if args.b is not None else rec.meta.get("b")
+    if (m is None) != (b is None):
+        raise UserError("give both --m and --b (or neither, to identify them from the record)")
+    if ve is not None:
+        source = "given"
+        if m is None:
+            ident = compare.identify_closed_loop(rec, ve)
+            m, b, source = ident.m, ident.b, "identified from this record"
+        cmp = compare.compare(res, Plant(float(m), float(b)), ve)
+        cmp["plant_source"] = source
+        d["wb_star"] = cmp["wb_star"]
+        d["theory"] = {k: v for k, v in cmp.items() if k not in ("Z_theory", "deviation")}
+        d["theory"]["Z_re"] = cmp["Z_theory"].real
+        d["theory"]["Z_im"] = cmp["Z_theory"].imag
+        d["deviation"] = cmp["deviation"]
+    elif m is not None:
+        from labbench.effective import effective_impedances, measured_wb_star
+
+        d["wb_star"] = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
+    if args.plot:
+        _plot(args.plot, rec, res, cmp)
+    if args.json:
+        print(json.dumps(json_safe(d)))
+    else:
+        _print_table(args.file, d, cmp)
+    if args.plot:
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _print_table(path, d, cmp) -> None:
+    w = np.asarray(d["w"])
+    print(f"{path}: estimator {d['estimator']}, {len(w)} frequencies "
+          f"{w[0]:.3g}-{w[-1]:.4g} rad/s; ws* = {_fmt(d['ws_star'])} rad/s, wb* = {_fmt(d['wb_star'])} rad/s")
+    if cmp is not None:
+        print(f"theory ({cmp['model']} model, m = {cmp['plant']['m']:.4g} kg, b = {cmp['plant']['b']:.4g} "
+              f"N s/m {cmp['plant_source']}): deviation median {_pct(cmp['deviation_median'])}, "
+              f"max {_pct(cmp['deviation_max'])} over {cmp['band_rad_s'][0]:g}-{cmp['band_rad_s'][1]:g} rad/s")
+    for f in d["flags"]:
+        print(f"flag: {f}")
+    print(f"{'w rad/s':>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
+          f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}")
+    step = max(1, len(w) // 40)
+    for i in range(0, len(w), step):
+        print(f"{w[i]:10.4g} {d['Z_re'][i]:10.4g} {d['Z_im'][i]:10.4g} {d['Z_err'][i]:10.3g} "
+              f"{d['coherence'][i]:6.3f} {d['ES'][i]:10.4g} {d['ED'][i]:10.4g} {d['EM'][i]:10.4g}")
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.4g}"
+
+
+def _pct(v) -> str:
+    return "-" if v is None else f"{100 * v:.2f} %"
+
+
+def _plot(path, rec, res, cmp) -> None:
+    from labbench.figures import Curve, paper_figure
+
+    curves = [Curve(label=f"measured ({res.estimator})", w=res.w, Z=res.Z, style="points",
+                    Z_err=res.Z_err)]
+    marks = {}
+    title = rec.source
+    if cmp is not None:
+        curves.append(Curve(label=f"theory ({cmp['model']}, m = {cmp['plant']['m']:.3g}, "
+                                  f"b = {cmp['plant']['b']:.3g})", w=res.w, Z=cmp["Z_theory"]))
+        marks = {k: v for k, v in (("ws*", cmp["predicted_ws_star"]),
+                                   ("wb*", cmp["predicted_wb_star"])) if v}
+        ve = cmp["ve"]
+        title = f"{rec.source}: {ve['kind']} K = {ve['K']:g}, B = {ve['B']:g}, td = {ve['td']:g} s"
+    paper_figure(curves, path, title=title, marks=marks)
