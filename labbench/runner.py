@@ -9,9 +9,10 @@ and closed, and - once a start record went out - a stop record follows.
 """
 from __future__ import annotations
 
+import contextlib
 import threading
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
             run_state.emit(records.event_record(
                 run_state.last_t, "segment", segment.label, role=segment.role,
                 ve=segment.ve.as_dict(),
-                n_samples=int(len(segment.excitation))))
+                n_samples=len(segment.excitation)))
 
             def on_progress(n_done, n_total, _first=first, _label=segment.label):
                 if progress is not None:
@@ -213,13 +214,8 @@ def _stop_device(device, close: bool, timeout: float = 1.0) -> None:
         device.command(0.0)
         device.disable(timeout=timeout)
     except Exception:  # noqa: BLE001 - shutting down: the e-stop below is the fallback
-        try:
+        with contextlib.suppress(Exception):
             device.emergency_stop()
-        except Exception:  # noqa: BLE001
-            pass
     if close:
-        try:
+        with contextlib.suppress(Exception):
             device.close()
-        except Exception:  # noqa: BLE001
-            pass
-

@@ -9,8 +9,9 @@ the last one. ``analyze(data, meta)`` turns the recorded channels into results.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Generator
+from typing import Any
 
 import numpy as np
 

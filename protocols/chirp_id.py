@@ -81,7 +81,7 @@ class ChirpId(Protocol):
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.config.duration_s / self.config.sample_time_s))
+        return round(self.config.duration_s / self.config.sample_time_s)
 
     def excitation(self, plant: Plant) -> np.ndarray:
         c = self.config
@@ -90,7 +90,7 @@ class ChirpId(Protocol):
             return excitation.displacement_envelope(f_hz, plant.m, plant.b, c.x_max_m, c.amplitude_n)
 
         return excitation.chirp(self.n_samples, c.sample_time_s, c.f0_hz, c.f1_hz, env, c.sweep,
-                                int(round(c.fade_s / c.sample_time_s)))
+                                round(c.fade_s / c.sample_time_s))
 
     def check_plan(self, plant: Plant, rig=None) -> dict:
         """Simulate the nominal plant (exact ZOH) under the planned force; refuse a plan

@@ -86,8 +86,8 @@ def white_noise(n: int, T: float, std_n: float, band_hz: tuple[float, float] | N
 def pulse(n: int, T: float, amplitude_n: float, width_s: float, at_s: float = 0.0) -> np.ndarray:
     """One half-sine force pulse of peak ``amplitude_n`` and length ``width_s`` starting at ``at_s``."""
     out = np.zeros(n)
-    k0 = int(round(at_s / T))
-    w = max(1, int(round(width_s / T)))
+    k0 = round(at_s / T)
+    w = max(1, round(width_s / T))
     k1 = min(n, k0 + w)
     out[k0:k1] = amplitude_n * np.sin(np.pi * (np.arange(k1 - k0) + 0.5) / w)
     return out

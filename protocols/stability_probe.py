@@ -17,14 +17,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 from protocols import excitation
-from protocols.base import (Config, Protocol, Segment, check_plant_fields, check_ve_fields, choice,
-                            integer, make_ve, number)
+from protocols.base import (
+    Config,
+    Protocol,
+    Segment,
+    check_plant_fields,
+    check_ve_fields,
+    choice,
+    integer,
+    make_ve,
+    number,
+)
 
 VARIABLES = ("K", "td")
 HOME_K_MAX = 20.0  # N/m, stiffest homing spring
@@ -109,7 +119,7 @@ def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     if edges.size < 3:
         return None
     tp, yp = [], []
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in pairwise(edges):
         i = a + int(np.argmax(np.abs(y[a:b])))
         tp.append(t[i])
         yp.append(abs(y[i]))
@@ -151,7 +161,7 @@ class StabilityProbe(Protocol):
         c = self.config
         if c.variable == "K":
             stop = self.k_ceiling(plant)
-            n = int(math.floor(math.log(stop / c.K) / math.log(c.ratio) + 1e-9)) + 1
+            n = math.floor(math.log(stop / c.K) / math.log(c.ratio) + 1e-9) + 1
             return [c.make_ve(K=c.K * c.ratio**i) for i in range(n)]
         n0 = round(c.td_s / c.sample_time_s)
         n1 = round(c.td_stop_s / c.sample_time_s)
@@ -161,7 +171,7 @@ class StabilityProbe(Protocol):
         c = self.config
         period = 2 * math.pi / math.sqrt(ve.K / plant.m)
         dur = min(max(c.cycles * period, c.min_step_s), c.max_step_s)
-        return int(round(dur / c.sample_time_s))
+        return round(dur / c.sample_time_s)
 
     @property
     def n_samples(self) -> int:
@@ -216,7 +226,7 @@ class StabilityProbe(Protocol):
                 raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {B_h:.3g} N s/m is unstable "
                                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m")
             dur = min(max(6.0 / math.sqrt(K_h / plant.m), 0.3), 3.0)
-            out = yield Segment("home", ve, np.zeros(int(round(dur / T))), role="home")
+            out = yield Segment("home", ve, np.zeros(round(dur / T)), role="home")
             self._last = out.data
 
     def _sigma(self, data: dict) -> float | None:
@@ -280,7 +290,7 @@ def _rel(a, b):
 
 def _crossing(steps: list[dict], key: str) -> float | None:
     """Where sigma crosses zero between the last stable and first unstable step."""
-    for prev, cur in zip(steps, steps[1:]):
+    for prev, cur in pairwise(steps):
         if not prev["unstable"] and cur["unstable"]:
             s0, s1 = prev["sigma_per_s"], cur["sigma_per_s"]
             if s0 is not None and s1 is not None and s1 > s0:

@@ -16,8 +16,17 @@ from labbench.effective import effective_impedances, measured_wb_star, measured_
 from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 from protocols import excitation
-from protocols.base import (Config, Protocol, Segment, check_plant_fields, check_ve_fields, choice,
-                            integer, make_ve, number)
+from protocols.base import (
+    Config,
+    Protocol,
+    Segment,
+    check_plant_fields,
+    check_ve_fields,
+    choice,
+    integer,
+    make_ve,
+    number,
+)
 
 # Frequency band of the accuracy figure [rad/s] (issue 4: within 5 % over 2-100 rad/s).
 DEVIATION_BAND_RAD_S = (2.0, 100.0)
@@ -84,7 +93,7 @@ class WhiteNoiseEtfe(Protocol):
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.config.duration_s / self.config.sample_time_s))
+        return round(self.config.duration_s / self.config.sample_time_s)
 
     def excitation(self) -> np.ndarray:
         c = self.config

@@ -63,7 +63,7 @@ def test_chirp_id_json_and_human_output(tmp_path, capsys):
 def test_bad_options_exit_2_with_one_line(tmp_path, argv, words):
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
     p = subprocess.run([sys.executable, "-m", "labbench.cli", *argv, "--out", str(tmp_path)],
-                       capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+                       capture_output=True, text=True, timeout=120, check=False, cwd=ROOT, env=env)
     assert p.returncode == 2, p.stderr
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and words in lines[0], p.stderr

@@ -12,8 +12,7 @@ from labbench.errors import UserError
 from labbench.rig import Rig
 from labbench.runner import run
 from labbench.ve import Plant, VirtualEnvironment
-from protocols import PROTOCOLS, make_protocol, precheck
-from protocols import excitation
+from protocols import PROTOCOLS, excitation, make_protocol, precheck
 from protocols.stability_probe import growth_rate
 from sim_backend.sim_device import open_sim
 
