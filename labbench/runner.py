@@ -120,6 +120,9 @@ def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
             run_state.results = protocol.analyze(run_state.data(0), meta)
         except UserError as exc:
             run_state.results = {"error": f"analysis: {exc}"}
+        except Exception as exc:  # noqa: BLE001 - a failed analysis must not lose a good recording
+            run_state.results = {"error": f"analysis failed ({type(exc).__name__}: {exc}); "
+                                          "the recording is complete: re-analyse the session"}
         return run_state.finish("success", "completed")
     except KeyboardInterrupt:
         _stop_device(device, close=False)

@@ -191,7 +191,6 @@ def test_chirp_id_on_sim_recovers_the_simulated_plant_l1():
 
 
 def test_etfe_on_sim_matches_exact_sampled_theory_within_5_percent():
-    pytest.importorskip("labbench.analysis.etfe")
     res, _ = _run("etfe", seed=11)
     assert res.status == "success", res.reason
     r = res.results

@@ -220,3 +220,17 @@ def test_ctrl_c_during_analysis_still_ends_the_stream():
     res = run(spy, p, [recs.append], rig=Rig())
     assert res.status == "aborted" and recs[-1]["kind"] == "stop"
     assert recs[-1]["status"] == "aborted" and spy.calls[-1] == "close"
+
+
+def test_a_crashing_analysis_keeps_the_recording():
+    spy, recs = Spy(), []
+    p = make_protocol("etfe", duration_s=2.0, seed=1)
+
+    def broken(*_):
+        raise IndexError("index -1 is out of bounds")
+
+    p.analyze = broken
+    res = run(spy, p, [recs.append], rig=Rig())
+    assert res.status == "success" and "IndexError" in res.results["error"]
+    assert recs[-1]["kind"] == "stop" and "IndexError" in recs[-1]["results"]["error"]
+    assert len(records.concat_pages(recs)["t"]) == 2000
