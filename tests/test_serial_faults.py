@@ -20,6 +20,7 @@ from labbench.safety import DEVICE
 from labbench.ve import VirtualEnvironment
 from protocols import make_protocol
 from sim_backend.arduino_peer import Fault, connect_sim_serial
+from tests.test_serial_stream import no_board_left_running  # noqa: F401
 
 FAULT_AT = 400  # board sample index: well inside the run, after the enable gate
 

@@ -2,6 +2,7 @@
 
 import math
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -24,6 +25,14 @@ from labbench.errors import UserError
 from labbench.rig import Rig, rig_from_dict
 from sim_backend.arduino_peer import ArduinoPeer, connect_sim_serial, default_plant
 from sim_backend.plant import MassDamperPlant
+
+
+@pytest.fixture(autouse=True)
+def no_board_left_running():
+    """Fail any test that leaves a simulated board thread running (driver not closed)."""
+    yield
+    alive = [t for t in threading.enumerate() if t.name == "arduino-peer" and t.is_alive()]
+    assert not alive, "a simulated board was left running: close its driver"
 
 
 def make_rig(**serial_table):
