@@ -204,7 +204,9 @@ def _lpm(F, X, dw) -> EtfeResult:
     n_in = inside.sum(axis=1)
     s2 = np.maximum(rss, 0) / np.maximum(n_in - 2 * q, 1)
     G = theta[:, 0]
-    sG = np.sqrt(s2 * np.real(Minv[:, 0, 0]))
+    var_g = s2 * np.real(Minv[:, 0, 0])
+    # a negative variance is round-off of a near-singular band (nothing excited): no bound
+    sG = np.where(var_g >= 0, np.sqrt(np.abs(var_g)), np.inf)
     Z = 1.0 / (1j * w * G)
     # coherence: share of the output (transient removed) that G F explains
     explained = np.abs(G) ** 2 * mom_ff[:, 0] / n_in

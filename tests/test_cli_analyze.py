@@ -1,0 +1,101 @@
+"""``labbench analyze`` end to end: JSON contract, human output, plots, errors, sessions."""
+import json
+
+import numpy as np
+import pytest
+
+from labbench.cli import main
+from labbench.ve import VirtualEnvironment
+from truthdata import PAPER_B, PAPER_M, chirp_recording, closed_loop_recording, write_csv, z_truth
+
+ID_KEYS = {"model", "method", "m", "b", "coulomb", "offset", "ci95", "rms_residual", "n_used"}
+ETFE_KEYS = {"estimator", "w", "Z_re", "Z_im", "ES", "ED", "EM", "coherence", "ws_star", "wb_star"}
+SD = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
+
+
+@pytest.fixture(scope="module")
+def chirp_csv(tmp_path_factory):
+    p = tmp_path_factory.mktemp("a") / "chirp.csv"
+    write_csv(chirp_recording(n=20000), p)
+    return p
+
+
+@pytest.fixture(scope="module")
+def loop_csv(tmp_path_factory):
+    p = tmp_path_factory.mktemp("b") / "loop.csv"
+    write_csv(closed_loop_recording(SD, n=60000), p)
+    return p
+
+
+def run_json(capsys, *argv):
+    assert main(list(map(str, argv))) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("method", ["l2", "l1"])
+def test_id_json(chirp_csv, capsys, method):
+    d = run_json(capsys, "analyze", "id", chirp_csv, "--method", method, "--json")
+    assert ID_KEYS <= set(d)
+    assert d["model"] == "mb" and d["method"] == method and d["coulomb"] is None
+    assert abs(d["m"] / PAPER_M - 1) < 0.01 and abs(d["b"] / PAPER_B - 1) < 0.01
+    lo, hi = d["ci95"]["m"]
+    assert lo <= d["m"] <= hi
+
+
+def test_id_human_output(chirp_csv, capsys):
+    assert main(["analyze", "id", str(chirp_csv), "--model", "mbco"]) == 0
+    out = capsys.readouterr().out
+    assert "model mbco" in out and "95 %" in out and "coulomb" in out
+
+
+def test_etfe_json_with_theory_from_metadata(loop_csv, capsys):
+    d = run_json(capsys, "analyze", "etfe", loop_csv, "--json")
+    assert ETFE_KEYS <= set(d)
+    n = len(d["w"])
+    assert all(len(d[k]) == n for k in ("Z_re", "Z_im", "ES", "ED", "EM", "coherence"))
+    w = np.array(d["w"])
+    Z = np.array(d["Z_re"]) + 1j * np.array(d["Z_im"])
+    sel = (w >= 2) & (w <= 100)
+    err = np.abs(Z[sel] - z_truth(SD, w[sel])) / np.abs(z_truth(SD, w[sel]))
+    assert np.median(err) < 0.01
+    th = d["theory"]
+    assert th["plant_source"].startswith("identified") and abs(th["plant"]["m"] / PAPER_M - 1) < 0.01
+    assert th["deviation_median"] < 0.01
+    assert d["wb_star"] is not None and 40 < d["wb_star"] < 200  # ED falls near w0 = 125
+
+
+def test_etfe_paper_estimator_and_plot(loop_csv, tmp_path, capsys):
+    png = tmp_path / "z.png"
+    assert main(["analyze", "etfe", str(loop_csv), "--estimator", "paper", "--m", str(PAPER_M),
+                 "--b", str(PAPER_B), "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "estimator paper" in out and "given" in out
+    assert png.stat().st_size > 10000
+
+
+def test_etfe_of_a_recorded_session(tmp_path, capsys):
+    from labbench.session import SessionWriter
+    from session_recorder import synthetic_stream
+
+    writer = SessionWriter(tmp_path)
+    for record in synthetic_stream(n_samples=30000):
+        writer(record)
+    writer.close()
+    d = run_json(capsys, "analyze", "etfe", writer.path, "--json")
+    assert d["theory"]["deviation_median"] < 0.01
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["analyze", "id", "{missing}"], "position"),
+    (["analyze", "id", "{nofile}"], "no such file"),
+    (["analyze", "etfe", "{chirp}", "--m", "0.1"], "both --m and --b"),
+    (["analyze", "id", "{chirp}", "--cutoff", "900"], "--cutoff"),
+])
+def test_user_errors_exit_2_one_line(tmp_path, chirp_csv, capsys, argv, words):
+    missing = tmp_path / "missing.csv"
+    missing.write_text("t,force\n" + "".join(f"{k / 1000},1\n" for k in range(100)))
+    paths = {"missing": missing, "nofile": tmp_path / "none.csv", "chirp": chirp_csv}
+    argv = [a.format(**paths) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1 and "Traceback" not in err
