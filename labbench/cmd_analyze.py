@@ -142,13 +142,17 @@ def _pct(v) -> str:
 def _plot(path, rec, res, cmp) -> None:
     from labbench.figures import Curve, paper_figure
 
-    curves = [Curve(label=f"measured ({res.estimator})", w=res.w, Z=res.Z, style="points",
-                    Z_err=res.Z_err)]
+    # paper-style range: up to 0.3 x Nyquist, where the sampled loop's own
+    # near-Nyquist blow-up would otherwise set the scale of every panel
+    keep = res.w <= 0.3 * np.pi * rec.fs
+    w = res.w[keep]
+    curves = [Curve(label=f"measured ({res.estimator})", w=w, Z=res.Z[keep], style="points",
+                    Z_err=res.Z_err[keep])]
     marks = {}
     title = rec.source
     if cmp is not None:
         curves.append(Curve(label=f"theory ({cmp['model']}, m = {cmp['plant']['m']:.3g}, "
-                                  f"b = {cmp['plant']['b']:.3g})", w=res.w, Z=cmp["Z_theory"]))
+                                  f"b = {cmp['plant']['b']:.3g})", w=w, Z=cmp["Z_theory"][keep]))
         marks = {k: v for k, v in (("ws*", cmp["predicted_ws_star"]),
                                    ("wb*", cmp["predicted_wb_star"])) if v}
         ve = cmp["ve"]
