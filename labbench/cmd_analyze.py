@@ -48,17 +48,19 @@ def register(subparsers) -> None:
 
 
 def run_id(args) -> int:
+    from labbench.analysis import compare
     from labbench.analysis.dataio import load_recording
     from labbench.analysis.identify import identify
 
-    rec = load_recording(args.file)
+    rec, ve = compare.plant_recording(load_recording(args.file))
     res = identify(rec, model=args.model, method=args.method, cutoff_hz=args.cutoff, solver=args.solver)
     d = res.as_dict()
+    d["force_source"] = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
     if args.json:
         print(json.dumps(json_safe(d)))
         return 0
     print(f"{args.file}: model {d['model']} by {d['method']}, {d['n_used']} samples, "
-          f"derivative cut-off {d['cutoff_hz']:.3g} Hz")
+          f"derivative cut-off {d['cutoff_hz']:.3g} Hz; fitted to {d['force_source']}")
     units = {"m": "kg", "b": "N s/m", "coulomb": "N", "offset": "N"}
     for k, unit in units.items():
         if d[k] is not None:

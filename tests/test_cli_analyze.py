@@ -99,3 +99,10 @@ def test_user_errors_exit_2_one_line(tmp_path, chirp_csv, capsys, argv, words):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert words in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_id_of_a_closed_loop_record_subtracts_the_ve_force(loop_csv, capsys):
+    d = run_json(capsys, "analyze", "id", loop_csv, "--json")
+    assert "VE force" in d["force_source"]
+    assert d["model"] == "mb"
+    assert abs(d["m"] / PAPER_M - 1) < 1e-3 and abs(d["b"] / PAPER_B - 1) < 1e-2

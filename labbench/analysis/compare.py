@@ -55,6 +55,16 @@ def plant_force(rec: Recording, ve: VirtualEnvironment) -> np.ndarray:
     return np.asarray(rec.force, float) - f_ve
 
 
+def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | None]:
+    """The record with the force the plant felt: unchanged in open loop, f_exo - f_ve when
+    the metadata name a VE. Returns (recording, ve or None)."""
+    ve = ve_from_meta(rec.meta, rec.fs)
+    if ve is None or ve.kind == "none":
+        return rec, None
+    u = plant_force(rec, ve)
+    return recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source), ve
+
+
 def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "l2") -> IdResult:
     """m, b from a closed-loop record (see module doc)."""
     u = plant_force(rec, ve)
