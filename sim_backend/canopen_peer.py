@@ -365,7 +365,8 @@ def plant_for(rig, seed=None, **options) -> SimDevice:
 # The simulated drive's monitors run on wall-clock time in a process that is not
 # real-time (a shared machine stalls it for tens of ms now and then): defaults
 # that survive such stalls. A rig's [canopen] table still overrides them.
-SIM_MONITOR_DEFAULTS = {"heartbeat_consumer_ms": 1000, "rpdo_timeout_ms": 500}
+SIM_MONITOR_DEFAULTS = {"heartbeat_consumer_ms": 1000, "rpdo_timeout_ms": 500,
+                        "stale_periods": 20}  # paced (--realtime) runs only
 
 
 def sim_config(rig) -> CanopenConfig:
