@@ -209,3 +209,40 @@ def test_emergency_stop_from_another_thread_mid_run(drive):
     assert_force_zero(drive.peer)
     with pytest.raises(DeviceFault, match="latched fault: emergency stop"):
         drive.enable()
+
+
+# ------------------------------------------------------ paced (hardware) mode
+def paced_drive(**canopen):
+    """The driver in paced mode at a coarse 20 ms period (timing is not asserted)."""
+    from labbench.rig import rig_from_dict
+    from sim_backend.canopen_peer import open_sim_canopen
+
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.02},
+                         "canopen": {"sdo_timeout_s": 0.2, **canopen}}, source="paced-rig")
+    return open_sim_canopen(rig, realtime=True)
+
+
+def test_paced_mode_resyncs_after_a_late_tick_without_a_burst_of_syncs():
+    with paced_drive() as d:
+        assert d.describe().details["paced"] is True
+        d.enable()
+        for k in range(12):
+            if k == 6:
+                time.sleep(0.1)  # five periods late: re-phase, do not send the missed SYNCs
+            d.read(1.0)
+            d.command(0.0)
+        assert d.counters["late_ticks"] == 1
+        assert d.peer.sync_count == 12  # one SYNC per read, none made up
+        assert d.peer.state is State.OPERATION_ENABLED
+
+
+def test_paced_mode_stale_tpdo_after_three_periods():
+    with paced_drive(stale_periods=3) as d:
+        d.enable()
+        for _ in range(3):
+            d.read(1.0)
+            d.command(0.0)
+        d.peer.mute()
+        with pytest.raises(DeviceFault, match="stale TPDO: no answer to SYNC 3 within 60 ms"):
+            d.read(1.0)
+        assert_force_zero(d.peer)
