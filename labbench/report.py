@@ -260,13 +260,17 @@ def _etfe_blocks(s: SessionData) -> list:
         s.ch, {"plant": {"m": s.plant.m, "b": s.plant.b}} if s.plant else {})
     e, th = full["etfe"], full["theory"]
     w = np.asarray(e["w"])
+    # up to 30 % of Nyquist: beyond, the sampled model's growth near Nyquist swamps the panels
+    keep = w <= 0.3 * math.pi / s.T
     Z = np.asarray(e["Z_re"]) + 1j * np.asarray(e["Z_im"])
-    err = e.get("Z_err")
-    curves = [Curve("measured (ETFE)", w, Z, "points", None if err is None else np.asarray(err)),
-              Curve("exact sampled theory", w,
-                    np.asarray(th["sampled"]["Z_re"]) + 1j * np.asarray(th["sampled"]["Z_im"])),
-              Curve("paper eq. 2", w,
-                    np.asarray(th["paper"]["Z_re"]) + 1j * np.asarray(th["paper"]["Z_im"]))]
+    err = None if e.get("Z_err") is None else np.asarray(e["Z_err"])[keep]
+
+    def theory_Z(model):
+        return (np.asarray(th[model]["Z_re"]) + 1j * np.asarray(th[model]["Z_im"]))[keep]
+
+    curves = [Curve("exact sampled theory", w[keep], theory_Z("sampled")),
+              Curve("paper eq. 2", w[keep], theory_Z("paper")),
+              Curve("measured (ETFE)", w[keep], Z[keep], "points", err)]
     marks = {"ws*": bw.get("ws_star_measured"), "wb*": bw.get("wb_star_measured")}
     ve = session_ve(s.start)
     title = f"{ve.kind} K = {ve.K:g} N/m, B = {ve.B:g} N s/m, w0 = {ve.w0:g} rad/s" if ve else None
@@ -296,12 +300,13 @@ def _chirp_blocks(s: SessionData) -> list:
     lo, hi = 2 * math.pi * float(proto.get("f0_hz", 0)), 2 * math.pi * float(proto.get("f1_hz", math.inf))
     keep = (w >= max(lo, w[0])) & (w <= hi)
     ve = VirtualEnvironment("none", T=s.T)
-    curves = [Curve("measured (ETFE)", w[keep], Z[keep], "points")]
+    curves = []
     for method, r in ident.items():
         if r.get("m") and r.get("b") is not None:
             plant = Plant(float(r["m"]), float(r["b"]))
             curves.append(Curve(f"identified {method}: m = {plant.m:.4g}, b = {plant.b:.4g}",
                                 w[keep], theory.z_sampled(plant, ve, w[keep])))
+    curves.append(Curve("measured (ETFE)", w[keep], Z[keep], "points"))  # drawn on top
     blocks.append(Picture("Open-loop impedance during the chirp: data vs identified model",
                           _paper_figure_png(curves, "chirp identification, VE off", {})))
     return blocks
@@ -384,6 +389,10 @@ def _timing_table(s: SessionData) -> Table:
     for k, v in timing.items():
         label, f = scale.get(k, (k, None))
         items.append((label + (" (ms)" if f else ""), v * f if f and v is not None else v))
+    p50 = timing.get("p50_s")
+    if p50 is not None and p50 < 0.5 * s.T:
+        items.append(("note", "unpaced run (simulator as fast as possible): the periods are "
+                              "compute times per sample"))
     return _kv("Loop timing", items or [("timing", "not recorded")])
 
 
@@ -472,6 +481,14 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
     """A4 pages: text and tables in monospace, one figure per page (vector when possible)."""
     line_h, top, bottom = 0.0118, 0.95, 0.04
     per_page = int((top - bottom) / line_h)
+    # per session (a Heading starts one): its text and tables flow first, its figures follow
+    ordered, figures = [], []
+    for b in blocks:
+        if isinstance(b, Heading):
+            ordered += figures
+            figures = []
+        (figures if isinstance(b, Picture) else ordered).append(b)
+    blocks = ordered + figures
     with PdfPages(path) as pdf:
         pdf.infodict()["Title"] = title
         big = dict(size=11, weight="bold", family="sans-serif")  # two line slots each
