@@ -1,6 +1,7 @@
 """``labbench run``: JSON shape, sessions on disk, one-line errors with exit 2, the demo."""
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -11,6 +12,7 @@ import pytest
 
 from labbench import theory
 from labbench.cli import main
+from labbench.progress import ProgressBar
 from labbench.session import read_session
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -85,3 +87,57 @@ def test_demo_short_produces_sessions_and_report(tmp_path, capsys):
     assert etfe["deviation_vs_sampled"]["max_rel"] < 0.05
     assert Path(out["report"]["html"]).stat().st_size > 0
     assert Path(out["report"]["pdf"]).read_bytes()[:5] == b"%PDF-"
+
+
+def test_ctrl_c_stops_safely_and_closes_the_session_as_aborted(tmp_path):
+    """A real process, paced in real time, interrupted with SIGINT mid-run."""
+    import signal
+    import time
+
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    # A lenient watchdog: on this shared machine a paced loop can stall for tens of ms,
+    # and this test is about Ctrl-C, not pacing.
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[safety]\nwatchdog_s = 2.0\n")
+    out_dir = tmp_path / "sessions"
+    p = subprocess.Popen([sys.executable, "-m", "labbench.cli", "run", "etfe", "--realtime",
+                          "--rig", str(rig), "--duration-s", "30", "--seed", "1",
+                          "--out", str(out_dir), "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(out_dir.glob("*.lbsession")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)  # about a second of samples
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    result = json.loads(out)
+    assert result["status"] == "aborted" and "Ctrl-C" in result["reason"]
+    recs = list(read_session(result["session"]))
+    assert recs[-1]["kind"] == "stop" and recs[-1]["status"] == "aborted"
+    assert any(r["kind"] == "event" and r["name"] == "stop" for r in recs)
+    n = recs[-1]["n_samples"]
+    assert 300 < n < 30000
+
+
+class _Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_bar_draws_on_a_terminal_only():
+    tty = _Tty()
+    with ProgressBar("etfe", stream=tty, min_interval_s=0.0) as bar:
+        bar(0.5, "white-noise")
+        bar(1.0, "analysis")
+    text = tty.getvalue()
+    assert "[###############---------------]  50.0% white-noise" in text
+    assert " 100.0% analysis" in text and text.endswith("\n")
+    pipe = io.StringIO()
+    with ProgressBar("etfe", stream=pipe) as bar:
+        bar(0.5, "x")
+    assert pipe.getvalue() == ""
