@@ -192,6 +192,9 @@ class CanopenDrive:
         self._enable_deadline: float | None = None  # set by enable(), until disable()
         self._confirmed = False  # a TPDO showed OPERATION ENABLED since enable()
         self._state_seen = State.NOT_READY_TO_SWITCH_ON  # from the latest statusword
+        self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]  # sent with each RPDO
+        self._next_tick = 0.0  # paced mode: perf_counter time of the next SYNC
+        self._last_hb = -math.inf  # perf_counter time of the last host heartbeat
         self._fault: str | None = None
         self._hb = threading.Condition()
         self._nmt_state: int | None = None
@@ -486,8 +489,7 @@ class CanopenDrive:
             state = self.drive_state()
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self._latch(f"drive is in {state.value}: {self._error_code()}")
-                raise DeviceFault(f"{self._fault}; an operator must reset it "
-                                  "(labbench devices --fault-reset)")
+                raise self._latched()
             for index, sub, fmt, value in self._safety_objects() + [
                     (0x1400, 5, "<H", self.config.rpdo_timeout_ms), (0x6061, 0, "<b", self._mode)]:
                 if (back := self._read(index, sub, fmt)) != value:
