@@ -39,7 +39,7 @@ def runs(tmp_path_factory):
     except ImportError:
         pass
     else:
-        out["etfe"] = _record(d, "etfe", duration_s=20.0, seed=4)
+        out["etfe"] = _record(d, "etfe", duration_s=10.0, seed=4)
     return out
 
 
@@ -68,6 +68,9 @@ def test_report_of_real_runs(tmp_path, runs):
     for word in ("Rig", "Protocol: chirp-id", "Stability margin", "Events", "Loop timing",
                  "period p99 (ms)"):
         assert word in text
+    if "etfe" in runs:
+        dev = runs["etfe"][1].results["deviation_vs_sampled"]
+        assert f"{dev['median_rel']:.4g}" in text and "Bandwidths" in text
     pdf = pdf_path.read_bytes()
     assert pdf.startswith(b"%PDF") and pdf.rstrip().endswith(b"%%EOF")
     assert len(re.findall(rb"/Type /Page\b", pdf)) >= len(paths) + len(figures)
