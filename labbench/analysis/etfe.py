@@ -23,6 +23,7 @@ low-coherence mask. Flags name the failure modes seen in the data.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +39,7 @@ GRID_PER_DECADE = 60
 REL_BAND = 0.05  # half-width of a band relative to its centre frequency
 MIN_HALF_BINS, MAX_HALF_BINS = 4, 100
 LPM_ORDER = 2
+LPM_SPLIT = 24  # half-width (bins) separating the narrow and wide groups of bands
 WELCH_SEGMENT = 2**14
 LOW_COHERENCE = 0.8
 W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
@@ -57,6 +59,7 @@ class EtfeResult:
     low_coherence: np.ndarray  # bool
     flags: list = field(default_factory=list)
     window: int | None = None
+    force_power: np.ndarray | None = field(default=None, repr=False)  # mean |F_k|^2 near each w
 
     def as_dict(self) -> dict:
         eff = effective_impedances(self.w, self.Z)
@@ -143,7 +146,8 @@ def _h1_welch(f, x, fs) -> EtfeResult:
     return EtfeResult("h1-welch", w, Z, coh, _h1_err(Z, coh, n_seg), coh < LOW_COHERENCE)
 
 
-def _grid(n_bins: int, dw: float) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=8)
+def _grid(n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     """Log-spaced centre bins (GRID_PER_DECADE per decade) and their band half-widths."""
     k_lo = MIN_HALF_BINS + 1
     k_hi = n_bins - 1 - MAX_HALF_BINS
@@ -162,21 +166,41 @@ def _band_sum(values, k, half):
 
 
 def _h1_log(F, X, dw) -> EtfeResult:
-    k, half = _grid(len(F), dw)
+    k, half = _grid(len(F))
     w = k * dw
     Sff = _band_sum(np.abs(F) ** 2, k, half)
     Sxx = _band_sum(np.abs(X) ** 2, k, half)
     Sfx = _band_sum(np.conj(F) * X, k, half)
     Z = Sff / (1j * w * Sfx)
     coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
-    return EtfeResult("h1-log", w, Z, coh, _h1_err(Z, coh, 2 * half + 1), coh < LOW_COHERENCE)
+    return EtfeResult("h1-log", w, Z, coh, _h1_err(Z, coh, 2 * half + 1), coh < LOW_COHERENCE,
+                      force_power=Sff / (2 * half + 1))
 
 
 def _lpm(F, X, dw) -> EtfeResult:
-    k, half = _grid(len(F), dw)
+    k, half = _grid(len(F))
     w = k * dw
+    # narrow (low-frequency) bands are fitted apart from wide ones so that
+    # neither pads to the other's width
+    narrow = half <= LPM_SPLIT
+    parts = [_lpm_fit(F, X, k[sel], half[sel]) for sel in (narrow, ~narrow) if sel.any()]
+    G, sG, s2, Pf = (np.concatenate(p) for p in zip(*parts))
+    Z = 1.0 / (1j * w * G)
+    # coherence: share of the output (transient removed) that G F explains
+    explained = np.abs(G) ** 2 * Pf
+    coh = np.clip(explained / (explained + s2), 0, 1)
+    err = R95 * np.abs(Z) * sG / np.abs(G)
+    return EtfeResult("lpm", w, Z, coh, err, coh < LOW_COHERENCE, force_power=Pf)
+
+
+def _lpm_fit(F, X, k, half):
+    """Local fits for bands centred on bins k with half-widths half.
+
+    Returns G, its standard error, the residual variance per bin and the mean |F|^2.
+    """
     q = LPM_ORDER + 1
-    offs = np.arange(-MAX_HALF_BINS, MAX_HALF_BINS + 1)
+    H = int(half.max())
+    offs = np.arange(-H, H + 1)
     inside = np.abs(offs)[None, :] <= half[:, None]
     idx = np.clip(k[:, None] + offs[None, :], 0, len(F) - 1)
     Fw = np.where(inside, F[idx], 0)
@@ -203,16 +227,10 @@ def _lpm(F, X, dw) -> EtfeResult:
     rss = np.sum(np.abs(Xw) ** 2, axis=1) - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
     n_in = inside.sum(axis=1)
     s2 = np.maximum(rss, 0) / np.maximum(n_in - 2 * q, 1)
-    G = theta[:, 0]
     var_g = s2 * np.real(Minv[:, 0, 0])
     # a negative variance is round-off of a near-singular band (nothing excited): no bound
     sG = np.where(var_g >= 0, np.sqrt(np.abs(var_g)), np.inf)
-    Z = 1.0 / (1j * w * G)
-    # coherence: share of the output (transient removed) that G F explains
-    explained = np.abs(G) ** 2 * mom_ff[:, 0] / n_in
-    coh = np.clip(explained / (explained + s2), 0, 1)
-    err = R95 * np.abs(Z) * sG / np.abs(G)
-    return EtfeResult("lpm", w, Z, coh, err, coh < LOW_COHERENCE)
+    return theta[:, 0], sG, s2, mom_ff[:, 0] / n_in
 
 
 def _moments(weights, rp):
@@ -237,7 +255,7 @@ def _flags(res: EtfeResult, rec: Recording, F: np.ndarray, X: np.ndarray) -> lis
         flags.append(f"low-coherence: {int(low.sum())} of {len(w)} frequencies have gamma^2 < "
                      f"{LOW_COHERENCE:g} ({_spans(w, low)} rad/s)")
     # force power per bin around each output frequency, against its median over the band
-    Pf = _smooth_at(np.abs(F) ** 2, w, dw)
+    Pf = res.force_power if res.force_power is not None else _smooth_at(np.abs(F) ** 2, w, dw)
     band = (w >= W_BAND[0]) & (w <= W_BAND[1])
     ref = np.median(Pf[band]) if band.any() else np.median(Pf)
     weak = Pf < LITTLE_EXCITATION * ref
