@@ -12,6 +12,7 @@ import json
 import sys
 import threading
 from dataclasses import MISSING, fields
+from pathlib import Path
 
 from labbench.cli import json_safe
 from labbench.devices import DEVICES, open_device
@@ -34,6 +35,10 @@ def register(subparsers) -> None:
         sp = sub.add_parser(name, help=(config_cls.__doc__ or name).splitlines()[0])
         _common(sp)
         _config_options(sp, config_cls)
+        sp.add_argument("--plant-from", choices=("last-id", "nominal"), default="last-id",
+                        help="plant for the precheck and theory when --plant-m-kg/--plant-b are "
+                             "absent: the newest chirp-ID of this rig in --out (default), else "
+                             "the rig's nominal; or always the nominal")
         sp.set_defaults(func=cmd_run)
     demo = sub.add_parser("demo", help="chirp-ID, then ETFE K=50 B=1 w0=125, then the report")
     _common(demo)
@@ -106,11 +111,30 @@ def _words(text: str) -> tuple:
     return tuple(w.strip() for w in text.split(",") if w.strip())
 
 
-_COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json")
+_COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from")
 
 
 def _options(args) -> dict:
     return {k: v for k, v in vars(args).items() if k not in _COMMON}
+
+
+def last_identified(directory, rig) -> dict | None:
+    """m, b of the newest successful chirp-ID session of this rig in ``directory`` (or None)."""
+    from labbench import records
+    from labbench.session import SessionReader, list_sessions
+
+    if not Path(directory).is_dir():
+        return None
+    for s in reversed(list_sessions(directory)):
+        if s.protocol != "chirp-id" or s.status != "success" or s.rig_name != rig.name:
+            continue
+        with SessionReader(s.path, decode_pages=False) as reader:
+            stop = next((r for r in reader if r.get("kind") == records.STOP), {})
+        res = stop.get("results") or {}
+        m, b = res.get("m"), res.get("b")
+        if isinstance(m, (int, float)) and isinstance(b, (int, float)) and m > 0 and b >= 0:
+            return {"m": float(m), "b": float(b), "session": str(s.path)}
+    return None
 
 
 def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
@@ -119,6 +143,13 @@ def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
     from labbench.session import SessionWriter
     from protocols import make_protocol
 
+    if (getattr(args, "plant_from", "nominal") == "last-id" and name != "chirp-id"
+            and options.get("plant_m_kg") is None and options.get("plant_b") is None):
+        found = last_identified(args.out, rig)
+        if found is not None:
+            options = {**options, "plant_m_kg": found["m"], "plant_b": found["b"]}
+            print(f"labbench run: using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
+                  f"identified in {found['session']}", file=sys.stderr)
     protocol = make_protocol(name, sample_time_s=rig.sample_time_s, **options)
     dev_opts = {"seed": protocol.seed}
     if args.realtime:

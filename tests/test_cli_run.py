@@ -141,3 +141,21 @@ def test_progress_bar_draws_on_a_terminal_only():
     with ProgressBar("etfe", stream=pipe) as bar:
         bar(0.5, "x")
     assert pipe.getvalue() == ""
+
+
+def test_etfe_uses_the_last_identified_plant_of_the_rig(tmp_path, capsys):
+    rig = tmp_path / "heavy.toml"  # simulated device differs from the rig's nominal model
+    rig.write_text('[rig]\nname = "heavy sim"\n[sim]\nm = 0.2\nb = 0.3\n')
+    out = str(tmp_path / "s")
+    code, chirp = _json(capsys, ["run", "chirp-id", "--rig", str(rig), "--duration-s", "20",
+                                 "--methods", "l2", "--out", out, "--json"])
+    assert code == 0 and chirp["results"]["m"] == pytest.approx(0.2, rel=0.02)
+    code, etfe = _json(capsys, ["run", "etfe", "--rig", str(rig), "--duration-s", "10", "--seed", "2",
+                                "--out", out, "--json"])
+    assert code == 0
+    assert etfe["results"]["plant"] == {"m": chirp["results"]["m"], "b": chirp["results"]["b"]}
+    start = next(iter(read_session(etfe["session"])))
+    assert start["plant"]["m"] == chirp["results"]["m"]
+    code, nominal = _json(capsys, ["run", "etfe", "--rig", str(rig), "--duration-s", "10",
+                                   "--seed", "2", "--out", out, "--json", "--plant-from", "nominal"])
+    assert nominal["results"]["plant"] == {"m": 0.094, "b": 0.10}
