@@ -62,15 +62,26 @@ def test_chirp_id_json_and_human_output(tmp_path, capsys):
     (["run", "chirp-id", "--x-max-m", "0.09"], "outside the rig's window"),
     (["run", "demo", "--etfe-duration-s", "0"], "must be positive"),
 ])
-def test_bad_options_exit_2_with_one_line(tmp_path, argv, words):
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
-    p = subprocess.run([sys.executable, "-m", "labbench.cli", *argv, "--out", str(tmp_path)],
-                       capture_output=True, text=True, timeout=120, check=False, cwd=ROOT, env=env)
-    assert p.returncode == 2, p.stderr
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and words in lines[0], p.stderr
-    assert "Traceback" not in p.stderr
+def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, words):
+    try:
+        code = main([*argv, "--out", str(tmp_path)])
+    except SystemExit as e:  # argparse's own errors
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0], err
     assert list(tmp_path.iterdir()) == []  # nothing recorded
+
+
+def test_bad_option_in_a_real_process_is_one_line_no_traceback(tmp_path):
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    p = subprocess.run([sys.executable, "-m", "labbench.cli", "run", "etfe", "--ve", "spring",
+                        "--K", "400", "--B", "0", "--w0-rad-s", "none", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120, check=False, cwd=ROOT, env=env)
+    assert p.returncode == 2
+    assert p.stderr.count("\n") == 1 and "refusing unstable spring" in p.stderr
+    assert "Traceback" not in p.stderr and p.stdout == ""
 
 
 def test_demo_short_produces_sessions_and_report(tmp_path, capsys):
