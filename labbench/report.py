@@ -283,22 +283,20 @@ def _chirp_blocks(s: SessionData) -> list:
     """Chirp-ID sessions: the identification table; the open-loop ETFE against Z = b + j w m
     of the identified plant (exact sampled model, VE off)."""
     from labbench import theory
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.analysis.etfe import etfe
     from labbench.figures import Curve
     from labbench.ve import VirtualEnvironment
 
     ident = s.results.get("identification") or {}
     blocks = [_identification_table(ident), *_identification_notes(ident)] if ident else []
-    try:
-        from labbench.analysis.dataio import recording_from_arrays
-        from labbench.analysis.etfe import etfe
-    except ImportError:
-        return blocks  # the ETFE module is not installed: the table alone
     proto = s.start.get("protocol") or {}
     rec = recording_from_arrays(s.ch["t"], s.ch["command"], s.ch["position"], {"fs": 1 / s.T})
     est = etfe(rec)
     w, Z = np.asarray(est.w), np.asarray(est.Z)
-    lo, hi = 2 * math.pi * float(proto.get("f0_hz", 0)), 2 * math.pi * float(proto.get("f1_hz", math.inf))
-    keep = (w >= max(lo, w[0])) & (w <= hi)
+    # the excited band only: outside it the ratio is noise
+    keep = (w >= 2 * math.pi * float(proto.get("f0_hz", 0))) & (
+        w <= 2 * math.pi * float(proto.get("f1_hz", math.inf)))
     ve = VirtualEnvironment("none", T=s.T)
     curves = []
     for method, r in ident.items():

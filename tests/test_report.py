@@ -33,13 +33,8 @@ def _record(directory, name, **options):
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("sessions")
     out = {"chirp-id": _record(d, "chirp-id", duration_s=5.0, f0_hz=0.5),
-           "stability": _record(d, "stability", max_step_s=2.0)}
-    try:
-        import labbench.analysis.etfe  # noqa: F401
-    except ImportError:
-        pass
-    else:
-        out["etfe"] = _record(d, "etfe", duration_s=10.0, seed=4)
+           "stability": _record(d, "stability", max_step_s=2.0),
+           "etfe": _record(d, "etfe", duration_s=10.0, seed=4)}
     return out
 
 
@@ -55,7 +50,7 @@ def test_report_of_real_runs(tmp_path, runs):
     # self-contained: no external resources, every figure decodes as an image
     assert not re.search(r"(src|href)=['\"](?!data:)", text)
     figures = _pngs(text)
-    n_expected = len(paths) + 1 + (1 if "etfe" in runs else 0)  # overviews, probe, etfe
+    n_expected = 2 * len(paths)  # an overview and a data-vs-theory figure per session
     assert len(figures) >= n_expected and all(f.ndim == 3 and f.shape[0] > 200 for f in figures)
     # the identification table carries the run's own numbers, and they are right
     ident = runs["chirp-id"][1].results["identification"]
@@ -68,9 +63,8 @@ def test_report_of_real_runs(tmp_path, runs):
     for word in ("Rig", "Protocol: chirp-id", "Stability margin", "Events", "Loop timing",
                  "period p99 (ms)"):
         assert word in text
-    if "etfe" in runs:
-        dev = runs["etfe"][1].results["deviation_vs_sampled"]
-        assert f"{dev['median_rel']:.4g}" in text and "Bandwidths" in text
+    dev = runs["etfe"][1].results["deviation_vs_sampled"]
+    assert f"{dev['median_rel']:.4g}" in text and "Bandwidths" in text
     pdf = pdf_path.read_bytes()
     assert pdf.startswith(b"%PDF") and pdf.rstrip().endswith(b"%%EOF")
     assert len(re.findall(rb"/Type /Page\b", pdf)) >= len(paths) + len(figures)
