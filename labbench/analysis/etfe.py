@@ -35,11 +35,11 @@ from labbench.errors import UserError
 
 ESTIMATORS = ("lpm", "h1-log", "h1-welch", "paper")
 DEFAULT_ESTIMATOR = "lpm"
-GRID_PER_DECADE = 60
+GRID_PER_DECADE = 40
 REL_BAND = 0.05  # half-width of a band relative to its centre frequency
 MIN_HALF_BINS, MAX_HALF_BINS = 4, 100
 LPM_ORDER = 2
-LPM_SPLIT = 24  # half-width (bins) separating the narrow and wide groups of bands
+LPM_GROUPS = (12, 40)  # half-width limits (bins) of the groups of bands fitted together
 WELCH_SEGMENT = 2**14
 LOW_COHERENCE = 0.8
 W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
@@ -180,10 +180,9 @@ def _h1_log(F, X, dw) -> EtfeResult:
 def _lpm(F, X, dw) -> EtfeResult:
     k, half = _grid(len(F))
     w = k * dw
-    # narrow (low-frequency) bands are fitted apart from wide ones so that
-    # neither pads to the other's width
-    narrow = half <= LPM_SPLIT
-    parts = [_lpm_fit(F, X, k[sel], half[sel]) for sel in (narrow, ~narrow) if sel.any()]
+    # bands of similar width are fitted together, so narrow ones are not padded to the widest
+    group = np.searchsorted(LPM_GROUPS, half)
+    parts = [_lpm_fit(F, X, k[group == g], half[group == g]) for g in np.unique(group)]
     G, sG, s2, Pf = (np.concatenate(p) for p in zip(*parts))
     Z = 1.0 / (1j * w * G)
     # coherence: share of the output (transient removed) that G F explains
