@@ -125,7 +125,12 @@ class FrameParser:
     """Split a COBS byte stream into checked payloads of one frame type.
 
     Counters: ``frames`` good, ``crc_errors``, ``bad_frames`` (wrong length,
-    type or COBS), ``garbage_bytes`` (bytes of every discarded frame).
+    type or COBS, or garbage before a frame), ``garbage_bytes``.
+
+    Garbage that runs into a frame without a delimiter (a burst, boot noise) is
+    cut off: only the last frame length of a segment can still be a frame, so
+    the buffer stays bounded, that frame is recovered when intact, and the
+    result does not depend on how the bytes arrive in chunks.
     """
 
     def __init__(self, frame_type: int, payload_len: int):
@@ -133,38 +138,44 @@ class FrameParser:
         self._plen = payload_len
         self._flen = payload_len + 1
         self._buf = b""
-        self._skipped = 0  # discarded since the last good frame
+        self._dropped = 0  # garbage bytes already cut from the segment in the buffer
+        self._skipped = 0  # pieces discarded since the last good frame
         self.frames = self.crc_errors = self.bad_frames = self.garbage_bytes = 0
 
     def feed_payloads(self, data: bytes) -> list[tuple[bytes, int]]:
-        """(checked payload without CRC, frames discarded before it) completed by ``data``."""
+        """(checked payload without CRC, pieces discarded before it) completed by ``data``."""
         parts = (self._buf + data).split(b"\x00")
         tail = parts.pop()
-        # An unterminated tail longer than a frame is garbage: drop it now so
-        # garbage without zeros cannot grow the buffer.
         out = []
+        flen = self._flen
         for part in parts:
-            if not part:
+            garbage = self._dropped + max(len(part) - flen, 0)
+            self._dropped = 0
+            if not part and not garbage:
                 continue  # back-to-back delimiters (a sender may flush with a zero)
-            payload = cobs_decode(part) if len(part) == self._flen else None
-            if payload is None or len(payload) != self._plen or payload[0] != self._type:
-                self._discard(part)
-            elif crc16(payload[:-2]) != _CRC.unpack_from(payload, self._plen - 2)[0]:
-                self.crc_errors += 1
-                self._discard(part, bad_frame=False)
-            else:
+            part = part[-flen:]
+            payload = cobs_decode(part) if len(part) == flen else None
+            framed = payload is not None and len(payload) == self._plen and payload[0] == self._type
+            if framed and crc16(payload[:-2]) == _CRC.unpack_from(payload, self._plen - 2)[0]:
+                if garbage:
+                    self._discard(garbage)
                 self.frames += 1
                 out.append((payload[:-2], self._skipped))
                 self._skipped = 0
-        if len(tail) > self._flen:
-            self._discard(tail)
-            tail = b""
+            elif framed and not garbage:
+                self.crc_errors += 1
+                self._discard(len(part), bad_frame=False)
+            else:
+                self._discard(garbage + len(part))
+        if len(tail) > flen:
+            self._dropped += len(tail) - flen
+            tail = tail[-flen:]
         self._buf = tail
         return out
 
-    def _discard(self, part: bytes, bad_frame: bool = True) -> None:
+    def _discard(self, n_bytes: int, bad_frame: bool = True) -> None:
         self.bad_frames += bad_frame
-        self.garbage_bytes += len(part)
+        self.garbage_bytes += n_bytes
         self._skipped += 1
 
     @property
@@ -203,12 +214,20 @@ class AsciiSampleParser:
 
     def __init__(self):
         self._buf = b""
+        self._overlong = 0  # bytes of an over-long line still waiting for its newline
         self._skipped = 0
         self.lines = self.comments = self.malformed = self.garbage_bytes = 0
 
     def feed(self, data: bytes) -> list[RawSample]:
         parts = (self._buf + data).split(b"\n")
         tail = parts.pop()
+        if self._overlong:  # the rest of an over-long line is malformed too, however chunked
+            if parts:
+                self._discard(self._overlong + len(parts.pop(0)) + 1)
+                self._overlong = 0
+            else:
+                self._overlong += len(tail)
+                tail = b""
         out = []
         match = ASCII_LINE.fullmatch
         for line in parts:
@@ -228,7 +247,7 @@ class AsciiSampleParser:
             else:
                 self._discard(len(line) + 1)
         if len(tail) > ASCII_MAX_LINE:
-            self._discard(len(tail))
+            self._overlong = len(tail)
             tail = b""
         self._buf = tail
         return out

@@ -6,7 +6,8 @@ force commands back. The driver reads whatever bytes are waiting in one call
 (never byte-by-byte ``readline()``), resynchronises after garbage, counts link
 errors, drops and reboots, and fails safe: once enabled, a stream silent for
 ``stale_periods`` sample periods, a reboot of the board (its time goes back),
-more lost samples in a row than ``tolerate_drops``, or a lost port zero the
+more lost samples in a row than ``tolerate_drops``, bytes discarded on the
+link (unless ``tolerate_link_errors``), or a lost port zero the
 commanded force, latch, and raise ``DeviceFault`` with the reason. Only
 ``enable()`` (the operator) clears the latch.
 
@@ -58,6 +59,7 @@ class SerialConfig:
     command_units: str = "N"  # "N" at the handle | "N*m" joint torque via lever_arm_m
     stale_periods: float = 2.5  # silent periods before force is zeroed (1..3)
     tolerate_drops: int = 0  # lost samples in a row accepted (flagged) while enabled
+    tolerate_link_errors: bool = False  # discarded bytes only flagged while enabled
     sync_timeout_s: float = 3.0  # wait for the first samples after opening (board boot)
 
     @classmethod
@@ -79,6 +81,7 @@ class SerialConfig:
             "command_units": (lambda v: v in ("N", "N*m"), '"N" or "N*m"'),
             "stale_periods": (lambda v: _is_num(v) and 1 <= v <= 3, "a number from 1 to 3"),
             "tolerate_drops": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+            "tolerate_link_errors": (lambda v: isinstance(v, bool), "true or false"),
             "sync_timeout_s": (
                 lambda v: _is_num(v) and 0 < v <= 60,
                 "a number of seconds in (0, 60]",
@@ -283,6 +286,7 @@ class SerialStream:
         deadline = self._clock() + timeout
         good: list[Sample] = []
         self._ready.clear()
+        duplicates = self._decoder.duplicates
         while len(good) < SYNC_SAMPLES:
             if self._clock() >= deadline:
                 raise UserError(
@@ -292,12 +296,19 @@ class SerialStream:
                     "check port, baudrate, format and that the board runs the labbench sketch"
                 )
             for item in self._decoder.feed(self._read_chunk()):
-                if isinstance(item, Reboot) or item.lost:
+                # An ASCII "loss" is a time gap measured in the rig's T: with a
+                # mismatched period every line is one, and the check below says so.
+                if isinstance(item, Reboot) or (item.lost and self._decoder.binary):
                     good.clear()
                 if isinstance(item, Decoded):
                     good.append(item.sample)
                     self._last_seq = item.sample.seq
                     self._send(0.0)  # keeps a lock-step board moving and its watchdog fed
+            if self._decoder.duplicates != duplicates:
+                raise UserError(
+                    "the board sends more than one line per sample period: its period is "
+                    f"shorter than the rig's sample_time_s of {self.T * 1e3:.3f} ms"
+                )
         period = statistics.median(b.t_s - a.t_s for a, b in itertools.pairwise(good))
         if abs(period - self.T) > PERIOD_TOLERANCE * self.T:
             raise UserError(
@@ -446,6 +457,16 @@ class SerialStream:
                 reason = reason or (
                     f"{item.lost} serial sample(s) lost before seq {item.sample.seq} "
                     f"({self.config.tolerate_drops} tolerated)"
+                )
+                self._latch(reason)
+            elif (
+                self._enabled
+                and item.sample.flags & FLAG_LINK_ERRORS
+                and not self.config.tolerate_link_errors
+            ):
+                reason = reason or (
+                    f"serial link error: bytes discarded before seq {item.sample.seq} "
+                    f"(garbage, CRC or framing; counters {self._decoder.counters()})"
                 )
                 self._latch(reason)
             self._ready.append(item.sample)

@@ -194,8 +194,8 @@ class ArduinoPeer:
             if f.kind == "garbage":
                 junk = self._rng.integers(0, 256, f.n, dtype=np.uint8).tobytes()
                 self._write(junk)
-                # Junk not ending in a delimiter (or a newline) merges with the sample.
-                intact = intact and junk.endswith(b"\n" if self.fmt == "ascii" else b"\x00")
+                # The host cuts junk off the front of a frame; a line it merges into is lost.
+                intact = intact and (self.fmt == "binary" or junk.endswith(b"\n"))
             elif f.kind == "flip":
                 buf = bytearray(data)
                 i = int(self._rng.integers(0, len(buf) - 1))  # not the delimiter

@@ -64,6 +64,37 @@ def test_any_bytes_never_raise_long(data, cuts):
     _any_bytes(data, cuts)
 
 
+# -- chunking never changes the outcome -------------------------------------------------------
+def _chunk_invariance(data, cuts):
+    for make in (framing.BinarySampleParser, framing.AsciiSampleParser):
+        whole, pieces = make(), make()
+        assert whole.feed(data) == feed_all(pieces, chunked(data, cuts))
+        assert vars(whole) == vars(pieces)  # counters and the buffered tail too
+
+
+frame_soup = st.lists(
+    st.one_of(
+        st.binary(max_size=40),
+        st.tuples(st.integers(0, 65535), u32, i32).map(lambda f: framing.encode_sample(*f)),
+        st.tuples(u32, i32).map(lambda f: framing.format_ascii(*f)),
+    ),
+    max_size=20,
+).map(b"".join)
+
+
+@SHORT
+@given(frame_soup, st.lists(st.integers(0, 5000), max_size=10))
+def test_chunking_never_changes_the_outcome(data, cuts):
+    _chunk_invariance(data, cuts)
+
+
+@pytest.mark.slow
+@LONG
+@given(frame_soup, st.lists(st.integers(0, 50_000), max_size=40))
+def test_chunking_never_changes_the_outcome_long(data, cuts):
+    _chunk_invariance(data, cuts)
+
+
 # -- frames with delimited garbage between them: every frame recovered, exactly -------------
 frames_st = st.lists(st.tuples(st.integers(0, 65535), u32, i32, st.integers(0, 255)), max_size=30)
 garbage_st = st.lists(st.binary(max_size=40).map(lambda b: b + b"\x00"), max_size=30)

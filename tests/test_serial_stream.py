@@ -86,6 +86,7 @@ def test_wrap_delta():
         ("stale_periods", 4),
         ("stale_periods", 0.5),
         ("tolerate_drops", -1),
+        ("tolerate_link_errors", 1),
         ("sync_timeout_s", 0),
         ("port", 3),
         ("count_bits", True),
@@ -309,10 +310,13 @@ def test_close_is_idempotent_and_stops_the_board():
         drv.read(0.1)
 
 
-def test_period_mismatch_is_a_user_error():
-    rig = rig_from_dict({"rig": {"sample_time_s": 0.002}}, source="r.toml")
+@pytest.mark.parametrize("fmt", ["binary", "ascii"])
+def test_period_mismatch_is_a_user_error(fmt):
+    rig = rig_from_dict(
+        {"rig": {"sample_time_s": 0.002}, "serial": {"format": fmt}}, source="r.toml"
+    )
     plant = default_plant(rig)
-    peer = ArduinoPeer(plant, 0.001, rig.metres_per_count, seed=1)  # board runs at 1 kHz
+    peer = ArduinoPeer(plant, 0.001, rig.metres_per_count, fmt=fmt, seed=1)  # board at 1 kHz
     path = peer.open_pty()
     drv = SerialStream(
         serial.Serial(path, timeout=0),
@@ -321,10 +325,11 @@ def test_period_mismatch_is_a_user_error():
         on_close=peer.close,
     )
     peer.start()
-    with (
-        drv,
-        pytest.raises(UserError, match="every 1.000 ms but the rig's sample_time_s is 2.000 ms"),
-    ):
+    expected = {
+        "binary": "every 1.000 ms but the rig's sample_time_s is 2.000 ms",
+        "ascii": "more than one line per sample period: .* sample_time_s of 2.000 ms",
+    }[fmt]
+    with drv, pytest.raises(UserError, match=expected):
         drv.wait_for_stream(1.0)
     assert math.isfinite(plant.position)
 
