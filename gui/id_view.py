@@ -23,7 +23,8 @@ def model_force(t, force, position, fit: dict, hold: str = "zoh"):
     with the derivatives of ``labbench.analysis.derivatives`` at the fit's own
     cut-off. As in ``labbench.analysis.identify``, a zero-order-held force is
     compared as the mean of the two holds around each sample (the central
-    second difference spans both), so measured - model is the fit's residual.
+    second difference spans both). The force is not low-passed here, so for a
+    broadband force the difference shown can exceed the fit's own residual.
     """
     from labbench.analysis.derivatives import differentiate
 

@@ -10,6 +10,7 @@ window polls for the newest finished result.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -21,6 +22,9 @@ from labbench.ve import Plant, VirtualEnvironment
 log = logging.getLogger(__name__)
 
 MIN_SAMPLES = 2000  # below ~2 s at 1 kHz the smoothed ETFE has too few bins to show
+# Live identification uses the newest ID_SAMPLES only and is redone when the data have
+# doubled: l2 with intervals costs ~0.5 s on 120 000 samples, the plant does not change.
+ID_SAMPLES = 20_000
 
 
 @dataclass
@@ -51,8 +55,12 @@ class Estimate:
 
 
 def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,
-             plant: Plant | None, window: int = 200, estimator: str | None = None) -> Estimate | None:
-    """ETFE of force (excitation) to position so far; None while too short to estimate."""
+             plant: Plant | None, window: int = 200, estimator: str | None = None,
+             plant_source: str = "given") -> Estimate | None:
+    """ETFE of force (excitation) to position so far; None while too short to estimate.
+
+    Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
+    """
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
 
@@ -66,10 +74,12 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     Z_err = np.asarray(res.Z_err, float) if res.Z_err is not None else np.zeros_like(w)
     eff = effective_impedances(w, Z)
 
-    source = "given" if plant is not None else "none"
+    source = plant_source if plant is not None else "none"
     if plant is None:
         # The plant is driven by the net commanded force, not by the excitation alone.
-        plant = _identify_l2(recording_from_arrays(data["t"], data["command"], data["position"], meta))
+        last = slice(max(0, n - ID_SAMPLES), n)
+        plant = _identify_l2(recording_from_arrays(data["t"][last], data["command"][last],
+                                                   data["position"][last], meta))
         source = "identified (l2)" if plant is not None else "none"
 
     wb = measured_wb_star(w, eff.ED, plant.b) if plant is not None else None
@@ -100,9 +110,16 @@ def _identify_l2(rec) -> Plant | None:
 
 
 def _theory(plant: Plant, ve: VirtualEnvironment, w: np.ndarray) -> dict:
+    return _theory_on(plant, ve, float(max(w[w > 0].min(), 1e-2)), float(w.max()))
+
+
+@functools.lru_cache(maxsize=8)
+def _theory_on(plant: Plant, ve: VirtualEnvironment, w_lo: float, w_hi: float) -> dict:
+    """Theory on 400 log-spaced points; cached, so an unchanged theory is the same object
+    (the plots then skip re-drawing it)."""
     from labbench.theory import theory_curve
 
-    wt = np.geomspace(max(w[w > 0].min(), 1e-2), w.max(), 400)
+    wt = np.geomspace(w_lo, w_hi, 400)
     Zt = np.asarray(theory_curve(plant, ve, wt, "sampled"), complex)
     eff = effective_impedances(wt, Zt)
     return {"w": wt, "Z": Zt, "ES": eff.ES, "ED": eff.ED, "EM": eff.EM}
@@ -115,6 +132,12 @@ class LiveEstimator:
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="labbench-etfe")
         self._future: cf.Future | None = None
         self.last_error: str | None = None
+        self._identified: tuple[Plant, int] | None = None  # (plant, samples it was fitted on)
+
+    def reset(self) -> None:
+        """A new stream: forget the identified plant and any estimate of the old one."""
+        self._identified = None
+        self._future = None
 
     @property
     def busy(self) -> bool:
@@ -124,7 +147,11 @@ class LiveEstimator:
         """Start an estimate unless one is running; True if started."""
         if self.busy:
             return False
-        self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator)
+        source = "given"
+        n = len(data["t"])
+        if plant is None and self._identified and n < 2 * self._identified[1]:
+            plant, source = self._identified[0], "identified (l2)"
+        self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator, source)
         return True
 
     def poll(self) -> Estimate | None:
@@ -134,13 +161,17 @@ class LiveEstimator:
             return None
         self._future = None
         try:
-            return f.result()
+            est = f.result()
         except Exception as exc:  # noqa: BLE001 - shown in the window, never raised into Qt
             message = f"live estimate failed: {type(exc).__name__}: {exc}"
             if message != self.last_error:  # one traceback per distinct failure
                 log.exception("live estimate failed")
             self.last_error = message
             return None
+        if est is not None and est.plant is not None and est.plant_source == "identified (l2)":
+            if self._identified is None or self._identified[0] is not est.plant:
+                self._identified = (est.plant, est.n_samples)
+        return est
 
     def shutdown(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from gui.buffers import StreamBuffer
 from gui.live_estimate import Estimate
@@ -24,7 +24,12 @@ def _pen(name: str, style=QtCore.Qt.PenStyle.SolidLine):
 
 
 class TimeTraces(pg.GraphicsLayoutWidget):
-    """Position, velocity estimate and forces (commanded, excitation) over the last ``window`` samples."""
+    """Position, velocity estimate and forces (commanded, excitation) over the last ``window`` samples.
+
+    Time runs relative to the newest sample on a fixed x range, and there is no
+    grid: then the axes are not re-rendered every frame (measured: a scrolling
+    absolute time axis with grid doubled the frame time).
+    """
 
     def __init__(self, window: int = 5000, parent=None):
         super().__init__(parent)
@@ -35,13 +40,12 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         for i, (key, title, unit) in enumerate(rows):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
-            p.showGrid(x=True, y=True, alpha=0.3)
-            p.setClipToView(True)
-            p.setDownsampling(auto=True, mode="peak")
+            p.enableAutoRange(x=False)
             if i:
                 p.setXLink(self.plots["position"])
             self.plots[key] = p
-        self.plots["force"].setLabel("bottom", "time", units="s")
+        self.plots["force"].setLabel("bottom", "time before the newest sample", units="s")
+        self._span = None
         self.plots["force"].addLegend(offset=(-10, 5))
         self.curves = {
             "position": self.plots["position"].plot(pen=_pen("position")),
@@ -57,13 +61,24 @@ class TimeTraces(pg.GraphicsLayoutWidget):
 
     def update_from(self, buf: StreamBuffer) -> None:
         t = buf.channel("t", self.window)
+        x = t - t[-1] if t.size else t
+        span = self.window * (buf.sample_time_s or 1e-3)
+        if span != self._span:
+            self.plots["position"].setXRange(-span, 0, padding=0)
+            self._span = span
         for name, curve in self.curves.items():
-            curve.setData(t, buf.channel(name, self.window), skipFiniteCheck=True)
+            curve.setData(x, buf.channel(name, self.window), skipFiniteCheck=True)
         self.frames += 1
 
 
 class ImpedancePlots(QtWidgets.QTabWidget):
-    """ES / ED / EM against w (log axis) with band, theory and w_s*, w_b* marks; |Z| and phase on a tab."""
+    """ES / ED / EM against w (log axis) with band, theory and w_s*, w_b* marks; |Z| and phase on a tab.
+
+    Cheap to redraw: no pyqtgraph grid (on log axes it cost ~3 ms per axis and
+    frame) but a few decade lines and a zero line; each band is one filled path;
+    theory curves are re-set only when the theory changed; the hidden tab is
+    drawn when it is shown.
+    """
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -77,14 +92,16 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         for i, (key, title, unit) in enumerate(rows, start=1):
             p = self.effective.addPlot(row=i, col=0)
             self._setup(p, title, unit)
+            p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
             if key == "ES":
                 p.addLegend(offset=(-10, 5))
             if i > 1:
                 p.setXLink(self.plots["ES"])
-            lo = p.plot(pen=None)
-            hi = p.plot(pen=None)
-            self.bands[key] = (lo, hi)
-            p.addItem(pg.FillBetweenItem(lo, hi, brush=COLOURS["band"]))
+            band = QtWidgets.QGraphicsPathItem()
+            band.setBrush(pg.mkBrush(COLOURS["band"]))
+            band.setPen(pg.mkPen(None))
+            p.addItem(band)
+            self.bands[key] = band
             named = key == "ES"  # one legend (on ES) serves all three rows
             self.curves[key] = p.plot(pen=_pen("measured"),
                                       name="measured (ETFE), 95 % band" if named else None)
@@ -110,53 +127,52 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_" + k] = p.plot(pen=_pen("measured"))
             self.curves["bode_" + k + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine))
         self.last: Estimate | None = None
+        self._theory_shown = None
+        self._bode_shown = None
         self.updates = 0
+        self.currentChanged.connect(lambda *_: self._draw_bode())
 
     @staticmethod
     def _setup(p, title, unit, logy=False):
         p.setLabel("left", title, units=unit)
         p.setLogMode(x=True, y=logy)
-        p.showGrid(x=True, y=True, alpha=0.3)
+        for decade in range(-1, 5):  # light decade lines instead of a full grid
+            p.addItem(pg.InfiniteLine(pos=decade, angle=90, pen=pg.mkPen("#dddddd", width=1)))
         p.getAxis("left").enableAutoSIPrefix(False)
         p.getAxis("bottom").enableAutoSIPrefix(False)
 
     def clear_data(self) -> None:
         for c in self.curves.values():
             c.setData([], [])
-        for lo, hi in self.bands.values():
-            lo.setData([], [])
-            hi.setData([], [])
+        for band in self.bands.values():
+            band.setPath(QtGui.QPainterPath())
         for m in self.marks.values():
             m.setVisible(False)
         self.title.setText("effective impedances: waiting for data")
-        self.last = None
+        self.last = self._theory_shown = self._bode_shown = None
 
     def show_estimate(self, est: Estimate) -> None:
         ok = est.w > 0
         w = est.w[ok]
+        lw = np.log10(w)  # view x coordinates on a log axis
         # ES reads as stiffness where Im Z < 0, EM as mass where Im Z > 0 (paper Figure 2).
         shown = {"ES": np.where(est.Z.imag[ok] < 0, est.ES[ok], np.nan),
                  "ED": est.ED[ok],
                  "EM": np.where(est.Z.imag[ok] > 0, est.EM[ok], np.nan)}
         for key, y in shown.items():
-            self.curves[key].setData(w, y, connect="finite")
+            self.curves[key].setData(w, y, connect="finite", skipFiniteCheck=True)
             lo, hi = est.band(key)
-            fin = np.isfinite(y)
-            self.bands[key][0].setData(w[fin], lo[ok][fin])
-            self.bands[key][1].setData(w[fin], hi[ok][fin])
+            self.bands[key].setPath(_band_path(lw, lo[ok], hi[ok], np.isfinite(y)))
         th = est.theory
-        for key in ("ES", "ED", "EM"):
-            if th:
-                keep = (th["Z"].imag < 0) if key == "ES" else (th["Z"].imag > 0) if key == "EM" else True
-                self.curves[key + "_theory"].setData(th["w"], np.where(keep, th[key], np.nan),
-                                                     connect="finite")
-            else:
-                self.curves[key + "_theory"].setData([], [])
-        self.curves["bode_mag"].setData(w, np.abs(est.Z[ok]))
-        self.curves["bode_phase"].setData(w, np.degrees(np.unwrap(np.angle(est.Z[ok]))))
-        if th:
-            self.curves["bode_mag_theory"].setData(th["w"], np.abs(th["Z"]))
-            self.curves["bode_phase_theory"].setData(th["w"], np.degrees(np.unwrap(np.angle(th["Z"]))))
+        if th is not self._theory_shown:
+            for key in ("ES", "ED", "EM"):
+                if th:
+                    keep = {"ES": th["Z"].imag < 0, "EM": th["Z"].imag > 0}.get(key, True)
+                    self.curves[key + "_theory"].setData(th["w"], np.where(keep, th[key], np.nan),
+                                                         connect="finite", skipFiniteCheck=True)
+                else:
+                    self.curves[key + "_theory"].setData([], [])
+            self._theory_shown = th
         for key, value, theory, sym in (("ws", est.ws_measured, est.ws_theory, "w_s*"),
                                         ("wb", est.wb_measured, est.wb_theory, "w_b*")):
             line = self.marks[key]
@@ -174,3 +190,31 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.title.setText(f"effective impedances from {est.n_samples} samples; {plant}")
         self.last = est
         self.updates += 1
+        self._draw_bode()
+
+    def _draw_bode(self) -> None:
+        est = self.last
+        if est is None or self.currentWidget() is not self.bode or est is self._bode_shown:
+            return
+        ok = est.w > 0
+        self.curves["bode_mag"].setData(est.w[ok], np.abs(est.Z[ok]))
+        self.curves["bode_phase"].setData(est.w[ok], np.degrees(np.unwrap(np.angle(est.Z[ok]))))
+        th = est.theory
+        for key, y in (("mag", np.abs(th["Z"]) if th else None),
+                       ("phase", np.degrees(np.unwrap(np.angle(th["Z"]))) if th else None)):
+            self.curves[f"bode_{key}_theory"].setData(th["w"] if th else [], y if th else [])
+        self._bode_shown = est
+
+
+def _band_path(x, lo, hi, keep) -> QtGui.QPainterPath:
+    """One filled polygon per run of finite points (lo forward, hi backward); NaN
+    separators start a new subpath, and a filled subpath closes itself."""
+    idx = np.flatnonzero(keep)
+    runs = [r for r in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if r.size >= 2]
+    if not runs:
+        return QtGui.QPainterPath()
+    xs, ys = [], []
+    for r in runs:
+        xs += [x[r], x[r][::-1], [np.nan]]
+        ys += [lo[r], hi[r][::-1], [np.nan]]
+    return pg.arrayToQPath(np.concatenate(xs), np.concatenate(ys), connect="finite")

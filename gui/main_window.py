@@ -89,6 +89,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._estimator_error_shown = None
         self._run_started = time.monotonic()
         self._acquisition: threading.Thread | None = None  # the run or replay thread
+        self._device_used = False  # a run has used the connected device
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -196,6 +197,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.reanalyse_requested.connect(self.reanalyse)
         self.sessions.export_requested.connect(self.export)
         self.theory_plant.currentTextChanged.connect(lambda *_: self._invalidate_estimate())
+
         self.select_protocol(self.protocol_panel.choice.currentText())
 
     @staticmethod
@@ -313,8 +315,15 @@ class MainWindow(QtWidgets.QMainWindow):
             raise UserError(f"a {self.mode} is in progress; stop it first")
         if self.estop.latched:
             raise UserError("E-STOP is latched: disconnect and reconnect the device to clear it")
+        backend = self.device_panel.backend.currentText()
+        if self.device is not None and self._device_used and backend in SIM_BACKENDS:
+            # A fresh simulator per run: every run starts from the same state (seeded runs
+            # repeat exactly) and its real-time clock starts with the run (a reused one
+            # would first catch up, unpaced, on the time it sat idle).
+            old, self.device = self.device, None
+            self.device_panel.set_connected(None)
+            run_in_background(self.mailbox, "disconnect", old.close)
         if self.device is None:
-            backend = self.device_panel.backend.currentText()
             self._pending_start = True
             self.connect_device(backend)
             return
@@ -324,6 +333,7 @@ class MainWindow(QtWidgets.QMainWindow):
         protocol, _rep = checked
         self._reset_view()
         self.stop_event = threading.Event()
+        self._device_used = True
         self.mode = "running"
         self._run_started = time.monotonic()
         self.protocol_panel.set_running(True)
@@ -341,6 +351,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _reset_view(self):
         self.buffer = StreamBuffer()
+        self.estimator.reset()
         self.traces.clear_data()
         self.impedance.clear_data()
         self._drawn_version = self._estimated_version = -1
@@ -400,6 +411,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _on_connect_done(self, device):
         self.device = device
+        self._device_used = False
         desc = device.describe()
         self.device_panel.set_connected(desc)
         self.log.add("info", f"connected: {desc.name} ({desc.kind})")
