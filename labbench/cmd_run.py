@@ -236,8 +236,8 @@ def summary_lines(name: str, results: dict) -> list[str]:
         p = results.get("plant", {})
         if d.get("median_rel") is not None:
             lines.append(f"|Z - Z_sampled| / |Z_sampled| over {d['band_rad_s'][0]:g}-"
-                         f"{d['band_rad_s'][1]:g} rad/s: median {100 * d['median_rel']:.2f} %, "
-                         f"max {100 * d['max_rel']:.2f} % (m = {p.get('m', 0):.4g} kg, "
+                         f"{d['band_rad_s'][1]:g} rad/s: median {100 * d['median_rel']:.2g} %, "
+                         f"max {100 * d['max_rel']:.2g} % (m = {p.get('m', 0):.4g} kg, "
                          f"b = {p.get('b', 0):.4g} N s/m)")
         bw = results.get("bandwidths", {})
         lines.append("w_s* measured {} / predicted {} rad/s; w_b* measured {} / predicted {} rad/s".format(

@@ -175,15 +175,20 @@ class _Run:
         return {k: v[first:] for k, v in joined.items()}
 
     def timing(self) -> dict:
-        """Loop timing over all segments: worst p99/max, median of p50, total overruns."""
+        """Loop timing over all segments: worst p99/max, median of p50, total overruns and wall
+        time, and the real-time factor (simulated seconds per wall second)."""
         parts = [s["timing"] for s in self.segments if s.get("timing")]
         if not parts:
             return {}
         out = {"segments": len(parts)}
-        for key, agg in (("p50_s", np.median), ("p99_s", max), ("max_s", max), ("overruns", sum)):
+        for key, agg in (("p50_s", np.median), ("p99_s", max), ("max_s", max), ("overruns", sum),
+                         ("wall_s", sum)):
             vals = [p[key] for p in parts if p.get(key) is not None]
             if vals:
                 out[key] = agg(vals)
+        if out.get("wall_s"):
+            T = self.segments[0]["ve"]["T"]
+            out["realtime_factor"] = self.n_samples * T / out["wall_s"]
         return json_safe(out)
 
     def finish(self, status: str, reason: str) -> RunResult:
