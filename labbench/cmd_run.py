@@ -158,7 +158,8 @@ def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
     try:
         device = open_device(args.device, rig, **dev_opts)
         with ProgressBar(name) as bar:
-            result = run(device, protocol, [writer], stop=stop, progress=bar, rig=rig)
+            result = run(device, protocol, [writer], stop=stop, progress=bar, rig=rig,
+                         simulated=args.device.startswith("sim"))
     finally:
         writer.close()
     return result, writer.path

@@ -41,7 +41,7 @@ class RunResult:
 def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
         stop: threading.Event | None = None,
         progress: Callable[[float, str], None] | None = None, rig: Rig | None = None,
-        close: bool = True) -> RunResult:
+        close: bool = True, simulated: bool | None = None) -> RunResult:
     """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
 
     ``stop`` (set from another thread, e.g. a GUI's stop button) or Ctrl-C ends
@@ -50,7 +50,10 @@ def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
     plant (default: the simulated Phantom-like rig). The device is disabled and,
     with ``close`` (default), closed on the way out. Raises UserError (before
     anything is enabled or recorded) when the protocol's VE is unstable or its
-    plan does not fit the rig.
+    plan does not fit the rig. ``simulated`` says whether the device is a
+    simulator (the only place ``allow_unstable`` is accepted); None: its
+    description's kind starts with "sim" (a real driver talking to a simulated
+    peer reports the driver's kind, so the caller who opened it must say).
     """
     from labbench.loop import HapticLoop, SafetyConfig, run_loop
 
@@ -64,7 +67,9 @@ def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
         if abs(T - protocol.ve.T) > 1e-9 * T:
             raise UserError(f"the device samples every {T:g} s but the protocol assumes "
                             f"{protocol.ve.T:g} s (set sample_time_s)")
-        if protocol.allow_unstable and not str(desc.kind).startswith("sim"):
+        if simulated is None:
+            simulated = str(desc.kind).startswith("sim")
+        if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant = protocol.plant(rig)
         check = precheck(protocol, plant, rig)

@@ -119,6 +119,11 @@ def test_override_only_on_a_simulator():
         run(spy, p, [], rig=Rig())
     assert spy.calls[-1] == "close"
     assert "enable" not in spy.calls
+    # a real driver talking to a simulated peer: the caller who opened it says so
+    res = run(Spy(kind="canopen"), p, [], rig=Rig(), simulated=True)
+    assert res.n_samples > 0  # it ran (no refusal)
+    with pytest.raises(UserError, match="simulator only"):
+        run(Spy(kind="sim"), p, [], rig=Rig(), simulated=False)
 
 
 def test_stop_event_aborts_with_zero_force_and_stop_record():
