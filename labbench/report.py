@@ -389,8 +389,8 @@ def _timing_table(s: SessionData) -> Table:
         items.append((label + (" (ms)" if f else ""), v * f if f and v is not None else v))
     p50 = timing.get("p50_s")
     if p50 is not None and p50 < 0.5 * s.T:
-        items.append(("note", "unpaced run (simulator as fast as possible): the periods are "
-                              "compute times per sample"))
+        items.append(("note", ("unpaced run (simulator as fast as possible): the periods are "
+                               "compute times per sample")))
     return _kv("Loop timing", items or [("timing", "not recorded")])
 
 
@@ -435,8 +435,8 @@ img{max-width:100%}figure{margin:1em 0}figcaption{font-style:italic;font-size:13
 
 def render_html(title: str, blocks: list) -> str:
     e = html.escape
-    out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title>"
-           f"<style>{_CSS}</style></head><body><h1>{e(title)}</h1>"]
+    out = [(f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(title)}</title>"
+            f"<style>{_CSS}</style></head><body><h1>{e(title)}</h1>")]
     for b in blocks:
         if isinstance(b, Heading):
             out.append(f"<h{b.level}>{e(b.text)}</h{b.level}>")
@@ -489,7 +489,7 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
     blocks = ordered + figures
     with PdfPages(path) as pdf:
         pdf.infodict()["Title"] = title
-        big = dict(size=11, weight="bold", family="sans-serif")  # two line slots each
+        big = {"size": 11, "weight": "bold", "family": "sans-serif"}  # two line slots each
         lines: list[tuple[str, dict]] = []
         for t in textwrap.wrap(title, 90):
             lines += [(t, big), ("", {})]
@@ -518,7 +518,7 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
                 tl = _table_lines(b)
                 if len(lines) % per_page + len(tl) > per_page and len(tl) < per_page:
                     lines += [("", {})] * (per_page - len(lines) % per_page)  # keep it on one page
-                lines += [(tl[0], dict(weight="bold"))] + [(x, {}) for x in tl[1:]]
+                lines += [(tl[0], {"weight": "bold"})] + [(x, {}) for x in tl[1:]]
             elif isinstance(b, Picture):
                 flush_text()
                 if b.figure is not None:

@@ -30,9 +30,9 @@ import struct
 import threading
 import time
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -137,7 +137,7 @@ class SessionReader:
         self.good_bytes = len(MAGIC)
         self._decode = decode_pages
         try:
-            self._f = open(self.path, "rb")
+            self._f = open(self.path, "rb")  # noqa: SIM115 - kept open while iterating; close()
         except OSError as exc:
             raise UserError(f"cannot read session {self.path}: {exc.strerror}") from None
         self._f.seek(len(MAGIC))
@@ -184,7 +184,7 @@ class SessionReader:
         try:
             head = json.loads(body)
             if not isinstance(head, dict):
-                raise ValueError("record is not an object")
+                raise TypeError("record is not an object")
             if head.get("kind") == records.PAGE:
                 if self._decode:
                     head = _decode_page(head, data)

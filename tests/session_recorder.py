@@ -76,7 +76,7 @@ def main() -> int:
     ap.add_argument("--page-size", type=int, default=100)
     args = ap.parse_args()
     T = VE.T
-    n = int(round(args.seconds / T))
+    n = round(args.seconds / T)
     stream = synthetic_stream(n, args.page_size, status="success", events=False)
     with SessionWriter(args.directory) as writer:
         t0 = time.monotonic()

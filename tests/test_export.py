@@ -4,12 +4,12 @@ import json
 import h5py
 import numpy as np
 import pytest
+from session_recorder import VE, synthetic_stream
 
 from labbench import records
 from labbench.cli import main
 from labbench.export import CSV_COLUMNS
 from labbench.session import SessionWriter
-from session_recorder import VE, synthetic_stream
 
 
 @pytest.fixture

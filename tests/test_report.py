@@ -6,12 +6,12 @@ import re
 import numpy as np
 import pytest
 from matplotlib import image
+from session_recorder import synthetic_stream
 
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
 from labbench.session import SessionWriter
-from session_recorder import synthetic_stream
 
 TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig
 

@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+from session_recorder import VE, synthetic_stream
 
 from labbench import records
 from labbench.errors import UserError
@@ -18,7 +19,6 @@ from labbench.session import (
     looks_like_session,
     read_session,
 )
-from session_recorder import VE, synthetic_stream
 
 
 def _write(directory, stream, **kw):
@@ -30,15 +30,15 @@ def _write(directory, stream, **kw):
 
 def _assert_same(a: dict, b: dict):
     assert a.keys() == b.keys()
-    for key in a:
+    for key, value in a.items():
         if key == "data":
-            assert a[key].keys() == b[key].keys()
-            for name in a[key]:
-                x, y = np.asarray(a[key][name]), b[key][name]
+            assert value.keys() == b[key].keys()
+            for name, arr in value.items():
+                x, y = np.asarray(arr), b[key][name]
                 assert x.dtype == y.dtype and x.shape == y.shape
                 np.testing.assert_array_equal(x, y)
         else:
-            assert json.loads(json.dumps(a[key])) == b[key], key
+            assert json.loads(json.dumps(value)) == b[key], key
 
 
 def test_round_trip_is_exact(tmp_path):

@@ -9,10 +9,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+from session_recorder import synthetic_stream
 
 from labbench import records
 from labbench.session import read_session
-from session_recorder import synthetic_stream
 
 RECORDER = Path(__file__).with_name("session_recorder.py")
 SECONDS = 5.0
@@ -88,9 +88,8 @@ def test_sigkill_of_labbench_run_realtime(tmp_path):
     from protocols import make_protocol
     from sim_backend.sim_device import open_sim
 
-    options = dict(duration_s=6.0, f0_hz=0.5)
     ref = []
-    run(open_sim(Rig()), make_protocol("chirp-id", **options), [ref.append])
+    run(open_sim(Rig()), make_protocol("chirp-id", duration_s=6.0, f0_hz=0.5), [ref.append])
     want = records.concat_pages(ref)
     rng = random.Random(int(time.time()))
     for i in range(2):
