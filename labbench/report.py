@@ -381,12 +381,10 @@ def _events_table(s: SessionData) -> Table:
 
 def _timing_table(s: SessionData) -> Table:
     timing = (s.stop or {}).get("timing") or {}
-    scale = {"p50_s": ("period p50", 1e3), "p99_s": ("period p99", 1e3),
-             "max_s": ("period max", 1e3)}
-    items = []
-    for k, v in timing.items():
-        label, f = scale.get(k, (k, None))
-        items.append((label + (" (ms)" if f else ""), v * f if f and v is not None else v))
+    labels = {"p50_s": "period p50 (ms)", "p99_s": "period p99 (ms)", "max_s": "period max (ms)",
+              "wall_s": "wall time (s)", "realtime_factor": "simulated s per wall s"}
+    items = [(labels.get(k, k), v * 1e3 if k in ("p50_s", "p99_s", "max_s") and v is not None
+              else v) for k, v in timing.items()]
     p50 = timing.get("p50_s")
     if p50 is not None and p50 < 0.5 * s.T:
         items.append(("note", ("unpaced run (simulator as fast as possible): the periods are "
