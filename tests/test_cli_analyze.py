@@ -3,10 +3,10 @@ import json
 
 import numpy as np
 import pytest
+from truthdata import PAPER_B, PAPER_M, chirp_recording, closed_loop_recording, write_csv, z_truth
 
 from labbench.cli import main
 from labbench.ve import VirtualEnvironment
-from truthdata import PAPER_B, PAPER_M, chirp_recording, closed_loop_recording, write_csv, z_truth
 
 ID_KEYS = {"model", "method", "m", "b", "coulomb", "offset", "ci95", "rms_residual", "n_used"}
 ETFE_KEYS = {"estimator", "w", "Z_re", "Z_im", "ES", "ED", "EM", "coherence", "ws_star", "wb_star"}
@@ -74,8 +74,9 @@ def test_etfe_paper_estimator_and_plot(loop_csv, tmp_path, capsys):
 
 
 def test_etfe_of_a_recorded_session(tmp_path, capsys):
-    from labbench.session import SessionWriter
     from session_recorder import synthetic_stream
+
+    from labbench.session import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=30000):

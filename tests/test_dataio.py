@@ -1,10 +1,10 @@
 """Loading records: CSV layout, every user error as one UserError line, sessions."""
 import numpy as np
 import pytest
+from truthdata import chirp_recording, write_csv
 
 from labbench.analysis.dataio import load_recording, position_quantum, recording_from_arrays
 from labbench.errors import UserError
-from truthdata import chirp_recording, write_csv
 
 
 def _write(path, text):
@@ -59,8 +59,9 @@ def test_unreadable_and_missing_files(tmp_path):
 
 
 def test_session_file_loads_through_the_same_entry_point(tmp_path):
-    from labbench.session import SessionWriter
     from session_recorder import synthetic_stream
+
+    from labbench.session import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=3000):

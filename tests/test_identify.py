@@ -1,11 +1,11 @@
 """Identification against exact simulated data (tests/truthdata.py)."""
 import numpy as np
 import pytest
+from truthdata import PAPER_B, PAPER_M, chirp_recording, with_noise
 
 from labbench.analysis import l1
 from labbench.analysis.identify import identify
 from labbench.errors import UserError
-from truthdata import PAPER_B, PAPER_M, chirp_recording, with_noise
 
 
 @pytest.fixture(scope="module")

@@ -108,7 +108,6 @@ def z_truth(ve, w, m: float = PAPER_M, b: float = PAPER_B) -> np.ndarray:
 def write_csv(rec: Recording, path, extra_meta: dict | None = None) -> None:
     """CSV in the documented layout (# key=value lines, header, rows), columns shuffled."""
     with open(path, "w") as fh:
-        for k, v in {**rec.meta, **(extra_meta or {})}.items():
-            fh.write(f"# {k}={v}\n")
+        fh.writelines(f"# {k}={v}\n" for k, v in {**rec.meta, **(extra_meta or {})}.items())
         fh.write("position,t,force\n")
         np.savetxt(fh, np.column_stack([rec.position, rec.t, rec.force]), delimiter=",", fmt="%.17g")

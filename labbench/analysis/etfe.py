@@ -30,7 +30,7 @@ import numpy as np
 from scipy import fft, signal
 
 from labbench.analysis.dataio import Recording, position_quantum
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.effective import effective_impedances, measured_ws_star
 from labbench.errors import UserError
 
 ESTIMATORS = ("lpm", "h1-log", "h1-welch", "paper")
@@ -134,7 +134,7 @@ def _h1_err(Z, coh, n_avg):
 
 def _h1_welch(f, x, fs) -> EtfeResult:
     nper = min(WELCH_SEGMENT, len(f))
-    kw = dict(fs=fs, nperseg=nper, detrend="linear")
+    kw = {"fs": fs, "nperseg": nper, "detrend": "linear"}
     freq, Sff = signal.welch(f, **kw)
     _, Sxx = signal.welch(x, **kw)
     _, Sfx = signal.csd(f, x, **kw)

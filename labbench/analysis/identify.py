@@ -28,7 +28,13 @@ from scipy import ndimage, stats
 
 from labbench.analysis import l1
 from labbench.analysis.dataio import Recording, position_quantum
-from labbench.analysis.derivatives import CUTOFF_FACTOR, default_cutoff, differentiate, force_band, lowpass
+from labbench.analysis.derivatives import (
+    CUTOFF_FACTOR,
+    default_cutoff,
+    differentiate,
+    force_band,
+    lowpass,
+)
 from labbench.errors import UserError
 
 MODELS = ("mb", "mbc", "mbco")
