@@ -189,6 +189,7 @@ class StabilityProbe(Protocol):
         return excitation.pulse(n, c.sample_time_s, c.pulse_n, c.pulse_s, at_s=0.05)
 
     def segments(self, plant: Plant):
+        self._last = None
         for ve in self.plan(plant):
             yield from self._home(plant, ve)
             label = f"K={ve.K:.6g}" if self.config.variable == "K" else f"td={ve.td:.6g}"
