@@ -4,11 +4,12 @@ import pytest
 from scipy import signal
 from truthdata import PAPER_B, PAPER_M, closed_loop_recording, z_truth
 
+from labbench import theory
 from labbench.analysis import compare
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS, etfe
 from labbench.errors import UserError
-from labbench.ve import VirtualEnvironment
+from labbench.ve import Plant, VirtualEnvironment
 
 SPRING_DAMPER = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
 DAMPER = VirtualEnvironment("damper", B=1.0, w0=125.0)
@@ -90,8 +91,7 @@ def test_little_excitation_flagged():
     rec = closed_loop_recording(SPRING_DAMPER, n=60000)
     sos = signal.butter(8, 10.0, fs=1000.0, output="sos")
     f = signal.sosfilt(sos, rec.force)
-    _, y, _ = signal.dlsim(__import__("labbench.theory", fromlist=["x"]).closed_loop(
-        __import__("labbench.ve", fromlist=["x"]).Plant(PAPER_M, PAPER_B), SPRING_DAMPER).as_dlti(), f)
+    _, y, _ = signal.dlsim(theory.closed_loop(Plant(PAPER_M, PAPER_B), SPRING_DAMPER).as_dlti(), f)
     res = etfe(recording_from_arrays(rec.t, f, y[:, 0]))
     assert any(f.startswith("little-excitation") for f in res.flags)
 
@@ -107,7 +107,7 @@ def test_theory_comparison_identifies_the_device_from_the_closed_loop(runs):
     ident = compare.identify_closed_loop(rec, compare.ve_from_meta(rec.meta, rec.fs))
     assert abs(ident.m / PAPER_M - 1) < 1e-3 and abs(ident.b / PAPER_B - 1) < 1e-2
     res = etfe(rec)
-    cmp = compare.compare(res, __import__("labbench.ve", fromlist=["x"]).Plant(ident.m, ident.b), ve)
+    cmp = compare.compare(res, Plant(ident.m, ident.b), ve)
     assert cmp["model"] == "sampled"
     assert cmp["deviation_median"] < 0.01 and cmp["deviation_max"] < 0.05
 
