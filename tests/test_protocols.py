@@ -225,3 +225,24 @@ def test_stability_probe_over_td_finds_the_first_unstable_sample():
                  if not theory.stability(TRUTH, VirtualEnvironment("spring", 50.0, T=T, td=n * T)).stable)
     assert r["exact_boundary"] == pytest.approx(exact)
     assert r["measured_boundary"] == pytest.approx(exact)
+
+
+def test_etfe_on_a_quantised_noisy_sim_within_5_percent():
+    rig = rig_from_dict({"sim": {"quantize": True, "force_noise_n": 0.002}})
+    res = run(open_sim(rig, seed=5), make_protocol("etfe", seed=5), [], rig=rig)
+    assert res.results["deviation_vs_sampled"]["max_rel"] < 0.05
+
+
+def test_boundary_from_growth_rates_and_trips():
+    from protocols.stability_probe import _crossing
+
+    steps = [{"K": 10.0, "sigma_per_s": -0.2, "unstable": False},
+             {"K": 20.0, "sigma_per_s": 0.2, "unstable": True}]
+    assert _crossing(steps, "K") == pytest.approx(15.0)
+    # a step ended by the energy observer before sigma could be fitted: midpoint
+    steps[1] = {"K": 20.0, "sigma_per_s": None, "unstable": True}
+    assert _crossing(steps, "K") == pytest.approx(15.0)
+    steps[0]["sigma_per_s"] = -0.6
+    steps[1]["sigma_per_s"] = 0.2
+    assert _crossing(steps, "K") == pytest.approx(17.5)
+    assert _crossing(steps[:1], "K") is None
