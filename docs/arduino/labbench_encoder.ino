@@ -82,17 +82,21 @@ uint16_t seq = 0;
 uint8_t status_bits = 0;            // bit 0: watchdog zeroed the output, bit 1: bad command
 float latest_force = 0.0f;          // newest valid command [N at the handle]
 uint16_t periods_since_command = 255;
-uint8_t rx[16];
+// Command receiver: the last 10 bytes before a 0x00 (one COBS command frame);
+// longer runs are garbage cut off the front, as the host does with samples.
+#define CMD_FRAME_LEN 10
+uint8_t rx[CMD_FRAME_LEN];
 uint8_t rx_len = 0;
-bool rx_overflow = false;
+bool rx_garbage = false;
 unsigned long next_tick;
 
 void put_u16(uint8_t *p, uint16_t v) { p[0] = v; p[1] = v >> 8; }
 void put_u32(uint8_t *p, uint32_t v) { for (uint8_t i = 0; i < 4; i++) p[i] = v >> (8 * i); }
 
 void take_command_frame() {
-  uint8_t payload[16];
-  int n = rx_overflow ? -1 : cobs_decode(rx, rx_len, payload);
+  uint8_t payload[CMD_FRAME_LEN];
+  if (rx_garbage) status_bits |= 0x02;
+  int n = rx_len == CMD_FRAME_LEN ? cobs_decode(rx, rx_len, payload) : -1;
   if (n != 9 || payload[0] != 'F' || crc16(payload, 7) != (uint16_t)(payload[7] | (payload[8] << 8))) {
     if (rx_len) status_bits |= 0x02;
     return;
@@ -111,11 +115,14 @@ void poll_commands() {
     if (b == 0) {
       take_command_frame();
       rx_len = 0;
-      rx_overflow = false;
-    } else if (rx_len < sizeof(rx)) {
-      rx[rx_len++] = b;
+      rx_garbage = false;
     } else {
-      rx_overflow = true;
+      if (rx_len == CMD_FRAME_LEN) {  // keep the newest bytes only
+        memmove(rx, rx + 1, CMD_FRAME_LEN - 1);
+        rx_len--;
+        rx_garbage = true;
+      }
+      rx[rx_len++] = b;
     }
   }
 }
