@@ -84,8 +84,8 @@ def run_etfe(args) -> int:
     d = res.as_dict()
     ve = compare.ve_from_meta(rec.meta, rec.fs)
     cmp = None
-    m = args.m if args.m is not None else rec.meta.get("m")
-    b = args.b if args.b is not None else rec.meta.get("b")
+    m = args.m if args.m is not None else compare.meta_number(rec.meta, "m")
+    b = args.b if args.b is not None else compare.meta_number(rec.meta, "b")
     if (m is None) != (b is None):
         raise UserError("give both --m and --b (or neither, to identify them from the record)")
     if ve is not None:

@@ -86,6 +86,14 @@ def test_etfe_of_a_recorded_session(tmp_path, capsys):
     assert d["theory"]["deviation_median"] < 0.01
 
 
+def test_bad_metadata_is_one_line(tmp_path, capsys):
+    p = tmp_path / "bad_meta.csv"
+    write_csv(closed_loop_recording(SD, n=3000), p, {"K": "fifty"})
+    assert main(["analyze", "etfe", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "K='fifty'" in err and err.count("\n") == 1
+
+
 @pytest.mark.parametrize("argv, words", [
     (["analyze", "id", "{missing}"], "position"),
     (["analyze", "id", "{nofile}"], "no such file"),

@@ -32,14 +32,26 @@ def ve_from_meta(meta: dict, fs: float) -> VirtualEnvironment | None:
     if kind not in VE_KINDS:
         raise UserError(f"metadata ve={kind!r} is not one of {', '.join(VE_KINDS)}")
     w0 = meta.get("w0")
+    no_filter = w0 is None or str(w0).strip().lower() in ("", "none", "null", "inf")
     return VirtualEnvironment(
         kind=kind,
-        K=float(meta.get("K", 0.0)),
-        B=float(meta.get("B", 0.0)),
-        w0=math.inf if w0 in (None, "", "none", "inf") else float(w0),
-        T=1.0 / float(meta.get("fs", fs)),
-        td=float(meta.get("td", 0.0)),
+        K=meta_number(meta, "K", 0.0),
+        B=meta_number(meta, "B", 0.0),
+        w0=math.inf if no_filter else meta_number(meta, "w0"),
+        T=1.0 / meta_number(meta, "fs", fs),
+        td=meta_number(meta, "td", 0.0),
     )
+
+
+def meta_number(meta: dict, key: str, default: float | None = None) -> float | None:
+    """A numeric metadata value (default when absent); a clear error when it is not a number."""
+    value = meta.get(key, default)
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"metadata {key}={value!r} is not a number") from None
 
 
 def plant_force(rec: Recording, ve: VirtualEnvironment) -> np.ndarray:
