@@ -7,8 +7,9 @@ from labbench.rig import rig_from_dict
 from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 # Short lock-step timeout so a silent drive is detected quickly in tests.
-FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2, "heartbeat_consumer_ms": 400,
-        "rpdo_timeout_ms": 300}
+# Drive monitors well above the stalls of a loaded machine (tens of ms).
+FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2, "heartbeat_consumer_ms": 800,
+        "rpdo_timeout_ms": 600}
 
 
 def make_rig(sim: dict | None = None, **canopen):

@@ -64,7 +64,7 @@ def test_bring_up_observes_nmt_maps_pdos_and_selects_cst(drive):
     assert [u32(0x1A00, s) for s in (1, 2, 3)] == [0x60640020, 0x60410010, 0x60770010]
     assert u32(0x1A01, 1) == 0x606C0020
     assert [u32(0x1600, s) for s in (1, 2)] == [0x60710010, 0x60400010]
-    assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 300)
+    assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 600)
 
 
 def enabled(drive):
@@ -97,7 +97,7 @@ def test_enable_writes_and_reads_back_the_safety_objects(drive):
     assert peer._get(0x6072) == 5000
     assert peer._get(0x607D, 1) == math.floor(-0.1 / rig.metres_per_count)
     assert peer._get(0x607D, 2) == math.ceil(0.1 / rig.metres_per_count)
-    assert peer._get(0x1016, 1) == (127 << 16 | 400)
+    assert peer._get(0x1016, 1) == (127 << 16 | 800)
     assert (peer._get(0x605A), peer._get(0x605E), peer._get(0x6007)) == (0, 0, 1)
     drive.disable()
     assert peer.state is State.SWITCH_ON_DISABLED and peer._get(0x1016, 1) == 0

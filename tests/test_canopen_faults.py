@@ -104,11 +104,11 @@ def test_drive_leaves_operational(drive):
 
 
 def test_frozen_host_loop_is_stopped_by_the_drive(drive):
-    """The loop thread itself stalls (no SYNC, no RPDO, no heartbeat) for 1 s."""
+    """The loop thread itself stalls (no SYNC, no RPDO, no heartbeat) for 1.5 s."""
     seen = {}
 
     def freeze(peer):
-        time.sleep(1.0)
+        time.sleep(1.5)
         seen["torque"], seen["state"] = peer.torque_permille, peer.state
 
     outcome, events = run_with_fault(drive, freeze)
@@ -213,11 +213,11 @@ def test_emergency_stop_from_another_thread_mid_run(drive):
 
 # ------------------------------------------------------ paced (hardware) mode
 def paced_drive(**canopen):
-    """The driver in paced mode at a coarse 20 ms period (timing is not asserted)."""
+    """The driver in paced mode at a coarse 50 ms period (timing is not asserted)."""
     from labbench.rig import rig_from_dict
     from sim_backend.canopen_peer import open_sim_canopen
 
-    rig = rig_from_dict({"rig": {"sample_time_s": 0.02},
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.05},
                          "canopen": {"sdo_timeout_s": 0.2, **canopen}}, source="paced-rig")
     return open_sim_canopen(rig, realtime=True)
 
@@ -228,10 +228,10 @@ def test_paced_mode_resyncs_after_a_late_tick_without_a_burst_of_syncs():
         d.enable()
         for k in range(12):
             if k == 6:
-                time.sleep(0.1)  # five periods late: re-phase, do not send the missed SYNCs
+                time.sleep(0.3)  # six periods late: re-phase, do not send the missed SYNCs
             d.read(1.0)
             d.command(0.0)
-        assert d.counters["late_ticks"] == 1
+        assert d.counters["late_ticks"] >= 1  # (a stall of the machine may add one)
         assert d.peer.sync_count == 12  # one SYNC per read, none made up
         assert d.peer.state is State.OPERATION_ENABLED
 
@@ -243,6 +243,6 @@ def test_paced_mode_stale_tpdo_after_three_periods():
             d.read(1.0)
             d.command(0.0)
         d.peer.mute()
-        with pytest.raises(DeviceFault, match="stale TPDO: no answer to SYNC 3 within 60 ms"):
+        with pytest.raises(DeviceFault, match="stale TPDO: no answer to SYNC 3 within 150 ms"):
             d.read(1.0)
         assert_force_zero(d.peer)
