@@ -112,6 +112,13 @@ def test_theory_comparison_identifies_the_device_from_the_closed_loop(runs):
     assert cmp["deviation_median"] < 0.01 and cmp["deviation_max"] < 0.05
 
 
+def test_constant_position_is_a_user_error():
+    n = 5000
+    rec = recording_from_arrays(np.arange(n) / 1000, np.ones(n) + np.arange(n) % 3, np.zeros(n))
+    with pytest.raises(UserError, match="position never changes"):
+        etfe(rec)
+
+
 def test_bad_window():
     rec = closed_loop_recording(SPRING_DAMPER, n=5000)
     with pytest.raises(UserError):

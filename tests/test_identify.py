@@ -113,3 +113,12 @@ def test_bad_options(clean):
         identify(clean, model="mbx")
     with pytest.raises(UserError):
         identify(clean, cutoff_hz=600.0)
+
+
+def test_no_motion_is_a_user_error():
+    from labbench.analysis.dataio import recording_from_arrays
+
+    n = 5000
+    rec = recording_from_arrays(np.arange(n) / 1000, np.random.default_rng(0).standard_normal(n), np.zeros(n))
+    with pytest.raises(UserError, match="hardly moves"):
+        identify(rec)

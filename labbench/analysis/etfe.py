@@ -90,6 +90,9 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> Etf
     T = 1.0 / rec.fs
     f = np.asarray(rec.force, float)
     x = np.asarray(rec.position, float)
+    for name, values in (("force", f), ("position", x)):
+        if np.ptp(values) == 0:
+            raise UserError(f"{rec.source}: {name} never changes: no frequency response to estimate")
     F = fft.rfft(f)
     X = fft.rfft(x)
     dw = 2 * np.pi / (len(f) * T)

@@ -115,6 +115,9 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     if solver not in SOLVERS:
         raise UserError(f"unknown solver {solver!r}; choose fast or cvxpy")
     data = _prepare(rec, cutoff_hz, hold or str(rec.meta.get("force_hold", "zoh")))
+    if not _identifiable(data, "mb"):
+        raise UserError(f"{rec.source}: the position hardly moves (x' and x'' are not independent): "
+                        "nothing to identify")
     fit = _fitter(method, solver)
     selection = _select(data, fit, method) if model == "auto" else {"criterion": "given"}
     chosen = selection.get("model", model)
@@ -194,7 +197,8 @@ def _cv_losses(data: _Data, fit, method: str, model: str) -> np.ndarray:
 
 def _identifiable(data: _Data, model: str) -> bool:
     X = data.design(model)
-    return np.linalg.matrix_rank(X / np.sqrt(np.mean(X**2, axis=0))) == X.shape[1]
+    scale = np.sqrt(np.mean(X**2, axis=0))
+    return bool(np.all(scale > 0)) and np.linalg.matrix_rank(X / scale) == X.shape[1]
 
 
 def _select(data: _Data, fit, method: str) -> dict:
