@@ -246,3 +246,20 @@ def test_boundary_from_growth_rates_and_trips():
     steps[1]["sigma_per_s"] = 0.2
     assert _crossing(steps, "K") == pytest.approx(17.5)
     assert _crossing(steps[:1], "K") is None
+
+
+def test_chirp_plan_prediction_equals_the_exact_zoh_recursion():
+    from sim_backend.plant import MassDamperPlant
+
+    p = make_protocol("chirp-id", duration_s=15.0)
+    f = p.excitation(TRUTH)
+    plant = MassDamperPlant(TRUTH.m, TRUTH.b, T)
+    xs, vs = [], []
+    for u in f:  # oracle: the exact ZOH step, one sample at a time
+        xs.append(plant.position)
+        vs.append(plant.velocity)
+        plant.step(u)
+    plan = precheck(p, TRUTH, Rig())["plan"]
+    # 1 nm: the transfer-function form rounds differently; the window is centimetres
+    assert plan["predicted_x_range_m"] == pytest.approx([min(xs), max(xs)], rel=1e-9, abs=1e-9)
+    assert plan["predicted_v_max_m_s"] == pytest.approx(max(map(abs, vs)), rel=1e-9)
