@@ -226,3 +226,78 @@ def test_ascii_lines_survive_junk_lines(samples, junk, cuts):
 )
 def test_ascii_lines_survive_junk_lines_long(samples, junk, cuts):
     _ascii(samples, junk, cuts)
+
+
+# -- the driver on arbitrary input: only DeviceFault or TimeoutError, and force stays zero after ----
+class ScriptedPort:
+    """A port that returns the given chunks, then nothing (a fake clock moves per read)."""
+
+    port = "scripted"
+    timeout = write_timeout = None
+
+    def __init__(self, chunks, now):
+        self.chunks, self.now, self.written = list(chunks), now, []
+
+    @property
+    def in_waiting(self):
+        return len(self.chunks[0]) if self.chunks else 0
+
+    def read(self, n):
+        self.now[0] += 0.0002
+        return self.chunks.pop(0) if self.chunks else b""
+
+    def write(self, data):
+        self.written.append(data)
+        return len(data)
+
+    def close(self):
+        pass
+
+
+def _driver_on_any_input(fmt, prefix, chunks):
+    from drivers.serial_stream import SerialStream
+    from labbench.device import DeviceFault
+
+    rig = rig_from_dict({"serial": {"format": fmt, "force_command": True}})
+    now = [0.0]
+    good = [
+        framing.encode_sample(k, 1000 * k, k)
+        if fmt == "binary"
+        else framing.format_ascii(1000 * k, k)
+        for k in range(6)
+    ]
+    port = ScriptedPort([b"".join(good), *prefix, *chunks], now)
+    drv = SerialStream(port, SerialConfig.from_rig(rig), rig, clock=lambda: now[0])
+    drv.wait_for_stream(1.0)
+    drv.enable(0.1)
+    for _ in range(len(chunks) + 5):
+        try:
+            drv.read(0.01)
+            drv.command(0.5)
+        except (DeviceFault, TimeoutError):
+            assert drv.commanded_force_n == 0.0 and drv.fault
+            break
+    if drv.fault:  # once latched, everything sent is zero
+        drv.command(1.0)
+        assert port.written[-1] == framing.encode_command(drv._last_seq, 0.0)
+
+
+@SHORT
+@given(
+    st.sampled_from(["binary", "ascii"]),
+    st.lists(st.binary(max_size=40), max_size=3),
+    st.lists(st.binary(max_size=200), max_size=10),
+)
+def test_driver_on_any_input_raises_only_faults(fmt, prefix, chunks):
+    _driver_on_any_input(fmt, prefix, chunks)
+
+
+@pytest.mark.slow
+@LONG
+@given(
+    st.sampled_from(["binary", "ascii"]),
+    st.lists(st.binary(max_size=40), max_size=3),
+    st.lists(st.binary(max_size=2000), max_size=40),
+)
+def test_driver_on_any_input_raises_only_faults_long(fmt, prefix, chunks):
+    _driver_on_any_input(fmt, prefix, chunks)
