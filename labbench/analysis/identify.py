@@ -2,9 +2,13 @@
 eqs. 10-11 with x' and x'' put back where the physics has them).
 
 Pipeline: derivatives of position by zero-phase filtered central differences
-(``derivatives``); the force of a zero-order-hold record is averaged over the
-two hold intervals around each sample, which makes the second difference of a
-ZOH-driven mass exact; then l2 (least squares) or l1 (exact LAD, ``l1``).
+(``derivatives``); when the force has power beyond the derivative cut-off
+(white noise, closed-loop trajectories) it goes through the same zero-phase
+filter, which commutes with the linear terms; the force of a zero-order-hold
+record is averaged over the two hold intervals around each sample, which makes
+the second difference of a ZOH-driven mass exact; then l2 (least squares) or
+l1 (exact LAD, ``l1``; with ``solver="cvxpy"`` every fit, jackknife
+replicates included, goes through cvxpy, which is slow by design).
 
 Model selection (``model="auto"``): blocked 5-fold cross-validation (folds are
 interleaved contiguous blocks, so correlated neighbours do not leak between
