@@ -13,7 +13,7 @@ hence the thread. Timers run on wall-clock time; the plant on SYNC time.
 
 Fault hooks for tests: ``mute`` (stop answering), ``ignore_sdo_write`` and
 ``abort_sdo_write``, ``inject_emcy``, ``send_error_frame``, and on the host's bus
-(``FaultyVirtualBus``) ``fail_tx_for``. A frozen host loop needs no hook: stop
+(``FaultyVirtualBus``) ``fail_tx_for`` and ``go_bus_off``. A frozen host loop needs no hook: stop
 calling ``read()`` and the heartbeat consumer fires.
 """
 from __future__ import annotations
@@ -42,17 +42,29 @@ SDO_ABORT_VALUE_RANGE = 0x06090030
 
 
 class FaultyVirtualBus(VirtualBus):
-    """A virtual bus whose transmit can be made to fail (like a cable pulled at the host)."""
+    """A virtual bus whose transmit can fail (a cable pulled at the host) and whose
+    controller can report bus-off, as python-can interfaces do through ``state``."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.tx_fail_until = 0.0
         self.tx_failures = 0
+        self._controller_state = can.BusState.ACTIVE
 
     def fail_tx_for(self, seconds: float) -> None:
         self.tx_fail_until = time.monotonic() + seconds
 
+    def go_bus_off(self) -> None:
+        """From now on the controller is bus-off: state ERROR, nothing transmits."""
+        self._controller_state = can.BusState.ERROR
+
+    @property
+    def state(self) -> can.BusState:
+        return self._controller_state
+
     def send(self, msg, timeout=None):
+        if self._controller_state is can.BusState.ERROR:
+            raise can.CanOperationError("controller is bus-off")
         if self.tx_fail_until and time.monotonic() < self.tx_fail_until:
             self.tx_failures += 1
             raise can.CanOperationError("simulated transmit failure (no ACK)")

@@ -90,6 +90,14 @@ def test_error_frames(drive, error_class, words):
     assert_force_zero(drive.peer)
 
 
+def test_controller_reports_bus_off(drive):
+    outcome, events = run_with_fault(drive, lambda p: drive._bus.go_bus_off())
+    assert_fault_event(outcome, events, "bus-off")
+    # The host cannot talk any more; the drive's own RPDO timer removes the torque.
+    assert_force_zero(drive.peer)
+    assert any("no RPDO" in e for e in drive.peer.events), drive.peer.events
+
+
 def test_drive_leaves_operational(drive):
     def stop_node(peer):
         with peer.lock:
