@@ -195,6 +195,7 @@ class CanopenDrive:
         self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]  # sent with each RPDO
         self._next_tick = 0.0  # paced mode: perf_counter time of the next SYNC
         self._last_hb = -math.inf  # perf_counter time of the last host heartbeat
+        self._consumer_armed = False  # 0x1016 set to watch our heartbeat
         self._fault: str | None = None
         self._hb = threading.Condition()
         self._nmt_state: int | None = None
@@ -496,6 +497,7 @@ class CanopenDrive:
                     raise UserError(f"node {self.config.node_id}: object 0x{index:04X}:{sub:02X}"
                                     f" is {back}, expected {value}: refusing to enable")
             cfg = self.config
+            self._consumer_armed = True
             self._write_checked(0x1016, 1, "<I", cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms)
         except UserError as exc:  # inside a run this is a device fault with the same words
             self._latch(str(exc))
@@ -534,14 +536,21 @@ class CanopenDrive:
         if self._cyclic:
             self._cyclic = False
             self._start_receiver()
+        if self._fault:
+            # Perhaps unreachable: one attempt to stop the drive watching a heartbeat
+            # the loop no longer sends; the fault already says what went wrong.
+            if self._consumer_armed:
+                self._consumer_armed = False
+                try:
+                    self._write(0x1016, 1, "<I", 0)
+                except (UserError, DeviceFault):
+                    pass
+            return
         try:
-            if not self._fault:
-                self._drive_to(State.SWITCH_ON_DISABLED, timeout)
-            # The loop has stopped producing our heartbeat: stop the drive watching it.
+            self._drive_to(State.SWITCH_ON_DISABLED, timeout)
             self._write_checked(0x1016, 1, "<I", 0)
+            self._consumer_armed = False
         except (UserError, DeviceFault) as exc:
-            if self._fault:
-                return  # already faulted (perhaps unreachable): the fault says why
             self._latch(f"disable failed: {exc}")
             raise DeviceFault(self._fault) from None
 
@@ -557,7 +566,7 @@ class CanopenDrive:
                 self._bus.send(can.Message(arbitration_id=self._rpdo1_id,
                                            data=RPDO1.pack(0, self._controlword),
                                            is_extended_id=False))
-            elif self._sdo is not None and self._network.notifier is not None:
+            elif self._sdo is not None and self._network.notifier is not None and not self._fault:
                 self._sdo.download(0x6071, 0, struct.pack("<h", 0))
                 self._sdo.download(0x6040, 0, struct.pack("<H", self._controlword))
         except Exception:  # the bus may be what failed; the drive's timers take over
