@@ -277,7 +277,7 @@ class CanopenDrive:
         state = self.drive_state()
         info["state"] = state.value
         if state is State.FAULT:
-            info["error"] = self._error_code()
+            info["error_code"] = self._error_code()
         return info
 
     def _bring_up(self, timeout: float) -> None:

@@ -81,18 +81,18 @@ def _probe(name: str, rig) -> dict:
     except UserError as exc:
         if peer is not None:
             peer.close()
-        return {"error": str(exc)}
+        return {"no_answer": str(exc)}
 
 
 def _describe(a: dict) -> str:
-    if "error" in a:
-        return f"no answer: {a['error']}"
+    if "no_answer" in a:
+        return f"no answer: {a['no_answer']}"
     text = (f"node {a['node_id']}: vendor 0x{a['vendor_id']:08X} product 0x{a['product_code']:08X}"
             f" revision 0x{a['revision']:08X} serial {a['serial']}; device type "
             f"0x{a['device_type']:08X} (profile {a['device_type'] & 0xFFFF}); supported modes "
             f"0x{a['supported_modes']:08X} (torque: {', '.join(a['torque_modes']) or 'none'}); "
             f"{a['state']}; NMT {a['nmt_state']}")
-    return text + (f"; {a['error']}" if a.get("error") else "")
+    return text + (f"; {a['error_code']}" if "error_code" in a else "")
 
 
 def _fault_reset(rig, sim: bool) -> int:

@@ -344,3 +344,53 @@ def test_cli_etfe_through_the_canopen_driver_matches_the_plain_simulator(tmp_pat
 def test_cli_full_etfe_through_the_canopen_driver_matches_the_plain_simulator(tmp_path):
     """The whole 2-minute white-noise ETFE protocol, analysis included, on both devices."""
     compare_etfe_runs(tmp_path, 120.0)
+
+
+# ------------------------------- the hardware path, with the simulated drive as the node
+@pytest.fixture
+def drive_on_named_channel(tmp_path):
+    """A simulated drive on a named virtual channel and a rig file that points at it."""
+    import uuid
+
+    from sim_backend.canopen_peer import SimCanopenDrive, plant_for
+
+    channel = f"bench-{uuid.uuid4().hex[:6]}"
+    rig = make_rig()
+    peer = SimCanopenDrive(channel, 4, plant_for(rig), rig.metres_per_count, rig.lever_arm_m,
+                           rig.sample_time_s).start()
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 4\n'
+                        'sdo_timeout_s = 0.2\nheartbeat_consumer_ms = 800\nrpdo_timeout_ms = 600\n'
+                        'eds = "sim_backend/drive.eds"\n')
+    yield peer, rig_file
+    peer.close()
+
+
+def test_canopen_factory_opens_a_python_can_bus_and_runs(drive_on_named_channel):
+    from labbench.loop import HapticLoop, SafetyConfig, run_loop
+    from labbench.rig import load_rig
+    from labbench.ve import VirtualEnvironment
+
+    peer, rig_file = drive_on_named_channel
+    rig = load_rig(rig_file)
+    ve = VirtualEnvironment("spring", K=50.0, T=rig.sample_time_s)
+    exc = 0.2 * np.random.default_rng(2).standard_normal(300)
+    with open_canopen(rig, realtime=False) as d:  # lock-step: the node is simulated
+        assert d.describe().details["identity"]["vendor_id"] == 0x4C4200AB
+        out = run_loop(d, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc, lambda r: None)
+    assert out.status == "completed" and out.n_done == 300
+    assert peer.state is State.SWITCH_ON_DISABLED and peer.torque_permille == 0
+
+
+def test_devices_command_shows_a_faulted_node_and_resets_it(drive_on_named_channel, capsys):
+    from labbench.cli import main
+
+    peer, rig_file = drive_on_named_channel
+    peer.inject_emcy(0x7305, "encoder")
+    assert main(["devices", "--rig", str(rig_file)]) == 0
+    out = capsys.readouterr().out
+    assert "node 4: vendor 0x4C4200AB" in out and "FAULT; NMT" in out
+    assert "error code 0x603F = 0x7305 (incremental sensor 1 fault)" in out
+    assert main(["devices", "--rig", str(rig_file), "--fault-reset"]) == 0
+    assert "node 4: FAULT -> SWITCH ON DISABLED" in capsys.readouterr().out
+    assert peer.state is State.SWITCH_ON_DISABLED
