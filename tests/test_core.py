@@ -112,3 +112,21 @@ def test_cli_usage_error_is_one_line(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error" in err[0]
+
+
+def test_closed_pipe_is_not_a_traceback():
+    """`labbench ... | head` closes stdout early: exit quietly, no traceback."""
+    import subprocess
+    import sys
+
+    w = ",".join(str(i) for i in range(1, 8000))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "labbench.cli", "theory", "--ve", "spring", "--m", "0.1",
+         "--b", "0.1", "--K", "10", "--w", w],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    proc.stdout.read(10)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 0
+    assert "Traceback" not in err and "BrokenPipe" not in err
