@@ -153,14 +153,13 @@ class SimCanopenDrive:
         return self._live(index)
 
     def _on_sdo_write(self, index, subindex, od, data):
-        self._params[(index, subindex)] = od.decode_raw(data)
         if index == 0x6060:
             mode = struct.unpack("<b", data)[0]
-            if mode in (10, 4) and self._get(0x6502) & MODE_BITS[mode]:
-                self.mode = mode
-            else:
-                raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
-        elif index == 0x6040:
+            if not (mode in (10, 4) and self._get(0x6502) & MODE_BITS[mode]):
+                raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)  # not stored, not cached
+            self.mode = mode
+        self._params[(index, subindex)] = od.decode_raw(data)
+        if index == 0x6040:
             self._controlword(struct.unpack("<H", data)[0])
         elif index == 0x6071:
             self.target_permille = struct.unpack("<h", data)[0]

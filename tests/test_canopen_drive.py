@@ -394,3 +394,20 @@ def test_devices_command_shows_a_faulted_node_and_resets_it(drive_on_named_chann
     assert main(["devices", "--rig", str(rig_file), "--fault-reset"]) == 0
     assert "node 4: FAULT -> SWITCH ON DISABLED" in capsys.readouterr().out
     assert peer.state is State.SWITCH_ON_DISABLED
+
+
+def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
+    rig, _, peer, bus = sim_parts
+    from drivers.canopen_drive import CanopenDrive
+
+    peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 3)}  # profile torque only
+    with pytest.raises(UserError, match="0x6502 = 0x00000008 offers no cyclic synchronous"):
+        CanopenDrive(rig, CanopenConfig.from_section({"mode": "cst", "sdo_timeout_s": 0.2}),
+                     bus=bus, realtime=False).open()
+    assert peer.mode == 0
+
+
+def test_drive_refusing_the_mode_write_is_reported_naming_0x6060(sim_parts):
+    sim_parts[2].abort_sdo_write(0x6060, 0, code=0x06090030)
+    with pytest.raises(UserError, match=r"refused writing 10 to 0x6060:00"):
+        connect(sim_parts)
