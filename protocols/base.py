@@ -18,6 +18,9 @@ import numpy as np
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 
+# Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
+MAX_DURATION_S = 1800.0
+
 # The paper's Phantom Premium 1.5 fit (Table 1, l2): used when a rig names no nominal plant.
 DEFAULT_PLANT = Plant(0.094, 0.10)
 

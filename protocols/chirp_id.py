@@ -18,7 +18,15 @@ from scipy.signal import lfilter, ss2tf
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 from protocols import excitation
-from protocols.base import Config, Protocol, Segment, check_plant_fields, choice, number
+from protocols.base import (
+    MAX_DURATION_S,
+    Config,
+    Protocol,
+    Segment,
+    check_plant_fields,
+    choice,
+    number,
+)
 from sim_backend.plant import zoh_matrices
 
 METHODS = ("l2", "l1")
@@ -53,11 +61,17 @@ class ChirpIdConfig(Config):
         choice("sweep", self.sweep, excitation.SWEEPS)
         self._set("amplitude_n", number("amplitude_n", self.amplitude_n, "N", lo=0, lo_open=True))
         self._set("x_max_m", number("x_max_m", self.x_max_m, "m", lo=0, lo_open=True))
-        self._set("duration_s", number("duration_s", self.duration_s, "s", lo=0, lo_open=True))
+        self._set("duration_s", number("duration_s", self.duration_s, "s", lo=0, lo_open=True,
+                                              hi=MAX_DURATION_S))
         self._set("fade_s", number("fade_s", self.fade_s, "s", lo=0, hi=self.duration_s / 2))
         if not isinstance(self.model, str) or not self.model:
             raise UserError(f"model must be a model name, got {self.model!r}")
-        methods = (self.methods,) if isinstance(self.methods, str) else tuple(self.methods)
+        if isinstance(self.methods, str):
+            methods = (self.methods,)
+        elif isinstance(self.methods, (list, tuple)):
+            methods = tuple(self.methods)
+        else:
+            raise UserError(f"methods must be a list of l2, l1, got {self.methods!r}")
         if not methods:
             raise UserError("methods must name at least one of l2, l1")
         for m in methods:

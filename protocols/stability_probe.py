@@ -76,8 +76,10 @@ class StabilityConfig(Config):
         self._set("td_stop_s", number("td_stop_s", self.td_stop_s, "s", lo=0))
         self._set("max_over", number("max_over", self.max_over, "1", lo=1, lo_open=True))
         self._set("cycles", number("cycles", self.cycles, "1", lo=2))
-        self._set("min_step_s", number("min_step_s", self.min_step_s, "s", lo=0, lo_open=True))
-        self._set("max_step_s", number("max_step_s", self.max_step_s, "s", lo=self.min_step_s))
+        self._set("min_step_s", number("min_step_s", self.min_step_s, "s", lo=0, lo_open=True,
+                                              hi=60.0))
+        self._set("max_step_s", number("max_step_s", self.max_step_s, "s", lo=self.min_step_s,
+                                              hi=60.0))
         self._set("pulse_n", number("pulse_n", self.pulse_n, "N", lo=0, lo_open=True))
         self._set("pulse_s", number("pulse_s", self.pulse_s, "s", lo=self.sample_time_s))
         if self.K <= 0:

@@ -17,6 +17,7 @@ from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 from protocols import excitation
 from protocols.base import (
+    MAX_DURATION_S,
     Config,
     Protocol,
     Segment,
@@ -65,7 +66,8 @@ class EtfeConfig(Config):
         if self.band_hi_hz is not None and not self.band_lo_hz < self.band_hi_hz:
             raise UserError(f"band_lo_hz ({self.band_lo_hz:g}) must be below band_hi_hz "
                             f"({self.band_hi_hz:g}) Hz")
-        self._set("duration_s", number("duration_s", self.duration_s, "s", lo=1.0))
+        self._set("duration_s", number("duration_s", self.duration_s, "s", lo=1.0,
+                                              hi=MAX_DURATION_S))
         if self.seed is None:
             self._set("seed", secrets.randbits(32))
         self._set("seed", integer("seed", self.seed, lo=0))

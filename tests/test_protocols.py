@@ -71,11 +71,14 @@ def test_pulse_shape():
     ("etfe", {"ve": "wall"}, "ve must be one of"),
     ("etfe", {"seed": -2}, "seed must be >= 0"),
     ("etfe", {"duration_s": math.nan}, "duration_s must be finite"),
+    ("etfe", {"duration_s": 1e9}, "duration_s must be <= 1800 s"),
     ("etfe", {"bogus": 1}, "unknown option(s) for etfe: bogus"),
     ("chirp-id", {"f0_hz": 30.0}, "must be below f1_hz"),
     ("chirp-id", {"f1_hz": 600.0}, "Nyquist"),
     ("chirp-id", {"sweep": "cubic"}, "sweep must be one of"),
     ("chirp-id", {"methods": ("l3",)}, "methods must be one of"),
+    ("chirp-id", {"methods": 5}, "methods must be a list"),
+    ("chirp-id", {"methods": ()}, "at least one"),
     ("chirp-id", {"duration_s": 5.0}, "at least one period"),
     ("stability", {"variable": "B"}, "variable must be one of"),
     ("stability", {"ratio": 1.0}, "ratio must be > 1"),
@@ -263,3 +266,17 @@ def test_chirp_plan_prediction_equals_the_exact_zoh_recursion():
     # 1 nm: the transfer-function form rounds differently; the window is centimetres
     assert plan["predicted_x_range_m"] == pytest.approx([min(xs), max(xs)], rel=1e-9, abs=1e-9)
     assert plan["predicted_v_max_m_s"] == pytest.approx(max(map(abs, vs)), rel=1e-9)
+
+
+@pytest.mark.parametrize("name", list(PROTOCOLS))
+def test_any_bad_value_of_any_field_is_a_user_error_never_a_crash(name):
+    from dataclasses import fields
+
+    config_cls = PROTOCOLS[name][1]
+    weird = [None, "x", -1, -1.5, math.nan, math.inf, [], {}, True, 10**9, "0.1"]
+    for f in fields(config_cls):
+        for value in weird:
+            try:
+                make_protocol(name, **{f.name: value})
+            except UserError as e:
+                assert "\n" not in str(e)
