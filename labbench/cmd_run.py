@@ -231,7 +231,7 @@ def summary_lines(name: str, results: dict) -> list[str]:
     lines = []
     if name == "chirp-id":
         for method, r in results.get("identification", {}).items():
-            lines.append(f"{method}: m = {r['m']:.5g} kg, b = {r['b']:.5g} N s/m ({r['model']})")
+            lines.append(f"{method}: m = {r['m']:.6g} kg, b = {r['b']:.6g} N s/m ({r['model']})")
     elif name == "etfe":
         d = results.get("deviation_vs_sampled", {})
         p = results.get("plant", {})
