@@ -5,8 +5,9 @@
    plot widgets (what Qt repaints on such a tick), against a floor measured in
    the same run (the same widgets repainted with no new data). Goal: <= 8 ms.
 2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
-   real-time simulator, headless through ``labbench.runner.run``, then inside the
-   window (redraw timer, live ETFE, session recording). Goal: the GUI adds none.
+   real-time simulator, headless through ``labbench.runner.run`` recording a
+   session (as ``labbench run`` does), then inside the window (redraw timer,
+   live ETFE, session recording) under the Qt event loop. Goal: the GUI adds none.
    Runs alternate to spread the noise of this shared machine over both arms.
 
 Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]``
@@ -29,6 +30,7 @@ import numpy as np  # noqa: E402
 from PySide6 import QtWidgets  # noqa: E402
 
 from gui.app import tune_interpreter  # noqa: E402
+from gui.screenshot import wait_until  # noqa: E402
 from gui.buffers import StreamBuffer  # noqa: E402
 from gui.live_estimate import estimate  # noqa: E402
 from gui.main_window import MainWindow  # noqa: E402
@@ -36,14 +38,24 @@ from labbench.devices import open_device  # noqa: E402
 from labbench.records import PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.runner import run  # noqa: E402
+from labbench.session import SessionWriter  # noqa: E402
 from protocols import make_protocol  # noqa: E402
 
 
-def recorded_run(seconds: float, realtime: bool) -> tuple[list[dict], dict]:
-    """Records and timing of an ETFE run on the simulator, without any GUI."""
+def recorded_run(seconds: float, realtime: bool, session_dir=None) -> tuple[list[dict], dict]:
+    """Records and timing of an ETFE run on the simulator, without any GUI (recorded to a
+    session file like ``labbench run`` when ``session_dir`` is given)."""
     recs: list[dict] = []
+    consumers = [recs.append]
+    writer = SessionWriter(session_dir) if session_dir else None
+    if writer:
+        consumers.append(writer)
     dev = open_device("sim", Rig(), realtime=realtime)
-    res = run(dev, make_protocol("etfe", duration_s=seconds, seed=3), [recs.append], rig=Rig())
+    try:
+        res = run(dev, make_protocol("etfe", duration_s=seconds, seed=3), consumers, rig=Rig())
+    finally:
+        if writer:
+            writer.close()
     return recs, res.timing
 
 
@@ -92,10 +104,8 @@ def gui_run(app, win: MainWindow, seconds: float) -> dict:
     win.protocol_panel.set_value(("duration_s",), seconds)
     win.protocol_panel.set_value(("seed",), 3)
     win.start_protocol()
-    deadline = time.monotonic() + seconds * 4 + 30
-    while (win.last_run is None or win.mode != "idle") and time.monotonic() < deadline:
-        app.processEvents()
-        time.sleep(0.002)
+    # the Qt event loop, as in the application (a processEvents() loop would hold the GIL)
+    wait_until(lambda: win.last_run is not None and win.mode == "idle", seconds * 4 + 30)
     if win.last_run is None:
         raise SystemExit("GUI run did not finish")
     return {**win.last_run.timing, "frames": win.traces.frames, "estimates": win.impedance.updates}
@@ -129,7 +139,7 @@ def main() -> int:
     gui_run(app, win, 3.0)  # warm-up: first connection, first paint, lazy imports
     headless, in_gui = [], []
     for i in range(args.repeats):
-        headless.append(recorded_run(args.seconds, realtime=True)[1])
+        headless.append(recorded_run(args.seconds, realtime=True, session_dir=tmp)[1])
         in_gui.append(gui_run(app, win, args.seconds))
     print(f"loop timing, {args.seconds:g} s real-time ETFE runs x {args.repeats} (alternating):")
     for name, runs in (("without GUI", headless), ("with GUI", in_gui)):

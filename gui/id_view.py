@@ -49,7 +49,7 @@ class IdView(QtWidgets.QWidget):
         self.plot.setLabel("left", "force", units="N")
         self.plot.setLabel("bottom", "time", units="s")
         self.plot.showGrid(x=True, y=True, alpha=0.3)
-        self.plot.addLegend(offset=(-10, 5))
+        self.plot.addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.plot.setClipToView(True)
         self.plot.setDownsampling(auto=True, mode="peak")
         # wide light pen under a thin one: both stay visible where the fit is exact

@@ -45,6 +45,7 @@ class Estimate:
     theory: dict = field(default_factory=dict)  # w, Z, ES, ED, EM; empty when unavailable
     ws_theory: float | None = None
     wb_theory: float | None = None
+    w_nyquist: float = np.inf  # pi / T [rad/s]
 
     def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of ES, ED or EM from the 95 % radius Z_err (Re and Im each move by at most it)."""
@@ -86,7 +87,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     out = Estimate(
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
         ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
-        plant=plant, plant_source=source,
+        plant=plant, plant_source=source, w_nyquist=np.pi * rec.fs,
     )
     if plant is not None and ve is not None:
         from labbench.theory import predicted_wb_star, predicted_ws_star

@@ -15,6 +15,8 @@ from gui.live_estimate import Estimate
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
+W_SHOWN_OF_NYQUIST = 1 / 3
+
 COLOURS = {"position": "#1f77b4", "velocity": "#2ca02c", "command": "#d62728",
            "excitation": "#7f7f7f", "measured": "#1f5fa8", "theory": "#d95f02", "band": (31, 95, 168, 60)}
 
@@ -46,7 +48,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             self.plots[key] = p
         self.plots["force"].setLabel("bottom", "time before the newest sample", units="s")
         self._span = None
-        self.plots["force"].addLegend(offset=(-10, 5))
+        self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.curves = {
             "position": self.plots["position"].plot(pen=_pen("position")),
             "velocity": self.plots["velocity"].plot(pen=_pen("velocity")),
@@ -94,7 +96,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self._setup(p, title, unit)
             p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
             if key == "ES":
-                p.addLegend(offset=(-10, 5))
+                p.addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
             if i > 1:
                 p.setXLink(self.plots["ES"])
             band = QtWidgets.QGraphicsPathItem()
@@ -103,17 +105,18 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             p.addItem(band)
             self.bands[key] = band
             named = key == "ES"  # one legend (on ES) serves all three rows
-            self.curves[key] = p.plot(pen=_pen("measured"),
+            # measured wide, theory thin and dashed on top: both show where they agree
+            self.curves[key] = p.plot(pen=pg.mkPen(COLOURS["measured"], width=3),
                                       name="measured (ETFE), 95 % band" if named else None)
             self.curves[key + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine),
                                                   name="theory" if named else None)
             self.plots[key] = p
         self.plots["EM"].setLabel("bottom", "frequency w", units="rad/s")
-        for key, plot in (("ws", "ES"), ("wb", "ED")):
+        for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.85)):
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
-                                   label="", labelOpts={"position": 0.85, "color": "#222222"})
+                                   label="", labelOpts={"position": at, "color": "#222222"})
             line.setVisible(False)
-            self.plots[plot].addItem(line)
+            self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
         self.bode_plots = {
             "mag": self.bode.addPlot(row=0, col=0),
@@ -124,7 +127,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
         self.bode_plots["phase"].setLabel("bottom", "frequency w", units="rad/s")
         for k, p in self.bode_plots.items():
-            self.curves["bode_" + k] = p.plot(pen=_pen("measured"))
+            self.curves["bode_" + k] = p.plot(pen=pg.mkPen(COLOURS["measured"], width=3))
             self.curves["bode_" + k + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine))
         self.last: Estimate | None = None
         self._theory_shown = None
@@ -137,9 +140,13 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         p.setLabel("left", title, units=unit)
         p.setLogMode(x=True, y=logy)
         for decade in range(-1, 5):  # light decade lines instead of a full grid
-            p.addItem(pg.InfiniteLine(pos=decade, angle=90, pen=pg.mkPen("#dddddd", width=1)))
+            p.addItem(pg.InfiniteLine(pos=decade, angle=90, pen=pg.mkPen("#dddddd", width=1)),
+                      ignoreBounds=True)
         p.getAxis("left").enableAutoSIPrefix(False)
         p.getAxis("bottom").enableAutoSIPrefix(False)
+        p.getAxis("bottom").setStyle(maxTextLevel=0)  # decade labels only: minor ones overlap
+        if logy:
+            p.getAxis("left").setStyle(maxTextLevel=0)
 
     def clear_data(self) -> None:
         for c in self.curves.values():
@@ -152,7 +159,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.last = self._theory_shown = self._bode_shown = None
 
     def show_estimate(self, est: Estimate) -> None:
-        ok = est.w > 0
+        # Up to a third of Nyquist (the paper's figures end near 1000 rad/s at 1 kHz):
+        # beyond it the sampled loop's ED and EM swing by orders of magnitude and
+        # would set the scale of the whole plot.
+        ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
         w = est.w[ok]
         lw = np.log10(w)  # view x coordinates on a log axis
         # ES reads as stiffness where Im Z < 0, EM as mass where Im Z > 0 (paper Figure 2).
@@ -168,6 +178,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             for key in ("ES", "ED", "EM"):
                 if th:
                     keep = {"ES": th["Z"].imag < 0, "EM": th["Z"].imag > 0}.get(key, True)
+                    keep = keep & (th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
                     self.curves[key + "_theory"].setData(th["w"], np.where(keep, th[key], np.nan),
                                                          connect="finite", skipFiniteCheck=True)
                 else:
@@ -177,12 +188,12 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                                         ("wb", est.wb_measured, est.wb_theory, "w_b*")):
             line = self.marks[key]
             if value:
+                line.setVisible(True)  # first: a hidden label ignores new text
                 line.setValue(np.log10(value))  # view coordinates are log10 on a log axis
                 text = f"{sym} = {value:.0f} rad/s"
                 if theory:
                     text += f" (theory {theory:.0f})"
                 line.label.setFormat(text)
-                line.setVisible(True)
             else:
                 line.setVisible(False)
         plant = (f"m = {est.plant.m * 1e3:.1f} g, b = {est.plant.b:.3f} N s/m ({est.plant_source})"
@@ -196,13 +207,18 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         est = self.last
         if est is None or self.currentWidget() is not self.bode or est is self._bode_shown:
             return
-        ok = est.w > 0
+        ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
         self.curves["bode_mag"].setData(est.w[ok], np.abs(est.Z[ok]))
         self.curves["bode_phase"].setData(est.w[ok], np.degrees(np.unwrap(np.angle(est.Z[ok]))))
         th = est.theory
-        for key, y in (("mag", np.abs(th["Z"]) if th else None),
-                       ("phase", np.degrees(np.unwrap(np.angle(th["Z"]))) if th else None)):
-            self.curves[f"bode_{key}_theory"].setData(th["w"] if th else [], y if th else [])
+        if th:
+            shown = th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist
+            wt, Zt = th["w"][shown], th["Z"][shown]
+            self.curves["bode_mag_theory"].setData(wt, np.abs(Zt))
+            self.curves["bode_phase_theory"].setData(wt, np.degrees(np.unwrap(np.angle(Zt))))
+        else:
+            self.curves["bode_mag_theory"].setData([], [])
+            self.curves["bode_phase_theory"].setData([], [])
         self._bode_shown = est
 
 

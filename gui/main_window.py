@@ -213,12 +213,12 @@ class MainWindow(QtWidgets.QMainWindow):
         """A clear message in the window (banner + status bar) and in the event log."""
         self.banner.setText(text)
         self.banner.setVisible(True)
-        self.statusBar().showMessage(text, 15000)
         self.log.add("error", text)
 
     def info(self, text: str) -> None:
         self.statusBar().showMessage(text, 8000)
         self.log.add("info", text)
+
 
     # ----- device ---------------------------------------------------------------------------
     @guarded
@@ -293,21 +293,24 @@ class MainWindow(QtWidgets.QMainWindow):
 
         return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_panel.values())
 
+    def checked_protocol(self):
+        """The configured protocol and its pre-check report; UserError when refused."""
+        from protocols import precheck
+
+        protocol = self.make_protocol()
+        return protocol, precheck(protocol, protocol.plant(self.rig), self.rig)
+
     def update_precheck(self):
         """Boundary and margin of the configured VE, shown before Start."""
         try:
-            from protocols import precheck
-
-            protocol = self.make_protocol()
-            rep = precheck(protocol, protocol.plant(self.rig), self.rig)
+            _protocol, rep = self.checked_protocol()
         except UserError as exc:
             self.protocol_panel.set_precheck(f"pre-check: {exc}", False)
-            return None
+            return
         except Exception as exc:  # noqa: BLE001 - shown beside Start, never raised into Qt
             self.protocol_panel.set_precheck(f"pre-check failed: {describe_error(exc)}", False)
-            return None
+            return
         self.protocol_panel.set_precheck(precheck_text(rep), bool(rep.get("stable", True)))
-        return protocol, rep
 
     @guarded
     def start_protocol(self):
@@ -315,6 +318,8 @@ class MainWindow(QtWidgets.QMainWindow):
             raise UserError(f"a {self.mode} is in progress; stop it first")
         if self.estop.latched:
             raise UserError("E-STOP is latched: disconnect and reconnect the device to clear it")
+        self.update_precheck()
+        protocol, _rep = self.checked_protocol()  # refuse bad settings before touching the device
         backend = self.device_panel.backend.currentText()
         if self.device is not None and self._device_used and backend in SIM_BACKENDS:
             # A fresh simulator per run: every run starts from the same state (seeded runs
@@ -327,10 +332,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._pending_start = True
             self.connect_device(backend)
             return
-        checked = self.update_precheck()
-        if checked is None:
-            raise UserError(self.protocol_panel.precheck.text().split(">", 1)[-1].split("<")[0])
-        protocol, _rep = checked
+        self.banner.setVisible(False)
         self._reset_view()
         self.stop_event = threading.Event()
         self._device_used = True

@@ -67,7 +67,9 @@ def params_from_config(config: dict, choice_lists: dict | None = None) -> list[d
                         limits=(low if low is not None else -math.inf, math.inf))
         elif name in lists and (value is None or isinstance(value, str)):
             # "" stands for None: the protocol's default
-            options = ([""] if value is None else []) + lists[name]
+            options = {v: v for v in lists[name]}
+            if value is None:
+                options = {"(default)": "", **options}
             item.update(type="list", limits=options, value="" if value is None else value,
                         optional_choice=value is None)
         elif value is None:  # optional number: empty text = the protocol's default / none
