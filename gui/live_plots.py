@@ -73,6 +73,22 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         self.frames += 1
 
 
+class DecadeAxis(pg.AxisItem):
+    """Log axis labelled at decades only (pyqtgraph labels minor ticks too when a
+    plot spans less than about two decades, and they overlap)."""
+
+    def logTickStrings(self, values, scale, spacing):
+        strings = super().logTickStrings(values, scale, spacing)
+        return [s if abs(v - round(v)) < 1e-6 else "" for v, s in zip(values, strings)]
+
+
+def _log_plot(layout, row, logy=False):
+    axes = {"bottom": DecadeAxis("bottom")}
+    if logy:
+        axes["left"] = DecadeAxis("left")
+    return layout.addPlot(row=row, col=0, axisItems=axes)
+
+
 class ImpedancePlots(QtWidgets.QTabWidget):
     """ES / ED / EM against w (log axis) with band, theory and w_s*, w_b* marks; |Z| and phase on a tab.
 
@@ -92,7 +108,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.plots, self.curves, self.bands, self.marks = {}, {}, {}, {}
         rows = [("ES", "stiffness ES", "N/m"), ("ED", "damping ED", "N s/m"), ("EM", "mass EM", "kg")]
         for i, (key, title, unit) in enumerate(rows, start=1):
-            p = self.effective.addPlot(row=i, col=0)
+            p = _log_plot(self.effective, i)
             self._setup(p, title, unit)
             p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
             if key == "ES":
@@ -118,10 +134,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             line.setVisible(False)
             self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
-        self.bode_plots = {
-            "mag": self.bode.addPlot(row=0, col=0),
-            "phase": self.bode.addPlot(row=1, col=0),
-        }
+        self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
         self._setup(self.bode_plots["phase"], "phase of Z", "deg")
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
@@ -144,9 +157,6 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                       ignoreBounds=True)
         p.getAxis("left").enableAutoSIPrefix(False)
         p.getAxis("bottom").enableAutoSIPrefix(False)
-        p.getAxis("bottom").setStyle(maxTextLevel=0)  # decade labels only: minor ones overlap
-        if logy:
-            p.getAxis("left").setStyle(maxTextLevel=0)
 
     def clear_data(self) -> None:
         for c in self.curves.values():
