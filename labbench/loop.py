@@ -8,9 +8,13 @@ Per sample k (issue 2's exact sampled-data model, then the safety envelope):
     command  = safety(u[k])
 
 Safety, in this order: position window and velocity limit (trip: force zero at
-once), enable gate (the device is enabled only at a sample whose |u| is at most
-``enable_force_threshold_n``; before that the command and the applied
-excitation are zero), force clamp, force-rate limit, energy observer (fades the
+once), enable gate (the device is enabled only at a sample k where every force
+the delay line holds, f_exo[k] - f_ve[k-n .. k], is within
+``enable_force_threshold_n`` of zero: the command now and the n after it, should
+the handle stay put. Gating on u[k] alone would open at once when td > 0, the line
+still holding the zeros of the sampled model's initial state, and K x[0] would
+reach the command n samples later. Before the gate opens the command and the
+applied excitation are zero), force clamp, force-rate limit, energy observer (fades the
 force to zero over ``energy_fade_s``, then trips). ``run_loop`` adds the watchdog
 (no sample within ``watchdog_s``, or a paced loop period longer than it: force
 zero, trip) and the stop request.
@@ -163,8 +167,8 @@ def _chain(ve: VirtualEnvironment, s: SafetyConfig):
             e_app = u_prev = 0.0
             flags_last = flags | TRIPPED
             return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
-        if not gate_open:
-            if -gate_n <= u <= gate_n:
+        if not gate_open:  # min/max over n + 1 floats, only until the gate opens
+            if exc - gate_n <= min(line) and max(line) <= exc + gate_n:
                 gate_open = True
             else:
                 e_app = u_prev = 0.0

@@ -46,8 +46,9 @@ class SafetyConfig:
     ``nominal_damping_ns_m``: device damping credited as dissipation by that
     observer (0 = strict). ``watchdog_s``: zero force when no sample arrives within
     it, or (paced devices) when one loop period exceeds it.
-    ``enable_force_threshold_n``: the device is enabled only at a sample whose
-    command is at most this large.
+    ``enable_force_threshold_n``: the device is enabled only at a sample where
+    the command, and every later command already in the VE delay line (up to the
+    undelayed VE force plus excitation), is at most this large.
     """
 
     force_limit_n: float = 5.0

@@ -214,6 +214,38 @@ def test_enable_gate_waits_until_the_handle_leaves_the_wall():
     assert events[0]["name"] == "enabled"
 
 
+@pytest.mark.parametrize("n", [0, 2, 5])
+@pytest.mark.parametrize("v0", [0.0, -0.2], ids=["at-rest", "leaving"])
+def test_enable_inside_a_spring_wall_never_jumps_for_any_delay(n, v0):
+    # Fault: the simulated handle starts 2 cm inside a 50 N/m spring (1 N), at rest or
+    # drifting out through the centre. Enabling while f_ve[k-n..k] still holds large
+    # forces would put K x on the handle n samples after the enable (the td > 0 bug).
+    K, x0, gate, rate = 50.0, 0.02, 0.2, 500.0  # rate: 0.5 N a sample < K x0
+    ve = VirtualEnvironment("spring", K=K, td=n * 0.001)
+    cfg = safety(enable_force_threshold_n=gate, force_rate_limit_n_per_s=rate)
+    out, d, events, dev = run(ve, np.zeros(400), cfg, device=open_sim(Rig(), x0_m=x0, v0_m_s=v0))
+    assert out.status == "completed"
+    u, f, x, flags = d["command"], d["ve_force"], d["position"], d["flags"]
+    np.testing.assert_allclose(f, K * x, rtol=1e-12)
+    gated = (flags & GATED) != 0
+    if v0 == 0.0:  # nothing moves the handle out: the device is never enabled
+        assert np.all(gated) and np.all(u == 0.0) and dev.applied_n == 0.0
+        assert "enabled" not in [e["name"] for e in events]
+        return
+    k0 = int(np.argmin(gated))
+    assert np.all(gated[:k0]) and not np.any(gated[k0:]) and np.all(u[:k0] == 0.0)
+    # it opened at the first sample where the command now and every one in the
+    # line after it (up to the undelayed f_ve[k0]) is small
+    small = np.abs(f) <= gate
+    held = np.array([k >= n and np.all(small[k - n:k + 1]) for k in range(len(f))])
+    assert k0 == int(np.argmax(held)) and abs(x[0]) * K > gate
+    # no jump: |u| <= gate at enable, then the rate limit is never needed
+    du = np.abs(np.diff(u, prepend=0.0))
+    assert np.max(du) <= gate + rate * ve.T and not np.any(flags & RATE)
+    assert abs(u[k0]) <= gate
+    np.testing.assert_allclose(u[k0:], -f[k0 - n:len(f) - n], rtol=1e-12, atol=1e-15)
+
+
 def test_safety_settings_come_from_the_rig_with_one_clear_error_each():
     rig = rig_from_dict({"rig": {"force_limit_n": 3.0, "nominal_damping_ns_m": 0.2},
                          "safety": {"energy_limit_j": 0.01, "watchdog_s": 0.02}})
