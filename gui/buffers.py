@@ -56,9 +56,10 @@ class StreamBuffer:
         lo = 0 if last is None else max(0, self.n - last)
         return self._data[name][lo : self.n]
 
-    def snapshot(self) -> dict[str, np.ndarray]:
-        """Copies of all channels so far (safe to hand to another thread)."""
-        return {name: arr[: self.n].copy() for name, arr in self._data.items()}
+    def snapshot(self, names=None) -> dict[str, np.ndarray]:
+        """Copies of the channels ``names`` (default all) so far, safe to hand to another
+        thread or process."""
+        return {name: self._data[name][: self.n].copy() for name in (names or CHANNELS)}
 
     @property
     def sample_time_s(self) -> float | None:

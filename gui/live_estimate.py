@@ -46,6 +46,7 @@ class Estimate:
     ws_theory: float | None = None
     wb_theory: float | None = None
     w_nyquist: float = np.inf  # pi / T [rad/s]
+    identified_now: bool = False  # this estimate ran the identification
 
     def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of ES, ED or EM from the 95 % radius Z_err (Re and Im each move by at most it)."""
@@ -76,18 +77,21 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     eff = effective_impedances(w, Z)
 
     source = plant_source if plant is not None else "none"
+    identified_now = False
     if plant is None:
         # The plant is driven by the net commanded force, not by the excitation alone.
         last = slice(max(0, n - ID_SAMPLES), n)
         plant = _identify_l2(recording_from_arrays(data["t"][last], data["command"][last],
                                                    data["position"][last], meta))
         source = "identified (l2)" if plant is not None else "none"
+        identified_now = plant is not None
 
     wb = measured_wb_star(w, eff.ED, plant.b) if plant is not None else None
     out = Estimate(
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
         ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
         plant=plant, plant_source=source, w_nyquist=np.pi * rec.fs,
+        identified_now=identified_now,
     )
     if plant is not None and ve is not None:
         from labbench.theory import predicted_wb_star, predicted_ws_star
@@ -121,13 +125,20 @@ def _theory_on(plant: Plant, ve: VirtualEnvironment, w_lo: float, w_hi: float) -
     from labbench.theory import theory_curve
 
     wt = np.geomspace(w_lo, w_hi, 400)
+    key = (plant, ve, w_lo, w_hi)  # equal keys: the plots keep the theory already drawn
     Zt = np.asarray(theory_curve(plant, ve, wt, "sampled"), complex)
     eff = effective_impedances(wt, Zt)
-    return {"w": wt, "Z": Zt, "ES": eff.ES, "ED": eff.ED, "EM": eff.EM}
+    return {"w": wt, "Z": Zt, "ES": eff.ES, "ED": eff.ED, "EM": eff.EM, "key": key}
 
 
 class LiveEstimator:
-    """At most one estimate in flight on a single worker thread; ``poll`` gives the newest."""
+    """At most one estimate in flight on one worker thread; ``poll`` gives the newest.
+
+    A thread, not a process: a spawned worker process was tried and measured no
+    fewer loop overruns on this 2-core machine (the estimate then competes for a
+    core instead of the GIL) while it made start-up slower and every script that
+    opens a window need a ``__main__`` guard.
+    """
 
     def __init__(self):
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="labbench-etfe")
@@ -169,9 +180,8 @@ class LiveEstimator:
                 log.exception("live estimate failed")
             self.last_error = message
             return None
-        if est is not None and est.plant is not None and est.plant_source == "identified (l2)":
-            if self._identified is None or self._identified[0] is not est.plant:
-                self._identified = (est.plant, est.n_samples)
+        if est is not None and est.identified_now:
+            self._identified = (est.plant, est.n_samples)
         return est
 
     def shutdown(self) -> None:

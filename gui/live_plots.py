@@ -184,7 +184,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             lo, hi = est.band(key)
             self.bands[key].setPath(_band_path(lw, lo[ok], hi[ok], np.isfinite(y)))
         th = est.theory
-        if th is not self._theory_shown:
+        if (th or {}).get("key") != self._theory_shown:
             for key in ("ES", "ED", "EM"):
                 if th:
                     keep = {"ES": th["Z"].imag < 0, "EM": th["Z"].imag > 0}.get(key, True)
@@ -193,7 +193,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                                                          connect="finite", skipFiniteCheck=True)
                 else:
                     self.curves[key + "_theory"].setData([], [])
-            self._theory_shown = th
+            self._theory_shown = (th or {}).get("key")
         for key, value, theory, sym in (("ws", est.ws_measured, est.ws_theory, "w_s*"),
                                         ("wb", est.wb_measured, est.wb_theory, "w_b*")):
             line = self.marks[key]

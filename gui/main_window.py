@@ -480,7 +480,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
             return
         ve, plant, meta = self._estimate_inputs(buf)
-        if self.estimator.submit(buf.snapshot(), meta, ve, plant, **self._etfe_options(buf)):
+        data = buf.snapshot(("t", "excitation", "position", "command"))
+        if self.estimator.submit(data, meta, ve, plant, **self._etfe_options(buf)):
             self._estimated_version = buf.version
 
     def _etfe_options(self, buf) -> dict:
