@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo gui test bench clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -12,7 +12,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/labbench theory --ve spring-damper --m 0.094 --b 0.10 --K 50 --B 1 --w0 125 --td 0,0.002,0.005 --plot docs/theory-spring-damper.png
+	$(VENV)/bin/labbench run demo --out sessions
+
+gui: $(STAMP)
+	$(VENV)/bin/labbench gui
 
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(VENV)/bin/python -m pytest -q
