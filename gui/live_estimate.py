@@ -47,6 +47,7 @@ class Estimate:
     wb_theory: float | None = None
     w_nyquist: float = np.inf  # pi / T [rad/s]
     identified_now: bool = False  # this estimate ran the identification
+    estimator: str = ""  # the ETFE estimator used
 
     def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of ES, ED or EM from the 95 % radius Z_err (Re and Im each move by at most it)."""
@@ -91,7 +92,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
         ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
         plant=plant, plant_source=source, w_nyquist=np.pi * rec.fs,
-        identified_now=identified_now,
+        identified_now=identified_now, estimator=res.estimator,
     )
     if plant is not None and ve is not None:
         from labbench.theory import predicted_wb_star, predicted_ws_star
