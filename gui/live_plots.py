@@ -43,6 +43,10 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
             p.enableAutoRange(x=False)
+            # ~2 points per pixel column: Qt draws a path holding the GIL, so fewer points
+            # mean shorter stalls of the acquisition thread (peak mode keeps the extremes)
+            p.setDownsampling(auto=True, mode="peak")
+            p.setClipToView(True)
             if i:
                 p.setXLink(self.plots["position"])
             self.plots[key] = p
