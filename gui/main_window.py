@@ -94,6 +94,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._run_started = time.monotonic()
         self._acquisition: threading.Thread | None = None  # the run or replay thread
         self._device_used = False  # a run has used the connected device
+        self._progress_shown = 0.0  # monotonic time of the last progress shown
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -392,7 +393,11 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
             frac, text = payload
-            elapsed = time.monotonic() - self._run_started
+            now = time.monotonic()
+            if now - self._progress_shown < 0.5 and frac < 1.0:
+                return  # 2 Hz is plenty, and each update re-lays out the left panel
+            self._progress_shown = now
+            elapsed = now - self._run_started
             left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
             self.protocol_panel.set_progress(frac, f"{text}: {100 * frac:.0f} %  {left}".strip())
         elif kind == "warning":
