@@ -1,6 +1,9 @@
 """Identification against exact simulated data (tests/truthdata.py)."""
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 from truthdata import PAPER_B, PAPER_M, chirp_recording, with_noise
 
 from labbench.analysis import l1
@@ -122,3 +125,69 @@ def test_no_motion_is_a_user_error():
     rec = recording_from_arrays(np.arange(n) / 1000, np.random.default_rng(0).standard_normal(n), np.zeros(n))
     with pytest.raises(UserError, match="hardly moves"):
         identify(rec)
+
+
+def _lp_reference(X, y):
+    """LAD as the primal LP min sum(s+ + s-), X theta + s+ - s- = y (HiGHS): theta."""
+    from scipy import optimize
+
+    n, p = X.shape
+    res = optimize.linprog(np.r_[np.zeros(p), np.ones(2 * n)], A_eq=np.c_[X, np.eye(n), -np.eye(n)],
+                           b_eq=y, bounds=[(None, None)] * p + [(0, None)] * 2 * n, method="highs")
+    assert res.status == 0, res.message
+    return res.x[:p]
+
+
+def test_l1_rows_at_rest_regression():
+    # Smallest case of the chirp-id crash (quantised sim, Coulomb 0.01 N, seed 3): samples at
+    # rest leave subnormal regressors and ~0 force, so they had the smallest residuals and made
+    # the initial basis; its solve overflowed to inf and _line_search indexed an empty cumsum.
+    X = np.array([[-1.5e-317, 1.7e-320], [4.9e-318, 2.2e-320], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    y = np.array([0.0, 0.0, 1.0, 2.0, 2.5])
+    theta = l1.lad(X, y)
+    assert np.all(np.isfinite(theta))
+    assert l1.objective(X, y, theta) == pytest.approx(0.5, rel=1e-12)  # optimum: one of the last 3 rows off by 0.5
+    assert l1.objective(X, y, theta) <= l1.objective(X, y, _lp_reference(X, y)) + 1e-12
+
+
+def test_l1_line_search_counts_ties_at_zero():
+    # r = [0, 1, 2], a = [1, 1, 1] with row 0 off the basis: the tie at t = 0 adds |a_0| = 1 to
+    # the starting slope -2 * need; with need = 0.4 the slope is already >= 0, so the step is
+    # degenerate (row 0 enters at t = 0), not the breakpoint at t = 1 (which raises the objective).
+    r, a = np.array([0.0, 1.0, 2.0]), np.ones(3)
+    assert l1._line_search(r, a, 0.4, np.array([], int)) == 0
+    assert l1._line_search(r, a, 0.9, np.array([], int)) == 1  # 0.5 at t=0, +1 at t=1 reaches 0.9
+    assert l1._line_search(np.full(3, np.nan), a, 0.4, np.array([], int)) == -1  # overflowed basis
+
+
+@st.composite
+def _lad_problems(draw):
+    """Small LAD problems with the features of identification data: integer grids (ties,
+    degenerate vertices), sign and constant columns (models mbc, mbco), rows at rest
+    (subnormal regressors), outliers."""
+    n_free = draw(st.integers(1, 2))
+    structure = draw(st.sampled_from(["", "s", "so"]))
+    p = n_free + len(structure)
+    n = draw(st.integers(p + 1, 30))
+    grid = draw(st.booleans())
+    elem = st.integers(-3, 3).map(float) if grid else st.floats(-5, 5, allow_subnormal=False)
+    free = draw(hnp.arrays(float, (n, n_free), elements=elem))
+    cols = [free] + [np.sign(free[:, -1:]) if c == "s" else np.ones((n, 1)) for c in structure]
+    X = np.hstack(cols)
+    rest = draw(st.integers(0, n // 2))
+    X[:rest, :n_free] *= 1e-318  # at rest: the filtered regressors underflow
+    assume(np.linalg.cond(X[rest:]) < 1e6)
+    theta = draw(hnp.arrays(float, p, elements=st.floats(-3, 3)))
+    noise = draw(hnp.arrays(float, n, elements=(st.integers(-2, 2).map(lambda k: 0.5 * k) if grid
+                                                else st.floats(-1, 1, allow_subnormal=False))))
+    return X, X @ theta + noise
+
+
+@settings(max_examples=250, deadline=None)
+@given(_lad_problems())
+def test_l1_exact_on_random_problems(problem):
+    X, y = problem
+    theta = l1.lad(X, y)
+    assert np.all(np.isfinite(theta))
+    f_ref = l1.objective(X, y, _lp_reference(X, y))
+    assert l1.objective(X, y, theta) <= f_ref + 1e-9 * (1 + np.abs(y).sum())

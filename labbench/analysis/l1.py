@@ -3,16 +3,18 @@
 The optimum is a vertex: p samples fitted exactly (the basis B). It is
 optimal iff xi solving X_B^T xi = -sum_{i not in B} sign(r_i) X_i has
 |xi_j| <= 1 for all j (zero in the subdifferential). Otherwise moving off the
-basis row with the largest |xi_j| lowers the objective at rate |xi_j| - 1, and
-the best step along that ray is the weighted median of the breakpoints
-r_i / (X_i u) with weights |X_i u|: a simplex step with exact line search,
-as in Barrodale & Roberts (1973, SIAM J. Numer. Anal. 10:839).
+basis row with the largest |xi_j| lowers the objective at rate |xi_j| - 1
+(less the |X_i u| of other zero residuals, see _line_search), and the best
+step along that ray is the weighted median of the breakpoints r_i / (X_i u)
+with weights |X_i u|: a simplex step with exact line search, as in Barrodale
+& Roberts (1973, SIAM J. Numer. Anal. 10:839).
 
 Start: least squares, a few IRLS steps (weights 1/|r|), then the vertex
-through the p smallest residuals. Each step costs a few passes over the data,
-and a handful of steps reach the certified optimum, so the answer is the exact
-LAD vertex (to floating point), not a point within a solver tolerance. The
-full dual LP (HiGHS) is the fallback if the steps stall.
+through small residuals whose rows are well apart (_initial_basis). Each step
+costs a few passes over the data, and a handful of steps reach the certified
+optimum, so the answer is the exact LAD vertex (to floating point), not a
+point within a solver tolerance. The full dual LP (HiGHS) is the fallback if
+the steps stall.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from scipy import optimize
 IRLS_STEPS = 6
 MAX_STEPS = 500
 XI_TOL = 1e-9
+BASIS_TOL = 1e-8  # least new direction a row must bring to the initial basis (columns scaled to max 1)
 
 
 def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.ndarray:
@@ -57,27 +60,47 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.nd
         a = X @ u
         a[B] = 0.0
         a[B[j]] = e[j]
-        i_new = _line_search(r, a, (abs(xi[j]) - 1.0) / 2.0)
-        if i_new in B:
-            break  # degenerate: no progress possible along this edge
+        i_new = _line_search(r, a, (abs(xi[j]) - 1.0) / 2.0, B)
+        if i_new < 0:
+            break  # no breakpoint ahead: the basis solve overflowed (inf/nan residuals)
         B = B.copy()
         B[j] = i_new
     return _full_lp(X, y)
 
 
 def _initial_basis(X, absr) -> np.ndarray:
-    """p rows with small residuals that span the columns (a nonsingular basis).
+    """p rows with small residuals that are well apart (a well-conditioned basis).
 
+    Gram-Schmidt over the rows in order of |r|, each column scaled by its largest
+    magnitude: a row is taken if its part outside the span of the rows already
+    taken has norm >= BASIS_TOL. (A rank test of the candidate rows alone is
+    scale-free: rows at rest, whose filtered regressors are ~1e-317, pass it, and
+    solving with them overflows to inf.) Only a prefix of the order is projected,
+    grown as needed; a skipped row only loses norm to later projections, so it is
+    never needed again.
     Later bases stay nonsingular by construction: an entering row has X_i u != 0.
     """
-    p = X.shape[1]
+    n, p = X.shape
+    scale = np.max(np.abs(X), axis=0)  # not a 2-norm: its squares could underflow
     order = np.argsort(absr)
+    Q = np.zeros((0, p))  # orthonormal rows spanning the rows taken
     B: list[int] = []
-    for i in order:
-        if np.linalg.matrix_rank(X[B + [i]]) == len(B) + 1:
-            B.append(int(i))
-            if len(B) == p:
-                break
+    start, k = 0, 4 * p
+    while len(B) < p:
+        rows = order[start:start + k] if start < n else order
+        Z = X[rows] / scale
+        R = Z - (Z @ Q.T) @ Q
+        norms = np.linalg.norm(R, axis=1)
+        ok = np.flatnonzero(norms >= BASIS_TOL)
+        if start >= n:  # no row is far enough out (nearly dependent columns): take the farthest
+            ok = [int(np.argmax(norms))]
+        elif len(ok) == 0:
+            start, k = start + k, 4 * k
+            continue
+        i = int(ok[0])
+        B.append(int(rows[i]))
+        Q = np.vstack([Q, R[i] / (norms[i] or 1.0)])  # 0: dependent columns, the LP takes over
+        start += i + 1 if start < n else 0
     return np.array(B)
 
 
@@ -89,22 +112,31 @@ def _independent_columns(X) -> list[int]:
     return keep
 
 
-def _line_search(r, a, need):
-    """Minimiser of sum_i |r_i - t a_i| along t > 0, whose slope starts at -2*need.
+def _line_search(r, a, need, basis):
+    """Minimiser of sum_i |r_i - t a_i| along t >= 0, whose slope starts at -2*need.
 
     Each breakpoint t_i = r_i / a_i > 0 raises the slope by 2|a_i|; the optimum is
-    the first at which the raised slope reaches zero (a weighted median).
+    the first at which the raised slope reaches zero (a weighted median). A row
+    off the basis with r_i = 0 (a tie, e.g. repeated samples) is a breakpoint at
+    t = 0 that ``need`` (from sign(0) = 0) leaves out: the slope gains |a_i| as
+    soon as t > 0, so it counts with half the weight; if these alone reach
+    ``need`` the step is degenerate (t = 0: the basis changes, the objective not).
     Only the smallest breakpoints are sorted, growing the batch as needed.
-    Returns the sample index of that breakpoint.
+    Returns the sample index of that breakpoint, or -1 if there is none.
     """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = r / a
-    cand = np.flatnonzero((t > 0) & np.isfinite(t))
-    tc, wc = t[cand], np.abs(a[cand])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t = r / a  # rows at rest (a ~ 1e-317) overflow to inf: excluded below
+    tie = (r == 0) & (a != 0)
+    tie[basis] = False  # the leaving row's |a| = 1 is already in need
+    cand = np.flatnonzero(((t > 0) & np.isfinite(t)) | tie)
+    if len(cand) == 0:
+        return -1
+    tc = np.where(tie[cand], 0.0, t[cand])
+    wc = np.abs(a[cand]) * np.where(tie[cand], 0.5, 1.0)
     k = 64
     while True:
         if k >= len(tc):
-            order = np.argsort(tc)
+            order = np.argsort(tc, kind="stable")
         else:
             part = np.argpartition(tc, k)[:k]
             order = part[np.argsort(tc[part])]
@@ -119,12 +151,20 @@ def objective(X, y, theta) -> float:
 
 
 def _irls(X, y, theta, steps):
-    """Iteratively reweighted least squares (weights 1/|r|, floored): a good start."""
+    """Iteratively reweighted least squares (weights 1/|r|, floored): a good start.
+
+    Weights are relative to the mean |r| and floored at 1e6 (with the median as
+    the scale, data fitted exactly at most samples got weights ~1e300, and tiny
+    residuals overflow 1/|r|); the p x p normal equations go through lstsq,
+    which takes a singular matrix (rows at rest) without raising.
+    """
     for _ in range(steps):
         r = np.abs(y - X @ theta)
-        w = 1.0 / np.maximum(r, 1e-6 * (np.median(r) + 1e-300))
-        Xw = X * w[:, None]
-        theta = np.linalg.solve(X.T @ Xw, Xw.T @ y)
+        scale = np.mean(r)
+        if scale == 0:
+            break  # an exact fit already
+        Xw = X * (1.0 / np.maximum(r / scale, 1e-6))[:, None]
+        theta = np.linalg.lstsq(X.T @ Xw, Xw.T @ y, rcond=None)[0]
     return theta
 
 
