@@ -198,10 +198,20 @@ class SimDevice:
 
     # -- internals -------------------------------------------------------------------
     def _pace(self, k: int, timeout: float) -> None:
+        """Sleep until sample k is due at ``t0 + k T``.
+
+        The schedule starts at the first read, and starts again at any read more than
+        one period past its due time: time nobody was reading (idle after open or
+        between runs) is not a backlog to deliver unpaced. Lateness under one period
+        (sleep overshoot, jitter) is made up. The same rule as the paced CANopen
+        driver's SYNC schedule (``drivers.canopen_drive``), which re-phases a late tick.
+        """
         now = time.perf_counter()
-        if self._t0 is None:
-            self._t0 = now
-        wait = self._t0 + k * self.T - now
+        t0 = self._t0
+        if t0 is None or now > t0 + (k + 1) * self.T:
+            self._t0 = now - k * self.T  # sample k is due now
+            return
+        wait = t0 + k * self.T - now
         if wait > timeout:
             time.sleep(timeout)
             raise TimeoutError(f"no simulated sample within {timeout} s")

@@ -151,6 +151,27 @@ def test_realtime_pacing_holds_the_sample_period():
     assert dev.describe().details["paced"] is True
 
 
+def test_realtime_pacing_restarts_after_idle_instead_of_catching_up():
+    # Open, read a little, sit idle (connected, run not started yet), then read on: the
+    # idle time is not a backlog. Caught up, the first idle_s / T reads would come at once.
+    idle_s = 0.3
+    dev = open_sim(Rig(), realtime=True)
+    for _ in range(5):
+        dev.read_raw(1.0)
+    time.sleep(idle_s)
+    n = 200  # under idle_s / T = 300: with catch-up every one of them would be immediate
+    t0 = time.perf_counter()
+    for _ in range(n):
+        dev.read_raw(1.0)
+    assert time.perf_counter() - t0 >= 0.7 * n * T  # lateness (a noisy machine) not asserted
+    dev.enable()  # a second pause, after enable as in a run: paced again from the next read
+    time.sleep(idle_s)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        dev.read_raw(1.0)
+    assert time.perf_counter() - t0 >= 0.7 * n * T
+
+
 def test_disabled_and_emergency_stopped_device_applies_no_force():
     dev = open_sim(Rig())
     dev.read_raw(1.0)
