@@ -150,37 +150,59 @@ def test_l1_rows_at_rest_regression():
     assert l1.objective(X, y, theta) <= l1.objective(X, y, _lp_reference(X, y)) + 1e-12
 
 
-def test_l1_line_search_counts_ties_at_zero():
-    # r = [0, 1, 2], a = [1, 1, 1] with row 0 off the basis: the tie at t = 0 adds |a_0| = 1 to
-    # the starting slope -2 * need; with need = 0.4 the slope is already >= 0, so the step is
-    # degenerate (row 0 enters at t = 0), not the breakpoint at t = 1 (which raises the objective).
-    r, a = np.array([0.0, 1.0, 2.0]), np.ones(3)
-    assert l1._line_search(r, a, 0.4, np.array([], int)) == 0
-    assert l1._line_search(r, a, 0.9, np.array([], int)) == 1  # 0.5 at t=0, +1 at t=1 reaches 0.9
-    assert l1._line_search(np.full(3, np.nan), a, 0.4, np.array([], int)) == -1  # overflowed basis
+def test_l1_initial_basis_well_apart():
+    # mbco rows from a quantised sim chirp, smallest residuals first: all four share sign(v) = +1
+    # and offset 1, and the first two are near copies. Gram-Schmidt projected once let rounding
+    # pass the 4th as new (the basis was exactly singular: LP fallback, 3x slower identify).
+    X = np.array([[6.3258525774372021e-03, 1.0957942827068612e-02, 1.0, 1.0],
+                  [6.3274694962756062e-03, 1.0945120077333111e-02, 1.0, 1.0],
+                  [9.3494099723430424e-03, 3.7596419337757644e-03, 1.0, 1.0],
+                  [-7.8119214636587779e+00, 1.5259631901508308e-01, 1.0, 1.0],
+                  [10.94, -0.45, -1.0, 1.0], [-3.0, 0.3, 1.0, 1.0], [5.0, -0.2, -1.0, 1.0]])
+    B = l1._initial_basis(X, np.arange(len(X), dtype=float))
+    assert np.linalg.cond(X[B] / np.abs(X).max(axis=0)) < 1e4  # near copy skipped: 1.2e7 before
+
+
+def test_l1_tied_vertex_solved_without_lp(monkeypatch):
+    # min |t| + |1 - 2t| + |2t|: at the optimum t = 0 two residuals are zero (a degenerate
+    # vertex); treating the tie as sign 0 gave a non-descending pivot that cycled until the
+    # LP fallback. Now the slope counts the tie and the small certificate LP settles it.
+    monkeypatch.setattr(l1, "_full_lp", lambda X, y: pytest.fail("fell back to the full LP"))
+    X, y = np.array([[1.0], [2.0], [2.0]]), np.array([0.0, 1.0, 0.0])
+    assert l1.lad(X, y)[0] == 0.0
+
+
+def test_l1_line_search():
+    # breakpoints t = 1, 2, 3 with weights 1, 1, 1: slope -2*1.5 reaches 0 at the second
+    r, a = np.array([1.0, 2.0, 3.0]), np.ones(3)
+    assert l1._line_search(r, a, 1.5) == 1
+    assert l1._line_search(r, -a, 1.5) == -1  # all behind: only after an overflow
+    assert l1._line_search(np.full(3, np.nan), a, 1.5) == -1
 
 
 @st.composite
 def _lad_problems(draw):
     """Small LAD problems with the features of identification data: integer grids (ties,
     degenerate vertices), sign and constant columns (models mbc, mbco), rows at rest
-    (subnormal regressors), outliers."""
+    (subnormal regressors), columns of very different scales."""
     n_free = draw(st.integers(1, 2))
     structure = draw(st.sampled_from(["", "s", "so"]))
     p = n_free + len(structure)
     n = draw(st.integers(p + 1, 30))
     grid = draw(st.booleans())
-    elem = st.integers(-3, 3).map(float) if grid else st.floats(-5, 5, allow_subnormal=False)
+    elem = (st.integers(-3, 3).map(float) if grid
+            else st.floats(-5, 5).map(lambda v: v if abs(v) > 1e-3 else 0.0))  # no 1e-300 columns
     free = draw(hnp.arrays(float, (n, n_free), elements=elem))
     cols = [free] + [np.sign(free[:, -1:]) if c == "s" else np.ones((n, 1)) for c in structure]
     X = np.hstack(cols)
-    rest = draw(st.integers(0, n // 2))
+    rest = draw(st.integers(0, n - p - 1))
     X[:rest, :n_free] *= 1e-318  # at rest: the filtered regressors underflow
-    assume(np.linalg.cond(X[rest:]) < 1e6)
+    assume(np.linalg.cond(X[rest:]) < 1e6)  # the moving samples pin every parameter
     theta = draw(hnp.arrays(float, p, elements=st.floats(-3, 3)))
     noise = draw(hnp.arrays(float, n, elements=(st.integers(-2, 2).map(lambda k: 0.5 * k) if grid
                                                 else st.floats(-1, 1, allow_subnormal=False))))
-    return X, X @ theta + noise
+    units = 10.0 ** draw(hnp.arrays(int, p, elements=st.integers(-6, 6)))  # columns in any units
+    return X * units, X @ theta + noise
 
 
 @settings(max_examples=250, deadline=None)

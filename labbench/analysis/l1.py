@@ -3,11 +3,14 @@
 The optimum is a vertex: p samples fitted exactly (the basis B). It is
 optimal iff xi solving X_B^T xi = -sum_{i not in B} sign(r_i) X_i has
 |xi_j| <= 1 for all j (zero in the subdifferential). Otherwise moving off the
-basis row with the largest |xi_j| lowers the objective at rate |xi_j| - 1
-(less the |X_i u| of other zero residuals, see _line_search), and the best
-step along that ray is the weighted median of the breakpoints r_i / (X_i u)
-with weights |X_i u|: a simplex step with exact line search, as in Barrodale
-& Roberts (1973, SIAM J. Numer. Anal. 10:839).
+basis row j with |xi_j| > 1 lowers the objective at rate |xi_j| - 1 (less
+|X_i u| for every other zero residual: a tie, e.g. from quantised data), and
+the best step along the steepest such ray is the weighted median of the
+breakpoints r_i / (X_i u) with weights |X_i u|: a simplex step with exact line
+search, as in Barrodale & Roberts (1973, SIAM J. Numer. Anal. 10:839). Every
+step lowers the objective, so no basis comes back (no cycling). At a tied
+(degenerate) vertex where no edge descends, a small LP over the tied rows
+decides optimality.
 
 Start: least squares, a few IRLS steps (weights 1/|r|), then the vertex
 through small residuals whose rows are well apart (_initial_basis). Each step
@@ -24,7 +27,7 @@ from scipy import optimize
 IRLS_STEPS = 6
 MAX_STEPS = 500
 XI_TOL = 1e-9
-BASIS_TOL = 1e-8  # least new direction a row must bring to the initial basis (columns scaled to max 1)
+BASIS_TOL = 1e-4  # least new direction a row must bring to the initial basis (columns scaled to max 1)
 
 
 def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.ndarray:
@@ -39,7 +42,6 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.nd
         theta = np.zeros(X.shape[1])
         theta[keep] = lad(X[:, keep], y, None if theta0 is None else np.asarray(theta0)[keep])
         return theta
-    p = X.shape[1]
     theta = np.linalg.lstsq(X, y, rcond=None)[0] if theta0 is None else np.asarray(theta0, float)
     theta = _irls(X, y, theta, IRLS_STEPS)
     B = _initial_basis(X, np.abs(y - X @ theta))
@@ -48,19 +50,25 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.nd
             theta = np.linalg.solve(X[B], y[B])
             r = y - X @ theta
             r[B] = 0.0  # exactly, so the basis rows never show up as breakpoints
-            xi = np.linalg.solve(X[B].T, -(np.sign(r) @ X))
+            g = -(np.sign(r) @ X)
+            xi = np.linalg.solve(X[B].T, g)
+            if np.max(np.abs(xi)) <= 1.0 + XI_TOL:
+                return theta
+            U = np.linalg.solve(X[B], np.diag(-np.sign(xi)))  # column j: the edge leaving row B[j]
         except np.linalg.LinAlgError:
             break  # singular basis: leave it to the LP
-        j = int(np.argmax(np.abs(xi)))
-        if abs(xi[j]) <= 1.0 + XI_TOL:
-            return theta
-        e = np.zeros(p)
-        e[j] = -np.sign(xi[j])
-        u = np.linalg.solve(X[B], e)
-        a = X @ u
-        a[B] = 0.0
-        a[B[j]] = e[j]
-        i_new = _line_search(r, a, (abs(xi[j]) - 1.0) / 2.0, B)
+        tie = r == 0.0
+        tie[B] = False
+        # slope of the objective along each edge at t = 0+: 1 - |xi_j|, plus |X_i u| for each
+        # other zero residual (sign(0) = 0 left it out of xi); ties make a degenerate vertex
+        slope = 1.0 - np.abs(xi) + np.abs(X[tie] @ U).sum(axis=0)
+        j = int(np.argmin(slope))
+        if slope[j] >= -XI_TOL:  # no edge of this basis descends
+            if _certified(X, B, tie, g):
+                return theta
+            break  # a degenerate vertex that needs non-descending pivots: the LP does it
+        a = X @ U[:, j]
+        i_new = _line_search(r, a, -slope[j] / 2.0)
         if i_new < 0:
             break  # no breakpoint ahead: the basis solve overflowed (inf/nan residuals)
         B = B.copy()
@@ -88,8 +96,9 @@ def _initial_basis(X, absr) -> np.ndarray:
     start, k = 0, 4 * p
     while len(B) < p:
         rows = order[start:start + k] if start < n else order
-        Z = X[rows] / scale
-        R = Z - (Z @ Q.T) @ Q
+        R = X[rows] / scale
+        for _ in range(2):  # projected twice: once leaves ~eps/(new part) of the old directions
+            R = R - (R @ Q.T) @ Q
         norms = np.linalg.norm(R, axis=1)
         ok = np.flatnonzero(norms >= BASIS_TOL)
         if start >= n:  # no row is far enough out (nearly dependent columns): take the farthest
@@ -105,38 +114,39 @@ def _initial_basis(X, absr) -> np.ndarray:
 
 
 def _independent_columns(X) -> list[int]:
+    """Columns, in order, that are not linear combinations of earlier kept ones.
+
+    Ranks of columns scaled to largest magnitude 1: unscaled, a column far smaller
+    than the next (units) made that next column look dependent and dropped it.
+    """
+    scale = np.max(np.abs(X), axis=0)
+    Xs = X / np.where(scale > 0, scale, 1.0)
     keep: list[int] = []
     for j in range(X.shape[1]):
-        if np.linalg.matrix_rank(X[:, keep + [j]]) == len(keep) + 1:
+        if np.linalg.matrix_rank(Xs[:, keep + [j]]) == len(keep) + 1:
             keep.append(j)
     return keep
 
 
-def _line_search(r, a, need, basis):
-    """Minimiser of sum_i |r_i - t a_i| along t >= 0, whose slope starts at -2*need.
+def _line_search(r, a, need):
+    """Minimiser of sum_i |r_i - t a_i| along t > 0, whose slope starts at -2*need.
 
     Each breakpoint t_i = r_i / a_i > 0 raises the slope by 2|a_i|; the optimum is
-    the first at which the raised slope reaches zero (a weighted median). A row
-    off the basis with r_i = 0 (a tie, e.g. repeated samples) is a breakpoint at
-    t = 0 that ``need`` (from sign(0) = 0) leaves out: the slope gains |a_i| as
-    soon as t > 0, so it counts with half the weight; if these alone reach
-    ``need`` the step is degenerate (t = 0: the basis changes, the objective not).
+    the first at which the raised slope reaches zero (a weighted median). Rows
+    with r_i = 0 (basis, ties) are not breakpoints: ``need`` includes them.
     Only the smallest breakpoints are sorted, growing the batch as needed.
     Returns the sample index of that breakpoint, or -1 if there is none.
     """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t = r / a  # rows at rest (a ~ 1e-317) overflow to inf: excluded below
-    tie = (r == 0) & (a != 0)
-    tie[basis] = False  # the leaving row's |a| = 1 is already in need
-    cand = np.flatnonzero(((t > 0) & np.isfinite(t)) | tie)
+    cand = np.flatnonzero((t > 0) & np.isfinite(t))
     if len(cand) == 0:
         return -1
-    tc = np.where(tie[cand], 0.0, t[cand])
-    wc = np.abs(a[cand]) * np.where(tie[cand], 0.5, 1.0)
+    tc, wc = t[cand], np.abs(a[cand])
     k = 64
     while True:
         if k >= len(tc):
-            order = np.argsort(tc, kind="stable")
+            order = np.argsort(tc)
         else:
             part = np.argpartition(tc, k)[:k]
             order = part[np.argsort(tc[part])]
@@ -144,6 +154,15 @@ def _line_search(r, a, need, basis):
         if c[-1] >= need or k >= len(tc):
             return int(cand[order[min(np.searchsorted(c, need), len(order) - 1)]])
         k *= 4
+
+
+def _certified(X, B, tie, g) -> bool:
+    """Optimality at a degenerate vertex: signs s in [-1, 1] for all zero residuals
+    (basis and ties) with sum_i s_i X_i = g, i.e. zero in the subdifferential.
+    A feasibility LP over those few rows (HiGHS)."""
+    T = np.r_[B, np.flatnonzero(tie)]
+    res = optimize.linprog(np.zeros(len(T)), A_eq=X[T].T, b_eq=g, bounds=(-1, 1), method="highs")
+    return res.status == 0
 
 
 def objective(X, y, theta) -> float:
