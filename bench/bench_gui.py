@@ -6,8 +6,9 @@
    the same run (the same widgets repainted with no new data). Goal: <= 8 ms.
 2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
    real-time simulator, headless through ``labbench.runner.run`` recording a
-   session (as ``labbench run`` does), then inside the window (redraw timer,
-   live ETFE, session recording) under the Qt event loop. Goal: the GUI adds none.
+   session (as ``labbench run`` does), then from the window (the run in its
+   acquisition process, ``gui.acquisition``; redraw timer and live ETFE in the
+   window's process) under the Qt event loop. Goal: the GUI adds none.
    Runs alternate to spread the noise of this shared machine over both arms.
 
 Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]``

@@ -18,9 +18,10 @@ DEMO_SETTINGS = {"duration_s": 20.0, "seed": 1}
 
 
 def tune_interpreter(switch_interval_s: float = 0.0005) -> None:
-    """Let the acquisition thread get the GIL back within 0.5 ms instead of Python's
-    default 5 ms: while the GUI thread runs Python (pyqtgraph's paint code), a 1 kHz
-    loop would otherwise wait up to five periods for it."""
+    """Let worker threads (a 1x replay, the reader of the acquisition process's messages)
+    get the GIL back within 0.5 ms instead of Python's default 5 ms while the GUI thread
+    runs Python (pyqtgraph's paint code). The 1 kHz loop itself runs in its own process
+    (``gui.acquisition``)."""
     sys.setswitchinterval(switch_interval_s)
 
 

@@ -9,27 +9,6 @@ HEALTH_FIELDS = (("state", "state"), ("drops", "drops (seq gaps)"), ("link", "li
                  ("fault", "fault"))
 
 
-def device_health(device) -> dict:
-    """What a device tells about itself without bus traffic: enable/e-stop state, its
-    link counters (``counters()`` or ``counters``: CRC errors, lost frames, EMCY...) and
-    its latched fault. Never raises for a missing attribute (backends differ)."""
-    out = {}
-    if getattr(device, "closed", False):
-        out["state"] = "closed"
-    elif getattr(device, "estopped", False):
-        out["state"] = "E-STOP latched"
-    elif hasattr(device, "enabled"):
-        out["state"] = "enabled" if device.enabled else "disabled"
-    counters = getattr(device, "counters", None)
-    counters = counters() if callable(counters) else counters
-    if isinstance(counters, dict):
-        out["link"] = ", ".join(f"{k} {v}" for k, v in counters.items() if v) or "all zero"
-    fault = getattr(device, "fault", None)
-    if not callable(fault):
-        out["fault"] = fault or "none"
-    return out
-
-
 class DevicePanel(QtWidgets.QGroupBox):
     """Buttons emit requests; the window does the work and reports back with ``set_*``."""
 

@@ -1,10 +1,11 @@
 """The main window: device and protocol on the left, live plots / identification / sessions
 on the right, the event log below, E-STOP on top, loop health in the status bar.
 
-All slow or blocking work (device I/O, runs, replays, estimates, exports) runs on
-worker threads (``gui.worker``, ``gui.live_estimate``); the window only drains
-their mailbox from a QTimer (<= 30 Hz) and redraws, so it never freezes and
-the acquisition loop never waits for it.
+The device and its runs live in the acquisition process (``gui.acquisition``: the
+GUI thread's drawing must not hold the interpreter the 1 kHz loop needs); replays,
+estimates and exports run on worker threads (``gui.worker``, ``gui.live_estimate``).
+The window only drains their mailbox from a QTimer (<= 30 Hz) and redraws, so it
+never freezes and the acquisition loop never waits for it.
 """
 from __future__ import annotations
 
@@ -18,15 +19,16 @@ from pathlib import Path
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from gui.acquisition import Acquisition
 from gui.buffers import StreamBuffer
-from gui.device_panel import DevicePanel, EStopButton, device_health
+from gui.device_panel import DevicePanel, EStopButton
 from gui.event_log import EventLog
 from gui.id_view import IdView, model_force
 from gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from gui.live_plots import ImpedancePlots, TimeTraces
 from gui.protocol_panel import ProtocolPanel
 from gui.sessions_view import SessionsView
-from gui.worker import Mailbox, describe_error, run_in_background, start_replay, start_run
+from gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
@@ -81,8 +83,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.mailbox = Mailbox()
         self.buffer = StreamBuffer()
         self.estimator = LiveEstimator()
-        self.device = None
-        self.stop_event = threading.Event()
+        self.acquisition = Acquisition(self.mailbox)
+        self.device = None  # DeviceDescription of the device open in the acquisition process
+        self.health: dict = {}  # its latest health report
+        self.estop_confirmed = False  # the acquisition process has emergency-stopped the device
+        self.stop_event = threading.Event()  # stops a replay
         self.mode = "idle"  # "running" | "replay"
         self.session_path: str | None = None
         self.last_run = None  # RunResult of the last run
@@ -92,7 +97,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._pending_start = False
         self._estimator_error_shown = None
         self._run_started = time.monotonic()
-        self._acquisition: threading.Thread | None = None  # the run or replay thread
+        self._replay: threading.Thread | None = None
         self._device_used = False  # a run has used the connected device
         self._progress_shown = 0.0  # monotonic time of the last progress shown
 
@@ -227,41 +232,44 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- device ---------------------------------------------------------------------------
     @guarded
-    def connect_device(self, backend: str):
+    def connect_device(self, backend: str, opener=None):
+        """Open ``backend`` in the acquisition process (``opener(rig, **options)`` instead of the
+        registry's factory when given: a picklable callable, e.g. for an injected fault)."""
         from labbench.devices import open_device
 
         options = {"realtime": self.realtime} if backend == "sim" else {}
         self.log.add("info", f"connecting to {backend} ...")
         self.estop.set_latched(False)
-        run_in_background(self.mailbox, "connect", open_device, backend, self.rig, **options)
+        self.estop_confirmed = False
+        self.health = {}
+        self.acquisition.connect(opener or functools.partial(open_device, backend), self.rig, options)
 
     @guarded
     def disconnect_device(self):
         if self.mode == "running":
             raise UserError("stop the run before disconnecting")
-        dev, self.device = self.device, None
+        was, self.device = self.device, None
         self.device_panel.set_connected(None)
         self.estop.set_latched(False)  # the latch lives in the device being closed
-        if dev is not None:
-            run_in_background(self.mailbox, "disconnect", dev.close)
+        if was is not None:
+            self.acquisition.send("disconnect")
 
     @guarded
     def enable_device(self, on: bool):
         if self.device is None:
             raise UserError("connect a device first")
-        fn = self.device.enable if on else self.device.disable
-        run_in_background(self.mailbox, "enable" if on else "disable", fn, 1.0)
+        self.acquisition.send("enable" if on else "disable", 1.0)
 
     @guarded
     def emergency_stop(self):
-        """Zero force at once (device latches), stop any run or replay; never raises."""
+        """Zero force at once (device latches), stop any run or replay; never raises.
+
+        Sets the shared event the acquisition process's e-stop thread is blocked on: that
+        thread calls ``device.emergency_stop()`` and stops the run without waiting for
+        the GUI or for the loop."""
+        self.acquisition.emergency_stop()
         self.stop_event.set()
         dev = self.device
-        if dev is not None:
-            try:
-                dev.emergency_stop()
-            except Exception as exc:  # noqa: BLE001 - emergency_stop must not raise; say so if it does
-                self.log.add("error", f"device emergency_stop raised: {describe_error(exc)}")
         self.estop.set_latched(dev is not None)
         self.device_panel.set_enabled(False)
         self.log.add("warning", "E-STOP: force zeroed, run stopped" if dev is not None
@@ -269,10 +277,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _poll_health(self):
         if self.device is not None:
-            try:
-                health = device_health(self.device)
-            except Exception as exc:  # noqa: BLE001 - a health read failing is itself news
-                health = {"state": f"health read failed: {describe_error(exc)}"}
+            health = dict(self.health)
             if self.mode == "running":
                 health["drops"] = str(self._count_flag(SEQ_GAP))
             self.device_panel.set_health(health)
@@ -329,10 +334,9 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.device is not None and self._device_used and backend in SIM_BACKENDS:
             # A fresh simulator per run: every run starts from the same state (seeded runs
             # repeat exactly) and its real-time clock starts with the run (a reused one
-            # would first catch up, unpaced, on the time it sat idle).
-            old, self.device = self.device, None
+            # would first catch up, unpaced, on the time it sat idle). Connecting closes it.
+            self.device = None
             self.device_panel.set_connected(None)
-            run_in_background(self.mailbox, "disconnect", old.close)
         if self.device is None:
             self._pending_start = True
             self.connect_device(backend)
@@ -346,14 +350,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
         self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
-        self._acquisition = start_run(self.mailbox, self.device, protocol, self.rig, self.stop_event,
-                                      self.session_dir,
-                                      start_extra={"gui_settings": self.protocol_panel.state()})
+        self.acquisition.run(self.protocol_panel.choice.currentText(), self.protocol_panel.values(),
+                             self.rig, self.session_dir,
+                             start_extra={"gui_settings": self.protocol_panel.state()})
 
     @guarded
     def stop_run(self):
         if self.mode != "idle":
             self.stop_event.set()
+            self.acquisition.request_stop()
             self.log.add("info", f"stop requested ({self.mode})")
 
     def _reset_view(self):
@@ -411,6 +416,20 @@ class MainWindow(QtWidgets.QMainWindow):
         elif kind == "error":
             tag, message = payload
             self._on_error(tag, message)
+        elif kind == "health":
+            self.health = payload
+        elif kind == "estopped":
+            self.estop_confirmed = True
+            self.log.add("warning", "E-STOP: device emergency-stopped by the acquisition process"
+                         if payload else "E-STOP: acquisition process stopped, no device open")
+        elif kind == "acquisition died":
+            self.device = None
+            self.device_panel.set_connected(None)
+            self._pending_start = False
+            if self.mode == "running":
+                self._run_finished()
+            self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
+                            "reconnect the device")
 
     def _on_error(self, tag: str, message: str):
         if tag == "connect":
@@ -420,10 +439,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self._run_finished()
         self.show_error(f"{tag}: {message}")
 
-    def _on_connect_done(self, device):
-        self.device = device
+    def _on_connect_done(self, desc):
+        self.device = desc
         self._device_used = False
-        desc = device.describe()
         self.device_panel.set_connected(desc)
         self.log.add("info", f"connected: {desc.name} ({desc.kind})")
         if self._pending_start:
@@ -582,7 +600,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.mode = "replay"
         self.tabs.setCurrentIndex(0)
         self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
-        self._acquisition = start_replay(self.mailbox, path, speed, self.stop_event)
+        self._replay = start_replay(self.mailbox, path, speed, self.stop_event)
 
     @guarded
     def reanalyse(self, path: str, estimator: str):
@@ -604,15 +622,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_event.set()
         for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
             t.stop()
-        if self._acquisition is not None:  # let the runner zero the force and disable first
-            self._acquisition.join(timeout=3.0)
+        if self._replay is not None:
+            self._replay.join(timeout=3.0)
+        # the runner zeroes the force and disables; then the device is closed and the child ends
+        self.acquisition.shutdown(timeout=5.0)
+        self.device = None
         self.estimator.shutdown()
-        dev, self.device = self.device, None
-        if dev is not None:
-            try:
-                dev.close()
-            except Exception:  # noqa: BLE001 - closing anyway
-                log.exception("device close failed")
         super().closeEvent(event)
 
 

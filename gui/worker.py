@@ -1,4 +1,5 @@
-"""Work off the GUI thread: acquisition runs, replays and slow one-off jobs.
+"""Work off the GUI thread: replays and slow one-off jobs (runs go to the acquisition
+process, ``gui.acquisition``, which posts the same messages).
 
 Every job is a plain ``threading.Thread`` (no Qt object lives on it) that puts
 ``(kind, payload)`` messages into a ``Mailbox``; the window drains the mailbox
@@ -14,7 +15,6 @@ from typing import Callable
 
 from labbench.device import DeviceFault
 from labbench.errors import UserError
-from labbench.records import START
 
 log = logging.getLogger(__name__)
 
@@ -66,44 +66,6 @@ def run_in_background(mailbox: Mailbox, tag: str, fn: Callable, *args, **kwargs)
     thread = threading.Thread(target=body, name=f"labbench-{tag}", daemon=True)
     thread.start()
     return thread
-
-
-def start_run(mailbox: Mailbox, device, protocol, rig, stop: threading.Event,
-              session_dir=None, start_extra: dict | None = None) -> threading.Thread:
-    """Run ``protocol`` on ``device`` through the runner on its own thread.
-
-    Records go to the mailbox (as ("record", rec)) and, when ``session_dir`` is
-    given, to a crash-safe session file whose start record also carries
-    ``start_extra`` (the runner has no such field, so it is added on the way to
-    the file); progress as ("progress", (frac, text)); the end as
-    ("result", ("run", RunResult)) or ("error", ("run", message)).
-    """
-
-    def job():
-        from labbench.runner import run
-
-        consumers = [lambda rec: mailbox.put("record", rec)]
-        writer = None
-        if session_dir is not None:
-            from labbench.session import SessionWriter
-
-            writer = SessionWriter(session_dir)
-
-            def record(rec, _write=writer):
-                _write({**rec, **start_extra} if start_extra and rec.get("kind") == START else rec)
-
-            consumers.insert(0, record)
-        try:
-            # close=False: the device stays connected in the window for the next run
-            return run(device, protocol, consumers, stop=stop, rig=rig, close=False,
-                       progress=lambda frac, text: mailbox.put("progress", (frac, text)))
-        finally:
-            if writer is not None:
-                writer.close()
-                if writer.path is not None:  # None when the run was refused before its start record
-                    mailbox.put("session", str(writer.path))
-
-    return run_in_background(mailbox, "run", job)
 
 
 def start_replay(mailbox: Mailbox, path, speed: float | None, stop: threading.Event) -> threading.Thread:

@@ -3,6 +3,7 @@ import os
 
 os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
+import functools  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
 import subprocess  # noqa: E402
@@ -18,8 +19,6 @@ from PySide6 import QtCore  # noqa: E402
 from gui.app import run_app  # noqa: E402
 from gui.live_estimate import estimate  # noqa: E402
 from gui.main_window import LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
-from labbench.device import DeviceFault  # noqa: E402
-from labbench.devices import open_device  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.session import analysis_meta, list_sessions, load_session  # noqa: E402
 from labbench.ve import Plant  # noqa: E402
@@ -154,13 +153,22 @@ def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
     win = make_window(realtime=True)
     start(win, "etfe", duration_s=60.0, seed=1)
     qtbot.waitUntil(lambda: win.buffer.n > 300, timeout=20_000)
-    device = win.device
+    # the loop runs in its own process, which has not loaded Qt
+    with open(f"/proc/{win.acquisition.process.pid}/maps") as f:
+        maps = f.read()
+    assert "python" in maps and "Qt6" not in maps and "PySide6" not in maps
     win.activateWindow()
     qtbot.keyClick(win, QtCore.Qt.Key.Key_Escape)
-    assert device.estopped  # set synchronously by the key, before the run thread notices
+    # the key sets the shared event the acquisition process's e-stop thread is blocked on
+    assert win.acquisition.estop.is_set()
     assert win.estop.latched and "LATCHED" in win.estop.text()
+    # that thread emergency-stops the device itself (it latches: health says so)
+    qtbot.waitUntil(lambda: win.estop_confirmed, timeout=5_000)
+    qtbot.waitUntil(lambda: win.health.get("state") == "E-STOP latched", timeout=5_000)
     wait_run_done(qtbot, win, timeout=10_000)
     assert win.last_run.status in ("aborted", "failed")
+    qtbot.waitUntil(lambda: win.device_panel.health["state"].text() == "E-STOP latched",
+                    timeout=5_000)  # the device panel shows the child's report
     assert win.buffer.n < 20_000
     assert any("E-STOP" in t for t in win.log.texts("warning"))
     win.start_protocol()  # refused while the latch holds
@@ -181,34 +189,12 @@ def test_unstable_settings_are_refused_with_a_message(qtbot, make_window):
     assert not list(win.session_dir.glob("*.lbsession"))
 
 
-class FaultyDevice:
-    """The simulator, faulting after ``n_ok`` samples (a drive fault injected mid-run)."""
-
-    def __init__(self, n_ok):
-        self.inner = open_device("sim", Rig())
-        self.n_ok = n_ok
-
-    def _tick(self):
-        self.n_ok -= 1
-        if self.n_ok < 0:
-            raise DeviceFault("injected: drive reported over-current")
-
-    def read(self, timeout):
-        self._tick()
-        return self.inner.read(timeout)
-
-    def read_raw(self, timeout):
-        self._tick()
-        return self.inner.read_raw(timeout)
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
 def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
+    from gui_faulty_device import open_faulty  # importable in the acquisition process: no Qt
+
     win = make_window()
-    win.device = FaultyDevice(1500)
-    win.device_panel.set_connected(win.device.describe())
+    win.connect_device("sim", opener=functools.partial(open_faulty, n_ok=1500))
+    qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
     start(win, "etfe", duration_s=5.0, seed=1)
     wait_run_done(qtbot, win)
     assert win.last_run.status == "failed"
@@ -303,3 +289,49 @@ def test_cli_demo_screenshot(tmp_path):
                     str(tmp_path / "s"), "--screenshot", str(shot)], env=env, check=True,
                    timeout=240, cwd=tmp_path)
     assert shot.stat().st_size > 10_000
+
+
+PARENT_SCRIPT = """
+import os, signal, sys, time
+from gui.acquisition import Acquisition
+from gui.worker import Mailbox
+from labbench.devices import open_device
+from labbench.rig import Rig
+import functools
+
+mailbox = Mailbox()
+acq = Acquisition(mailbox)
+acq.connect(functools.partial(open_device, "sim"), Rig(), {"realtime": True})
+acq.run("etfe", {"duration_s": 60.0, "seed": 1}, Rig(), sys.argv[1], None)
+deadline = time.monotonic() + 60
+records = 0
+while records < 5 and time.monotonic() < deadline:  # the run is streaming
+    records += sum(kind == "record" for kind, _ in mailbox.drain())
+    time.sleep(0.05)
+print(acq.process.pid, records, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)  # the GUI process dies without any cleanup
+"""
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return any(line.startswith("State:") and "Z" in line for line in f)
+    except FileNotFoundError:
+        return True
+
+
+def test_acquisition_process_stops_the_run_when_the_gui_process_dies(qtbot, tmp_path):
+    """The parent watchdog: a killed GUI process leaves no device driven and no process behind."""
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": repo}
+    out = subprocess.run([sys.executable, "-c", PARENT_SCRIPT, str(tmp_path)], capture_output=True,
+                         text=True, timeout=120, env=env, check=False)  # it kills itself
+    pid, records = map(int, out.stdout.split())
+    assert records >= 5, out.stderr
+    qtbot.waitUntil(lambda: _gone(pid), timeout=15_000)
+    # the run was ended by the runner (force zero, device disabled): its session has a stop record
+    (path,) = tmp_path.glob("*.lbsession")
+    _start, _desc, ch, _events, stop, problem = load_session(path)
+    assert problem is None and stop is not None and stop["status"] in ("aborted", "failed")
+    assert len(ch["t"]) < 60_000

@@ -1,0 +1,333 @@
+"""The acquisition process: the device, the runner and the session writer, away from Qt.
+
+In one process, the GUI thread holds the GIL inside Qt/pyqtgraph drawing calls
+for milliseconds at a time, and a 1 kHz loop on another thread of that process
+misses its periods. So the device lives in a child process (``spawn``: nothing
+of the GUI's state or Qt is inherited; this module imports no Qt) that opens
+it, enables it, runs protocols through ``labbench.runner.run`` and records the
+session with ``labbench.session.SessionWriter``.
+
+Pipes between the two (all put calls are non-blocking, so neither side ever
+waits for the other):
+
+* commands, GUI -> child: a ``multiprocessing.Queue`` of tuples;
+* messages, child -> GUI: a ``multiprocessing.Queue`` of ``(kind, payload)``,
+  the same messages ``gui.worker.Mailbox`` carries (records with their numpy
+  page arrays pickled by multiprocessing, progress, results, errors as the one
+  line ``gui.worker.describe_error`` makes), forwarded into the GUI's mailbox by
+  a reader thread on the GUI side;
+* E-STOP: a shared ``multiprocessing.Event``; a thread of the child blocks on it
+  and, the moment it is set, calls ``device.emergency_stop()`` and sets the
+  run's stop event (the GUI never waits for the child to notice);
+* Stop: a second shared event, passed on to the run's stop event by the same thread;
+* watchdog: a child thread waits on the parent's process sentinel; if the GUI
+  process dies the device is emergency-stopped, the run ends (its session
+  closed with a stop record) and the child exits.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import queue
+import sys
+import threading
+from multiprocessing.connection import wait as wait_handles
+
+log = logging.getLogger(__name__)
+
+HEALTH_PERIOD_S = 0.5
+PARENT_GONE_GRACE_S = 3.0  # after the parent died: time for the run to end cleanly
+
+
+def device_health(device) -> dict:
+    """What a device tells about itself without bus traffic: enable/e-stop state, its
+    link counters (``counters()`` or ``counters``: CRC errors, lost frames, EMCY...) and
+    its latched fault. Never raises for a missing attribute (backends differ)."""
+    out = {}
+    if getattr(device, "closed", False):
+        out["state"] = "closed"
+    elif getattr(device, "estopped", False):
+        out["state"] = "E-STOP latched"
+    elif hasattr(device, "enabled"):
+        out["state"] = "enabled" if device.enabled else "disabled"
+    counters = getattr(device, "counters", None)
+    counters = counters() if callable(counters) else counters
+    if isinstance(counters, dict):
+        out["link"] = ", ".join(f"{k} {v}" for k, v in counters.items() if v) or "all zero"
+    fault = getattr(device, "fault", None)
+    if not callable(fault):
+        out["fault"] = fault or "none"
+    return out
+
+
+# ----- the child process ---------------------------------------------------------------------
+class _Child:
+    """State of the acquisition process: the open device and the run under way."""
+
+    def __init__(self, commands, messages, estop, stop):
+        self.commands, self.messages, self.estop, self.stop = commands, messages, estop, stop
+        self.device = None
+        self.run_stop = threading.Event()  # the stop event of the run under way
+        self.lock = threading.Lock()  # the device reference, between the threads
+        self.idle = threading.Event()  # no run under way
+        self.idle.set()
+
+    def post(self, kind: str, payload=None) -> None:
+        self.messages.put((kind, payload))  # a feeder thread pickles and writes: never blocks
+
+    # -- threads ----------------------------------------------------------------------------
+    def watch_estop(self) -> None:
+        """Zero the force the moment the shared E-STOP is set; pass Stop on to the run."""
+        while True:
+            if self.estop.wait(0.01):
+                with self.lock:
+                    dev = self.device
+                self.run_stop.set()
+                if dev is not None:
+                    try:
+                        dev.emergency_stop()
+                    except Exception as exc:  # noqa: BLE001 - reported, the run still stops
+                        self.post("warning", f"device emergency_stop raised: {_describe(exc)}")
+                self.post("estopped", dev is not None)
+                while self.estop.is_set():  # latched until the GUI clears it (reconnect)
+                    threading.Event().wait(0.05)
+            elif self.stop.is_set():
+                self.run_stop.set()
+
+    def watch_parent(self) -> None:
+        """The backstop: the GUI process is gone -> force zero, run ended, exit."""
+        parent = mp.parent_process()
+        if parent is None:
+            return
+        wait_handles([parent.sentinel])  # returns when the parent process ends
+        log.error("GUI process gone: emergency stop and exit")
+        self.estop.set()
+        self.run_stop.set()
+        self.idle.wait(PARENT_GONE_GRACE_S)  # the runner zeroes, disables, writes the stop record
+        with self.lock:
+            dev, self.device = self.device, None
+        if dev is not None:
+            try:
+                dev.emergency_stop()
+                dev.close()
+            except Exception:  # noqa: BLE001 - exiting anyway
+                log.exception("closing the device after the GUI process ended")
+        os._exit(3)
+
+    def report_health(self) -> None:
+        while True:
+            threading.Event().wait(HEALTH_PERIOD_S)
+            with self.lock:
+                dev = self.device
+            if dev is None:
+                continue
+            try:
+                health = device_health(dev)
+            except Exception as exc:  # noqa: BLE001 - a health read failing is itself news
+                health = {"state": f"health read failed: {_describe(exc)}"}
+            self.post("health", health)
+
+    # -- commands ------------------------------------------------------------------------------
+    def serve(self) -> None:
+        for body in (self.watch_estop, self.watch_parent, self.report_health):
+            threading.Thread(target=body, name=f"acq-{body.__name__}", daemon=True).start()
+        while True:
+            try:
+                cmd, *args = self.commands.get(timeout=1.0)
+            except queue.Empty:
+                continue
+            if cmd == "quit":
+                self._close_device()
+                return
+            try:
+                value = getattr(self, f"do_{cmd}")(*args)
+            except BaseException as exc:  # noqa: BLE001 - reported to the window, never a crash
+                from labbench.device import DeviceFault
+                from labbench.errors import UserError
+
+                if not isinstance(exc, (UserError, DeviceFault, TimeoutError)):
+                    log.exception("acquisition command %s failed", cmd)
+                self.post("error", (cmd, _describe(exc)))
+            else:
+                self.post("result", (cmd, value))
+
+    def _close_device(self) -> None:
+        with self.lock:
+            dev, self.device = self.device, None
+        if dev is not None:
+            dev.close()
+
+    def do_connect(self, opener, rig, options):
+        self._close_device()
+        dev = opener(rig, **options)
+        with self.lock:
+            self.device = dev
+        if self.estop.is_set():  # pressed while connecting: latch this device too
+            dev.emergency_stop()
+        return dev.describe()
+
+    def do_disconnect(self):
+        self._close_device()
+
+    def _dev(self):
+        if self.device is None:
+            from labbench.errors import UserError
+
+            raise UserError("no device connected")
+        return self.device
+
+    def do_enable(self, timeout):
+        self._dev().enable(timeout)
+
+    def do_disable(self, timeout):
+        self._dev().disable(timeout)
+
+    def do_run(self, protocol_name, settings, rig, session_dir, start_extra):
+        from labbench.records import START
+        from labbench.runner import run
+        from labbench.session import SessionWriter
+        from protocols import make_protocol
+
+        device = self._dev()
+        self.idle.clear()
+        self.run_stop = threading.Event()
+        if self.estop.is_set() or self.stop.is_set():
+            self.run_stop.set()
+        consumers = [lambda rec: self.post("record", rec)]
+        writer = None
+        if session_dir is not None:
+            writer = SessionWriter(session_dir)
+
+            def record(rec, _write=writer):
+                _write({**rec, **start_extra} if start_extra and rec.get("kind") == START else rec)
+
+            consumers.insert(0, record)
+        try:
+            protocol = make_protocol(protocol_name, **settings)
+            # close=False: the device stays connected in the window for the next run
+            return run(device, protocol, consumers, stop=self.run_stop, rig=rig, close=False,
+                       progress=lambda frac, text: self.post("progress", (frac, text)))
+        finally:
+            if writer is not None:
+                writer.close()
+                if writer.path is not None:  # None when the run was refused before its start record
+                    self.post("session", str(writer.path))
+            self.idle.set()
+
+
+def _describe(exc: BaseException) -> str:
+    from gui.worker import describe_error
+
+    return describe_error(exc)
+
+
+def _child_main(commands, messages, estop, stop) -> None:
+    """Entry point of the acquisition process."""
+    logging.basicConfig(level=logging.WARNING)
+    _Child(commands, messages, estop, stop).serve()
+
+
+# ----- the GUI side ------------------------------------------------------------------------------
+class Acquisition:
+    """The GUI's handle on the acquisition process (started on first use).
+
+    Methods only queue commands and return; answers arrive in ``mailbox`` as
+    ("result", (cmd, value)) / ("error", (cmd, message)), plus ("record", rec),
+    ("progress", (frac, text)), ("session", path), ("health", dict),
+    ("estopped", bool) and ("acquisition died", exit code).
+    """
+
+    def __init__(self, mailbox):
+        self.mailbox = mailbox
+        ctx = mp.get_context("spawn")
+        self._ctx = ctx
+        self.estop = ctx.Event()
+        self.stop = ctx.Event()
+        self._commands = ctx.Queue()
+        self._messages = ctx.Queue()
+        self.process = None
+        self._reader = None
+        self._closing = False
+
+    def _ensure_started(self) -> None:
+        if self.process is not None and self.process.is_alive():
+            return
+        self.process = self._ctx.Process(target=_child_main, name="labbench-acquisition", daemon=True,
+                                         args=(self._commands, self._messages, self.estop, self.stop))
+        with _main_module_hidden():
+            self.process.start()
+        self._reader = threading.Thread(target=self._forward, args=(self.process,),
+                                        name="labbench-acq-reader", daemon=True)
+        self._reader.start()
+
+    def _forward(self, process) -> None:
+        """Child messages -> the GUI's mailbox; says so if the child dies."""
+        while True:
+            try:
+                kind, payload = self._messages.get(timeout=0.2)
+            except queue.Empty:
+                if not process.is_alive():
+                    if not self._closing:
+                        self.mailbox.put("acquisition died", process.exitcode)
+                    return
+                continue
+            except (EOFError, OSError):
+                return
+            self.mailbox.put(kind, payload)
+
+    def send(self, *cmd) -> None:
+        self._ensure_started()
+        self._commands.put(cmd)
+
+    def connect(self, opener, rig, options: dict) -> None:
+        """Open a device in the child with ``opener(rig, **options)`` (picklable: a module-level
+        function such as ``labbench.devices.open_device`` bound with functools.partial)."""
+        self.estop.clear()  # a fresh device: the latch belongs to the one closed
+        self.send("connect", opener, rig, options)
+
+    def run(self, protocol_name: str, settings: dict, rig, session_dir, start_extra: dict | None):
+        self.stop.clear()
+        self.send("run", protocol_name, settings, rig,
+                  None if session_dir is None else str(session_dir), start_extra)
+
+    def request_stop(self) -> None:
+        self.stop.set()
+
+    def emergency_stop(self) -> None:
+        """Zero the force now: the child's e-stop thread is blocked on this event."""
+        self.estop.set()
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        """Stop any run (force zeroed by the runner), close the device, end the child."""
+        if self.process is None:
+            return
+        self._closing = True
+        self.stop.set()
+        if self.process.is_alive():
+            self._commands.put(("quit",))
+            self.process.join(timeout)
+        if self.process.is_alive():  # a run that does not end: the e-stop, then terminate
+            self.estop.set()
+            self.process.join(1.0)
+            self.process.terminate()
+            self.process.join(1.0)
+        for q in (self._commands, self._messages):
+            q.close()
+            q.cancel_join_thread()
+
+
+class _main_module_hidden:
+    """``spawn`` re-imports the parent's ``__main__`` in the child (a script or ``-m gui...``
+    that imports Qt); hide it while the child starts so the child imports only this module."""
+
+    def __enter__(self):
+        main = sys.modules["__main__"]
+        self.main = main
+        self.saved = {k: main.__dict__.pop(k) for k in ("__file__",) if k in main.__dict__}
+        self.spec = getattr(main, "__spec__", None)
+        main.__spec__ = None
+
+    def __exit__(self, *exc):
+        self.main.__dict__.update(self.saved)
+        self.main.__spec__ = self.spec

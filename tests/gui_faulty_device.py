@@ -1,0 +1,33 @@
+"""A device with a fault injected mid-run, for the GUI tests; Qt-free, because the GUI
+opens it in its acquisition process (``gui.acquisition``), which must not import Qt."""
+from labbench.device import DeviceFault
+from labbench.devices import open_device
+
+
+class FaultyDevice:
+    """The simulator, faulting after ``n_ok`` samples (a drive fault injected mid-run)."""
+
+    def __init__(self, rig, n_ok):
+        self.inner = open_device("sim", rig)
+        self.n_ok = n_ok
+
+    def _tick(self):
+        self.n_ok -= 1
+        if self.n_ok < 0:
+            raise DeviceFault("injected: drive reported over-current")
+
+    def read(self, timeout):
+        self._tick()
+        return self.inner.read(timeout)
+
+    def read_raw(self, timeout):
+        self._tick()
+        return self.inner.read_raw(timeout)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def open_faulty(rig, n_ok: int, **_options) -> FaultyDevice:
+    """An opener for ``MainWindow.connect_device``: module-level, so it pickles."""
+    return FaultyDevice(rig, n_ok)
