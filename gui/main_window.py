@@ -332,9 +332,8 @@ class MainWindow(QtWidgets.QMainWindow):
         protocol, _rep = self.checked_protocol()  # refuse bad settings before touching the device
         backend = self.device_panel.backend.currentText()
         if self.device is not None and self._device_used and backend in SIM_BACKENDS:
-            # A fresh simulator per run: every run starts from the same state (seeded runs
-            # repeat exactly) and its real-time clock starts with the run (a reused one
-            # would first catch up, unpaced, on the time it sat idle). Connecting closes it.
+            # A fresh simulator per run: every run starts from the same state, so seeded
+            # runs repeat exactly. Connecting closes the old one.
             self.device = None
             self.device_panel.set_connected(None)
         if self.device is None:
