@@ -213,3 +213,26 @@ def test_l1_exact_on_random_problems(problem):
     assert np.all(np.isfinite(theta))
     f_ref = l1.objective(X, y, _lp_reference(X, y))
     assert l1.objective(X, y, theta) <= f_ref + 1e-9 * (1 + np.abs(y).sum())
+
+
+ENCODER_Q = 2 * np.pi * 0.1 / 16384  # the default rig's encoder step at the handle [m]
+
+
+@pytest.mark.parametrize("method", ["l2", "l1"])
+def test_stick_slip_flagged_when_friction_holds_the_handle(method):
+    # Fc = 0.1 N against a 0.15 N chirp: the handle sticks whenever |f| <= Fc, where
+    # f = m x'' + b x' + Fc sign(x') does not hold; the fit goes wrong and must say so
+    rec = with_noise(chirp_recording(n=30000, coulomb=0.1, amp=0.15, f1=10.0),
+                     np.random.default_rng(0), quantum=ENCODER_Q)
+    r = identify(rec, model="mbc", method=method)
+    assert abs(r.b / PAPER_B - 1) > 0.5  # the wrong number this flag is about
+    assert any(f.startswith("stick-slip") for f in r.flags), r.flags
+
+
+@pytest.mark.parametrize("coulomb, amp, quantum", [(0.0, 1.0, 0.0), (0.0, 1.0, ENCODER_Q),
+                                                   (0.05, 1.0, 0.0), (0.1, 1.0, ENCODER_Q)])
+def test_no_stick_slip_flag_when_the_handle_keeps_moving(coulomb, amp, quantum):
+    rec = with_noise(chirp_recording(n=30000, coulomb=coulomb, amp=amp),
+                     np.random.default_rng(0), quantum=quantum)
+    r = identify(rec, model="mbc")
+    assert not any(f.startswith("stick-slip") for f in r.flags), r.flags

@@ -53,6 +53,10 @@ SHORT_RECORD = 2000  # samples used
 WIDE_CI_REL = 0.10  # half-width of the m or b interval, relative
 OUTLIER_SIGMAS, OUTLIER_BLOCK = 8.0, 256
 QUANT_NOISE_REL = 0.02  # encoder noise in x'' relative to the x'' signal
+# stick-slip: at rest = |x'| below REST_SIGMAS x the encoder's velocity noise (or
+# REST_REL x the velocity std on unquantised data); pushed = |f| above STICK_FORCE_REL
+# x the force rms. Clean mass-dampers (chirp reversals) give <= 1 % such samples.
+REST_SIGMAS, REST_REL, STICK_FORCE_REL, STICK_FRACTION = 4.0, 1e-3, 0.01, 0.05
 
 
 @dataclass
@@ -98,6 +102,7 @@ class _Data:
     cols: dict  # name -> regressor column
     x: np.ndarray  # raw position (kept samples)
     a_noise_gain: float
+    v_noise_gain: float
     cutoff_hz: float
 
     def design(self, model: str) -> np.ndarray:
@@ -167,7 +172,8 @@ def _prepare(rec: Recording, cutoff_hz, hold: str) -> _Data:
         f = np.concatenate([[f[0]], 0.5 * (f[1:] + f[:-1])])
     y = f[d.keep]
     cols = {"m": d.a, "b": d.v, "coulomb": np.sign(d.v), "offset": np.ones_like(d.v)}
-    return _Data(y, cols, np.asarray(rec.position)[d.keep], d.noise_gain[1], d.cutoff_hz)
+    return _Data(y, cols, np.asarray(rec.position)[d.keep], d.noise_gain[1], d.noise_gain[0],
+                 d.cutoff_hz)
 
 
 def _fitter(method: str, solver: str):
@@ -269,7 +275,26 @@ def _flags(res: IdResult, data: _Data, fit, method: str, selection: dict) -> lis
             flags.append(f"quantised-position: encoder step {q:.3g} m makes x'' noise {100 * rel:.1f} % "
                          f"of its signal (m biased low by ~{100 * rel**2 / (1 + rel**2):.1f} %); "
                          "lower --cutoff or use more excitation")
+    stuck = _stuck_fraction(data, q or 0.0)
+    if stuck > STICK_FRACTION:
+        flags.append(f"stick-slip: the handle is at rest under a nonzero force for {100 * stuck:.0f} % "
+                     "of the samples; there the friction force is anything up to the Coulomb level, "
+                     "f = m x'' + b x' + Fc sign(x') does not hold, and b and Coulomb are biased "
+                     "(b typically high): raise the excitation so the handle keeps moving")
     return flags
+
+
+def _stuck_fraction(data: _Data, q: float) -> float:
+    """Fraction of samples at rest (|x'| below the velocity noise that the encoder step
+    q leaves after the derivative filter) while the force is not near zero.
+
+    A stuck handle (|f| <= Fc, x' = 0) breaks the sliding-friction model: the
+    friction force is then whatever balances f, not Fc sign(x').
+    """
+    v = data.cols["b"]
+    v_rest = max(REST_SIGMAS * q / np.sqrt(12) * data.v_noise_gain, REST_REL * float(np.std(v)))
+    pushed = np.abs(data.y) > STICK_FORCE_REL * np.sqrt(np.mean(data.y**2))
+    return float(np.mean((np.abs(v) < v_rest) & pushed))
 
 
 def _count_outliers(r: np.ndarray, floor: float) -> int:
