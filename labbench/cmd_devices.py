@@ -59,28 +59,34 @@ _TABLES = {"sim": None, "sim-canopen": None, "sim-serial": None,
            "canopen": "canopen", "serial": "serial"}
 
 
+def _drive(rig, sim: bool):
+    """The CANopen driver for the rig's drive, or for a fresh simulated drive (closed with it)."""
+    from drivers.canopen_drive import CanopenConfig, CanopenDrive
+
+    if not sim:
+        return CanopenDrive(rig, CanopenConfig.from_section(rig.section("canopen"), source=rig.source))
+    from sim_backend.canopen_peer import sim_config, start_sim_drive
+
+    config = sim_config(rig)
+    peer, bus = start_sim_drive(rig, config)
+    try:
+        drive = CanopenDrive(rig, config, bus=bus)
+    except BaseException:
+        peer.close()
+        raise
+    drive.add_close_hook(peer.close)
+    return drive
+
+
 def _probe(name: str, rig) -> dict:
     """Read-only probe; a drive that does not answer is reported, not raised."""
-    from drivers.canopen_drive import CanopenConfig, CanopenDrive
     from labbench.errors import UserError
 
-    peer = None
     try:
-        if name == "sim-canopen":
-            from sim_backend.canopen_peer import sim_config, start_sim_drive
-
-            config = sim_config(rig)
-            peer, bus = start_sim_drive(rig, config)
-            drive = CanopenDrive(rig, config, bus=bus)
-            drive.add_close_hook(peer.close)
-        else:
-            config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
-            drive = CanopenDrive(rig, config)
-        with drive.connect():
+        with _drive(rig, sim=name == "sim-canopen") as drive:  # closed even if connect fails
+            drive.connect()
             return drive.probe()
     except UserError as exc:
-        if peer is not None:
-            peer.close()
         return {"no_answer": str(exc)}
 
 
@@ -96,20 +102,9 @@ def _describe(a: dict) -> str:
 
 
 def _fault_reset(rig, sim: bool) -> int:
-    from drivers.canopen_drive import CanopenConfig, CanopenDrive
-
-    if sim:
-        from sim_backend.canopen_peer import sim_config, start_sim_drive
-
-        config = sim_config(rig)
-        peer, bus = start_sim_drive(rig, config)
-        drive = CanopenDrive(rig, config, bus=bus)
-        drive.add_close_hook(peer.close)
-    else:
-        config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
-        drive = CanopenDrive(rig, config)
-    with drive.connect():
+    with _drive(rig, sim) as drive:
+        drive.connect()
         before = drive.drive_state()
         after = drive.reset_fault()
-    print(f"node {config.node_id}: {before.value} -> {after.value}")
+    print(f"node {drive.config.node_id}: {before.value} -> {after.value}")
     return 0
