@@ -236,3 +236,21 @@ def test_no_stick_slip_flag_when_the_handle_keeps_moving(coulomb, amp, quantum):
                      np.random.default_rng(0), quantum=quantum)
     r = identify(rec, model="mbc")
     assert not any(f.startswith("stick-slip") for f in r.flags), r.flags
+
+
+@pytest.mark.parametrize("coulomb_n", [0.0, 0.1])
+def test_stick_slip_on_the_simulated_chirp_id(coulomb_n):
+    # the bench's own path (protocol chirp-id on the quantised simulator): with 0.1 N of
+    # friction b comes out ~4-5x too high, and the flag says why; without it, no flag
+    from labbench.rig import rig_from_dict
+    from labbench.runner import run
+    from protocols import make_protocol
+    from sim_backend.sim_device import open_sim
+
+    rig = rig_from_dict({"sim": {"quantize": True, "coulomb_n": coulomb_n}})
+    res = run(open_sim(rig, seed=4), make_protocol("chirp-id", model="mbc"), [], rig=rig)
+    for fit in res.results["identification"].values():
+        flagged = any(f.startswith("stick-slip") for f in fit["flags"])
+        assert flagged == (coulomb_n > 0), fit["flags"]
+        if not flagged:
+            assert abs(fit["b"] / PAPER_B - 1) < 0.02
