@@ -25,12 +25,45 @@ def _pen(name: str, style=QtCore.Qt.PenStyle.SolidLine):
     return pg.mkPen(COLOURS[name], width=1, style=style)
 
 
+def _fit(set_range, current, lo: float, hi: float) -> None:
+    """Show [lo, hi] (padded by 5 %) unless the ``current`` range still holds it and half
+    of that range is used: a range that moves every frame makes pyqtgraph re-render the
+    axis (and, with autoRange, re-scan every item's bounds) on each paint."""
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return
+    if hi - lo <= 0:  # flat data: a span around the value
+        half = abs(lo) * 0.1 or 1.0
+        lo, hi = lo - half, hi + half
+    a, b = current
+    if a <= lo and hi <= b and hi - lo >= 0.5 * (b - a):
+        return
+    set_range(lo, hi, padding=0.05)
+
+
+def _cache_static_items(layout: pg.GraphicsLayoutWidget) -> None:
+    """Keep axes, labels and legends as pixmaps: their text is the dearest part of a paint
+    and, with ranges that rarely move, they are redrawn only when they change."""
+    cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
+    for item in layout.scene().items():
+        if isinstance(item, (pg.AxisItem, pg.LabelItem, pg.LegendItem)):
+            item.setCacheMode(cache)
+
+
+def _finite_span(*arrays) -> tuple[float, float]:
+    """(min, max) over the finite values of ``arrays`` (NaN, NaN when there are none)."""
+    v = np.concatenate([np.ravel(a) for a in arrays])
+    v = v[np.isfinite(v)]
+    return (float(v.min()), float(v.max())) if v.size else (np.nan, np.nan)
+
+
 class TimeTraces(pg.GraphicsLayoutWidget):
     """Position, velocity estimate and forces (commanded, excitation) over the last ``window`` samples.
 
-    Time runs relative to the newest sample on a fixed x range, and there is no
-    grid: then the axes are not re-rendered every frame (measured: a scrolling
-    absolute time axis with grid doubled the frame time).
+    Time runs relative to the newest sample on a fixed x range, the y ranges
+    move only when the data leave them or use less than half of them, and there
+    is no grid: then the axes are not re-rendered every frame (measured: a
+    scrolling absolute time axis with grid doubled the frame time). Nothing is
+    drawn while the traces are hidden (another tab): they catch up when shown.
     """
 
     def __init__(self, window: int = 5000, parent=None):
@@ -42,7 +75,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         for i, (key, title, unit) in enumerate(rows):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
-            p.enableAutoRange(x=False)
+            p.enableAutoRange(x=False, y=False)
             # ~2 points per pixel column: Qt draws a path holding the GIL, so fewer points
             # mean shorter stalls of the acquisition thread (peak mode keeps the extremes)
             p.setDownsampling(auto=True, mode="peak")
@@ -59,21 +92,40 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             "excitation": self.plots["force"].plot(pen=_pen("excitation"), name="excitation"),
             "command": self.plots["force"].plot(pen=_pen("command"), name="command"),
         }
+        _cache_static_items(self)
         self.frames = 0
+        self._hidden_buffer: StreamBuffer | None = None
 
     def clear_data(self) -> None:
+        self._hidden_buffer = None
         for c in self.curves.values():
             c.setData([], [])
 
+    def showEvent(self, ev) -> None:  # noqa: N802 - Qt override
+        super().showEvent(ev)
+        if self._hidden_buffer is not None:
+            self.update_from(self._hidden_buffer)
+
     def update_from(self, buf: StreamBuffer) -> None:
+        if not self.isVisible():
+            self._hidden_buffer = buf
+            return
+        self._hidden_buffer = None
         t = buf.channel("t", self.window)
         x = t - t[-1] if t.size else t
         span = self.window * (buf.sample_time_s or 1e-3)
         if span != self._span:
             self.plots["position"].setXRange(-span, 0, padding=0)
             self._span = span
+        ys = {name: buf.channel(name, self.window) for name in self.curves}
         for name, curve in self.curves.items():
-            curve.setData(x, buf.channel(name, self.window), skipFiniteCheck=True)
+            curve.setData(x, ys[name], skipFiniteCheck=True)
+        if t.size:
+            for key, names in (("position", ["position"]), ("velocity", ["velocity"]),
+                               ("force", ["excitation", "command"])):
+                vb = self.plots[key].getViewBox()
+                _fit(vb.setYRange, vb.viewRange()[1], min(ys[n].min() for n in names),
+                     max(ys[n].max() for n in names))
         self.frames += 1
 
 
@@ -98,8 +150,9 @@ class ImpedancePlots(QtWidgets.QTabWidget):
 
     Cheap to redraw: no pyqtgraph grid (on log axes it cost ~3 ms per axis and
     frame) but a few decade lines and a zero line; each band is one filled path;
-    theory curves are re-set only when the theory changed; the hidden tab is
-    drawn when it is shown.
+    theory curves are re-set only when the theory changed; the ranges are set
+    from each new estimate (no autoRange scan of every item at paint time); the
+    hidden tab is drawn when it is shown.
     """
 
     def __init__(self, parent=None):
@@ -114,6 +167,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         for i, (key, title, unit) in enumerate(rows, start=1):
             p = _log_plot(self.effective, i)
             self._setup(p, title, unit)
+            p.disableAutoRange()  # set from each estimate (_fit_ranges)
             p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
             if key == "ES":
                 p.addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
@@ -146,6 +200,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         for k, p in self.bode_plots.items():
             self.curves["bode_" + k] = p.plot(pen=pg.mkPen(COLOURS["measured"], width=3))
             self.curves["bode_" + k + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine))
+        _cache_static_items(self.effective)
+        _cache_static_items(self.bode)
         self.last: Estimate | None = None
         self._theory_shown = None
         self._bode_shown = None
@@ -183,9 +239,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         shown = {"ES": np.where(est.Z.imag[ok] < 0, est.ES[ok], np.nan),
                  "ED": est.ED[ok],
                  "EM": np.where(est.Z.imag[ok] > 0, est.EM[ok], np.nan)}
+        bands = {}
         for key, y in shown.items():
             self.curves[key].setData(w, y, connect="finite", skipFiniteCheck=True)
             lo, hi = est.band(key)
+            bands[key] = (lo[ok], hi[ok])
             self.bands[key].setPath(_band_path(lw, lo[ok], hi[ok], np.isfinite(y)))
         th = est.theory
         if (th or {}).get("key") != self._theory_shown:
@@ -198,6 +256,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 else:
                     self.curves[key + "_theory"].setData([], [])
             self._theory_shown = (th or {}).get("key")
+        self._fit_ranges(lw, shown, bands)
         for key, value, theory, sym in (("ws", est.ws_measured, est.ws_theory, "w_s*"),
                                         ("wb", est.wb_measured, est.wb_theory, "w_b*")):
             line = self.marks[key]
@@ -207,15 +266,34 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 text = f"{sym} = {value:.0f} rad/s"
                 if theory:
                     text += f" (theory {theory:.0f})"
-                line.label.setFormat(text)
+                if text != line.label.format:  # new text: a re-layout of the label on the next paint
+                    line.label.setFormat(text)
             else:
                 line.setVisible(False)
         plant = (f"m = {est.plant.m * 1e3:.1f} g, b = {est.plant.b:.3f} N s/m ({est.plant_source})"
                  if est.plant else "plant unknown: no theory overlay")
-        self.title.setText(f"effective impedances from {est.n_samples} samples; {plant}")
+        title = f"effective impedances from {est.n_samples} samples; {plant}"
+        if title != self.title.text:  # a new text re-lays out the whole plot column
+            self.title.setText(title)
         self.last = est
         self.updates += 1
         self._draw_bode()
+
+    def _fit_ranges(self, lw, shown, bands) -> None:
+        """x over the measured and theory frequencies; y over measured, band, theory and
+        the zero line, as autoRange would give, but computed once per estimate."""
+        lw_theory = []
+        if self._theory_shown is not None:
+            wt, _ = self.curves["ES_theory"].getOriginalDataset()
+            lw_theory = [np.log10(wt[wt > 0])]
+        es = self.plots["ES"].getViewBox()
+        _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory))
+        for key, y in shown.items():
+            _, yt = self.curves[key + "_theory"].getOriginalDataset()
+            keep = np.isfinite(y)
+            vb = self.plots[key].getViewBox()
+            _fit(vb.setYRange, vb.viewRange()[1],
+                 *_finite_span(y, bands[key][0][keep], bands[key][1][keep], [] if yt is None else yt, [0.0]))
 
     def _draw_bode(self) -> None:
         est = self.last
