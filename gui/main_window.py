@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
+from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from gui.acquisition import Acquisition
 from gui.buffers import StreamBuffer
@@ -73,10 +74,24 @@ def protocol_names() -> list[str]:
     return list(PROTOCOLS)
 
 
+_GC: GarbageCollector | None = None
+
+
+def _collect_garbage_in_gui_thread() -> None:
+    """Python's cyclic GC may run in any thread (e.g. a report export drawing with
+    matplotlib) and then finalise Qt objects there: seen here as a segfault and as a
+    deadlock. pyqtgraph's GarbageCollector turns automatic collection off and collects
+    from a timer in the GUI thread instead; one per process."""
+    global _GC
+    if _GC is None:
+        _GC = GarbageCollector(interval=1.0)
+
+
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, rig, session_dir, backend: str | None = None, redraw_hz: float = 30.0,
                  estimate_period_s: float = 0.5, realtime: bool = True):
         super().__init__()
+        _collect_garbage_in_gui_thread()
         self.rig = rig
         self.session_dir = Path(session_dir)
         self.realtime = realtime
