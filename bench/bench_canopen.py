@@ -25,12 +25,12 @@ import uuid
 import can
 import numpy as np
 
-from drivers.canopen_drive import bus_load
+from labbench.drivers.canopen_drive import bus_load
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.device import DeviceFault
 from labbench.rig import Rig, rig_from_dict
 from labbench.ve import VirtualEnvironment
-from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
+from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 GOAL_US = 60.0
 

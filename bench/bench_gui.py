@@ -7,7 +7,7 @@
 2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
    real-time simulator, headless through ``labbench.runner.run`` recording a
    session (as ``labbench run`` does), then from the window (the run in its
-   acquisition process, ``gui.acquisition``; redraw timer and live ETFE in the
+   acquisition process, ``labbench.gui.acquisition``; redraw timer and live ETFE in the
    window's process) under the Qt event loop. Goal: the GUI adds none.
    Runs alternate to spread the noise of this shared machine over both arms.
 
@@ -25,22 +25,21 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 from PySide6 import QtWidgets  # noqa: E402
 
-from gui.app import tune_interpreter  # noqa: E402
-from gui.screenshot import wait_until  # noqa: E402
-from gui.buffers import StreamBuffer  # noqa: E402
-from gui.live_estimate import estimate  # noqa: E402
-from gui.main_window import MainWindow  # noqa: E402
-from labbench.devices import open_device  # noqa: E402
+from labbench.gui.app import tune_interpreter  # noqa: E402
+from labbench.gui.screenshot import wait_until  # noqa: E402
+from labbench.gui.buffers import StreamBuffer  # noqa: E402
+from labbench.gui.live_estimate import estimate  # noqa: E402
+from labbench.gui.main_window import MainWindow  # noqa: E402
+from labbench.registry import open_device  # noqa: E402
 from labbench.records import PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.runner import run  # noqa: E402
 from labbench.session import SessionWriter  # noqa: E402
-from protocols import make_protocol  # noqa: E402
+from labbench.registry import make_protocol  # noqa: E402
 
 
 def recorded_run(seconds: float, realtime: bool, session_dir=None) -> tuple[list[dict], dict]:
@@ -68,7 +67,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60):
     win.buffer = buf
     start, desc = buf.start, buf.descriptor
     from labbench.session import analysis_meta
-    from gui.main_window import ve_from_meta
+    from labbench.gui.main_window import ve_from_meta
 
     meta = analysis_meta(start, desc)
     t0 = time.perf_counter()

@@ -24,11 +24,11 @@ import tty
 import numpy as np
 import serial
 
-from drivers import framing
+from labbench.drivers import framing
 from labbench.device import DeviceFault
 from labbench.rig import Rig, rig_from_dict
-from sim_backend.arduino_peer import Fault, connect_sim_serial
-from sim_backend.sim_device import SimDevice
+from labbench.sim_backend.arduino_peer import Fault, connect_sim_serial
+from labbench.sim_backend.sim_device import SimDevice
 
 N = 100_000
 

@@ -23,7 +23,7 @@ import numpy as np
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
 from labbench.ve import VirtualEnvironment
-from sim_backend.sim_device import open_sim
+from labbench.sim_backend.sim_device import open_sim
 
 GOAL = 300.0
 

@@ -24,14 +24,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from labbench import theory
 from labbench.rig import Rig, rig_from_dict
 from labbench.runner import run
 from labbench.ve import VirtualEnvironment
-from protocols import make_protocol
-from sim_backend.sim_device import open_sim
+from labbench.registry import make_protocol
+from labbench.sim_backend.sim_device import open_sim
 
 T = 0.001
 CASES = {

@@ -39,10 +39,10 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
 
-from drivers import cia402, emcy
-from drivers.cia402 import Command, State
+from labbench.drivers import cia402, emcy
+from labbench.drivers.cia402 import Command, State
 from labbench.device import DeviceDescription, DeviceFault, Sample
-from labbench.errors import UserError
+from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
 # canopen logs SDO timeouts as errors; the driver turns them into one-line
 # messages, so without logging configured they must not also reach stderr.
@@ -243,7 +243,7 @@ class CanopenDrive:
                 self._bus = can.Bus(interface=cfg.interface, channel=cfg.channel,
                                     bitrate=cfg.bitrate)
             except (can.CanError, OSError, ValueError, ImportError) as exc:
-                raise UserError(f"cannot open CAN interface {cfg.interface!r} channel "
+                raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel "
                                 f"{cfg.channel!r}: {exc}") from None
         self._network = canopen.Network(self._bus)
         self._sdo = SdoClient(0x600 + cfg.node_id, 0x580 + cfg.node_id,
@@ -364,11 +364,11 @@ class CanopenDrive:
         try:
             raw = self._sdo.upload(index, sub)
         except SdoAbortedError as exc:
-            raise UserError(f"node {self.config.node_id}: SDO read of 0x{index:04X}:{sub:02X} "
+            raise DeviceError(f"node {self.config.node_id}: SDO read of 0x{index:04X}:{sub:02X} "
                             f"refused: {exc}") from None
         except SdoCommunicationError as exc:
             self._check_receiver()
-            raise UserError(f"node {self.config.node_id}: no answer to SDO read of "
+            raise DeviceConnectionError(f"node {self.config.node_id}: no answer to SDO read of "
                             f"0x{index:04X}:{sub:02X} ({exc})") from None
         size = struct.calcsize(fmt)
         return struct.unpack(fmt, bytes(raw[:size]).ljust(size, b"\0"))[0]
@@ -378,11 +378,11 @@ class CanopenDrive:
         try:
             self._sdo.download(index, sub, struct.pack(fmt, value))
         except SdoAbortedError as exc:
-            raise UserError(f"node {self.config.node_id}: drive refused writing {value} to "
+            raise DeviceError(f"node {self.config.node_id}: drive refused writing {value} to "
                             f"0x{index:04X}:{sub:02X}: {exc}; refusing to enable") from None
         except SdoCommunicationError as exc:
             self._check_receiver()
-            raise UserError(f"node {self.config.node_id}: no answer to SDO write of "
+            raise DeviceConnectionError(f"node {self.config.node_id}: no answer to SDO write of "
                             f"0x{index:04X}:{sub:02X} ({exc})") from None
 
     def _write_checked(self, index: int, sub: int, fmt: str, value: int) -> None:
@@ -543,14 +543,14 @@ class CanopenDrive:
                 self._consumer_armed = False
                 try:
                     self._write(0x1016, 1, "<I", 0)
-                except (UserError, DeviceFault):
+                except (UserError, DeviceError):
                     pass
             return
         try:
             self._drive_to(State.SWITCH_ON_DISABLED, timeout)
             self._write_checked(0x1016, 1, "<I", 0)
             self._consumer_armed = False
-        except (UserError, DeviceFault) as exc:
+        except (UserError, DeviceError) as exc:
             self._latch(f"disable failed: {exc}")
             raise DeviceFault(self._fault) from None
 

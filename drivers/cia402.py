@@ -1,8 +1,8 @@
 """CiA 402 drive state machine as pure tables: no I/O, no clocks.
 
-Both sides use it: the host driver (``drivers.canopen_drive``) to decode the
+Both sides use it: the host driver (``labbench.drivers.canopen_drive``) to decode the
 statusword and pick the next controlword on the way to a target state, and the
-simulated drive (``sim_backend.canopen_peer``) to react to a controlword.
+simulated drive (``labbench.sim_backend.canopen_peer``) to react to a controlword.
 Source: CiA 402-2 (IEC 61800-7-201), "drive state machine", the statusword
 masks and the controlword command table; transition numbers are the standard's.
 

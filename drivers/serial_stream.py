@@ -1,7 +1,7 @@
 """Serial encoder stream (Arduino-style board) behind ``labbench.device.Device``.
 
 The board streams ``micros,count`` lines or COBS-framed binary samples
-(``drivers.framing``; spec in docs/serial-protocol.md) and may take framed
+(``labbench.drivers.framing``; spec in docs/serial-protocol.md) and may take framed
 force commands back. The driver reads whatever bytes are waiting in one call
 (never byte-by-byte ``readline()``), resynchronises after garbage, counts link
 errors, drops and reboots, and fails safe: once enabled, a stream silent for
@@ -28,10 +28,10 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
-from drivers import framing
-from drivers.unwrap import Unwrapper
+from labbench.drivers import framing
+from labbench.drivers.unwrap import Unwrapper
 from labbench.device import DeviceDescription, DeviceFault, Sample
-from labbench.errors import UserError
+from labbench.errors import DeviceConnectionError, UserError
 
 # Sample.flags bits of this device (0 = healthy).
 FLAG_LOST = 1  # samples were lost right before this one (seq / time gap)
@@ -518,7 +518,7 @@ def open_serial(
     try:
         ser = serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
     except (serial.SerialException, ValueError) as exc:
-        raise UserError(f"cannot open serial port {config.port}: {exc}") from None
+        raise DeviceConnectionError(f"cannot open serial port {config.port}: {exc}") from None
     dev = SerialStream(ser, config, rig)
     try:
         dev.wait_for_stream(config.sync_timeout_s)

@@ -12,9 +12,9 @@ waits for the other):
 
 * commands, GUI -> child: a ``multiprocessing.Queue`` of tuples;
 * messages, child -> GUI: a ``multiprocessing.Queue`` of ``(kind, payload)``,
-  the same messages ``gui.worker.Mailbox`` carries (records with their numpy
+  the same messages ``labbench.gui.worker.Mailbox`` carries (records with their numpy
   page arrays pickled by multiprocessing, progress, results, errors as the one
-  line ``gui.worker.describe_error`` makes), forwarded into the GUI's mailbox by
+  line ``labbench.gui.worker.describe_error`` makes), forwarded into the GUI's mailbox by
   a reader thread on the GUI side;
 * E-STOP: a shared ``multiprocessing.Event``; a thread of the child blocks on it
   and, the moment it is set, calls ``device.emergency_stop()`` and sets the
@@ -143,10 +143,9 @@ class _Child:
             try:
                 value = getattr(self, f"do_{cmd}")(*args)
             except BaseException as exc:  # noqa: BLE001 - reported to the window, never a crash
-                from labbench.device import DeviceFault
-                from labbench.errors import UserError
+                from labbench.errors import LabbenchError
 
-                if not isinstance(exc, (UserError, DeviceFault, TimeoutError)):
+                if not isinstance(exc, (LabbenchError, TimeoutError)):
                     log.exception("acquisition command %s failed", cmd)
                 self.post("error", (cmd, _describe(exc)))
             else:
@@ -187,7 +186,7 @@ class _Child:
         from labbench.records import START
         from labbench.runner import run
         from labbench.session import SessionWriter
-        from protocols import make_protocol
+        from labbench.registry import make_protocol
 
         device = self._dev()
         self.idle.clear()
@@ -217,7 +216,7 @@ class _Child:
 
 
 def _describe(exc: BaseException) -> str:
-    from gui.worker import describe_error
+    from labbench.gui.worker import describe_error
 
     return describe_error(exc)
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from PySide6 import QtWidgets
 
-from gui.main_window import MainWindow
-from gui.screenshot import ShotWhen
+from labbench.gui.main_window import MainWindow
+from labbench.gui.screenshot import ShotWhen
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +21,7 @@ def tune_interpreter(switch_interval_s: float = 0.0005) -> None:
     """Let worker threads (a 1x replay, the reader of the acquisition process's messages)
     get the GIL back within 0.5 ms instead of Python's default 5 ms while the GUI thread
     runs Python (pyqtgraph's paint code). The 1 kHz loop itself runs in its own process
-    (``gui.acquisition``)."""
+    (``labbench.gui.acquisition``)."""
     sys.setswitchinterval(switch_interval_s)
 
 

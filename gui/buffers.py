@@ -3,7 +3,7 @@
 Pages are appended into growable numpy arrays so the plots can take the last
 N points and the live estimator a snapshot of everything so far without
 re-joining lists on every frame. Only the GUI thread touches a buffer: the
-acquisition thread hands records over through a queue (``gui.worker``).
+acquisition thread hands records over through a queue (``labbench.gui.worker``).
 """
 from __future__ import annotations
 

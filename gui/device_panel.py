@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from PySide6 import QtCore, QtWidgets
 
-from labbench.devices import DEVICES
+from labbench.registry import device_names
 
 HEALTH_FIELDS = (("state", "state"), ("drops", "drops (seq gaps)"), ("link", "link counters"),
                  ("fault", "fault"))
@@ -19,7 +19,7 @@ class DevicePanel(QtWidgets.QGroupBox):
     def __init__(self, default_device: str = "sim", parent=None):
         super().__init__("Device", parent)
         self.backend = QtWidgets.QComboBox()
-        self.backend.addItems(list(DEVICES))
+        self.backend.addItems(device_names())
         self.backend.setCurrentText(default_device)
         self.backend.setToolTip("device backend; a rig file with a [canopen] or [serial] table selects it")
         self.connect_button = QtWidgets.QPushButton("Connect")

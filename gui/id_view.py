@@ -5,7 +5,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
-from gui.live_plots import COLOURS
+from labbench.gui.live_plots import COLOURS
 
 
 def _fmt(v) -> str:

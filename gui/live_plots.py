@@ -10,8 +10,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from gui.buffers import StreamBuffer
-from gui.live_estimate import Estimate
+from labbench.gui.buffers import StreamBuffer
+from labbench.gui.live_estimate import Estimate
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 

@@ -1,9 +1,9 @@
 """The main window: device and protocol on the left, live plots / identification / sessions
 on the right, the event log below, E-STOP on top, loop health in the status bar.
 
-The device and its runs live in the acquisition process (``gui.acquisition``: the
+The device and its runs live in the acquisition process (``labbench.gui.acquisition``: the
 GUI thread's drawing must not hold the interpreter the 1 kHz loop needs); replays,
-estimates and exports run on worker threads (``gui.worker``, ``gui.live_estimate``).
+estimates and exports run on worker threads (``labbench.gui.worker``, ``labbench.gui.live_estimate``).
 The window only drains their mailbox from a QTimer (<= 30 Hz) and redraws, so it
 never freezes and the acquisition loop never waits for it.
 """
@@ -20,16 +20,16 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 from pyqtgraph.util.garbage_collector import GarbageCollector
 
-from gui.acquisition import Acquisition
-from gui.buffers import StreamBuffer
-from gui.device_panel import DevicePanel, EStopButton
-from gui.event_log import EventLog
-from gui.id_view import IdView, model_force
-from gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
-from gui.live_plots import ImpedancePlots, TimeTraces
-from gui.protocol_panel import ProtocolPanel
-from gui.sessions_view import SessionsView
-from gui.worker import Mailbox, describe_error, run_in_background, start_replay
+from labbench.gui.acquisition import Acquisition
+from labbench.gui.buffers import StreamBuffer
+from labbench.gui.device_panel import DevicePanel, EStopButton
+from labbench.gui.event_log import EventLog
+from labbench.gui.id_view import IdView, model_force
+from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
+from labbench.gui.live_plots import ImpedancePlots, TimeTraces
+from labbench.gui.protocol_panel import ProtocolPanel
+from labbench.gui.sessions_view import SessionsView
+from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
@@ -69,9 +69,9 @@ def default_backend(rig) -> str:
 
 
 def protocol_names() -> list[str]:
-    from protocols import PROTOCOLS
+    from labbench.registry import protocol_names
 
-    return list(PROTOCOLS)
+    return protocol_names()
 
 
 _GC: GarbageCollector | None = None
@@ -250,7 +250,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def connect_device(self, backend: str, opener=None):
         """Open ``backend`` in the acquisition process (``opener(rig, **options)`` instead of the
         registry's factory when given: a picklable callable, e.g. for an injected fault)."""
-        from labbench.devices import open_device
+        from labbench.registry import open_device
 
         options = {"realtime": self.realtime} if backend == "sim" else {}
         self.log.add("info", f"connecting to {backend} ...")
@@ -308,19 +308,19 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- protocol ---------------------------------------------------------------------------
     @guarded
     def select_protocol(self, name: str):
-        from protocols import make_protocol
+        from labbench.registry import make_protocol
 
         self.protocol_panel.set_config(make_protocol(name).config.as_dict())
         self.update_precheck()
 
     def make_protocol(self):
-        from protocols import make_protocol
+        from labbench.registry import make_protocol
 
         return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_panel.values())
 
     def checked_protocol(self):
         """The configured protocol and its pre-check report; UserError when refused."""
-        from protocols import precheck
+        from labbench.protocol import precheck
 
         protocol = self.make_protocol()
         return protocol, precheck(protocol, protocol.plant(self.rig), self.rig)

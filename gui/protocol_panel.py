@@ -1,7 +1,7 @@
 """Protocol panel: choice of protocol, its settings in a ParameterTree, pre-check, Start/Stop, progress.
 
 The tree is built from the protocol's own validated config (``config.as_dict()``
-of ``protocols.make_protocol(name)``), so new settings appear without GUI
+of ``labbench.protocols.make_protocol(name)``), so new settings appear without GUI
 changes; units and limits come from the name suffix convention of the project
 (``_s``, ``_hz``, ``_n``, ``_m``...) and from the VE's fields. The protocol
 validates the values itself when Start is pressed.
@@ -26,8 +26,8 @@ UNITS = {
 def choices() -> dict[str, list[str]]:
     """Text fields with a fixed set of values: shown as drop-down lists."""
     from labbench.analysis.identify import MODEL_CHOICES
-    from protocols.excitation import SWEEPS
-    from protocols.stability_probe import PROBE_KINDS, VARIABLES
+    from labbench.protocols.excitation import SWEEPS
+    from labbench.protocols.stability_probe import PROBE_KINDS, VARIABLES
 
     out = {"ve": list(dict.fromkeys([*VE_KINDS, *PROBE_KINDS])), "sweep": list(SWEEPS),
            "variable": list(VARIABLES), "model": list(MODEL_CHOICES)}

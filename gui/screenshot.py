@@ -62,15 +62,15 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, poll_ms: int = 20) ->
 def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> list[Path]:
     """The screenshots of docs/gui.md: live ETFE, Bode tab, identification, sessions, a refusal.
 
-    Runs real protocols on the simulator (``python -m gui.screenshot DIR``; under
+    Runs real protocols on the simulator (``python -m labbench.gui.screenshot DIR``; under
     Xvfb for a real X server's rendering). Not paced by default: on a shared,
     loaded machine a paced run can trip the loop's 50 ms watchdog (seen with and
     without the GUI), and the pictures are the same.
     """
     import tempfile
 
-    from gui.app import demo_finished, start_demo, tune_interpreter
-    from gui.main_window import MainWindow
+    from labbench.gui.app import demo_finished, start_demo, tune_interpreter
+    from labbench.gui.main_window import MainWindow
     from labbench.rig import Rig
 
     tune_interpreter()

@@ -1,5 +1,5 @@
 """Work off the GUI thread: replays and slow one-off jobs (runs go to the acquisition
-process, ``gui.acquisition``, which posts the same messages).
+process, ``labbench.gui.acquisition``, which posts the same messages).
 
 Every job is a plain ``threading.Thread`` (no Qt object lives on it) that puts
 ``(kind, payload)`` messages into a ``Mailbox``; the window drains the mailbox
@@ -13,8 +13,7 @@ import queue
 import threading
 from typing import Callable
 
-from labbench.device import DeviceFault
-from labbench.errors import UserError
+from labbench.errors import DeviceFault, LabbenchError
 
 log = logging.getLogger(__name__)
 
@@ -41,10 +40,10 @@ class Mailbox:
 
 def describe_error(exc: BaseException) -> str:
     """One line a person can act on; unexpected errors keep their type name."""
-    if isinstance(exc, UserError):
-        return str(exc)
     if isinstance(exc, DeviceFault):
         return f"device fault: {exc}"
+    if isinstance(exc, LabbenchError):
+        return str(exc)
     if isinstance(exc, TimeoutError):
         return f"timed out: {exc}" if str(exc) else "timed out waiting for the device"
     return f"{type(exc).__name__}: {exc}"
@@ -57,7 +56,7 @@ def run_in_background(mailbox: Mailbox, tag: str, fn: Callable, *args, **kwargs)
         try:
             value = fn(*args, **kwargs)
         except BaseException as exc:  # noqa: BLE001 - reported to the window, never raised into Qt
-            if not isinstance(exc, (UserError, DeviceFault, TimeoutError)):
+            if not isinstance(exc, (LabbenchError, TimeoutError)):
                 log.exception("background job %s failed", tag)
             mailbox.put("error", (tag, describe_error(exc)))
         else:

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
+from labbench.errors import DeviceFault  # noqa: F401 - re-exported: drivers raise it from here
+
 
 @dataclass(frozen=True)
 class Sample:
@@ -35,10 +37,6 @@ class DeviceDescription:
     force_limit_n: float
     position_limits_m: tuple[float, float]
     details: dict = field(default_factory=dict)
-
-
-class DeviceFault(RuntimeError):
-    """The device reported or showed a fault; force is already zero when raised."""
 
 
 @runtime_checkable

@@ -1,6 +1,6 @@
 """Effective impedances of a closed-loop impedance Z = F/V (paper sec. 2.2, Figure 2).
 
-Signs follow ../shared/DESIGN.md (Z = F/V, s = jw):
+Signs follow docs/conventions.md (Z = F/V, s = jw):
 ED = Re Z, ES = -w Im Z, EM = Im Z / w; with theta the phase of Z unwrapped
 from the lowest frequency, EJF = -Re Z / w^2 where theta is in [90, 270] deg
 and EIF = -w^2 Re Z where theta is in [-270, -90] deg.

@@ -1,5 +1,42 @@
-"""Errors a user can cause: the CLI prints them as one line and exits 2."""
+"""The errors labbench raises on purpose, so callers can tell a bad setting from a dead bus.
+
+``LabbenchError`` is the root. The CLI prints any of them as one line; a
+``UserError`` exits 2, a device error exits 1.
+"""
 
 
-class UserError(Exception):
-    """Bad input from a person (argument, file, configuration): one clear line, no traceback."""
+class LabbenchError(Exception):
+    """Root of every error labbench raises on purpose (one clear line, no traceback)."""
+
+
+class UserError(LabbenchError, ValueError):
+    """Bad input from a person (argument, file, configuration)."""
+
+
+class UnstableVEError(UserError):
+    """A virtual environment the exact sampled model calls unstable on this plant."""
+
+
+class SessionFormatError(UserError):
+    """A file that is not a readable labbench session (or whose content is hostile)."""
+
+
+class MissingExtraError(UserError):
+    """A feature needs an optional package that is not installed (the message says which)."""
+
+
+class DeviceError(LabbenchError):
+    """A device did not do what it was asked: root of the device errors."""
+
+
+class DeviceConnectionError(DeviceError):
+    """The bus, port or peer cannot be reached, or stopped answering."""
+
+
+class DeviceFault(DeviceError, RuntimeError):
+    """The device reported or showed a fault; force is already zero when raised."""
+
+
+def missing_extra(package: str, extra: str, feature: str) -> MissingExtraError:
+    """The one-line error for an optional package that is not installed."""
+    return MissingExtraError(f"{feature} needs {package}: pip install 'haptic-labbench[{extra}]'")

@@ -9,7 +9,7 @@ HDF5 layout::
                        the non-sample records as JSON text (scalar string datasets:
                        unlike attributes they have no 64 kB limit)
 
-CSV: ``# key=value`` metadata lines (issue 3: fs, ve, K, B, w0, td, protocol, ...),
+CSV: ``# key=value`` metadata lines (docs/analysis.md: fs, ve, K, B, w0, td, protocol, ...),
 a header row, then columns t, force, position and the other channels, floats
 written with 17 significant digits so values round-trip exactly.
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from labbench import records
-from labbench.cli import json_safe
+from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 from labbench.session import analysis_meta, load_session
 

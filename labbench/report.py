@@ -238,7 +238,7 @@ def _etfe_blocks(s: SessionData) -> list:
     """ETFE sessions: accuracy and bandwidths from the stop record; figure from the protocol's
     own analysis (its arrays are not kept in the stop record)."""
     from labbench.figures import Curve
-    from protocols import make_protocol
+    from labbench.registry import make_protocol
 
     res = s.results
     blocks = []

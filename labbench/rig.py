@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from labbench.errors import UserError
+from labbench.ve import DEFAULT_PLANT, Plant
 
 
 @dataclass(frozen=True)
@@ -31,8 +32,8 @@ class Rig:
     velocity_limit_m_s: float = 2.0
     # Nominal device model at the handle (the paper's Phantom-like joint): used for
     # stability pre-checks and credited as dissipation by the loop's energy observer.
-    nominal_mass_kg: float = 0.094
-    nominal_damping_ns_m: float = 0.10
+    nominal_mass_kg: float = DEFAULT_PLANT.m
+    nominal_damping_ns_m: float = DEFAULT_PLANT.b
     sections: dict = field(default_factory=dict)  # backend tables, validated by the backend
     source: str = "<defaults>"
 
@@ -43,8 +44,6 @@ class Rig:
     @property
     def nominal_plant(self):
         """The nominal model as a ``labbench.ve.Plant``."""
-        from labbench.ve import Plant
-
         return Plant(self.nominal_mass_kg, self.nominal_damping_ns_m)
 
     def section(self, name: str) -> dict:

@@ -17,10 +17,10 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from labbench import records
-from labbench.cli import json_safe
+from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 from labbench.rig import Rig
-from protocols.base import Protocol, SegmentOutcome, precheck
+from labbench.protocol import ProtocolBase, SegmentOutcome, precheck
 
 # run_loop outcome -> stop-record status (a trip a protocol expects is not a failure).
 _FAILED = ("tripped", "fault")
@@ -38,7 +38,7 @@ class RunResult:
     n_samples: int = 0
 
 
-def run(device, protocol: Protocol, consumers: Iterable[records.Consumer],
+def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         stop: threading.Event | None = None,
         progress: Callable[[float, str], None] | None = None, rig: Rig | None = None,
         close: bool = True, simulated: bool | None = None) -> RunResult:

@@ -414,7 +414,7 @@ def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], d
 
 
 def analysis_meta(start: dict, desc: dict) -> dict:
-    """Metadata keys of the analysis format (issue 3): fs, ve, K, B, w0, td, protocol."""
+    """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td, protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     T = desc.get("sample_time_s") or rig.get("sample_time_s")
     ve = session_ve(start)
@@ -437,7 +437,7 @@ def load_analysis_arrays(path) -> dict:
     """``dict(t, force, position, meta)`` for the analysis.
 
     ``force`` is the exogenous force (the "excitation" channel), ``position`` the
-    sampled position; ``meta`` has fs, ve, K, B, w0, td, protocol (issue 3's keys).
+    sampled position; ``meta`` has fs, ve, K, B, w0, td, protocol (docs/analysis.md).
     """
     start, desc, ch, _events, _stop, _problem = load_session(path)
     if ch["t"].size == 0:

@@ -1,12 +1,12 @@
 """Closed-loop impedance of an impedance-type haptic display: paper model and exact sampled model.
 
-Two models of the same loop (signs and units: ../shared/DESIGN.md):
+Two models of the same loop (signs and units: docs/conventions.md):
 
 * the paper's continuous model, Colonnese, Sketch & Okamura, "Closed-loop
   stiffness and damping accuracy of impedance-type haptic displays", eq. 2
   (its spring, damper and spring-damper cases are eqs. 4, 6, 7), with the
   zero-order hold approximated by a delay of T/2;
-* the exact sampled-data model of issue 2: plant ``m x'' + b x' = f_exo - f_ve``
+* the exact sampled-data model: plant ``m x'' + b x' = f_exo - f_ve``
   driven through a zero-order hold, ``x[k]`` sampled at the start of step k,
   velocity ``v[k] = a v[k-1] + (1 - a)(x[k] - x[k-1]) / T`` with
   ``a = exp(-w0 T)``, VE force ``f[k] = K x[k] + B v[k]`` applied during step
@@ -23,11 +23,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import null_space
+from scipy.linalg import expm, null_space
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
-from sim_backend.plant import zoh_matrices
 
 MODELS = ("paper", "sampled")
 
@@ -55,6 +54,20 @@ def z_paper(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- sampled model
+def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Ad, Bd) of the state [x, x'] of ``m x'' + b x' = u`` for u held constant over T.
+
+    The exact discretisation: matrix exponential of the augmented system
+    (Franklin, Powell & Workman, Digital Control of Dynamic Systems, sec. 4.3).
+    """
+    M = np.zeros((3, 3))
+    M[0, 1] = 1.0
+    M[1, 1] = -b / m
+    M[1, 2] = 1.0 / m
+    E = expm(M * T)
+    return E[:2, :2], E[:2, 2]
+
+
 def _plant_response(plant: Plant, T: float, w: np.ndarray) -> np.ndarray:
     """P(e^{jwT}) = X/U of the ZOH-sampled plant, [1 0](zI - Ad)^{-1} Bd."""
     Ad, Bd = zoh_matrices(plant.m, plant.b, T)

@@ -1,6 +1,6 @@
 """Plain parameter records shared by theory, the loop, protocols and analysis.
 
-Signs and units follow ../shared/DESIGN.md: SI at the handle, VE force opposes
+Signs and units follow docs/conventions.md: SI at the handle, VE force opposes
 the exogenous force (plant ``m x'' + b x' = f_exo - f_ve``).
 """
 from __future__ import annotations
@@ -108,3 +108,8 @@ def _finite(name: str, value: float) -> None:
         ok = False
     if not ok:
         raise UserError(f"{name} must be a finite number, got {value!r}")
+
+
+# The paper's Phantom Premium 1.5 fit (Table 1, l2): the simulator's plant and the
+# nominal plant of a rig file that names none.
+DEFAULT_PLANT = Plant(0.094, 0.10)

@@ -17,17 +17,17 @@ from scipy.signal import lfilter, ss2tf
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
-from protocols import excitation
-from protocols.base import (
+from labbench.protocols import excitation
+from labbench.protocol import (
     MAX_DURATION_S,
     Config,
-    Protocol,
+    ProtocolBase,
     Segment,
     check_plant_fields,
     choice,
     number,
 )
-from sim_backend.plant import zoh_matrices
+from labbench.theory import zoh_matrices
 
 METHODS = ("l2", "l1")
 
@@ -83,11 +83,11 @@ class ChirpIdConfig(Config):
                             f"of f0_hz ({1 / self.f0_hz:g} s)")
 
 
-class ChirpId(Protocol):
+class ChirpId(ProtocolBase):
     name = "chirp-id"
 
-    def __init__(self, config: ChirpIdConfig):
-        self.config = config
+    Config = ChirpIdConfig
+    config: ChirpIdConfig
 
     @property
     def ve(self) -> VirtualEnvironment:

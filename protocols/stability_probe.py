@@ -23,10 +23,10 @@ import numpy as np
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
-from protocols import excitation
-from protocols.base import (
+from labbench.protocols import excitation
+from labbench.protocol import (
     Config,
-    Protocol,
+    ProtocolBase,
     Segment,
     check_plant_fields,
     check_ve_fields,
@@ -135,11 +135,11 @@ def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     return float(slope)
 
 
-class StabilityProbe(Protocol):
+class StabilityProbe(ProtocolBase):
     name = "stability"
 
-    def __init__(self, config: StabilityConfig):
-        self.config = config
+    Config = StabilityConfig
+    config: StabilityConfig
 
     @property
     def ve(self) -> VirtualEnvironment:

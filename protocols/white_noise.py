@@ -15,11 +15,11 @@ import numpy as np
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
-from protocols import excitation
-from protocols.base import (
+from labbench.protocols import excitation
+from labbench.protocol import (
     MAX_DURATION_S,
     Config,
-    Protocol,
+    ProtocolBase,
     Segment,
     check_plant_fields,
     check_ve_fields,
@@ -29,7 +29,7 @@ from protocols.base import (
     number,
 )
 
-# Frequency band of the accuracy figure [rad/s] (issue 4: within 5 % over 2-100 rad/s).
+# Frequency band of the accuracy figure [rad/s] (docs/protocols.md: within 5 % over 2-100 rad/s).
 DEVIATION_BAND_RAD_S = (2.0, 100.0)
 
 
@@ -83,11 +83,11 @@ class EtfeConfig(Config):
         return make_ve(self.ve, self.K, self.B, self.w0_rad_s, self.sample_time_s, self.td_s)
 
 
-class WhiteNoiseEtfe(Protocol):
+class WhiteNoiseEtfe(ProtocolBase):
     name = "etfe"
 
-    def __init__(self, config: EtfeConfig):
-        self.config = config
+    Config = EtfeConfig
+    config: EtfeConfig
 
     @property
     def ve(self) -> VirtualEnvironment:

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers import framing
+from labbench.drivers import framing
 
 BANNER = b"#labbench encoder v1\r\n"
 APPLIED_KEPT = 1_000_000  # periods of applied force kept (about 17 min at 1 kHz)
@@ -355,7 +355,7 @@ def connect_sim_serial(
     """
     import serial
 
-    from drivers.serial_stream import SerialConfig, SerialStream
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream
 
     config = SerialConfig.from_rig(rig, port="pty", force_command=True)
     T = rig.sample_time_s
@@ -410,13 +410,13 @@ class SimPlant:
     """The plain simulator's physics as a board's plant (``step(force)``, ``position``).
 
     Friction, force noise, actuator delay and initial state come from
-    ``sim_backend.sim_device`` with the same options and seed, so a run through
+    ``labbench.sim_backend.sim_device`` with the same options and seed, so a run through
     the board matches a run on ``--device sim``; the board adds its encoder's
     quantisation.
     """
 
     def __init__(self, rig, seed: int | None = None, **options):
-        from sim_backend.sim_device import SimDevice
+        from labbench.sim_backend.sim_device import SimDevice
 
         self._sim = SimDevice(rig, seed=seed, **options)
         self._sim.enable()
@@ -429,7 +429,7 @@ class SimPlant:
 
 def default_plant(rig):
     """The rig's nominal mass-damper, exact over each ZOH step."""
-    from sim_backend.plant import MassDamperPlant
+    from labbench.sim_backend.plant import MassDamperPlant
 
     return MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
 
@@ -437,6 +437,6 @@ def default_plant(rig):
 def open_sim_serial(rig, realtime: bool = False, seed: int | None = None, **sim_options):
     """Device registry factory for ``--device sim-serial``.
 
-    ``sim_options`` are those of ``--device sim`` (``sim_backend.sim_device``).
+    ``sim_options`` are those of ``--device sim`` (``labbench.sim_backend.sim_device``).
     """
     return connect_sim_serial(rig, realtime=realtime, seed=seed, sim=sim_options)[0]

@@ -5,7 +5,7 @@ library's SDO server) run by one thread of its own that reads its bus and
 handles, like a drive would: NMT commands and the heartbeat producer (0x1017),
 SYNC (advance the plant one period with the torque held since the last RPDO,
 then sample and send the TPDOs as mapped in 0x1A00/0x1A01), the RPDO (target
-torque, controlword through the pure CiA 402 table of ``drivers.cia402``), the
+torque, controlword through the pure CiA 402 table of ``labbench.drivers.cia402``), the
 heartbeat consumer (0x1016) and RPDO event timer (0x1400:05) with the reaction
 of 0x6007, the torque limit 0x6072 and software position limits 0x607D.
 ``LocalNode`` reacts neither to SYNC nor (through write callbacks) to RPDOs,
@@ -30,10 +30,10 @@ import canopen
 from can.interfaces.virtual import VirtualBus
 from canopen.sdo import SdoAbortedError
 
-from drivers import cia402, emcy
-from drivers.canopen_drive import MODE_BITS, CanopenConfig, CanopenDrive
-from drivers.cia402 import State
-from sim_backend.sim_device import SimDevice, open_sim
+from labbench.drivers import cia402, emcy
+from labbench.drivers.canopen_drive import MODE_BITS, CanopenConfig, CanopenDrive
+from labbench.drivers.cia402 import State
+from labbench.sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
 # Struct codes of the OD data types the drive can map into a PDO.
@@ -418,7 +418,7 @@ def connect_driver(rig, config, peer, host_bus, realtime: bool = False) -> Canop
 def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
-    ``seed`` and ``options`` are those of the plain simulator (``sim_backend.sim_device``),
+    ``seed`` and ``options`` are those of the plain simulator (``labbench.sim_backend.sim_device``),
     applied to the handle behind the drive.
     """
     config = sim_config(rig)

@@ -8,17 +8,8 @@ simulation of the loop equals the exact sampled-data model of ``labbench.theory`
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import expm
 
-
-def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Ad, Bd) of the state [x, x'] for a force held constant over T."""
-    M = np.zeros((3, 3))
-    M[0, 1] = 1.0
-    M[1, 1] = -b / m
-    M[1, 2] = 1.0 / m
-    E = expm(M * T)
-    return E[:2, :2], E[:2, 2]
+from labbench.theory import zoh_matrices
 
 
 class MassDamperPlant:

@@ -1,15 +1,15 @@
 """Simulated rig: a mass-damper handle behind the ``labbench.device.Device`` interface.
 
-Timing is that of the exact sampled-data model (DESIGN.md, issue 2): ``read()``
+Timing is that of the exact sampled-data model (``labbench.theory``, docs/conventions.md): ``read()``
 number k returns x[k], the position at the start of step k; the force given to
 ``command()`` after it is held over step k; the next ``read()`` advances the
-plant by exactly one T (``sim_backend.plant.zoh_matrices``) and returns x[k+1].
+plant by exactly one T (``labbench.theory.zoh_matrices``) and returns x[k+1].
 With no friction, noise, quantisation or extra delay a run through
 ``labbench.loop`` therefore equals the sampled model to rounding.
 
 Options (rig table ``[sim]``, overridden by keyword options of ``open_sim``):
 ``m`` [kg], ``b`` [N s/m], ``coulomb_n`` [N] Coulomb friction (stick/slip solved
-inside the step, ``sim_backend.friction``), ``quantize`` (report positions in
+inside the step, ``labbench.sim_backend.friction``), ``quantize`` (report positions in
 encoder counts of ``rig.metres_per_count``), ``force_noise_n`` [N] std of white
 noise added to the applied force, ``extra_delay_samples`` whole samples of
 actuator latency, ``x0_m`` / ``v0_m_s`` initial state.
@@ -23,13 +23,14 @@ import numpy as np
 
 from labbench.device import DeviceDescription, DeviceFault, Sample
 from labbench.errors import UserError
-from sim_backend.friction import reversing_step
-from sim_backend.plant import zoh_matrices
+from labbench.ve import DEFAULT_PLANT
+from labbench.sim_backend.friction import reversing_step
+from labbench.theory import zoh_matrices
 
 # name -> (default, check, what the check demands)
 _OPTIONS = {
-    "m": (0.094, lambda v: _num(v) and v > 0, "a positive number [kg]"),
-    "b": (0.10, lambda v: _num(v) and v >= 0, "a number >= 0 [N s/m]"),
+    "m": (DEFAULT_PLANT.m, lambda v: _num(v) and v > 0, "a positive number [kg]"),
+    "b": (DEFAULT_PLANT.b, lambda v: _num(v) and v >= 0, "a number >= 0 [N s/m]"),
     "coulomb_n": (0.0, lambda v: _num(v) and v >= 0, "a number >= 0 [N]"),
     "quantize": (False, lambda v: isinstance(v, bool), "true or false"),
     "force_noise_n": (0.0, lambda v: _num(v) and v >= 0, "a number >= 0 [N]"),
@@ -204,7 +205,7 @@ class SimDevice:
         one period past its due time: time nobody was reading (idle after open or
         between runs) is not a backlog to deliver unpaced. Lateness under one period
         (sleep overshoot, jitter) is made up. The same rule as the paced CANopen
-        driver's SYNC schedule (``drivers.canopen_drive``), which re-phases a late tick.
+        driver's SYNC schedule (``labbench.drivers.canopen_drive``), which re-phases a late tick.
         """
         now = time.perf_counter()
         t0 = self._t0

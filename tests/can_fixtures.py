@@ -4,7 +4,7 @@ import pytest
 from can.interfaces import virtual
 
 from labbench.rig import rig_from_dict
-from sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
+from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 # Short lock-step timeout so a silent drive is detected quickly in tests.
 # Drive monitors well above the stalls of a loaded machine (tens of ms).

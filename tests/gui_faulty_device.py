@@ -1,7 +1,7 @@
 """A device with a fault injected mid-run, for the GUI tests; Qt-free, because the GUI
-opens it in its acquisition process (``gui.acquisition``), which must not import Qt."""
+opens it in its acquisition process (``labbench.gui.acquisition``), which must not import Qt."""
 from labbench.device import DeviceFault
-from labbench.devices import open_device
+from labbench.registry import open_device
 
 
 class FaultyDevice:

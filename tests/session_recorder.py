@@ -1,7 +1,7 @@
 """Synthetic record streams with known content, and a recorder process to kill.
 
 ``synthetic_stream`` closes a simple spring-damper loop around the exact ZOH
-mass-damper (sim_backend.plant) so every channel holds plausible, reproducible
+mass-damper (labbench.sim_backend.plant) so every channel holds plausible, reproducible
 data. Run as a script it records such a stream at about 1 kHz, paced in real
 time, printing ``<path>`` first and then one ``emitted <n_samples>`` line per
 page (flushed), so a test can kill it at a random moment and know what was sent.
@@ -16,7 +16,7 @@ import numpy as np
 
 from labbench import records
 from labbench.ve import VirtualEnvironment
-from sim_backend.plant import MassDamperPlant
+from labbench.sim_backend.plant import MassDamperPlant
 
 M, B_PLANT = 0.094, 0.10
 VE = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=0.001, td=0.0)

@@ -5,14 +5,14 @@ import struct
 import numpy as np
 import pytest
 
-from drivers import emcy
-from drivers.canopen_drive import CanopenConfig, open_canopen
-from drivers.cia402 import State
+from labbench.drivers import emcy
+from labbench.drivers.canopen_drive import CanopenConfig, open_canopen
+from labbench.drivers.cia402 import State
 from labbench.device import Device
-from labbench.errors import UserError
+from labbench.errors import DeviceConnectionError, DeviceError, UserError
 from labbench.rig import Rig
-from sim_backend.plant import MassDamperPlant
-from tests.can_fixtures import connect, drive, make_rig, no_bus_left_open, sim_parts  # noqa: F401
+from labbench.sim_backend.plant import MassDamperPlant
+from can_fixtures import connect, drive, make_rig, no_bus_left_open, sim_parts  # noqa: F401
 
 
 # ------------------------------------------------------------------ config
@@ -32,7 +32,7 @@ def test_config_errors_name_the_field(section, field):
 def test_config_defaults_are_valid_and_eds_is_checked(tmp_path):
     cfg = CanopenConfig.from_section({"eds": "sim_backend/drive.eds", "node_id": 5})
     assert cfg.node_id == 5 and cfg.mode == "auto"
-    from drivers.canopen_drive import check_eds
+    from labbench.drivers.canopen_drive import check_eds
 
     check_eds("sim_backend/drive.eds", 5)  # our own EDS lists every object used
     bad = tmp_path / "bad.eds"
@@ -44,7 +44,7 @@ def test_config_defaults_are_valid_and_eds_is_checked(tmp_path):
 
 def test_hardware_factory_reports_a_missing_interface_in_one_line():
     rig = make_rig(interface="no-such-interface", channel="x")
-    with pytest.raises(UserError, match="cannot open CAN interface"):
+    with pytest.raises(DeviceConnectionError, match="cannot open CAN interface"):
         open_canopen(rig)
 
 
@@ -226,7 +226,7 @@ def test_devices_fault_reset_on_the_simulated_drive(capsys):
 
 
 def test_bus_load_of_the_mapping():
-    from drivers.canopen_drive import bus_load, frame_bits
+    from labbench.drivers.canopen_drive import bus_load, frame_bits
 
     assert frame_bits(0) == (47, 47 + 8) and frame_bits(8) == (111, 111 + 24)
     load = bus_load(CanopenConfig(), 0.001)
@@ -237,10 +237,10 @@ def test_bus_load_of_the_mapping():
 
 # ------------------------------------------- the same protocol, two devices
 def run_protocol(device, rig, **options):
-    from labbench.devices import open_device
+    from labbench.registry import open_device
     from labbench.records import concat_pages
     from labbench.runner import run
-    from protocols import make_protocol
+    from labbench.registry import make_protocol
 
     records = []
     result = run(open_device(device, rig), make_protocol("etfe", **options), [records.append],
@@ -256,7 +256,7 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
     0.5 mN a sample) moves the handle by micrometres, so positions may differ by
     one count where the true position sits next to a count boundary, never more.
     """
-    from protocols.white_noise import WhiteNoiseEtfe
+    from labbench.protocols.white_noise import WhiteNoiseEtfe
 
     monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
     rig = make_rig(sim={"quantize": True})
@@ -272,7 +272,7 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
 
 
 def test_sim_canopen_takes_the_plain_simulator_options():
-    from sim_backend.canopen_peer import open_sim_canopen
+    from labbench.sim_backend.canopen_peer import open_sim_canopen
 
     with pytest.raises(UserError, match="sim option nonsense: unknown"):
         open_sim_canopen(make_rig(), nonsense=1)
@@ -352,7 +352,7 @@ def drive_on_named_channel(tmp_path):
     """A simulated drive on a named virtual channel and a rig file that points at it."""
     import uuid
 
-    from sim_backend.canopen_peer import SimCanopenDrive, plant_for
+    from labbench.sim_backend.canopen_peer import SimCanopenDrive, plant_for
 
     channel = f"bench-{uuid.uuid4().hex[:6]}"
     rig = make_rig()
@@ -398,7 +398,7 @@ def test_devices_command_shows_a_faulted_node_and_resets_it(drive_on_named_chann
 
 def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
     rig, _, peer, bus = sim_parts
-    from drivers.canopen_drive import CanopenDrive
+    from labbench.drivers.canopen_drive import CanopenDrive
 
     peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 3)}  # profile torque only
     with pytest.raises(UserError, match="0x6502 = 0x00000008 offers no cyclic synchronous"):
@@ -409,5 +409,5 @@ def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
 
 def test_drive_refusing_the_mode_write_is_reported_naming_0x6060(sim_parts):
     sim_parts[2].abort_sdo_write(0x6060, 0, code=0x06090030)
-    with pytest.raises(UserError, match=r"refused writing 10 to 0x6060:00"):
+    with pytest.raises(DeviceError, match=r"refused writing 10 to 0x6060:00"):
         connect(sim_parts)

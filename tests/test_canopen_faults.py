@@ -6,12 +6,12 @@ import can
 import numpy as np
 import pytest
 
-from drivers.cia402 import State
+from labbench.drivers.cia402 import State
 from labbench.device import DeviceFault
-from labbench.errors import UserError
+from labbench.errors import DeviceError, LabbenchError, UserError
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.ve import VirtualEnvironment
-from tests.can_fixtures import connect, drive, no_bus_left_open, sim_parts  # noqa: F401
+from can_fixtures import connect, drive, no_bus_left_open, sim_parts  # noqa: F401
 
 N = 1500
 FAULT_AT = 400  # sample index (a page boundary) where the fault is injected
@@ -170,7 +170,7 @@ def test_ignored_sdo_write_refuses_to_enable_naming_the_object(sim_parts):
 def test_aborted_sdo_write_refuses_to_enable_naming_the_object(sim_parts):
     peer = sim_parts[2]
     peer.abort_sdo_write(0x607D, 1)
-    with pytest.raises(UserError, match=r"refused writing .* to 0x607D:01"):
+    with pytest.raises(DeviceError, match=r"refused writing .* to 0x607D:01"):
         connect(sim_parts)
 
 
@@ -185,7 +185,7 @@ def test_changed_safety_object_is_caught_before_the_next_run(drive):
 def test_silent_drive_at_bring_up(sim_parts):
     sim_parts[2].mute()
     t = time.monotonic()
-    with pytest.raises(UserError, match="NMT state not PRE-OPERATIONAL|no answer"):
+    with pytest.raises(LabbenchError, match="NMT state not PRE-OPERATIONAL|no answer"):
         connect(sim_parts)
     assert time.monotonic() - t < 5
 
@@ -223,7 +223,7 @@ def test_emergency_stop_from_another_thread_mid_run(drive):
 def paced_drive(**canopen):
     """The driver in paced mode at a coarse 50 ms period (timing is not asserted)."""
     from labbench.rig import rig_from_dict
-    from sim_backend.canopen_peer import open_sim_canopen
+    from labbench.sim_backend.canopen_peer import open_sim_canopen
 
     rig = rig_from_dict({"rig": {"sample_time_s": 0.05},
                          "canopen": {"sdo_timeout_s": 0.2, **canopen}}, source="paced-rig")

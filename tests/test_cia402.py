@@ -1,8 +1,8 @@
 """Exhaustive checks of the pure CiA 402 tables (drivers/cia402.py)."""
 import pytest
 
-from drivers import cia402
-from drivers.cia402 import CONTROLWORD, Command, NoRoute, State
+from labbench.drivers import cia402
+from labbench.drivers.cia402 import CONTROLWORD, Command, NoRoute, State
 
 
 def test_every_statusword_codes_at_most_one_state():

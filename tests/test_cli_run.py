@@ -12,7 +12,7 @@ import pytest
 
 from labbench import theory
 from labbench.cli import main
-from labbench.progress import ProgressBar
+from labbench.cli.progress import ProgressBar
 from labbench.session import read_session
 from labbench.ve import Plant, VirtualEnvironment
 

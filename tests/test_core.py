@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from labbench.cli import json_safe, main
-from labbench.devices import open_device
+from labbench.cli import main
+from labbench.jsonutil import json_safe
+from labbench.registry import open_device
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.errors import UserError
 from labbench.rig import load_rig, rig_from_dict

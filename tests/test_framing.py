@@ -4,8 +4,8 @@ import struct
 
 import pytest
 
-from drivers import framing
-from drivers.framing import (
+from labbench.drivers import framing
+from labbench.drivers.framing import (
     AsciiSampleParser,
     BinarySampleParser,
     CommandParser,

@@ -16,14 +16,14 @@ pytest.importorskip("pytestqt")
 
 from PySide6 import QtCore  # noqa: E402
 
-from gui.app import run_app  # noqa: E402
-from gui.live_estimate import estimate  # noqa: E402
-from gui.main_window import LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
+from labbench.gui.app import run_app  # noqa: E402
+from labbench.gui.live_estimate import estimate  # noqa: E402
+from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.session import analysis_meta, list_sessions, load_session  # noqa: E402
 from labbench.ve import Plant  # noqa: E402
 
-TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (sim_backend.sim_device)
+TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (labbench.sim_backend.sim_device)
 RUN_TIMEOUT_MS = 60_000
 
 
@@ -293,9 +293,9 @@ def test_cli_demo_screenshot(tmp_path):
 
 PARENT_SCRIPT = """
 import os, signal, sys, time
-from gui.acquisition import Acquisition
-from gui.worker import Mailbox
-from labbench.devices import open_device
+from labbench.gui.acquisition import Acquisition
+from labbench.gui.worker import Mailbox
+from labbench.registry import open_device
 from labbench.rig import Rig
 import functools
 

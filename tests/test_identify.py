@@ -244,8 +244,8 @@ def test_stick_slip_on_the_simulated_chirp_id(coulomb_n):
     # friction b comes out ~4-5x too high, and the flag says why; without it, no flag
     from labbench.rig import rig_from_dict
     from labbench.runner import run
-    from protocols import make_protocol
-    from sim_backend.sim_device import open_sim
+    from labbench.registry import make_protocol
+    from labbench.sim_backend.sim_device import open_sim
 
     rig = rig_from_dict({"sim": {"quantize": True, "coulomb_n": coulomb_n}})
     res = run(open_sim(rig, seed=4), make_protocol("chirp-id", model="mbc"), [], rig=rig)

@@ -12,7 +12,7 @@ from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
 from labbench.theory import closed_loop, z_sampled
 from labbench.ve import Plant, VirtualEnvironment
-from sim_backend.sim_device import open_sim
+from labbench.sim_backend.sim_device import open_sim
 
 PLANT = Plant(0.094, 0.10)
 # Limits far outside these runs, so the envelope never acts and the loop is the bare model.

@@ -12,12 +12,14 @@ from labbench.errors import UserError
 from labbench.rig import Rig, rig_from_dict
 from labbench.runner import run
 from labbench.ve import Plant, VirtualEnvironment
-from protocols import PROTOCOLS, excitation, make_protocol, precheck
-from protocols.stability_probe import growth_rate
-from sim_backend.sim_device import open_sim
+from labbench.protocol import precheck
+from labbench.protocols import excitation
+from labbench.registry import make_protocol, protocol_class, protocol_names
+from labbench.protocols.stability_probe import growth_rate
+from labbench.sim_backend.sim_device import open_sim
 
 T = 0.001
-TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (sim_backend.sim_device)
+TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (labbench.sim_backend.sim_device)
 
 
 # ---------------------------------------------------------------- excitation
@@ -98,7 +100,7 @@ def test_unknown_protocol():
 
 
 def test_configs_serialise_with_their_name():
-    for name in PROTOCOLS:
+    for name in protocol_names():
         d = make_protocol(name).describe()
         assert d["protocol"] == name
         assert all(not isinstance(v, (tuple, np.ndarray)) for v in d.values())
@@ -237,7 +239,7 @@ def test_etfe_on_a_quantised_noisy_sim_within_5_percent():
 
 
 def test_boundary_from_growth_rates_and_trips():
-    from protocols.stability_probe import _crossing
+    from labbench.protocols.stability_probe import _crossing
 
     steps = [{"K": 10.0, "sigma_per_s": -0.2, "unstable": False},
              {"K": 20.0, "sigma_per_s": 0.2, "unstable": True}]
@@ -252,7 +254,7 @@ def test_boundary_from_growth_rates_and_trips():
 
 
 def test_chirp_plan_prediction_equals_the_exact_zoh_recursion():
-    from sim_backend.plant import MassDamperPlant
+    from labbench.sim_backend.plant import MassDamperPlant
 
     p = make_protocol("chirp-id", duration_s=15.0)
     f = p.excitation(TRUTH)
@@ -268,11 +270,11 @@ def test_chirp_plan_prediction_equals_the_exact_zoh_recursion():
     assert plan["predicted_v_max_m_s"] == pytest.approx(max(map(abs, vs)), rel=1e-9)
 
 
-@pytest.mark.parametrize("name", list(PROTOCOLS))
+@pytest.mark.parametrize("name", protocol_names())
 def test_any_bad_value_of_any_field_is_a_user_error_never_a_crash(name):
     from dataclasses import fields
 
-    config_cls = PROTOCOLS[name][1]
+    config_cls = protocol_class(name).Config
     weird = [None, "x", -1, -1.5, math.nan, math.inf, [], {}, True, 10**9, "0.1"]
     for f in fields(config_cls):
         for value in weird:

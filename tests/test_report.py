@@ -19,8 +19,8 @@ TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig
 def _record(directory, name, **options):
     from labbench.rig import Rig
     from labbench.runner import run
-    from protocols import make_protocol
-    from sim_backend.sim_device import open_sim
+    from labbench.registry import make_protocol
+    from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig()
     with SessionWriter(directory) as w:

@@ -12,8 +12,8 @@ from labbench.device import DeviceDescription, DeviceFault
 from labbench.errors import UserError
 from labbench.rig import Rig
 from labbench.runner import run, summarize
-from protocols import make_protocol
-from sim_backend.sim_device import open_sim
+from labbench.registry import make_protocol
+from labbench.sim_backend.sim_device import open_sim
 
 
 class Spy:

@@ -12,7 +12,7 @@ from labbench.rig import Rig, rig_from_dict
 from labbench.safety import CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED, flag_names
 from labbench.theory import k_max, stability
 from labbench.ve import Plant, VirtualEnvironment
-from sim_backend.sim_device import open_sim
+from labbench.sim_backend.sim_device import open_sim
 
 PLANT = Plant(0.094, 0.10)
 NONE = VirtualEnvironment("none")

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.serial_stream import FLAG_LINK_ERRORS, FLAG_LOST, SerialConfig, SerialStream
+from labbench.drivers.serial_stream import FLAG_LINK_ERRORS, FLAG_LOST, SerialConfig, SerialStream
 from labbench import records
 from labbench.device import DeviceFault
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
@@ -18,9 +18,9 @@ from labbench.rig import rig_from_dict
 from labbench.runner import run
 from labbench.safety import DEVICE
 from labbench.ve import VirtualEnvironment
-from protocols import make_protocol
-from sim_backend.arduino_peer import Fault, connect_sim_serial
-from tests.test_serial_stream import no_board_left_running  # noqa: F401
+from labbench.registry import make_protocol
+from labbench.sim_backend.arduino_peer import Fault, connect_sim_serial
+from test_serial_stream import no_board_left_running  # noqa: F401
 
 FAULT_AT = 400  # board sample index: well inside the run, after the enable gate
 

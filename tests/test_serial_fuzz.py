@@ -7,8 +7,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers import framing
-from drivers.serial_stream import Decoded, Reboot, SerialConfig, StreamDecoder
+from labbench.drivers import framing
+from labbench.drivers.serial_stream import Decoded, Reboot, SerialConfig, StreamDecoder
 from labbench.rig import rig_from_dict
 
 SHORT = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -255,7 +255,7 @@ class ScriptedPort:
 
 
 def _driver_on_any_input(fmt, prefix, chunks):
-    from drivers.serial_stream import SerialStream
+    from labbench.drivers.serial_stream import SerialStream
     from labbench.device import DeviceFault
 
     rig = rig_from_dict({"serial": {"format": fmt, "force_command": True}})

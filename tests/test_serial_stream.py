@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import serial
 
-from drivers import framing
-from drivers.serial_stream import (
+from labbench.drivers import framing
+from labbench.drivers.serial_stream import (
     FLAG_LINK_ERRORS,
     FLAG_LOST,
     Decoded,
@@ -19,12 +19,12 @@ from drivers.serial_stream import (
     StreamDecoder,
     open_serial,
 )
-from drivers.unwrap import Unwrapper, wrap_delta
+from labbench.drivers.unwrap import Unwrapper, wrap_delta
 from labbench.device import Device, DeviceFault
-from labbench.errors import UserError
+from labbench.errors import DeviceConnectionError, UserError
 from labbench.rig import Rig, rig_from_dict
-from sim_backend.arduino_peer import ArduinoPeer, connect_sim_serial, default_plant
-from sim_backend.plant import MassDamperPlant
+from labbench.sim_backend.arduino_peer import ArduinoPeer, connect_sim_serial, default_plant
+from labbench.sim_backend.plant import MassDamperPlant
 
 
 @pytest.fixture(autouse=True)
@@ -109,7 +109,7 @@ def test_config_unknown_field_and_defaults():
 def test_open_serial_user_errors():
     with pytest.raises(UserError, match="port is not set"):
         open_serial(make_rig())
-    with pytest.raises(UserError, match="cannot open serial port /nonexistent/tty"):
+    with pytest.raises(DeviceConnectionError, match="cannot open serial port /nonexistent/tty"):
         open_serial(make_rig(port="/nonexistent/tty"))
 
 
@@ -336,10 +336,10 @@ def test_period_mismatch_is_a_user_error(fmt):
 
 # -- the same protocol on the plain simulator and through the serial driver ------------------
 def run_protocol(device, rig, **options):
-    from labbench.devices import open_device
+    from labbench.registry import open_device
     from labbench.records import concat_pages
     from labbench.runner import run
-    from protocols import make_protocol
+    from labbench.registry import make_protocol
 
     stream = []
     result = run(
@@ -367,7 +367,7 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
     a one-count kick of the VE force (below), so about 1 % of samples differ
     (measured 0.99 % over 30 s); the bound leaves room for that.
     """
-    from protocols.white_noise import WhiteNoiseEtfe
+    from labbench.protocols.white_noise import WhiteNoiseEtfe
 
     monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
     rig = etfe_rig(format=fmt)

@@ -85,8 +85,8 @@ def test_sigkill_of_labbench_run_realtime(tmp_path):
     equals the same run done to completion without pacing (the simulator is deterministic)."""
     from labbench.rig import Rig
     from labbench.runner import run
-    from protocols import make_protocol
-    from sim_backend.sim_device import open_sim
+    from labbench.registry import make_protocol
+    from labbench.sim_backend.sim_device import open_sim
 
     ref = []
     run(open_sim(Rig()), make_protocol("chirp-id", duration_s=6.0, f0_hz=0.5), [ref.append])

@@ -7,10 +7,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from labbench.device import DeviceFault, Sample
-from labbench.devices import open_device
+from labbench.registry import open_device
 from labbench.errors import UserError
 from labbench.rig import Rig, rig_from_dict
-from sim_backend.sim_device import ESTOP_LATCHED, open_sim
+from labbench.sim_backend.sim_device import ESTOP_LATCHED, open_sim
 
 M, B, T = 0.094, 0.10, 0.001
 

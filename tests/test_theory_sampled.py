@@ -1,7 +1,7 @@
 """The exact sampled-data model against a brute-force per-sample simulation of the loop.
 
 The simulator below is the oracle: a plain loop written straight from the
-definition in issue 2 (ZOH plant, backward-difference velocity through a
+definition in labbench.theory (ZOH plant, backward-difference velocity through a
 first-order low-pass, VE force applied n samples later, exogenous force in
 its own step). It shares only the ZOH matrices with the code under test.
 """
@@ -20,7 +20,7 @@ from scipy.signal import dlsim
 from labbench import theory
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
-from sim_backend.plant import zoh_matrices
+from labbench.theory import zoh_matrices
 
 
 def simulate(plant: Plant, ve: VirtualEnvironment, f_exo: np.ndarray,

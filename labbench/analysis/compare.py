@@ -3,7 +3,7 @@ or identified from the closed-loop record itself), the theory curve on the
 measured frequencies, and the deviation from it.
 
 Identification from a closed-loop record: the plant sees f_exo[k] - f_ve[k - n]
-(DESIGN.md signs), and f_ve is computed from the sampled position with the
+(docs/conventions.md signs), and f_ve is computed from the sampled position with the
 loop's own law (labbench.theory module doc: backward difference, first-order
 low-pass at w0, f = K x + B v, n = td / T samples of delay). So m and b come
 from the same record, with the same identification as open-loop data.

@@ -5,7 +5,7 @@ Estimators (``ESTIMATORS``):
 
 * ``paper`` - the paper's method exactly: raw ratio of the DFTs of force and
   position over jw, smoothed in the complex domain by a Hamming window of
-  ``window`` bins (normalised weights; the DC bin is left out, see DESIGN.md).
+  ``window`` bins (normalised weights; the DC bin is left out, see docs/analysis.md).
 * ``h1-welch`` - H1 = S_fx / S_ff from Welch-averaged spectra (Hann segments
   of 2^14 samples, 50 % overlap, linear detrend per segment; Bendat & Piersol,
   Random Data, sec. 9.1); Z = 1 / (jw H1).

@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize
 
+from labbench.errors import missing_extra
+
 IRLS_STEPS = 6
 MAX_STEPS = 500
 XI_TOL = 1e-9
@@ -197,7 +199,10 @@ def _full_lp(X, y):
 
 def lad_cvxpy(X, y) -> np.ndarray:
     """The cross-check: cvxpy with its default solver."""
-    import cvxpy as cp
+    try:
+        import cvxpy as cp
+    except ImportError:
+        raise missing_extra("cvxpy", "cvxpy", "--solver cvxpy") from None
 
     theta = cp.Variable(X.shape[1])
     cp.Problem(cp.Minimize(cp.norm1(y - X @ theta))).solve()

@@ -1,10 +1,11 @@
 """``labbench gui``: the desktop application (Qt is imported only when the command runs)."""
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
-from labbench.errors import UserError
+from labbench.errors import UserError, missing_extra
 
 DEFAULT_SESSIONS = "sessions"
 
@@ -27,6 +28,10 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from labbench.rig import load_rig
 
+    for package in ("PySide6", "pyqtgraph"):  # before any setting: say what to install
+        if importlib.util.find_spec(package) is None:
+            raise missing_extra(package, "gui", "labbench gui")
+
     rig = load_rig(args.rig)
     shot = Path(args.screenshot) if args.screenshot else None
     if shot is not None and shot.suffix.lower() != ".png":
@@ -43,8 +48,6 @@ def run(args) -> int:
     except OSError as exc:
         raise UserError(f"cannot use session folder {sessions}: {exc}") from None
 
-    try:
-        from gui.app import run_app
-    except ImportError as exc:
-        raise UserError(f"the GUI needs PySide6 and pyqtgraph: {exc}") from None
+    from labbench.gui.app import run_app
+
     return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout)

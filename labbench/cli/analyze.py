@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 
-from labbench.cli import json_safe
+from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 
 

@@ -25,15 +25,15 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from labbench.cli import json_safe
-    from labbench.devices import DEVICES
+    from labbench.jsonutil import json_safe
+    from labbench.registry import device_names
     from labbench.rig import load_rig
 
     rig = load_rig(args.rig)
     if args.fault_reset:
         return _fault_reset(rig, args.sim)
     rows = []
-    for name in DEVICES:
+    for name in device_names():
         table = _TABLES.get(name)
         configured = table is None or table in rig.sections
         row = {"device": name, "configured": configured,
@@ -61,11 +61,11 @@ _TABLES = {"sim": None, "sim-canopen": None, "sim-serial": None,
 
 def _drive(rig, sim: bool):
     """The CANopen driver for the rig's drive, or for a fresh simulated drive (closed with it)."""
-    from drivers.canopen_drive import CanopenConfig, CanopenDrive
+    from labbench.drivers.canopen_drive import CanopenConfig, CanopenDrive
 
     if not sim:
         return CanopenDrive(rig, CanopenConfig.from_section(rig.section("canopen"), source=rig.source))
-    from sim_backend.canopen_peer import sim_config, start_sim_drive
+    from labbench.sim_backend.canopen_peer import sim_config, start_sim_drive
 
     config = sim_config(rig)
     peer, bus = start_sim_drive(rig, config)
@@ -80,13 +80,13 @@ def _drive(rig, sim: bool):
 
 def _probe(name: str, rig) -> dict:
     """Read-only probe; a drive that does not answer is reported, not raised."""
-    from labbench.errors import UserError
+    from labbench.errors import LabbenchError
 
     try:
         with _drive(rig, sim=name == "sim-canopen") as drive:  # closed even if connect fails
             drive.connect()
             return drive.probe()
-    except UserError as exc:
+    except LabbenchError as exc:
         return {"no_answer": str(exc)}
 
 

@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 from labbench import theory
-from labbench.cli import float_list, json_safe
+from labbench.cli.main import float_list
+from labbench.jsonutil import json_safe
 from labbench.effective import effective_impedances
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment

@@ -1,9 +1,10 @@
 """The ``labbench`` command line.
 
-Each subcommand lives in its own module ``labbench/cmd_<name>.py`` exposing
+Each subcommand lives in its own module ``labbench/cli/<name>.py`` exposing
 ``register(subparsers)``, which adds its parser and sets ``func`` to a callable
 taking the parsed namespace and returning an exit code. Errors a user can
-cause (``UserError``) print one line on stderr and exit 2.
+cause (``UserError``) print one line on stderr and exit 2; a device that
+fails (``DeviceError``: dead bus, no answer, a fault) prints one line and exits 1.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-from labbench.errors import UserError
+from labbench.errors import DeviceError, LabbenchError, UserError
 
 # Order is the order shown in --help.
 COMMANDS = ("theory", "analyze", "run", "replay", "export", "report", "devices", "gui")
@@ -29,9 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name in COMMANDS:
         try:
-            module = importlib.import_module(f"labbench.cmd_{name}")
+            module = importlib.import_module(f"labbench.cli.{name}")
         except ModuleNotFoundError as exc:
-            if exc.name == f"labbench.cmd_{name}":
+            if exc.name == f"labbench.cli.{name}":
                 continue  # command not built yet
             raise
         module.register(sub)
@@ -43,9 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except UserError as exc:
+    except LabbenchError as exc:
         print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return 1 if isinstance(exc, DeviceError) else 2
     except KeyboardInterrupt:
         print(f"labbench {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -67,28 +68,3 @@ def float_list(text: str) -> list[float]:
     if not values:
         raise argparse.ArgumentTypeError("expected at least one number")
     return values
-
-
-def json_safe(obj):
-    """numpy arrays/scalars -> lists/floats, non-finite floats -> None (strict JSON)."""
-    import math
-
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_safe(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -14,10 +14,10 @@ import threading
 from dataclasses import MISSING, fields
 from pathlib import Path
 
-from labbench.cli import json_safe
-from labbench.devices import DEVICES, open_device
+from labbench.jsonutil import json_safe
+from labbench.registry import device_names, open_device
 from labbench.errors import UserError
-from labbench.progress import ProgressBar
+from labbench.cli.progress import ProgressBar
 from labbench.rig import load_rig
 
 # Config fields the CLI sets itself (from the rig).
@@ -26,12 +26,13 @@ _EXIT = {"success": 0, "failed": 1, "aborted": 130}
 
 
 def register(subparsers) -> None:
-    from protocols import PROTOCOLS
+    from labbench.registry import protocol_class, protocol_names
 
     p = subparsers.add_parser("run", help="run a protocol on a device and record a session",
                               description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="protocol", required=True, metavar="{chirp-id,etfe,stability,demo}")
-    for name, (_, config_cls) in PROTOCOLS.items():
+    for name in protocol_names():
+        config_cls = protocol_class(name).Config
         sp = sub.add_parser(name, help=(config_cls.__doc__ or name).splitlines()[0])
         _common(sp)
         _config_options(sp, config_cls)
@@ -50,7 +51,7 @@ def register(subparsers) -> None:
 
 
 def _common(sp) -> None:
-    sp.add_argument("--device", choices=list(DEVICES), default="sim", help="backend (default sim)")
+    sp.add_argument("--device", choices=device_names(), default="sim", help="backend (default sim)")
     sp.add_argument("--rig", metavar="FILE", help="rig TOML file (default: simulated Phantom-like)")
     sp.add_argument("--realtime", action="store_true", help="pace the simulator in real time")
     sp.add_argument("--out", metavar="DIR", default="sessions", help="session directory (./sessions)")
@@ -141,7 +142,7 @@ def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
     """Make the protocol, open the device, run with a session writer; (result, session path)."""
     from labbench.runner import run
     from labbench.session import SessionWriter
-    from protocols import make_protocol
+    from labbench.registry import make_protocol
 
     if (getattr(args, "plant_from", "nominal") == "last-id" and name != "chirp-id"
             and options.get("plant_m_kg") is None and options.get("plant_b") is None):

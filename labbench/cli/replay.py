@@ -19,7 +19,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from labbench.cli import json_safe
+    from labbench.jsonutil import json_safe
     from labbench.session import StreamSummary, replay
 
     summary = StreamSummary()

@@ -1,4 +1,6 @@
-"""What every protocol shares: validated config fields, segments, the stability precheck.
+"""The protocol contract: what every protocol is and shares (config fields, segments,
+the stability precheck). Protocols live in ``labbench.protocols`` or in other packages
+(registered through ``labbench.registry``); the runner knows only this module.
 
 A protocol is plain data (a frozen config dataclass, SI units in the field
 names) plus steps: ``segments()`` is a generator of ``Segment`` (a VE and the
@@ -16,13 +18,11 @@ from typing import Any
 import numpy as np
 
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.ve import DEFAULT_PLANT, Plant, VirtualEnvironment
 
 # Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
 MAX_DURATION_S = 1800.0
 
-# The paper's Phantom Premium 1.5 fit (Table 1, l2): used when a rig names no nominal plant.
-DEFAULT_PLANT = Plant(0.094, 0.10)
 
 
 def number(name: str, value, unit: str, lo: float | None = None, hi: float | None = None,
@@ -134,11 +134,15 @@ class SegmentOutcome:
     data: dict  # channel -> array of this segment only
 
 
-class Protocol:
-    """Base class: subclasses set ``name``, ``config`` and implement the steps."""
+class ProtocolBase:
+    """Base class: subclasses set ``name`` and ``Config`` (their config dataclass) and
+    implement the steps; an instance holds its validated ``config``."""
 
     name: str = ""
-    config: Any = None
+    Config: type = None  # the frozen config dataclass (a ``Config`` subclass)
+
+    def __init__(self, config):
+        self.config = config
 
     @property
     def ve(self) -> VirtualEnvironment:
@@ -181,7 +185,7 @@ class Protocol:
         return {"protocol": self.name, **self.config.as_dict()}
 
 
-def precheck(protocol: Protocol, plant: Plant, rig=None) -> dict:
+def precheck(protocol: ProtocolBase, plant: Plant, rig=None) -> dict:
     """Check the protocol's VE(s) against the exact sampled stability boundary.
 
     Uses ``labbench.theory.stability`` (spectral radius of the exact sampled loop)

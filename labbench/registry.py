@@ -1,0 +1,87 @@
+"""Device backends and protocols by name, built in or added by other packages.
+
+Modelled on python-can's interface registry: a built-in table of
+``name -> "module:attribute"`` plus the entry-point groups
+``labbench.devices`` and ``labbench.protocols``, so a third-party package adds
+a backend or a protocol by declaring, in its own pyproject.toml::
+
+    [project.entry-points."labbench.devices"]
+    my-rig = "my_package.rig:open_my_rig"      # factory(rig, **options) -> Device
+
+    [project.entry-points."labbench.protocols"]
+    sweep = "my_package.sweep:Sweep"           # a labbench.protocol.ProtocolBase
+
+Targets are imported only when used, so a backend whose optional packages are
+missing never breaks the others. A built-in name cannot be taken over.
+"""
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+
+from labbench.errors import UserError
+
+DEVICE_GROUP = "labbench.devices"
+PROTOCOL_GROUP = "labbench.protocols"
+
+_BUILTIN = {
+    DEVICE_GROUP: {
+        "sim": "labbench.sim_backend.sim_device:open_sim",
+        "sim-canopen": "labbench.sim_backend.canopen_peer:open_sim_canopen",
+        "sim-serial": "labbench.sim_backend.arduino_peer:open_sim_serial",
+        "canopen": "labbench.drivers.canopen_drive:open_canopen",
+        "serial": "labbench.drivers.serial_stream:open_serial",
+    },
+    PROTOCOL_GROUP: {
+        "chirp-id": "labbench.protocols.chirp_id:ChirpId",
+        "etfe": "labbench.protocols.white_noise:WhiteNoiseEtfe",
+        "stability": "labbench.protocols.stability_probe:StabilityProbe",
+    },
+}
+
+
+def _table(group: str) -> dict[str, str]:
+    table = dict(_BUILTIN[group])
+    for ep in entry_points(group=group):
+        table.setdefault(ep.name, ep.value)
+    return table
+
+
+def _load(group: str, name: str, what: str):
+    table = _table(group)
+    try:
+        module_name, attribute = table[name].split(":")
+    except KeyError:
+        raise UserError(f"unknown {what} {name!r}; choose one of {', '.join(table)}") from None
+    return getattr(importlib.import_module(module_name), attribute)
+
+
+def device_names() -> list[str]:
+    """Every device backend: built-in first, then those of installed packages."""
+    return list(_table(DEVICE_GROUP))
+
+
+def protocol_names() -> list[str]:
+    """Every protocol: built-in first, then those of installed packages."""
+    return list(_table(PROTOCOL_GROUP))
+
+
+def device_factory(name: str):
+    """The factory ``(rig, **options) -> Device`` of backend ``name``."""
+    return _load(DEVICE_GROUP, name, "device")
+
+
+def open_device(name: str, rig, **options):
+    """Open backend ``name`` for ``rig`` (a ``labbench.rig.Rig``)."""
+    return device_factory(name)(rig, **options)
+
+
+def protocol_class(name: str):
+    """The ``ProtocolBase`` subclass registered as ``name`` (its ``Config`` is its options)."""
+    return _load(PROTOCOL_GROUP, name, "protocol")
+
+
+def make_protocol(name: str, **options):
+    """A protocol by name with validated options (one UserError per bad field)."""
+    cls = protocol_class(name)
+    return cls(cls.Config.from_options(name, options))
