@@ -41,7 +41,7 @@ from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
 
 from labbench.drivers import cia402, emcy
 from labbench.drivers.cia402 import Command, State
-from labbench.device import DeviceDescription, DeviceFault, Sample
+from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
 # canopen logs SDO timeouts as errors; the driver turns them into one-line
@@ -588,6 +588,11 @@ class CanopenDrive:
                 time.sleep(0.002)
         self._fault = None
         return state
+
+    def status(self) -> DeviceStatus:
+        state = ("closed" if self._closed else "fault" if self._fault
+                 else "enabled" if self._cyclic else "disabled")
+        return DeviceStatus(state, self._fault, dict(self.counters))
 
     def _latched(self) -> DeviceFault:
         return DeviceFault(f"latched fault: {self._fault}; an operator must reset it "

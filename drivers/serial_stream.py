@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 from labbench.drivers import framing
 from labbench.drivers.unwrap import Unwrapper
-from labbench.device import DeviceDescription, DeviceFault, Sample
+from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import DeviceConnectionError, UserError
 
 # Sample.flags bits of this device (0 = healthy).
@@ -401,6 +401,11 @@ class SerialStream:
     @property
     def fault(self) -> str | None:
         return self._fault
+
+    def status(self) -> DeviceStatus:
+        state = ("closed" if self._closed else "fault" if self._fault
+                 else "enabled" if self._enabled else "disabled")
+        return DeviceStatus(state, self._fault, self.counters())
 
     def close(self) -> None:
         if self._closed:

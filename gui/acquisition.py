@@ -34,6 +34,8 @@ import sys
 import threading
 from multiprocessing.connection import wait as wait_handles
 
+from labbench.device import StatusReporting
+
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 0.5
@@ -41,23 +43,13 @@ PARENT_GONE_GRACE_S = 3.0  # after the parent died: time for the run to end clea
 
 
 def device_health(device) -> dict:
-    """What a device tells about itself without bus traffic: enable/e-stop state, its
-    link counters (``counters()`` or ``counters``: CRC errors, lost frames, EMCY...) and
-    its latched fault. Never raises for a missing attribute (backends differ)."""
-    out = {}
-    if getattr(device, "closed", False):
-        out["state"] = "closed"
-    elif getattr(device, "estopped", False):
-        out["state"] = "E-STOP latched"
-    elif hasattr(device, "enabled"):
-        out["state"] = "enabled" if device.enabled else "disabled"
-    counters = getattr(device, "counters", None)
-    counters = counters() if callable(counters) else counters
-    if isinstance(counters, dict):
-        out["link"] = ", ".join(f"{k} {v}" for k, v in counters.items() if v) or "all zero"
-    fault = getattr(device, "fault", None)
-    if not callable(fault):
-        out["fault"] = fault or "none"
+    """The device's ``status()`` as display strings (empty for a backend without one)."""
+    if not isinstance(device, StatusReporting):
+        return {}
+    st = device.status()
+    out = {"state": st.state, "fault": st.fault or "none"}
+    if st.link:
+        out["link"] = ", ".join(f"{k} {v}" for k, v in st.link.items() if v) or "all zero"
     return out
 
 

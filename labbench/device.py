@@ -39,6 +39,15 @@ class DeviceDescription:
     details: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class DeviceStatus:
+    """What a device tells about itself without bus traffic (``StatusReporting``)."""
+
+    state: str  # "disabled" | "enabled" | "E-STOP latched" | "fault" | "closed"
+    fault: str | None = None  # the latched fault, if any
+    link: dict = field(default_factory=dict)  # link counters: CRC errors, lost frames, EMCY...
+
+
 @runtime_checkable
 class Device(Protocol):
     def describe(self) -> DeviceDescription: ...
@@ -61,3 +70,17 @@ class Device(Protocol):
     def __enter__(self): ...
 
     def __exit__(self, *exc) -> None: ...
+
+
+# Optional abilities: a backend offers them by having the method; callers test with
+# isinstance (tests/test_device_conformance.py checks every registered backend).
+@runtime_checkable
+class RawReading(Protocol):
+    def read_raw(self, timeout: float) -> tuple[int, float, float, int]:
+        """``read()`` as a plain (seq, t_s, position_m, flags) tuple: no object per sample."""
+
+
+@runtime_checkable
+class StatusReporting(Protocol):
+    def status(self) -> DeviceStatus:
+        """State, latched fault and link counters, from memory (no bus traffic)."""

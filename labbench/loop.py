@@ -44,7 +44,7 @@ from itertools import chain
 import numpy as np
 
 from labbench import records
-from labbench.device import DeviceFault
+from labbench.device import DeviceFault, RawReading
 from labbench.errors import UserError
 from labbench.safety import (
     CLAMP,
@@ -252,8 +252,9 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     late = 1.5 * T if paced else float("inf")
     too_late = wd if paced else float("inf")
 
-    raw = getattr(device, "read_raw", None)
-    if raw is None:
+    if isinstance(device, RawReading):
+        raw = device.read_raw
+    else:
         def raw(timeout, _read=device.read):
             s = _read(timeout)
             return s.seq, s.t_s, s.position_m, s.flags

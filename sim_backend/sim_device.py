@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from labbench.device import DeviceDescription, DeviceFault, Sample
+from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import UserError
 from labbench.ve import DEFAULT_PLANT
 from labbench.sim_backend.friction import reversing_step
@@ -130,6 +130,11 @@ class SimDevice:
 
     def command(self, force_n: float) -> None:
         self._u = force_n
+
+    def status(self) -> DeviceStatus:
+        state = ("closed" if self.closed else "E-STOP latched" if self.estopped
+                 else "enabled" if self.enabled else "disabled")
+        return DeviceStatus(state)
 
     def read(self, timeout: float) -> Sample:
         return Sample(*self.read_raw(timeout))

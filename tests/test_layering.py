@@ -63,3 +63,14 @@ def test_plugins_use_the_installed_namespace():
                 if name.split(".")[0] in ("drivers", "sim_backend", "protocols", "gui"):
                     bad.append(f"{path.relative_to(ROOT)}:{line}: {name}")
     assert bad == []
+
+
+def test_every_package_folder_is_installed():
+    """pyproject lists packages by hand (package-dir maps the folders): none may be missing."""
+    import tomllib
+
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = {".".join((top, *init.parent.relative_to(ROOT / folder).parts))
+             for top, folder in tool["package-dir"].items()
+             for init in (ROOT / folder).rglob("__init__.py")}
+    assert found == set(tool["packages"])
