@@ -38,7 +38,7 @@ from labbench.registry import open_device  # noqa: E402
 from labbench.records import PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.runner import run  # noqa: E402
-from labbench.session import SessionWriter  # noqa: E402
+from labbench.session_format import SessionWriter  # noqa: E402
 from labbench.registry import make_protocol  # noqa: E402
 
 
@@ -66,7 +66,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60):
         buf.add(r)
     win.buffer = buf
     start, desc = buf.start, buf.descriptor
-    from labbench.session import analysis_meta
+    from labbench.session_content import analysis_meta
     from labbench.gui.main_window import ve_from_meta
 
     meta = analysis_meta(start, desc)

@@ -5,7 +5,7 @@ for milliseconds at a time, and a 1 kHz loop on another thread of that process
 misses its periods. So the device lives in a child process (``spawn``: nothing
 of the GUI's state or Qt is inherited; this module imports no Qt) that opens
 it, enables it, runs protocols through ``labbench.runner.run`` and records the
-session with ``labbench.session.SessionWriter``.
+session with ``labbench.session_format.SessionWriter``.
 
 Pipes between the two (all put calls are non-blocking, so neither side ever
 waits for the other):
@@ -177,7 +177,7 @@ class _Child:
     def do_run(self, protocol_name, settings, rig, session_dir, start_extra):
         from labbench.records import START
         from labbench.runner import run
-        from labbench.session import SessionWriter
+        from labbench.session_format import SessionWriter
         from labbench.registry import make_protocol
 
         device = self._dev()

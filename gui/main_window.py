@@ -539,7 +539,7 @@ class MainWindow(QtWidgets.QMainWindow):
         return opts
 
     def _estimate_inputs(self, buf):
-        from labbench.session import analysis_meta
+        from labbench.session_content import analysis_meta
 
         meta = analysis_meta(buf.start, buf.descriptor or {})
         ve = ve_from_meta(meta)
@@ -593,7 +593,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- sessions -------------------------------------------------------------------------
     @guarded
     def refresh_sessions(self):
-        from labbench.session import list_sessions
+        from labbench.session_catalogue import list_sessions
 
         d = self.sessions.directory
         if not d.exists():
@@ -605,7 +605,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def replay(self, path: str, speed):
         if self.mode != "idle":
             raise UserError(f"a {self.mode} is in progress; stop it first")
-        from labbench.session import looks_like_session
+        from labbench.session_format import looks_like_session
 
         if not looks_like_session(path):
             raise UserError(f"not a labbench session file: {path}")
@@ -659,7 +659,7 @@ def scalar_summary(results: dict, prefix: str = "", depth: int = 2) -> str:
 
 
 def ve_from_meta(meta: dict) -> VirtualEnvironment | None:
-    """The run's VE from analysis metadata (``labbench.session.analysis_meta``)."""
+    """The run's VE from analysis metadata (``labbench.session_content.analysis_meta``)."""
     if "ve" not in meta or not meta.get("fs"):
         return None
     w0 = meta.get("w0")
@@ -682,10 +682,10 @@ def precheck_text(rep: dict) -> str:
 
 def reanalyse_session(path: str, estimator: str | None, plant: Plant | None):
     """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker."""
-    from labbench.session import load_analysis_arrays
+    from labbench.session_content import load_analysis_arrays
 
     arrays = load_analysis_arrays(path)
-    from labbench.session import load_session
+    from labbench.session_content import load_session
 
     _start, _desc, ch, _ev, _stop, _problem = load_session(path)
     meta = arrays["meta"]

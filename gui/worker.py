@@ -69,10 +69,10 @@ def run_in_background(mailbox: Mailbox, tag: str, fn: Callable, *args, **kwargs)
 
 def start_replay(mailbox: Mailbox, path, speed: float | None, stop: threading.Event) -> threading.Thread:
     """Read a session back into the mailbox as the same record stream
-    (``labbench.session.replay``: ``speed`` 1.0 = real time, None = as fast as it reads)."""
+    (``labbench.replay.replay``: ``speed`` 1.0 = real time, None = as fast as it reads)."""
 
     def job():
-        from labbench.session import replay
+        from labbench.replay import replay
 
         reader = replay(path, [lambda rec: mailbox.put("record", rec)], speed=speed, stop=stop)
         if reader.problem:

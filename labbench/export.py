@@ -23,7 +23,7 @@ import numpy as np
 from labbench import records
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
-from labbench.session import analysis_meta, load_session
+from labbench.session_content import analysis_meta, load_session
 
 FORMAT = "labbench-session-export 1"
 # analysis columns first; the rest follow in records.CHANNELS order

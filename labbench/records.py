@@ -66,6 +66,14 @@ def stop_record(status: str, reason: str = "", **extra) -> dict:
     return {"kind": STOP, "status": status, "reason": reason, "time": time.time(), **extra}
 
 
+def protocol_name(start: dict) -> str:
+    """The protocol a start record names, as text ("run" when it names none)."""
+    proto = start.get("protocol")
+    if isinstance(proto, dict):  # {"name": ...} or a protocol's describe(): {"protocol": ...}
+        return str(proto.get("name") or proto.get("protocol") or "run")
+    return str(proto or "run")
+
+
 def fan_out(records: Iterable[dict], consumers: Iterable[Consumer]) -> None:
     """Feed a stream to every consumer in order (replay uses this too)."""
     consumers = list(consumers)

@@ -29,7 +29,8 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from labbench.errors import UserError
-from labbench.session import load_session, protocol_name, session_ve
+from labbench.records import protocol_name
+from labbench.session_content import load_session, session_ve
 from labbench.ve import Plant
 
 A4 = (8.27, 11.69)  # inches

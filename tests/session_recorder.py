@@ -68,7 +68,7 @@ def synthetic_stream(n_samples: int = 2000, page_size: int = 100, seed: int = 1,
 
 
 def main() -> int:
-    from labbench.session import SessionWriter
+    from labbench.session_format import SessionWriter
 
     ap = argparse.ArgumentParser()
     ap.add_argument("directory")

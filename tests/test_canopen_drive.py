@@ -287,7 +287,7 @@ def cli_etfe(tmp_path, device, duration_s):
     import json
 
     from labbench.cli import main
-    from labbench.session import load_session
+    from labbench.session_content import load_session
 
     rig_file = tmp_path / "rig.toml"
     # Lock-step runs on a shared machine: a generous loop watchdog (the loop does

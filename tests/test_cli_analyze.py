@@ -76,7 +76,7 @@ def test_etfe_paper_estimator_and_plot(loop_csv, tmp_path, capsys):
 def test_etfe_of_a_recorded_session(tmp_path, capsys):
     from session_recorder import synthetic_stream
 
-    from labbench.session import SessionWriter
+    from labbench.session_format import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=30000):

@@ -13,7 +13,7 @@ import pytest
 from labbench import theory
 from labbench.cli import main
 from labbench.cli.progress import ProgressBar
-from labbench.session import read_session
+from labbench.session_format import read_session
 from labbench.ve import Plant, VirtualEnvironment
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -61,7 +61,7 @@ def test_unreadable_and_missing_files(tmp_path):
 def test_session_file_loads_through_the_same_entry_point(tmp_path):
     from session_recorder import synthetic_stream
 
-    from labbench.session import SessionWriter
+    from labbench.session_format import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=3000):

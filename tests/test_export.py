@@ -9,7 +9,7 @@ from session_recorder import VE, synthetic_stream
 from labbench import records
 from labbench.cli import main
 from labbench.export import CSV_COLUMNS
-from labbench.session import SessionWriter
+from labbench.session_format import SessionWriter
 
 
 @pytest.fixture

@@ -20,7 +20,8 @@ from labbench.gui.app import run_app  # noqa: E402
 from labbench.gui.live_estimate import estimate  # noqa: E402
 from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.session import analysis_meta, list_sessions, load_session  # noqa: E402
+from labbench.session_catalogue import list_sessions  # noqa: E402
+from labbench.session_content import analysis_meta, load_session  # noqa: E402
 from labbench.ve import Plant  # noqa: E402
 
 TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (labbench.sim_backend.sim_device)

@@ -11,7 +11,7 @@ from session_recorder import synthetic_stream
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
-from labbench.session import SessionWriter
+from labbench.session_format import SessionWriter
 
 TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig
 

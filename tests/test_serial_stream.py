@@ -396,7 +396,7 @@ def cli_etfe(tmp_path, device, duration_s):
     import json
 
     from labbench.cli import main
-    from labbench.session import load_session
+    from labbench.session_content import load_session
 
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text("[sim]\nquantize = true\n[safety]\nwatchdog_s = 2.0\n")

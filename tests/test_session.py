@@ -10,15 +10,9 @@ from session_recorder import VE, synthetic_stream
 
 from labbench import records
 from labbench.errors import UserError
-from labbench.session import (
-    MAGIC,
-    SessionWriter,
-    encode_record,
-    list_sessions,
-    load_analysis_arrays,
-    looks_like_session,
-    read_session,
-)
+from labbench.session_catalogue import list_sessions
+from labbench.session_content import load_analysis_arrays
+from labbench.session_format import MAGIC, SessionWriter, encode_record, looks_like_session, read_session
 
 
 def _write(directory, stream, **kw):
@@ -209,7 +203,7 @@ def test_writer_fsyncs_while_idle(tmp_path, monkeypatch):
 
 
 def test_replay_feeds_the_same_stream(tmp_path):
-    from labbench.session import StreamSummary, replay
+    from labbench.replay import StreamSummary, replay
 
     stream = synthetic_stream(1000)
     path = _write(tmp_path, stream)
@@ -227,7 +221,7 @@ def test_replay_feeds_the_same_stream(tmp_path):
 
 
 def test_summary_counts_dropped_samples():
-    from labbench.session import StreamSummary
+    from labbench.replay import StreamSummary
 
     stream = synthetic_stream(300)
     for page in stream[3:5]:  # 7 samples missing inside page 1
@@ -239,7 +233,7 @@ def test_summary_counts_dropped_samples():
 
 
 def test_replay_paces_by_sample_time(tmp_path):
-    from labbench.session import replay
+    from labbench.replay import replay
 
     path = _write(tmp_path, synthetic_stream(1000, events=False))
     now = [0.0]
@@ -262,7 +256,7 @@ def test_replay_paces_by_sample_time(tmp_path):
 def test_replay_stops_on_request(tmp_path):
     import threading
 
-    from labbench.session import replay
+    from labbench.replay import replay
 
     path = _write(tmp_path, synthetic_stream(1000))
     stop = threading.Event()

@@ -12,7 +12,7 @@ import numpy as np
 from session_recorder import synthetic_stream
 
 from labbench import records
-from labbench.session import read_session
+from labbench.session_format import read_session
 
 RECORDER = Path(__file__).with_name("session_recorder.py")
 SECONDS = 5.0

@@ -87,10 +87,12 @@ def load_recording(path) -> Recording:
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     if path.suffix.lower() != ".csv":
-        from labbench import session  # lazy: sessions are another module's business
+        # lazy: sessions are another module's business
+        from labbench.session_content import load_analysis_arrays
+        from labbench.session_format import looks_like_session
 
-        if session.looks_like_session(path):
-            return recording_from_arrays(**session.load_analysis_arrays(path), source=str(path))
+        if looks_like_session(path):
+            return recording_from_arrays(**load_analysis_arrays(path), source=str(path))
     return _load_csv(path)
 
 

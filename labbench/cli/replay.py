@@ -20,7 +20,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from labbench.jsonutil import json_safe
-    from labbench.session import StreamSummary, replay
+    from labbench.replay import StreamSummary, replay
 
     summary = StreamSummary()
     reader = replay(args.session, [summary], speed=args.speed)

@@ -122,7 +122,8 @@ def _options(args) -> dict:
 def last_identified(directory, rig) -> dict | None:
     """m, b of the newest successful chirp-ID session of this rig in ``directory`` (or None)."""
     from labbench import records
-    from labbench.session import SessionReader, list_sessions
+    from labbench.session_catalogue import list_sessions
+    from labbench.session_format import SessionReader
 
     if not Path(directory).is_dir():
         return None
@@ -141,7 +142,7 @@ def last_identified(directory, rig) -> dict | None:
 def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
     """Make the protocol, open the device, run with a session writer; (result, session path)."""
     from labbench.runner import run
-    from labbench.session import SessionWriter
+    from labbench.session_format import SessionWriter
     from labbench.registry import make_protocol
 
     if (getattr(args, "plant_from", "nominal") == "last-id" and name != "chirp-id"

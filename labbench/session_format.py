@@ -1,4 +1,4 @@
-"""Session files: one crash-safe, append-only file per run holding the record stream.
+"""The session file format: one crash-safe, append-only file per run holding the record stream.
 
 Layout (all integers little-endian)::
 
@@ -23,7 +23,6 @@ stops at the first short, corrupt or out-of-sequence chunk and says so in
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import struct
@@ -31,14 +30,12 @@ import threading
 import time
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from labbench import records
 from labbench.errors import UserError
-from labbench.ve import VirtualEnvironment
 
 MAGIC = b"LBSESSION 1\n"
 SUFFIX = ".lbsession"
@@ -218,13 +215,6 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9-]+", "-", str(text)).strip("-") or "run"
 
 
-def protocol_name(start: dict) -> str:
-    proto = start.get("protocol")
-    if isinstance(proto, dict):  # {"name": ...} or a protocol's describe(): {"protocol": ...}
-        return str(proto.get("name") or proto.get("protocol") or "run")
-    return str(proto or "run")
-
-
 class SessionWriter:
     """Record consumer that writes one session file per run.
 
@@ -261,7 +251,7 @@ class SessionWriter:
             return self.name if Path(self.name).suffix else self.name + SUFFIX
         stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(start.get("time", time.time())))
         uid = str(start.get("uid", ""))[:8] or "nouid"
-        return f"{stamp}_{_slug(protocol_name(start))}_{_slug(uid)}{SUFFIX}"
+        return f"{stamp}_{_slug(records.protocol_name(start))}_{_slug(uid)}{SUFFIX}"
 
     def _open(self, start: dict) -> None:
         if start.get("kind") != records.START:
@@ -323,229 +313,3 @@ class SessionWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-@dataclass(frozen=True)
-class SessionSummary:
-    path: Path
-    uid: str | None
-    time: float | None
-    rig_name: str | None
-    protocol: str | None
-    status: str  # the stop record's status, or "incomplete"
-    n_samples: int
-
-
-def summarize(path) -> SessionSummary:
-    """Header facts of one session without decoding its sample arrays."""
-    start, stop, n = None, None, 0
-    with SessionReader(path, decode_pages=False) as reader:
-        for rec in reader:
-            kind = rec.get("kind")
-            if kind == records.START and start is None:
-                start = rec
-            elif kind == records.PAGE:
-                shapes = list(rec["data"].values())
-                n += int(shapes[0][0]) if shapes and shapes[0] else 0
-            elif kind == records.STOP:
-                stop = rec
-    start = start or {}
-    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
-    return SessionSummary(
-        path=Path(path),
-        uid=start.get("uid"),
-        time=start.get("time"),
-        rig_name=rig.get("name"),
-        protocol=protocol_name(start) if start else None,
-        status=str(stop.get("status")) if stop else "incomplete",
-        n_samples=n,
-    )
-
-
-def list_sessions(directory) -> list[SessionSummary]:
-    """Every session file directly in ``directory``, oldest first."""
-    d = Path(directory)
-    if not d.is_dir():
-        raise UserError(f"not a directory: {d}")
-    found = [summarize(p) for p in sorted(d.iterdir()) if p.is_file() and looks_like_session(p)]
-    return sorted(found, key=lambda s: (s.time or 0.0, str(s.path)))
-
-
-def session_ve(start: dict) -> VirtualEnvironment | None:
-    """The VE a run started with, from its start record.
-
-    Accepts a VE dict (``VirtualEnvironment.as_dict``) under ``start["ve"]`` or the
-    protocol's ``ve``, or a protocol config with ``ve`` = kind and ``K``, ``B``,
-    ``w0_rad_s``, ``td_s``. ``None`` when the record names no VE.
-    """
-    proto = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
-    for candidate in (start.get("ve"), proto.get("ve")):
-        if isinstance(candidate, dict):
-            return VirtualEnvironment.from_dict(candidate)
-    if not isinstance(proto.get("ve"), str):
-        return None
-    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
-    w0 = proto.get("w0_rad_s")
-    return VirtualEnvironment(
-        proto["ve"], K=float(proto.get("K", 0.0)), B=float(proto.get("B", 0.0)),
-        w0=math.inf if w0 is None else float(w0),
-        T=float(proto.get("sample_time_s") or rig.get("sample_time_s") or 0.001),
-        td=float(proto.get("td_s", 0.0)))
-
-
-def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
-    """(start, descriptor, channels, events, stop, problem) of a session, pages joined."""
-    reader = read_session(path)
-    start, desc, stop, events, pages = {}, {}, None, [], []
-    with reader:
-        for rec in reader:
-            kind = rec.get("kind")
-            if kind == records.START:
-                start = rec
-            elif kind == records.DESCRIPTOR:
-                desc = rec
-            elif kind == records.PAGE:
-                pages.append(rec)
-            elif kind == records.EVENT:
-                events.append(rec)
-            elif kind == records.STOP:
-                stop = rec
-    return start, desc, records.concat_pages(pages), events, stop, reader.problem
-
-
-def analysis_meta(start: dict, desc: dict) -> dict:
-    """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td, protocol."""
-    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
-    T = desc.get("sample_time_s") or rig.get("sample_time_s")
-    ve = session_ve(start)
-    meta = {"protocol": protocol_name(start)}
-    if T:
-        meta["fs"] = 1.0 / float(T)
-    if ve is not None:
-        meta.update(ve=ve.kind, K=ve.K, B=ve.B, td=ve.td)
-        if math.isfinite(ve.w0):
-            meta["w0"] = ve.w0
-    for key in ("uid", "seed"):
-        if start.get(key) is not None:
-            meta[key] = start[key]
-    if rig.get("name"):
-        meta["rig"] = rig["name"]
-    return meta
-
-
-def load_analysis_arrays(path) -> dict:
-    """``dict(t, force, position, meta)`` for the analysis.
-
-    ``force`` is the exogenous force (the "excitation" channel), ``position`` the
-    sampled position; ``meta`` has fs, ve, K, B, w0, td, protocol (docs/analysis.md).
-    """
-    start, desc, ch, _events, _stop, _problem = load_session(path)
-    if ch["t"].size == 0:
-        raise UserError(f"session {path} holds no samples")
-    return {
-        "t": ch["t"].astype(float),
-        "force": ch["excitation"].astype(float),
-        "position": ch["position"].astype(float),
-        "meta": analysis_meta(start, desc),
-    }
-
-
-def replay(path, consumers, speed: float | None = None, stop: threading.Event | None = None,
-           clock=time.monotonic, sleep=time.sleep) -> SessionReader:
-    """Feed a session's stream to ``consumers`` (``records.fan_out``), as recorded.
-
-    ``speed`` None: as fast as possible; otherwise a page is delivered when its last
-    sample falls due at ``speed`` times real time (an event at its ``t``). Setting
-    ``stop`` ends the replay early. Returns the reader (its ``problem`` tells of a
-    damaged tail).
-    """
-    if speed is not None and not speed > 0:
-        raise UserError(f"replay speed must be positive, got {speed}")
-    reader = read_session(path)
-
-    def paced():
-        t_first, wall0 = None, None
-        for rec in reader:
-            if stop is not None and stop.is_set():
-                break
-            t = _stream_time(rec)
-            if speed is not None and t is not None:
-                if t_first is None:
-                    t_first, wall0 = t, clock()
-                delay = wall0 + (t - t_first) / speed - clock()
-                if delay > 0 and stop is None:
-                    sleep(delay)
-                elif delay > 0 and stop.wait(delay):
-                    break
-            yield rec
-
-    with reader:
-        records.fan_out(paced(), consumers)
-    return reader
-
-
-def _stream_time(rec: dict) -> float | None:
-    if rec.get("kind") == records.PAGE and len(rec["data"]["t"]):
-        return float(rec["data"]["t"][-1])
-    if rec.get("kind") == records.EVENT and rec.get("t") is not None:
-        return float(rec["t"])
-    return None
-
-
-class StreamSummary:
-    """Consumer that condenses a stream: identity, samples, drops, events, status, timing."""
-
-    def __init__(self):
-        self.start: dict = {}
-        self.stop: dict | None = None
-        self.events: list[dict] = []
-        self.n_records = self.n_pages = self.n_samples = self.dropped = 0
-        self.t_first = self.t_last = None
-        self.max_abs_command_n = 0.0
-        self._last_seq = None
-
-    def __call__(self, rec: dict) -> None:
-        self.n_records += 1
-        kind = rec.get("kind")
-        if kind == records.START:
-            self.start = rec
-        elif kind == records.PAGE:
-            d = rec["data"]
-            n = len(d["t"])
-            if n == 0:
-                return
-            self.n_pages += 1
-            self.n_samples += n
-            seq = np.asarray(d["seq"], dtype=np.int64)
-            prev = self._last_seq if self._last_seq is not None else seq[0] - 1
-            steps = np.diff(np.concatenate([[prev], seq]))
-            self.dropped += int(np.sum(np.clip(steps - 1, 0, None)))
-            self._last_seq = int(seq[-1])
-            self.t_first = float(d["t"][0]) if self.t_first is None else self.t_first
-            self.t_last = float(d["t"][-1])
-            self.max_abs_command_n = max(self.max_abs_command_n,
-                                         float(np.max(np.abs(d["command"]))))
-        elif kind == records.EVENT:
-            self.events.append(rec)
-        elif kind == records.STOP:
-            self.stop = rec
-
-    def as_dict(self) -> dict:
-        rig = self.start.get("rig") if isinstance(self.start.get("rig"), dict) else {}
-        stop = self.stop or {}
-        return {
-            "uid": self.start.get("uid"),
-            "protocol": protocol_name(self.start) if self.start else None,
-            "rig": rig.get("name"),
-            "status": stop.get("status", "incomplete"),
-            "reason": stop.get("reason", ""),
-            "records": self.n_records,
-            "pages": self.n_pages,
-            "samples": self.n_samples,
-            "dropped_samples": self.dropped,
-            "duration_s": (self.t_last - self.t_first) if self.n_samples else 0.0,
-            "max_abs_command_n": self.max_abs_command_n,
-            "events": [{"t": e.get("t"), "name": e.get("name"), "reason": e.get("reason")}
-                       for e in self.events],
-            "timing": stop.get("timing"),
-        }

@@ -1,0 +1,55 @@
+"""The session catalogue: what sessions a folder holds, from their headers alone."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from labbench import records
+from labbench.errors import UserError
+from labbench.session_format import SessionReader, looks_like_session
+
+
+@dataclass(frozen=True)
+class SessionSummary:
+    path: Path
+    uid: str | None
+    time: float | None
+    rig_name: str | None
+    protocol: str | None
+    status: str  # the stop record's status, or "incomplete"
+    n_samples: int
+
+
+def summarize(path) -> SessionSummary:
+    """Header facts of one session without decoding its sample arrays."""
+    start, stop, n = None, None, 0
+    with SessionReader(path, decode_pages=False) as reader:
+        for rec in reader:
+            kind = rec.get("kind")
+            if kind == records.START and start is None:
+                start = rec
+            elif kind == records.PAGE:
+                shapes = list(rec["data"].values())
+                n += int(shapes[0][0]) if shapes and shapes[0] else 0
+            elif kind == records.STOP:
+                stop = rec
+    start = start or {}
+    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    return SessionSummary(
+        path=Path(path),
+        uid=start.get("uid"),
+        time=start.get("time"),
+        rig_name=rig.get("name"),
+        protocol=records.protocol_name(start) if start else None,
+        status=str(stop.get("status")) if stop else "incomplete",
+        n_samples=n,
+    )
+
+
+def list_sessions(directory) -> list[SessionSummary]:
+    """Every session file directly in ``directory``, oldest first."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise UserError(f"not a directory: {d}")
+    found = [summarize(p) for p in sorted(d.iterdir()) if p.is_file() and looks_like_session(p)]
+    return sorted(found, key=lambda s: (s.time or 0.0, str(s.path)))

@@ -1,0 +1,90 @@
+"""What a session says: its whole stream joined, its VE, its analysis arrays and metadata."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from labbench import records
+from labbench.errors import UserError
+from labbench.session_format import read_session
+from labbench.ve import VirtualEnvironment
+
+
+def session_ve(start: dict) -> VirtualEnvironment | None:
+    """The VE a run started with, from its start record.
+
+    Accepts a VE dict (``VirtualEnvironment.as_dict``) under ``start["ve"]`` or the
+    protocol's ``ve``, or a protocol config with ``ve`` = kind and ``K``, ``B``,
+    ``w0_rad_s``, ``td_s``. ``None`` when the record names no VE.
+    """
+    proto = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
+    for candidate in (start.get("ve"), proto.get("ve")):
+        if isinstance(candidate, dict):
+            return VirtualEnvironment.from_dict(candidate)
+    if not isinstance(proto.get("ve"), str):
+        return None
+    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    w0 = proto.get("w0_rad_s")
+    return VirtualEnvironment(
+        proto["ve"], K=float(proto.get("K", 0.0)), B=float(proto.get("B", 0.0)),
+        w0=math.inf if w0 is None else float(w0),
+        T=float(proto.get("sample_time_s") or rig.get("sample_time_s") or 0.001),
+        td=float(proto.get("td_s", 0.0)))
+
+
+def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
+    """(start, descriptor, channels, events, stop, problem) of a session, pages joined."""
+    reader = read_session(path)
+    start, desc, stop, events, pages = {}, {}, None, [], []
+    with reader:
+        for rec in reader:
+            kind = rec.get("kind")
+            if kind == records.START:
+                start = rec
+            elif kind == records.DESCRIPTOR:
+                desc = rec
+            elif kind == records.PAGE:
+                pages.append(rec)
+            elif kind == records.EVENT:
+                events.append(rec)
+            elif kind == records.STOP:
+                stop = rec
+    return start, desc, records.concat_pages(pages), events, stop, reader.problem
+
+
+def analysis_meta(start: dict, desc: dict) -> dict:
+    """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td, protocol."""
+    rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    T = desc.get("sample_time_s") or rig.get("sample_time_s")
+    ve = session_ve(start)
+    meta = {"protocol": records.protocol_name(start)}
+    if T:
+        meta["fs"] = 1.0 / float(T)
+    if ve is not None:
+        meta.update(ve=ve.kind, K=ve.K, B=ve.B, td=ve.td)
+        if math.isfinite(ve.w0):
+            meta["w0"] = ve.w0
+    for key in ("uid", "seed"):
+        if start.get(key) is not None:
+            meta[key] = start[key]
+    if rig.get("name"):
+        meta["rig"] = rig["name"]
+    return meta
+
+
+def load_analysis_arrays(path) -> dict:
+    """``dict(t, force, position, meta)`` for the analysis.
+
+    ``force`` is the exogenous force (the "excitation" channel), ``position`` the
+    sampled position; ``meta`` has fs, ve, K, B, w0, td, protocol (docs/analysis.md).
+    """
+    start, desc, ch, _events, _stop, _problem = load_session(path)
+    if ch["t"].size == 0:
+        raise UserError(f"session {path} holds no samples")
+    return {
+        "t": ch["t"].astype(float),
+        "force": ch["excitation"].astype(float),
+        "position": ch["position"].astype(float),
+        "meta": analysis_meta(start, desc),
+    }
