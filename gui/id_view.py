@@ -6,14 +6,9 @@ import pyqtgraph as pg
 from PySide6 import QtWidgets
 
 from labbench.gui.live_plots import COLOURS
+from labbench.numfmt import fmt
 
 
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.5g}"
-    if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
-        return f"[{v[0]:.5g}, {v[1]:.5g}]"
-    return str(v)
 
 
 def model_force(t, force, position, fit: dict, hold: str = "zoh"):
@@ -100,7 +95,7 @@ class IdView(QtWidgets.QWidget):
         self.table.setVerticalHeaderLabels(keys)
         for c, method in enumerate(results):
             for r, k in enumerate(keys):
-                self.table.setItem(r, c, QtWidgets.QTableWidgetItem(_fmt(rows[k].get(method, ""))))
+                self.table.setItem(r, c, QtWidgets.QTableWidgetItem(fmt(rows[k].get(method, ""), 5)))
         self.table.resizeColumnsToContents()
         self.flags.setText("<br>".join(f"<b>{m}</b>: {f}" for m, res in results.items()
                                        for f in res.get("flags") or []))

@@ -29,6 +29,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from labbench.errors import UserError
+from labbench.numfmt import fmt
 from labbench.records import protocol_name
 from labbench.session_content import load_session, session_ve
 from labbench.ve import Plant
@@ -61,23 +62,6 @@ class Picture:
     caption: str
     png: bytes
     figure: Figure | None = field(default=None, repr=False)  # vector source for the PDF
-
-
-def fmt(v, digits: int = 4) -> str:
-    """Numbers to ``digits`` significant digits; None as a dash; lists joined."""
-    if v is None:
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        return f"{v:.{digits}g}" if math.isfinite(v) else str(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(fmt(x, digits) for x in v) + "]"
-    if isinstance(v, dict):
-        return ", ".join(f"{k}={fmt(x, digits)}" for k, x in v.items())
-    return str(v)
 
 
 def _kv(title: str, items) -> Table:

@@ -11,6 +11,7 @@ import numpy as np
 
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
+from labbench.numfmt import fmt
 
 
 def register(subparsers) -> None:
@@ -118,7 +119,7 @@ def run_etfe(args) -> int:
 def _print_table(path, d, cmp) -> None:
     w = np.asarray(d["w"])
     print(f"{path}: estimator {d['estimator']}, {len(w)} frequencies "
-          f"{w[0]:.3g}-{w[-1]:.4g} rad/s; ws* = {_fmt(d['ws_star'])} rad/s, wb* = {_fmt(d['wb_star'])} rad/s")
+          f"{w[0]:.3g}-{w[-1]:.4g} rad/s; ws* = {fmt(d['ws_star'])} rad/s, wb* = {fmt(d['wb_star'])} rad/s")
     if cmp is not None:
         print(f"theory ({cmp['model']} model, m = {cmp['plant']['m']:.4g} kg, b = {cmp['plant']['b']:.4g} "
               f"N s/m {cmp['plant_source']}): deviation median {_pct(cmp['deviation_median'])}, "
@@ -133,8 +134,6 @@ def _print_table(path, d, cmp) -> None:
               f"{d['coherence'][i]:6.3f} {d['ES'][i]:10.4g} {d['ED'][i]:10.4g} {d['EM'][i]:10.4g}")
 
 
-def _fmt(v) -> str:
-    return "-" if v is None else f"{v:.4g}"
 
 
 def _pct(v) -> str:

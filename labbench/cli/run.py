@@ -17,6 +17,7 @@ from pathlib import Path
 from labbench.jsonutil import json_safe
 from labbench.registry import device_names, open_device
 from labbench.errors import UserError
+from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
 from labbench.rig import load_rig
 
@@ -244,16 +245,14 @@ def summary_lines(name: str, results: dict) -> list[str]:
                          f"b = {p.get('b', 0):.4g} N s/m)")
         bw = results.get("bandwidths", {})
         lines.append("w_s* measured {} / predicted {} rad/s; w_b* measured {} / predicted {} rad/s".format(
-            *(_g(bw.get(k)) for k in ("ws_star_measured", "ws_star_predicted", "wb_star_measured",
+            *(fmt(bw.get(k)) for k in ("ws_star_measured", "ws_star_predicted", "wb_star_measured",
                                       "wb_star_predicted"))))
     elif name == "stability":
         unit = "N/m" if results.get("variable") == "K" else "s"
-        lines.append(f"boundary ({results.get('variable')}): measured {_g(results.get('measured_boundary'))}, "
-                     f"exact {_g(results.get('exact_boundary'))}, paper approx. "
-                     f"{_g(results.get('approx_boundary'))} {unit}")
+        lines.append(f"boundary ({results.get('variable')}): measured {fmt(results.get('measured_boundary'))}, "
+                     f"exact {fmt(results.get('exact_boundary'))}, paper approx. "
+                     f"{fmt(results.get('approx_boundary'))} {unit}")
     return lines
 
 
-def _g(v) -> str:
-    return "-" if v is None else f"{v:.4g}"
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from labbench import theory
 from labbench.cli.main import float_list
+from labbench.numfmt import fmt
 from labbench.jsonutil import json_safe
 from labbench.effective import effective_impedances
 from labbench.errors import UserError
@@ -128,9 +129,6 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str) -> 
     }
 
 
-def _fmt(v, spec=".4g") -> str:
-    """Number for people: rounding noise below 1e-12 shows as 0."""
-    return "-" if v is None else format(round(v, 12) + 0.0, spec)
 
 
 def _headline(s: dict) -> str:
@@ -142,13 +140,13 @@ def _headline(s: dict) -> str:
         stab = f"{verdict} (spectral radius {s['spectral_radius']:.6f})"
     line = f"td = {ve['td']:g} s: {stab}"
     if s["K_max_approx"] is not None:
-        line += f"; K_max {_fmt(s['K_max'])} N/m (paper approx {_fmt(s['K_max_approx'])})"
+        line += f"; K_max {fmt(s['K_max'])} N/m (paper approx {fmt(s['K_max_approx'])})"
     de = s["delay_effects"]
     if "ED_drop_paper" in de:
-        line += (f"; low-w ED drop {_fmt(de['ED_drop_paper'])} paper, {_fmt(de['ED_drop_sampled'])}"
+        line += (f"; low-w ED drop {fmt(de['ED_drop_paper'])} paper, {fmt(de['ED_drop_sampled'])}"
                  f" sampled vs K(T/2+td) = {de['K_tau']:.4g} N s/m")
     if "EM_drop_paper" in de:
-        line += (f"; low-w EM drop {_fmt(de['EM_drop_paper'])} paper, {_fmt(de['EM_drop_sampled'])}"
+        line += (f"; low-w EM drop {fmt(de['EM_drop_paper'])} paper, {fmt(de['EM_drop_sampled'])}"
                  f" sampled vs B(T/2+td) = {de['B_tau']:.4g} kg")
     return line
 
@@ -157,11 +155,11 @@ def table(s: dict) -> str:
     ve, pl = s["ve"], s["plant"]
     head = [
         f"{ve['kind']} VE, {s['model']} model: m = {pl['m']:g} kg, b = {pl['b']:g} N s/m, "
-        + "".join(f"{name} = {_fmt(ve[name], 'g')} {unit}, " for name, unit in
+        + "".join(f"{name} = {fmt(ve[name], 6)} {unit}, " for name, unit in
                   (("K", "N/m"), ("B", "N s/m"), ("w0", "rad/s")) if name in USES[ve["kind"]])
         + f"T = {ve['T']:g} s",
         _headline(s),
-        f"ws* = {_fmt(s['ws_star'])} rad/s, wb* = {_fmt(s['wb_star'])} rad/s",
+        f"ws* = {fmt(s['ws_star'])} rad/s, wb* = {fmt(s['wb_star'])} rad/s",
         "",
         f"{'w rad/s':>10} {'|Z| dB':>8} {'phase':>8} {'Re Z':>10} {'Im Z':>10} "
         f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}",
@@ -171,7 +169,7 @@ def table(s: dict) -> str:
     # ES where Im Z < 0, EM where Im Z > 0 (paper Figure 2); the JSON keeps both signed
     rows = [
         f"{w:10.4g} {20 * np.log10(abs(z)):8.2f} {ph:8.2f} {z.real:10.4g} {z.imag:10.4g} "
-        f"{_fmt(es if z.imag < 0 else None):>10} {ed:10.4g} {_fmt(em if z.imag > 0 else None):>10}"
+        f"{fmt(es if z.imag < 0 else None):>10} {ed:10.4g} {fmt(em if z.imag > 0 else None):>10}"
         for w, z, ph, es, ed, em in zip(s["w"], Z, phase, s["ES"], s["ED"], s["EM"])
     ]
     return "\n".join(head + rows)
