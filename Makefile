@@ -3,7 +3,12 @@ PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo gui test bench clean
+# What the firmware tests need (docs/serial-protocol.md, "Emulated board"): the AVR
+# toolchain, the Arduino core and simavr's library. Installed when missing and we are
+# root with apt-get (CI); otherwise those tests skip and say why.
+AVR_APT := gcc-avr avr-libc binutils-avr arduino-core-avr libsimavr2
+
+.PHONY: demo gui test bench clean avr-deps
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PY) -m venv $(VENV)
@@ -17,8 +22,20 @@ demo: $(STAMP)
 gui: $(STAMP)
 	$(VENV)/bin/labbench gui
 
-test: $(STAMP)
+test: $(STAMP) avr-deps
 	QT_QPA_PLATFORM=offscreen $(VENV)/bin/pytest -q
+
+avr-deps:
+	@if command -v avr-gcc >/dev/null && [ -f /usr/share/arduino/hardware/arduino/avr/platform.txt ] \
+	    && [ -n "$$(ls /usr/lib/libsimavr.so.2 /usr/lib/*/libsimavr.so.2 2>/dev/null)" ]; then \
+	  echo "avr-deps: installed"; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	    --no-install-recommends $(AVR_APT) >/dev/null \
+	    || echo "avr-deps: apt-get failed: the firmware tests will skip"; \
+	else \
+	  echo "avr-deps: not root or no apt-get: the firmware tests will skip (need $(AVR_APT))"; \
+	fi
 
 bench: $(STAMP)
 	for f in bench/bench_*.py; do $(VENV)/bin/python $$f || exit 1; done

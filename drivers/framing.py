@@ -37,8 +37,12 @@ SAMPLE_FRAME_LEN = SAMPLE_PAYLOAD_LEN + 1
 COMMAND_FRAME_LEN = COMMAND_PAYLOAD_LEN + 1
 
 # Board status bits carried in a sample frame (the reference sketch sets them).
+# Protocol v1 defines bits 0-1; v2 adds bits 2-4 (a v1 board leaves them zero).
 STATUS_WATCHDOG = 0x01  # board zeroed its output: no command within 3 periods
 STATUS_BAD_COMMAND = 0x02  # board discarded a command frame (CRC/format) since last sample
+STATUS_MISSED_TICK = 0x04  # v2: a sample before this one was latched but never sent
+STATUS_LATE = 0x08  # v2: this frame was queued late after its tick (its timing is suspect)
+STATUS_ENCODER = 0x10  # v2: the encoder skipped a state (an edge came too fast to count)
 
 # One accepted ASCII line: decimal micros (0..4294967295, at most 10 digits),
 # one separator (comma, semicolon, tab or spaces; blanks allowed around it),

@@ -41,6 +41,16 @@ FLAG_LINK_ERRORS = (
 FLAG_BOARD_WATCHDOG = 4  # the board reports it zeroed its output (no command in time)
 FLAG_BOARD_BAD_COMMAND = 8  # the board discarded a corrupt command frame
 FLAG_BACKLOG = 16  # more samples were already waiting behind this one (host is late)
+FLAG_BOARD_MISSED_TICK = 32  # protocol v2: the board latched a sample it could not send
+FLAG_BOARD_LATE = 64  # protocol v2: the board queued this frame late after its tick
+FLAG_BOARD_ENCODER = 128  # protocol v2: the board's encoder skipped a state (count lost)
+_STATUS_FLAGS = (
+    (framing.STATUS_WATCHDOG, FLAG_BOARD_WATCHDOG),
+    (framing.STATUS_BAD_COMMAND, FLAG_BOARD_BAD_COMMAND),
+    (framing.STATUS_MISSED_TICK, FLAG_BOARD_MISSED_TICK),
+    (framing.STATUS_LATE, FLAG_BOARD_LATE),
+    (framing.STATUS_ENCODER, FLAG_BOARD_ENCODER),
+)
 
 SYNC_SAMPLES = 5  # consecutive good samples that make a stream "in sync"
 PERIOD_TOLERANCE = 0.1  # relative mismatch allowed between board period and rig sample time
@@ -171,10 +181,9 @@ class StreamDecoder:
             self._last_seq = seq
             count = self._count.update(raw.count)
             flags = (FLAG_LOST if lost else 0) | (FLAG_LINK_ERRORS if raw.skipped else 0)
-            if raw.status & framing.STATUS_WATCHDOG:
-                flags |= FLAG_BOARD_WATCHDOG
-            if raw.status & framing.STATUS_BAD_COMMAND:
-                flags |= FLAG_BOARD_BAD_COMMAND
+            for status_bit, flag in _STATUS_FLAGS:
+                if raw.status & status_bit:
+                    flags |= flag
             self.samples += 1
             self.lost += lost
             out.append(Decoded(Sample(seq, t_us * 1e-6, count * self._scale, flags), lost))
@@ -354,6 +363,10 @@ class SerialStream:
         self._check_open()
         if self._fault:
             raise DeviceFault(self._fault)
+        if not self._paced:
+            # A lock-step board's time is virtual: a caller's wall-time timeout (the
+            # loop's watchdog) means nothing there; the board's own stale limit rules.
+            timeout = max(timeout, self._stale_s)
         now = self._clock()
         deadline = now + timeout
         while not self._ready:

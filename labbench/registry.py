@@ -29,6 +29,7 @@ _BUILTIN = {
         "sim": "labbench.sim_backend.sim_device:open_sim",
         "sim-canopen": "labbench.sim_backend.canopen_peer:open_sim_canopen",
         "sim-serial": "labbench.sim_backend.arduino_peer:open_sim_serial",
+        "avr-sim": "labbench.sim_backend.avr_device:open_avr_sim",
         "canopen": "labbench.drivers.canopen_drive:open_canopen",
         "serial": "labbench.drivers.serial_stream:open_serial",
     },

@@ -1,0 +1,243 @@
+"""``--device avr-sim``: the reference firmware, built for the ATmega328P, on simavr.
+
+The sketch docs/arduino/labbench_encoder.ino is compiled for an Uno
+(``labbench.sim_backend.avr_build``) and run by the C harness
+(sim_backend/avr/harness.c) inside a simulated mass-damper: the plant's
+position drives the encoder pins, the firmware's PWM duty and DIR pin drive the
+plant, and the board's UART0 is a pty that the real ``SerialStream`` opens, as
+it opens a board on /dev/ttyACM0. So every protocol runs through the firmware
+itself, its timing, its integer and float arithmetic and its PWM quantisation.
+
+Pacing is lock-step by default (emulated time waits for the host's answer to
+each sample; deterministic and independent of the machine's speed, which is
+about real time here), or ``realtime=True`` (emulated time kept to wall time,
+as a real board; this machine's emulator may not keep up).
+
+Plant: ``m`` and ``b`` of ``[sim]`` (default the rig's nominal model), ``x0_m``,
+``v0_m_s``; the amplifier gives ``FULL_SCALE_N`` at 100 % duty, matched to the
+sketch's ``PWM_PER_NEWTON``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from labbench.errors import DeviceConnectionError, UserError
+from labbench.sim_backend import avr_build
+
+CPU_HZ = 16_000_000
+PWM_PER_NEWTON = 40.0  # the sketch's default: duty counts (of 255) per newton
+VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's sample tick
+LOCKSTEP_TIMEOUT_S = 1.0
+_PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s")
+
+
+@dataclass(frozen=True)
+class Trace:
+    """Events the harness wrote (``--trace``), times in seconds of emulated time."""
+
+    tx: list  # (first_s, last_s, nbytes) per 0x00-terminated run sent by the board
+    rx: list  # (first_s, last_s, nbytes) per host frame handed to the UART
+    vec: list  # (pending_s, running_s, count_pending, count_running) per traced ISR
+    force: list  # (t_s, newton) from then on
+
+    @classmethod
+    def read(cls, path: Path) -> Trace:
+        out = {"tx": [], "rx": [], "vec": [], "force": []}
+        for line in path.read_text().splitlines():
+            kind, *fields = line.split()
+            if kind in ("tx", "rx"):
+                out[kind].append((int(fields[0]) / CPU_HZ, int(fields[1]) / CPU_HZ, int(fields[2])))
+            elif kind == "vec":
+                out["vec"].append(
+                    (int(fields[0]) / CPU_HZ, int(fields[1]) / CPU_HZ, int(fields[2]), int(fields[3]))
+                )
+            elif kind == "force":
+                out["force"].append((int(fields[0]) / CPU_HZ, float(fields[1])))
+        return cls(**out)
+
+
+class AvrBoard:
+    """The harness process running one firmware image; ``pty`` is the board's port.
+
+    ``close()`` stops it and returns its statistics (JSON line: emulated and wall
+    seconds, edges, final count and plant state, UART bytes, lock-step timeouts).
+    """
+
+    def __init__(
+        self,
+        hex_path: Path,
+        *,
+        mass_kg: float,
+        damping_ns_m: float,
+        metres_per_count: float,
+        full_scale_n: float,
+        x0_m: float = 0.0,
+        v0_m_s: float = 0.0,
+        baud: int = 500_000,
+        realtime: bool = False,
+        host_latency_us: float = 30.0,
+        trace: bool = False,
+        drive_cps: float | None = None,
+        drive_ms: tuple[float, float] = (0.0, 0.0),
+        max_ms: float = 0.0,
+    ):
+        exe = avr_build.build_harness()
+        self._dir = Path(tempfile.mkdtemp(prefix="avr-sim-"))
+        self.trace_path = self._dir / "trace.txt" if trace else None
+        args = [
+            str(exe), "--hex", str(hex_path), "--mass", repr(mass_kg),
+            "--damping", repr(damping_ns_m), "--metres-per-count", repr(metres_per_count),
+            "--full-scale-n", repr(full_scale_n), "--x0", repr(x0_m), "--v0", repr(v0_m_s),
+            "--baud", str(baud), "--host-latency-us", repr(host_latency_us),
+            "--lockstep-timeout-ms", repr(LOCKSTEP_TIMEOUT_S * 1e3),
+        ]
+        if realtime:
+            args.append("--realtime")
+        if trace:
+            args += ["--trace", str(self.trace_path), "--trace-vector", str(VECTOR_TIMER2_COMPA)]
+        if drive_cps is not None:
+            args += ["--drive-cps", repr(drive_cps), "--drive-start-ms", repr(drive_ms[0]),
+                     "--drive-stop-ms", repr(drive_ms[1])]
+        if max_ms:
+            args += ["--max-ms", repr(max_ms)]
+        self._stderr = open(self._dir / "stderr.txt", "w+b")
+        self._proc = subprocess.Popen(
+            args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr
+        )
+        first = self._proc.stdout.readline().decode().split()
+        if len(first) != 2 or first[0] != "pty":
+            self._proc.kill()
+            raise DeviceConnectionError(f"avr harness did not start: {self._stderr_tail()}")
+        self.pty = first[1]
+        self.stats: dict | None = None
+        self._lock = threading.Lock()
+
+    def _stderr_tail(self) -> str:
+        self._stderr.flush()
+        self._stderr.seek(0)
+        return self._stderr.read()[-2000:].decode(errors="replace").strip() or "(no output)"
+
+    def close(self, timeout: float = 10.0) -> dict:
+        """Stop the emulator (EOF on its stdin) and return its statistics."""
+        with self._lock:
+            if self.stats is not None:
+                return self.stats
+            try:  # communicate() closes stdin: the harness stops on its EOF
+                out, _ = self._proc.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                out, _ = self._proc.communicate()
+            lines = out.decode().strip().splitlines()
+            try:
+                self.stats = json.loads(lines[-1]) if lines else {}
+            except ValueError:
+                self.stats = {}
+            self.stats["exit_code"] = self._proc.returncode
+            self._stderr.close()
+            return self.stats
+
+    def trace(self) -> Trace:
+        """The events of the run (after ``close``)."""
+        return Trace.read(self.trace_path)
+
+    def __del__(self):
+        proc = getattr(self, "_proc", None)
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
+
+def firmware_defines(rig, baud: int) -> dict:
+    """The sketch settings that follow the rig: its period and baud rate."""
+    period_us = rig.sample_time_s * 1e6
+    if abs(period_us - round(period_us)) > 1e-6 or round(period_us) < 100:
+        raise UserError(
+            f"{rig.source}: avr-sim needs a sample_time_s of whole microseconds >= 100 us, "
+            f"got {rig.sample_time_s!r}"
+        )
+    return {"PERIOD_US": f"{round(period_us)}UL", "BAUD": f"{baud}UL"}
+
+
+def _checked(table: dict) -> dict:
+    """The plant's m, b, x0_m, v0_m_s, validated as ``--device sim`` validates them."""
+    from labbench.sim_backend.sim_device import _OPTIONS
+
+    out = {}
+    for name in _PLANT_OPTIONS:
+        default, ok, what = _OPTIONS[name]
+        value = table.get(name, default)
+        if not ok(value):
+            raise UserError(f"avr-sim option {name} must be {what}, got {value!r}")
+        out[name] = float(value)
+    return out
+
+
+def connect_avr_sim(rig, realtime: bool = False, trace: bool = False, defines: dict | None = None,
+                    host_latency_us: float = 30.0, drive_cps: float | None = None,
+                    drive_ms: tuple[float, float] = (0.0, 0.0), **options):
+    """The real ``SerialStream`` on the emulated board's pty: ``(driver, board)``.
+
+    ``[serial]`` settings apply (port and ``force_command = true`` are forced).
+    ``defines`` add sketch settings (``-DNAME=value``). Closing the driver stops
+    the emulator.
+    """
+    import serial
+
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream
+
+    config = SerialConfig.from_rig(rig, port="avr-sim", force_command=True, format="binary")
+    plant = _checked({"m": rig.nominal_mass_kg, "b": rig.nominal_damping_ns_m,
+                           **_plant_table(rig, options)})
+    hex_path = avr_build.build_firmware({**firmware_defines(rig, config.baudrate), **(defines or {})})
+    unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
+    board = AvrBoard(
+        hex_path,
+        mass_kg=plant["m"],
+        damping_ns_m=plant["b"],
+        metres_per_count=rig.metres_per_count * config.direction,
+        full_scale_n=255.0 / PWM_PER_NEWTON / unit,
+        x0_m=plant["x0_m"],
+        v0_m_s=plant["v0_m_s"],
+        baud=config.baudrate,
+        realtime=realtime,
+        host_latency_us=host_latency_us,
+        trace=trace,
+        drive_cps=drive_cps,
+        drive_ms=drive_ms,
+    )
+    try:
+        ser = serial.Serial(board.pty, baudrate=config.baudrate, timeout=0)
+    except BaseException:
+        board.close()
+        raise
+    driver = SerialStream(
+        ser, config, rig, on_close=board.close, paced=realtime,
+        stale_s=None if realtime else LOCKSTEP_TIMEOUT_S / 2, kind="avr-sim",
+    )
+    try:
+        driver.wait_for_stream(config.sync_timeout_s)
+    except BaseException:
+        driver.close()
+        raise
+    return driver, board
+
+
+def _plant_table(rig, options: dict) -> dict:
+    table = {**rig.section("sim"), **options}
+    other = sorted(set(table) - set(_PLANT_OPTIONS))
+    if other:
+        raise UserError(
+            f"avr-sim option(s) {', '.join(other)} not supported: its plant is a mass-damper "
+            f"with {', '.join(_PLANT_OPTIONS)}"
+        )
+    return table
+
+
+def open_avr_sim(rig, realtime: bool = False, seed: int | None = None, **options):
+    """Device registry factory for ``--device avr-sim`` (``seed`` unused: nothing is random)."""
+    return connect_avr_sim(rig, realtime=realtime, **options)[0]
