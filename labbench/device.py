@@ -37,6 +37,9 @@ class DeviceDescription:
     force_limit_n: float
     position_limits_m: tuple[float, float]
     details: dict = field(default_factory=dict)
+    # How the recorded force reached the plant (docs/analysis.md): "zoh", a commanded force
+    # held over each sample interval; "sample", a force measured at the sample instants.
+    force_hold: str = "zoh"
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         run_state.emit(records.descriptor_record(T))
         meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
                 "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
-                "protocol": protocol.describe(), "force_hold": "zoh"}
+                "protocol": protocol.describe(), "force_hold": desc.force_hold}
 
         total = max(int(protocol.n_samples), 1)
         gen = protocol.segments(plant)

@@ -54,8 +54,10 @@ def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], d
 
 
 def analysis_meta(start: dict, desc: dict) -> dict:
-    """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td, protocol."""
+    """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td,
+    force_hold (the device's, when the session records it), protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    device = start.get("device") if isinstance(start.get("device"), dict) else {}
     T = desc.get("sample_time_s") or rig.get("sample_time_s")
     ve = session_ve(start)
     meta = {"protocol": records.protocol_name(start)}
@@ -70,6 +72,8 @@ def analysis_meta(start: dict, desc: dict) -> dict:
             meta[key] = start[key]
     if rig.get("name"):
         meta["rig"] = rig["name"]
+    if device.get("force_hold"):
+        meta["force_hold"] = device["force_hold"]
     return meta
 
 

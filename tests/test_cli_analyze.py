@@ -40,12 +40,21 @@ def test_id_json(chirp_csv, capsys, method):
     assert abs(d["m"] / PAPER_M - 1) < 0.01 and abs(d["b"] / PAPER_B - 1) < 0.01
     lo, hi = d["ci95"]["m"]
     assert lo <= d["m"] <= hi
+    # no force_hold in the CSV: the data chose it, and say so
+    assert d["force_hold"]["value"] == "zoh" and d["force_hold"]["source"] == "cross-validation"
+    assert d["force_hold"]["loss_ratio"] > 10 and d["selection"]["reason"].startswith("mb:")
+
+
+def test_id_force_hold_option(chirp_csv, capsys):
+    d = run_json(capsys, "analyze", "id", chirp_csv, "--force-hold", "sample", "--json")
+    assert d["force_hold"] == {"value": "sample", "source": "given"}
 
 
 def test_id_human_output(chirp_csv, capsys):
     assert main(["analyze", "id", str(chirp_csv), "--model", "mbco"]) == 0
     out = capsys.readouterr().out
     assert "model mbco" in out and "95 %" in out and "coulomb" in out
+    assert "force_hold: zoh (cross-validation, CV loss ratio" in out
 
 
 def test_etfe_json_with_theory_from_metadata(loop_csv, capsys):

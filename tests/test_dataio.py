@@ -72,6 +72,32 @@ def test_session_file_loads_through_the_same_entry_point(tmp_path):
     assert rec.fs == pytest.approx(1000.0)
 
 
+@pytest.mark.parametrize("hold", ["zoh", "sample"])
+def test_session_records_how_the_force_reached_the_plant(tmp_path, hold):
+    # the device says whether it holds a commanded force or measures one; the session
+    # carries that into the analysis metadata (not a constant of the runner)
+    import dataclasses
+
+    from labbench.registry import make_protocol
+    from labbench.rig import Rig
+    from labbench.runner import run
+    from labbench.session import SessionWriter
+    from labbench.sim_backend.sim_device import SimDevice
+
+    class Device(SimDevice):
+        def describe(self):
+            return dataclasses.replace(super().describe(), force_hold=hold)
+
+    writer = SessionWriter(tmp_path)
+    proto = make_protocol("chirp-id", f0_hz=2.0, f1_hz=10.0, duration_s=3.0, fade_s=0.5,
+                          methods=("l2",))
+    res = run(Device(Rig()), proto, [writer], rig=Rig())
+    writer.close()
+    assert res.status == "success", res.reason
+    assert load_recording(writer.path).meta["force_hold"] == hold
+    assert res.results["identification"]["l2"]["force_hold"] == {"value": hold, "source": "metadata"}
+
+
 def test_arrays_validated_the_same_way():
     with pytest.raises(UserError):
         recording_from_arrays(np.arange(100), np.ones(99), np.ones(100))

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from truthdata import PAPER_B, PAPER_M, chirp_recording, with_noise
+from truthdata import PAPER_B, PAPER_M, chirp_recording, sensor_chirp_recording, with_noise
 
 from labbench.analysis import l1
 from labbench.analysis.identify import identify
@@ -46,21 +46,81 @@ def test_interval_covers_truth_under_noise():
         assert hi - lo < 0.1 * truth  # informative, not a vacuous interval
 
 
-def test_coulomb_selected_and_unmodelled_flagged():
-    rec = chirp_recording(n=30000, coulomb=0.05)
-    auto = identify(rec)
-    assert auto.model in ("mbc", "mbco")
-    assert abs(auto.params["coulomb"] / 0.05 - 1) < 0.2
-    assert abs(auto.m / PAPER_M - 1) < 0.01
-    forced = identify(rec, model="mb")
+# Known-truth cases for model selection and the force_hold decision: (name, recording
+# factory, true model, true Coulomb, true offset, true hold). Noise 0.05 N rms on the force
+# sensor, encoder step 30 um; the "sensor" record is a continuous chirp read as sampled.
+def _noisy(rec, seed, **kw):
+    return with_noise(rec, np.random.default_rng(seed), **kw)
+
+
+TRUTH_CASES = [
+    ("clean", lambda: chirp_recording(n=30000), "mb", None, None, "zoh"),
+    ("noisy", lambda: _noisy(chirp_recording(n=30000), 1, force_noise=0.05), "mb", None, None, "zoh"),
+    ("quantised", lambda: _noisy(chirp_recording(n=30000), 2, quantum=30e-6), "mb", None, None, "zoh"),
+    ("noisy-quantised", lambda: _noisy(chirp_recording(n=30000), 3, force_noise=0.05, quantum=30e-6),
+     "mb", None, None, "zoh"),
+    ("sensor", lambda: sensor_chirp_recording(), "mb", None, None, "sample"),
+    ("sensor-noisy-quantised", lambda: _noisy(sensor_chirp_recording(), 4, force_noise=0.05, quantum=30e-6),
+     "mb", None, None, "sample"),
+    ("coulomb-0.02", lambda: chirp_recording(n=30000, coulomb=0.02), "mbc", 0.02, None, "zoh"),
+    ("coulomb-0.05", lambda: chirp_recording(n=30000, coulomb=0.05), "mbc", 0.05, None, "zoh"),
+    ("coulomb-0.05-noisy-quantised",
+     lambda: _noisy(chirp_recording(n=30000, coulomb=0.05), 5, force_noise=0.05, quantum=30e-6),
+     "mbc", 0.05, None, "zoh"),
+    ("coulomb-0.2", lambda: chirp_recording(n=30000, coulomb=0.2), "mbc", 0.2, None, "zoh"),
+    ("offset", lambda: chirp_recording(n=30000, coulomb=0.05, offset=0.3), "mbco", 0.05, 0.3, "zoh"),
+]
+
+
+@pytest.mark.parametrize("method", ["l2", "l1"])
+@pytest.mark.parametrize("name, make, model, coulomb, offset, hold", TRUTH_CASES, ids=[c[0] for c in TRUTH_CASES])
+def test_auto_picks_the_true_model_and_hold(name, make, model, coulomb, offset, hold, method):
+    r = identify(make(), method=method)  # no force_hold in the metadata: the data decide
+    assert r.force_hold["value"] == hold and r.force_hold["source"] == "cross-validation", r.force_hold
+    assert r.force_hold["loss_ratio"] > 1.2, r.force_hold
+    assert r.model == model, r.selection["reason"]
+    assert r.selection["reason"].startswith(model + ":")
+    assert abs(r.m / PAPER_M - 1) < 0.01 and abs(r.b / PAPER_B - 1) < 0.05, (r.m, r.b)
+    if coulomb is not None:
+        assert abs(r.params["coulomb"] / coulomb - 1) < 0.10, r.params
+    if offset is not None:
+        assert abs(r.params["offset"] / offset - 1) < 0.05, r.params
+    d = r.as_dict()
+    assert d["force_hold"]["value"] == hold and len(d["selection"]["steps"]) == 2
+
+
+def test_unmodelled_coulomb_flagged():
+    forced = identify(chirp_recording(n=30000, coulomb=0.05), model="mb")
     assert any(f.startswith("unmodelled-coulomb") for f in forced.flags)
 
 
-def test_offset_selected():
-    rec = chirp_recording(n=30000, coulomb=0.05, offset=0.3)
+def test_force_hold_given_or_from_metadata_is_used_as_is():
+    rec = sensor_chirp_recording()
+    assert identify(rec, hold="zoh").force_hold == {"value": "zoh", "source": "given"}
+    rec.meta["force_hold"] = "zoh"
     r = identify(rec)
-    assert r.model == "mbco"
-    assert abs(r.params["offset"] - 0.3) < 0.02
+    assert r.force_hold == {"value": "zoh", "source": "metadata"}
+    # read the wrong way, a continuous force looks like friction of ~0.025 N: the data say so
+    assert identify(rec, hold="sample").model == "mb" and r.model == "mbc"
+    rec.meta["force_hold"] = "foh"
+    with pytest.raises(UserError, match="force_hold"):
+        identify(rec)
+
+
+def test_wrong_hold_friction_is_rejected_by_the_data():
+    # the same record once read each way: the data decide for the continuous one and
+    # the half-sample misalignment of the wrong reading costs orders of magnitude in CV loss
+    r = identify(sensor_chirp_recording())
+    assert r.force_hold["cv_loss"]["zoh"] > 100 * r.force_hold["cv_loss"]["sample"]
+
+
+def test_tiny_term_is_rejected_as_too_small_to_matter():
+    # 0.2 mN of true friction against a 1 N chirp: exact data support it, physics does not
+    r = identify(chirp_recording(n=30000, coulomb=2e-4))
+    assert r.model == "mb", r.selection["reason"]
+    step = r.selection["steps"][0]
+    assert step["why"] in ("too small to matter", "CV gain below the force floor")
+    assert step["vs_force_rms"] < 0.005
 
 
 def test_outliers_l2_flagged_l1_resists():

@@ -70,6 +70,25 @@ def chirp_recording(n: int = 60000, m: float = PAPER_M, b: float = PAPER_B, fs: 
     return recording_from_arrays(np.arange(n) / fs, f, x, {"fs": fs}, "<chirp truth>")
 
 
+def sensor_chirp_recording(n: int = 30000, m: float = PAPER_M, b: float = PAPER_B, fs: float = 1000.0,
+                           amp: float = 1.0, f1: float = 20.0, oversample: int = 16) -> Recording:
+    """A continuous chirp force (as a force sensor reads it) on m x'' + b x' = f, sampled.
+
+    The force is the chirp at every instant, not held: ``scipy.signal.lsim`` integrates
+    the linear ODE exactly for a piecewise-linear input on a grid ``oversample`` times
+    finer than the samples (the chirp's curvature between grid points is ~1e-7 of it).
+    The record is meant to be read with ``force_hold = sample``.
+    """
+    from scipy import signal
+
+    t = np.arange(n * oversample) / (fs * oversample)
+    f = chirp_force(n * oversample, fs * oversample, f1=f1, amp=amp)
+    plant = signal.lti([[0.0, 1.0], [0.0, -b / m]], [[0.0], [1.0 / m]], [[1.0, 0.0]], [[0.0]])
+    _, x, _ = signal.lsim(plant, f, t)
+    return recording_from_arrays(t[::oversample], f[::oversample], x[::oversample], {"fs": fs},
+                                 "<sensor chirp truth>")
+
+
 def with_noise(rec: Recording, rng, force_noise: float = 0.0, quantum: float = 0.0,
                outlier_fraction: float = 0.0, outlier_size: float = 0.0) -> Recording:
     """Copy with white force noise [N rms], position quantisation [m], sparse force spikes."""

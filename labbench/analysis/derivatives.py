@@ -29,6 +29,7 @@ class Derivatives:
     v: np.ndarray  # velocity [m/s]
     a: np.ndarray  # acceleration [m/s^2]
     keep: slice  # samples kept after edge trimming (index into the input)
+    v_all: np.ndarray  # velocity at every input sample (one-sided differences at the ends)
     cutoff_hz: float
     noise_gain: tuple[float, float]  # rms of v, a per unit white position noise
 
@@ -76,14 +77,13 @@ def differentiate(x: np.ndarray, fs: float, cutoff_hz: float) -> Derivatives:
     sos = _lowpass(cutoff_hz, fs)
     xf = signal.sosfiltfilt(sos, x)
     T = 1.0 / fs
-    v = np.empty_like(xf)
+    v = np.gradient(xf, T)
     a = np.empty_like(xf)
-    v[1:-1] = (xf[2:] - xf[:-2]) / (2 * T)
     a[1:-1] = (xf[2:] - 2 * xf[1:-1] + xf[:-2]) / T**2
     trim = 1 + int(np.ceil(3.0 * fs / cutoff_hz))
     trim = min(trim, (len(x) - 8) // 4)
     keep = slice(trim, len(x) - trim)
-    return Derivatives(xf[keep], v[keep], a[keep], keep, float(cutoff_hz), _noise_gain(sos, T))
+    return Derivatives(xf[keep], v[keep], a[keep], keep, v, float(cutoff_hz), _noise_gain(sos, T))
 
 
 def _noise_gain(sos, T: float) -> tuple[float, float]:

@@ -10,14 +10,38 @@ the second difference of a ZOH-driven mass exact; then l2 (least squares) or
 l1 (exact LAD, ``l1``; with ``solver="cvxpy"`` every fit, jackknife
 replicates included, goes through cvxpy, which is slow by design).
 
+The Coulomb regressor is the low-passed sign of the velocity, L sign(x'):
+the derivatives are those of the low-passed position, and L commutes with the
+whole model, so m L x'' + b L x' + Fc L sign(x') = L f holds exactly where
+f = m x'' + b x' + Fc sign(x') does (a raw sign against filtered derivatives
+biases Fc low by ~10 % and b high). On a quantised encoder the sign is the
+expected one given the velocity noise q / sqrt(12) x the filter's noise gain,
+erf(x' / (sqrt(2) s_v)), so a velocity sign flipped by encoder noise near rest
+is not taken for friction.
+
+How the force reached the plant (``force_hold``): "zoh" (held over each
+sample interval, as a bench command is) or "sample" (force and position
+sampled at the same instants, e.g. a force sensor). Given, or from the
+metadata, or, when neither says, chosen by the data: both readings are fitted
+with the largest identifiable model and the lower blocked cross-validated loss
+wins (forces low-passed alike for this comparison, so the two-sample mean of
+the ZOH reading does not win by halving white noise); the result says which and by how much.
+
 Model selection (``model="auto"``): blocked 5-fold cross-validation (folds are
 interleaved contiguous blocks, so correlated neighbours do not leak between
-training and test). A larger model replaces a smaller one only if its CV loss
-(the method's own: squared or absolute residual) is lower, fold by fold, by a
-log-ratio above two standard errors of the fold log-ratios and above 0.5 %, and by
-more than a floor set by the force itself ((0.1 % of the force rms)^2 for l2,
-0.1 % of the mean |force| for l1): a term that changes no prediction by more
-than that is not worth a parameter, however well exact data pin it down.
+training and test). A larger model replaces a smaller one only if
+
+* its CV loss (the method's own: squared or absolute residual) is lower, fold by
+  fold, by a log-ratio above two standard errors of the fold log-ratios and
+  above 0.5 %, and by more than a floor set by the force ((0.1 % of the force
+  rms)^2 for l2, 0.1 % of the mean |force| for l1);
+* the new term is physically significant: its force |Fc| or |f0| is at least
+  0.5 % of the force rms and 10 % of the larger model's residual rms (exact or
+  very long records "support" a millinewton term that only soaks up
+  discretisation error).
+
+``selection["steps"]`` records every test and ``selection["reason"]`` says why
+the model was chosen.
 
 95 % intervals: delete-one-block jackknife over 10 contiguous blocks (robust
 to the strong serial correlation of filtered residuals; Kunsch 1989),
@@ -28,7 +52,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage, special, stats
 
 from labbench.analysis import l1
 from labbench.analysis.dataio import Recording, position_quantum
@@ -49,6 +73,10 @@ TERMS = {"mb": ("m", "b"), "mbc": ("m", "b", "coulomb"), "mbco": ("m", "b", "cou
 CV_FOLDS, CV_BLOCKS = 5, 20
 JACKKNIFE_BLOCKS = 10
 MIN_GAIN_SE, MIN_GAIN_REL, MIN_GAIN_FORCE = 2.0, 0.005, 1e-3
+# physical significance of a Coulomb or offset term: |term| against the force rms and
+# against the larger model's residual rms
+TERM_VS_FORCE, TERM_VS_RESIDUAL = 0.005, 0.1
+HOLDS = ("zoh", "sample")
 SHORT_RECORD = 2000  # samples used
 WIDE_CI_REL = 0.10  # half-width of the m or b interval, relative
 OUTLIER_SIGMAS, OUTLIER_BLOCK = 8.0, 256
@@ -71,6 +99,7 @@ class IdResult:
     cutoff_hz: float
     flags: list = field(default_factory=list)
     selection: dict = field(default_factory=dict)
+    force_hold: dict = field(default_factory=dict)  # value, source [, cv_loss, loss_ratio]
     residual: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -93,6 +122,7 @@ class IdResult:
             "cutoff_hz": self.cutoff_hz,
             "flags": list(self.flags),
             "selection": self.selection,
+            "force_hold": self.force_hold,
         }
 
 
@@ -113,9 +143,10 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
              solver: str = "fast", hold: str | None = None) -> IdResult:
     """Fit the device model to a recording (see module doc).
 
-    ``hold``: "zoh" (force held over each sample interval, the bench's own
-    records; default unless the metadata say ``force_hold=sample``) or "sample"
-    (force sampled at the same instants as position).
+    ``hold``: "zoh" (force held over each sample interval, as a bench command
+    is) or "sample" (force sampled at the same instants as position); None:
+    the metadata ``force_hold``, else chosen by cross-validation
+    (``IdResult.force_hold`` says which and why).
     """
     if model not in MODEL_CHOICES:
         raise UserError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
@@ -123,11 +154,12 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
         raise UserError(f"unknown method {method!r}; choose l2 or l1")
     if solver not in SOLVERS:
         raise UserError(f"unknown solver {solver!r}; choose fast or cvxpy")
-    data = _prepare(rec, cutoff_hz, hold or str(rec.meta.get("force_hold", "zoh")))
+    fit = _fitter(method, solver)
+    hold_info = _force_hold(rec, hold, cutoff_hz, method, fit)
+    data = _prepare(rec, cutoff_hz, hold_info["value"])
     if not _identifiable(data, "mb"):
         raise UserError(f"{rec.source}: the position hardly moves (x' and x'' are not independent): "
                         "nothing to identify")
-    fit = _fitter(method, solver)
     selection = _select(data, fit, method) if model == "auto" else {"criterion": "given"}
     chosen = selection.get("model", model)
     if not _identifiable(data, chosen):
@@ -148,15 +180,48 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
         explained=float(1 - np.var(resid) / np.var(data.y)) if np.var(data.y) > 0 else 0.0,
         cutoff_hz=data.cutoff_hz,
         selection=selection,
+        force_hold=hold_info,
         residual=resid,
     )
     result.flags = _flags(result, data, fit, method, selection)
     return result
 
 
-def _prepare(rec: Recording, cutoff_hz, hold: str) -> _Data:
-    if hold not in ("zoh", "sample"):
+def _force_hold(rec: Recording, hold, cutoff_hz, method: str, fit) -> dict:
+    """How the force reached the plant: given, from the metadata, or chosen by the data."""
+    if hold is not None:
+        return {"value": _check_hold(hold), "source": "given"}
+    if rec.meta.get("force_hold") is not None:
+        return {"value": _check_hold(rec.meta["force_hold"]), "source": "metadata"}
+    losses = {}
+    for h in HOLDS:
+        data = _prepare(rec, cutoff_hz, h, filter_force=True)
+        models = [m for m in MODELS if _identifiable(data, m)]
+        if not models:
+            return {"value": "zoh", "source": "default: the record cannot tell (it hardly moves)"}
+        losses[h] = _cv_losses(data, fit, method, models[-1])
+    best, other = sorted(HOLDS, key=lambda h: losses[h].mean())
+    ratio = np.log(losses[other] / losses[best])
+    se = np.std(ratio, ddof=1) / np.sqrt(len(ratio))
+    decided = bool(ratio.mean() > MIN_GAIN_SE * se)
+    return {
+        "value": best if decided else "zoh",
+        "source": "cross-validation" if decided else
+        "cross-validation undecided (loss ratio within 2 SE): zoh, the bench's convention",
+        "cv_loss": {h: float(v.mean()) for h, v in losses.items()},
+        "loss_ratio": float(losses[other].mean() / losses[best].mean()),
+        "model": models[-1],
+    }
+
+
+def _check_hold(hold) -> str:
+    if hold not in HOLDS:
         raise UserError(f"force_hold must be zoh or sample, got {hold!r}")
+    return hold
+
+
+def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False) -> _Data:
+    _check_hold(hold)
     fs = rec.fs
     if cutoff_hz is None:
         cutoff_hz = default_cutoff(rec.force, fs)
@@ -164,14 +229,18 @@ def _prepare(rec: Recording, cutoff_hz, hold: str) -> _Data:
         raise UserError(f"--cutoff must be between 0 and fs/2 = {fs / 2:g} Hz, got {cutoff_hz}")
     d = differentiate(rec.position, fs, cutoff_hz)
     f = np.asarray(rec.force, float)
-    if force_band(f, fs) > cutoff_hz / CUTOFF_FACTOR:
+    if filter_force or force_band(f, fs) > cutoff_hz / CUTOFF_FACTOR:
         # force has power the derivatives will not see: filter it the same way, so the
         # linear terms stay exact (a zero-phase filter commutes with m x'' + b x')
         f = lowpass(f, fs, cutoff_hz)
     if hold == "zoh":  # mean of the forces held over [t-T, t) and [t, t+T)
         f = np.concatenate([[f[0]], 0.5 * (f[1:] + f[:-1])])
     y = f[d.keep]
-    cols = {"m": d.a, "b": d.v, "coulomb": np.sign(d.v), "offset": np.ones_like(d.v)}
+    q = position_quantum(rec.position) or 0.0
+    v_sigma = q / np.sqrt(12) * d.noise_gain[0]  # velocity noise the encoder step leaves
+    sign = special.erf(d.v_all / (np.sqrt(2) * v_sigma)) if v_sigma else np.sign(d.v_all)
+    coulomb = lowpass(sign, fs, d.cutoff_hz)[d.keep]  # L sign(x'): see module doc
+    cols = {"m": d.a, "b": d.v, "coulomb": coulomb, "offset": np.ones_like(d.v)}
     return _Data(y, cols, np.asarray(rec.position)[d.keep], d.noise_gain[1], d.noise_gain[0],
                  d.cutoff_hz)
 
@@ -217,19 +286,61 @@ def _select(data: _Data, fit, method: str) -> dict:
     floor = _loss(method, MIN_GAIN_FORCE * np.full(1, np.sqrt(np.mean(data.y**2))))
     if method == "l1":
         floor = MIN_GAIN_FORCE * float(np.mean(np.abs(data.y)))
-    chosen = models[0]
+    chosen, steps = models[0], []
     for bigger in models[1:]:
-        ratio = np.log(losses[chosen] / losses[bigger])  # per fold; > 0 when bigger predicts better
-        se = np.std(ratio, ddof=1) / np.sqrt(len(ratio))
-        gain = losses[chosen].mean() - losses[bigger].mean()
-        if ratio.mean() > max(MIN_GAIN_SE * se, np.log1p(MIN_GAIN_REL)) and gain > floor:
+        step = _step(data, fit, method, chosen, bigger, losses, floor)
+        steps.append(step)
+        if step["accepted"]:
             chosen = bigger
     return {
         "criterion": f"blocked {CV_FOLDS}-fold cross-validation, {method} loss; a larger model must "
-        f"win by > {MIN_GAIN_SE:g} SE, > {100 * MIN_GAIN_REL:g} % and > a {100 * MIN_GAIN_FORCE:g} % force floor",
+        f"win by > {MIN_GAIN_SE:g} SE, > {100 * MIN_GAIN_REL:g} % and > a {100 * MIN_GAIN_FORCE:g} % force "
+        f"floor, and its new term be >= {100 * TERM_VS_FORCE:g} % of the force rms and >= "
+        f"{100 * TERM_VS_RESIDUAL:g} % of the residual rms",
         "model": chosen,
         "cv_loss": {m: float(v.mean()) for m, v in losses.items()},
+        "steps": steps,
+        "reason": _reason(chosen, steps),
     }
+
+
+def _step(data: _Data, fit, method: str, smaller: str, bigger: str, losses: dict, floor: float) -> dict:
+    """One comparison smaller -> bigger: cross-validated gain and physical size of the new term."""
+    term = TERMS[bigger][-1]
+    ratio = np.log(losses[smaller] / losses[bigger])  # per fold; > 0 when bigger predicts better
+    se = float(np.std(ratio, ddof=1) / np.sqrt(len(ratio)))
+    gain = float(losses[smaller].mean() - losses[bigger].mean())
+    X = data.design(bigger)
+    theta = fit(X, data.y)
+    size = abs(float(theta[-1]))
+    force_rms = float(np.sqrt(np.mean(data.y**2)))
+    resid_rms = float(np.sqrt(np.mean((data.y - X @ theta) ** 2)))
+    step = {
+        "from": smaller, "to": bigger, "term": term, "value": float(theta[-1]),
+        "cv_gain_rel": float(-np.expm1(-ratio.mean())), "cv_gain_se": float(ratio.mean() / se) if se else None,
+        "vs_force_rms": size / force_rms, "vs_residual_rms": size / resid_rms if resid_rms else None,
+    }
+    supported = ratio.mean() > max(MIN_GAIN_SE * se, np.log1p(MIN_GAIN_REL))
+    significant = size >= TERM_VS_FORCE * force_rms and size >= TERM_VS_RESIDUAL * resid_rms
+    step["accepted"] = bool(supported and gain > floor and significant)
+    step["why"] = ("accepted" if step["accepted"] else
+                   "not supported by cross-validation" if not supported else
+                   "CV gain below the force floor" if gain <= floor else
+                   "too small to matter")
+    return step
+
+
+def _reason(chosen: str, steps: list) -> str:
+    parts = []
+    for st in steps:
+        name = {"coulomb": "Coulomb", "offset": "offset"}[st["term"]]
+        detail = (f"{name} {st['value']:.3g} N: CV loss {-100 * st['cv_gain_rel']:+.1f} %"
+                  + (f" ({st['cv_gain_se']:.1f} SE)" if st["cv_gain_se"] is not None else "")
+                  + f", {100 * st['vs_force_rms']:.2g} % of the force rms")
+        if st["vs_residual_rms"] is not None:
+            detail += f", {st['vs_residual_rms']:.2g}x the residual rms"
+        parts.append(f"{st['to']} {'accepted' if st['accepted'] else 'rejected, ' + st['why']} ({detail})")
+    return f"{chosen}" + (": " + "; ".join(parts) if parts else ": the only identifiable model")
 
 
 def _jackknife_ci(X, y, theta, fit) -> list[tuple[float, float]]:

@@ -19,7 +19,7 @@ def register(subparsers) -> None:
                               description=__doc__)
     sub = p.add_subparsers(dest="analysis", required=True, parser_class=type(p))
     from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS
-    from labbench.analysis.identify import METHODS, MODEL_CHOICES, SOLVERS
+    from labbench.analysis.identify import HOLDS, METHODS, MODEL_CHOICES, SOLVERS
 
     q = sub.add_parser("id", help="fit f = m x'' + b x' [+ Fc sign(x')] [+ f0]",
                        description="Identify mass, damping (and friction, offset) with 95 % intervals.")
@@ -31,6 +31,10 @@ def register(subparsers) -> None:
                    help="l1 solver: fast (exact simplex steps, default) or cvxpy (cross-check)")
     q.add_argument("--cutoff", type=float, metavar="HZ",
                    help="derivative low-pass cut-off (default: 3x the band of the force)")
+    q.add_argument("--force-hold", choices=HOLDS, default=None,
+                   help="how the force reached the plant: zoh (held over each sample, a commanded "
+                        "force) or sample (sampled with the position, a force sensor); default: the "
+                        "metadata, else chosen by cross-validation")
     q.add_argument("--json", action="store_true", help="print one JSON object")
     q.set_defaults(func=run_id)
 
@@ -54,7 +58,8 @@ def run_id(args) -> int:
     from labbench.analysis.identify import identify
 
     rec, ve = compare.plant_recording(load_recording(args.file))
-    res = identify(rec, model=args.model, method=args.method, cutoff_hz=args.cutoff, solver=args.solver)
+    res = identify(rec, model=args.model, method=args.method, cutoff_hz=args.cutoff, solver=args.solver,
+                   hold=args.force_hold)
     d = res.as_dict()
     d["force_source"] = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
     if args.json:
@@ -68,7 +73,10 @@ def run_id(args) -> int:
             lo, hi = d["ci95"][k]
             print(f"  {k:8s} = {d[k]:.6g} {unit}   95 % [{lo:.6g}, {hi:.6g}]")
     print(f"  residual rms {d['rms_residual']:.4g} N, force variance explained {100 * d['explained']:.3f} %")
-    print(f"  selection: {d['selection'].get('criterion')}")
+    hold = d["force_hold"]
+    ratio = f", CV loss ratio {hold['loss_ratio']:.3g}" if "loss_ratio" in hold else ""
+    print(f"  force_hold: {hold['value']} ({hold['source']}{ratio})")
+    print(f"  selection: {d['selection'].get('reason') or d['selection'].get('criterion')}")
     for f in d["flags"]:
         print(f"  flag: {f}")
     return 0
