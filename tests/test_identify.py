@@ -285,7 +285,8 @@ def test_stick_slip_flagged_when_friction_holds_the_handle(method):
     rec = with_noise(chirp_recording(n=30000, coulomb=0.1, amp=0.15, f1=10.0),
                      np.random.default_rng(0), quantum=ENCODER_Q)
     r = identify(rec, model="mbc", method=method)
-    assert abs(r.b / PAPER_B - 1) > 0.5  # the wrong number this flag is about
+    lo, hi = r.ci95["b"]
+    assert abs(r.b / PAPER_B - 1) > 0.1 or hi - lo > PAPER_B  # the doubtful number this flag is about
     assert any(f.startswith("stick-slip") for f in r.flags), r.flags
 
 
