@@ -63,7 +63,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60):
     """(frame with new data, floor) per-frame times [s]: data + live estimate + synchronous paint."""
     buf = StreamBuffer()
     for r in recs:
-        buf.add(r)
+        buf(r)
     win.buffer = buf
     start, desc = buf.start, buf.descriptor
     from labbench.session_content import analysis_meta

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from labbench.records import CHANNELS, DESCRIPTOR, EVENT, PAGE, START, STOP
+from labbench.records import CHANNELS, RecordRouter
 
 
-class StreamBuffer:
+class StreamBuffer(RecordRouter):
     """Accumulates start/descriptor/page/event/stop records of one run."""
 
     def __init__(self, capacity: int = 16384):
@@ -25,20 +25,20 @@ class StreamBuffer:
         self.events: list[dict] = []
         self.version = 0  # bumps on every page, so views know when to redraw
 
-    def add(self, rec: dict) -> None:
-        kind = rec.get("kind")
-        if kind == START:
-            self.start = rec
-        elif kind == DESCRIPTOR:
-            self.descriptor = rec
-        elif kind == PAGE:
-            self._append(rec["data"])
-        elif kind == EVENT:
-            self.events.append(rec)
-        elif kind == STOP:
-            self.stop = rec
+    def on_start(self, rec: dict) -> None:
+        self.start = rec
 
-    def _append(self, data: dict) -> None:
+    def on_descriptor(self, rec: dict) -> None:
+        self.descriptor = rec
+
+    def on_event(self, rec: dict) -> None:
+        self.events.append(rec)
+
+    def on_stop(self, rec: dict) -> None:
+        self.stop = rec
+
+    def on_page(self, rec: dict) -> None:
+        data = rec["data"]
         k = len(np.asarray(data["t"]))
         if self.n + k > self._cap:
             self._cap = max(2 * self._cap, self.n + k)

@@ -405,7 +405,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _handle(self, kind: str, payload):
         if kind == "record":
-            self.buffer.add(payload)
+            self.buffer(payload)
             if payload.get("kind") == EVENT:
                 self.log.add("event", f"{payload.get('name')}: {payload.get('reason')}")
             elif payload.get("kind") == STOP:

@@ -74,6 +74,60 @@ def protocol_name(start: dict) -> str:
     return str(proto or "run")
 
 
+class RecordRouter:
+    """Base class of a consumer: a record goes to ``on_<kind>``; the base's handlers ignore
+    it, so a subclass overrides only the kinds it needs (an unknown kind is ignored)."""
+
+    def __call__(self, rec: dict) -> None:
+        handler = _HANDLERS.get(rec.get("kind"))
+        if handler is not None:
+            getattr(self, handler)(rec)
+
+    def on_start(self, rec: dict) -> None:
+        pass
+
+    def on_descriptor(self, rec: dict) -> None:
+        pass
+
+    def on_page(self, rec: dict) -> None:
+        pass
+
+    def on_event(self, rec: dict) -> None:
+        pass
+
+    def on_stop(self, rec: dict) -> None:
+        pass
+
+
+_HANDLERS = {kind: f"on_{kind}" for kind in KINDS}
+
+
+class StreamCollector(RecordRouter):
+    """Keeps a whole stream: its (first) start, descriptor, pages, events and stop."""
+
+    def __init__(self):
+        self.start: dict = {}
+        self.descriptor: dict = {}
+        self.pages: list[dict] = []
+        self.events: list[dict] = []
+        self.stop: dict | None = None
+
+    def on_start(self, rec: dict) -> None:
+        self.start = self.start or rec
+
+    def on_descriptor(self, rec: dict) -> None:
+        self.descriptor = rec
+
+    def on_page(self, rec: dict) -> None:
+        self.pages.append(rec)
+
+    def on_event(self, rec: dict) -> None:
+        self.events.append(rec)
+
+    def on_stop(self, rec: dict) -> None:
+        self.stop = rec
+
+
 def fan_out(records: Iterable[dict], consumers: Iterable[Consumer]) -> None:
     """Feed a stream to every consumer in order (replay uses this too)."""
     consumers = list(consumers)

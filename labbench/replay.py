@@ -53,7 +53,7 @@ def _stream_time(rec: dict) -> float | None:
     return None
 
 
-class StreamSummary:
+class StreamSummary(records.RecordRouter):
     """Consumer that condenses a stream: identity, samples, drops, events, status, timing."""
 
     def __init__(self):
@@ -67,29 +67,32 @@ class StreamSummary:
 
     def __call__(self, rec: dict) -> None:
         self.n_records += 1
-        kind = rec.get("kind")
-        if kind == records.START:
-            self.start = rec
-        elif kind == records.PAGE:
-            d = rec["data"]
-            n = len(d["t"])
-            if n == 0:
-                return
-            self.n_pages += 1
-            self.n_samples += n
-            seq = np.asarray(d["seq"], dtype=np.int64)
-            prev = self._last_seq if self._last_seq is not None else seq[0] - 1
-            steps = np.diff(np.concatenate([[prev], seq]))
-            self.dropped += int(np.sum(np.clip(steps - 1, 0, None)))
-            self._last_seq = int(seq[-1])
-            self.t_first = float(d["t"][0]) if self.t_first is None else self.t_first
-            self.t_last = float(d["t"][-1])
-            self.max_abs_command_n = max(self.max_abs_command_n,
-                                         float(np.max(np.abs(d["command"]))))
-        elif kind == records.EVENT:
-            self.events.append(rec)
-        elif kind == records.STOP:
-            self.stop = rec
+        super().__call__(rec)
+
+    def on_start(self, rec: dict) -> None:
+        self.start = rec
+
+    def on_page(self, rec: dict) -> None:
+        d = rec["data"]
+        n = len(d["t"])
+        if n == 0:
+            return
+        self.n_pages += 1
+        self.n_samples += n
+        seq = np.asarray(d["seq"], dtype=np.int64)
+        prev = self._last_seq if self._last_seq is not None else seq[0] - 1
+        steps = np.diff(np.concatenate([[prev], seq]))
+        self.dropped += int(np.sum(np.clip(steps - 1, 0, None)))
+        self._last_seq = int(seq[-1])
+        self.t_first = float(d["t"][0]) if self.t_first is None else self.t_first
+        self.t_last = float(d["t"][-1])
+        self.max_abs_command_n = max(self.max_abs_command_n, float(np.max(np.abs(d["command"]))))
+
+    def on_event(self, rec: dict) -> None:
+        self.events.append(rec)
+
+    def on_stop(self, rec: dict) -> None:
+        self.stop = rec
 
     def as_dict(self) -> dict:
         rig = self.start.get("rig") if isinstance(self.start.get("rig"), dict) else {}

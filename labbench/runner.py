@@ -144,7 +144,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         _stop_device(device, close=close)
 
 
-class _Run:
+class _Run(records.RecordRouter):
     """Fans records out, keeps the page data and segment table, writes the stop record once."""
 
     def __init__(self, consumers: list):
@@ -160,19 +160,22 @@ class _Run:
         self.last_t = 0.0
 
     def emit(self, rec: dict) -> None:
-        kind = rec["kind"]
-        if kind == records.START:
-            self.started = True
-        elif kind == records.PAGE:
-            self.pages.append(rec["data"])
-            t = rec["data"]["t"]
-            self.n_samples += len(t)
-            if len(t):
-                self.last_t = float(t[-1])
-        elif kind == records.EVENT:
-            self.events.append(rec)
+        self(rec)
         for c in self.consumers:
             c(rec)
+
+    def on_start(self, rec: dict) -> None:
+        self.started = True
+
+    def on_page(self, rec: dict) -> None:
+        self.pages.append(rec["data"])
+        t = rec["data"]["t"]
+        self.n_samples += len(t)
+        if len(t):
+            self.last_t = float(t[-1])
+
+    def on_event(self, rec: dict) -> None:
+        self.events.append(rec)
 
     def data(self, first: int) -> dict[str, np.ndarray]:
         """Channels of every sample from index ``first`` on."""

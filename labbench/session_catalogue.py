@@ -20,20 +20,22 @@ class SessionSummary:
     n_samples: int
 
 
+class _HeaderCollector(records.StreamCollector):
+    """Start and stop records and the sample count of undecoded pages (shapes only)."""
+
+    n_samples = 0
+
+    def on_page(self, rec: dict) -> None:
+        shapes = list(rec["data"].values())
+        self.n_samples += int(shapes[0][0]) if shapes and shapes[0] else 0
+
+
 def summarize(path) -> SessionSummary:
     """Header facts of one session without decoding its sample arrays."""
-    start, stop, n = None, None, 0
+    got = _HeaderCollector()
     with SessionReader(path, decode_pages=False) as reader:
-        for rec in reader:
-            kind = rec.get("kind")
-            if kind == records.START and start is None:
-                start = rec
-            elif kind == records.PAGE:
-                shapes = list(rec["data"].values())
-                n += int(shapes[0][0]) if shapes and shapes[0] else 0
-            elif kind == records.STOP:
-                stop = rec
-    start = start or {}
+        records.fan_out(reader, [got])
+    start, stop, n = got.start, got.stop, got.n_samples
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     return SessionSummary(
         path=Path(path),

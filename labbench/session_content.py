@@ -36,21 +36,11 @@ def session_ve(start: dict) -> VirtualEnvironment | None:
 def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
     """(start, descriptor, channels, events, stop, problem) of a session, pages joined."""
     reader = read_session(path)
-    start, desc, stop, events, pages = {}, {}, None, [], []
+    got = records.StreamCollector()
     with reader:
-        for rec in reader:
-            kind = rec.get("kind")
-            if kind == records.START:
-                start = rec
-            elif kind == records.DESCRIPTOR:
-                desc = rec
-            elif kind == records.PAGE:
-                pages.append(rec)
-            elif kind == records.EVENT:
-                events.append(rec)
-            elif kind == records.STOP:
-                stop = rec
-    return start, desc, records.concat_pages(pages), events, stop, reader.problem
+        records.fan_out(reader, [got])
+    return (got.start, got.descriptor, records.concat_pages(got.pages), got.events, got.stop,
+            reader.problem)
 
 
 def analysis_meta(start: dict, desc: dict) -> dict:
