@@ -50,7 +50,7 @@ def test_paper_estimator_is_the_papers_method_exactly(runs):
     ref = np.convolve(raw, h, "same") / np.convolve(np.ones(len(raw)), h, "same")
     assert np.allclose(res.w, w)
     assert np.allclose(res.Z, ref, rtol=1e-9, atol=0)
-    # and it is the weak one, as the issue says (several % median), with drift called out
+    # and it is the weak one, as docs/analysis.md says (several % median), with drift called out
     err, _ = band_errors(res, SPRING_DAMPER)
     assert np.median(err) > 0.01
     assert any(f.startswith("drift") for f in etfe(runs["damper"], "paper").flags)
