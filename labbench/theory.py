@@ -196,8 +196,8 @@ def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4) -> float 
 
     Defined as the first loss of stability as K grows from 0: K is raised by
     factors of 1.25 from a small value until the loop is unstable, then the
-    bracket is bisected to ``rel_tol`` (default 0.01 %, ten times finer than the 0.1 %
-    docs/theory.md quotes). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up
+    bracket is bisected to ``rel_tol`` (default 0.01 %, as docs/theory.md
+    states). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up
     to 1e12 N/m is unstable; None for kinds without a spring.
     """
     if ve.kind not in ("spring", "spring-damper"):
