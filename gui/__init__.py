@@ -1,1 +1,1 @@
-"""gui package."""
+"""The PySide6 + pyqtgraph desktop application: the only place Qt is imported."""
