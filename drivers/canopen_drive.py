@@ -1,29 +1,36 @@
 """CiA 402 servo amplifier over CANopen as a ``labbench.device.Device``.
 
-Two phases, one receiver at a time:
+Vendor-neutral: what the drive has is surveyed read-only first (from the
+drive, and from its EDS/DCF when the rig names one, ``canopen_objects``),
+assessed (``canopen_check``: every obstacle at once, before any write; the
+fallbacks for missing optional objects as warnings, which the session
+records) and the PDO layout planned (``canopen_pdo``). Then two phases, one
+receiver at a time:
 
 * **service phase** (open, enable, disable, fault reset): a python-can
-  ``Notifier`` thread feeds canopen's SDO client; every state change is made by
-  an SDO write of the controlword 0x6040 and confirmed by a fresh SDO read of
-  the statusword 0x6041 (never a cached value); NMT state is taken from the
-  drive's heartbeat, never assumed from the command sent.
+  ``Notifier`` thread feeds canopen's SDO client (``canopen_sdo``); every
+  state change is an SDO write of the controlword 0x6040 confirmed by a fresh
+  SDO read of the statusword 0x6041; NMT state is taken from the drive's
+  heartbeat or its node-guarding answers, never assumed from the command sent.
 * **cyclic phase** (between ``enable`` and ``disable``): no thread. Each
-  ``read()`` sends SYNC (and the host heartbeat when due) and pumps the bus
-  itself until the TPDO of that SYNC arrives; ``command()`` sends the RPDO.
-  SYNC and heartbeat therefore exist only while the loop runs: a frozen loop
-  stops both, and the drive's heartbeat consumer (0x1016) and RPDO event timer
-  (0x1400:05) remove torque on their own. No python-can periodic task is used
-  (they stop silently after one TX error, python-can #743).
+  ``read()`` sends SYNC (and the host heartbeat or guarding request when due)
+  and pumps the bus itself until every TPDO of that SYNC arrives;
+  ``command()`` sends the RPDO(s). SYNC and heartbeat/guarding exist only
+  while the loop runs: a frozen loop stops them, and the drive's heartbeat
+  consumer 0x1016 or life guarding 0x100C/0x100D, and its RPDO event timer
+  0x1400:05 if it has one, remove torque on their own. No python-can periodic
+  task is used (they stop silently after one TX error, python-can #743).
 
 Any fault (EMCY, TX error, error frame, bus-off, stale TPDO, drive leaving
-OPERATION ENABLED, NMT state other than OPERATIONAL) zeroes the force as far as
-the bus allows, latches, and raises ``DeviceFault`` with the explanation; the
-latch clears only through ``reset_fault()`` (an operator action), which takes
-the drive out of FAULT to SWITCH ON DISABLED and no further.
+OPERATION ENABLED, NMT state other than OPERATIONAL, leaving the host-side
+position window) zeroes the force as far as the bus allows, latches, and
+raises ``DeviceFault`` with the explanation; the latch clears only through
+``reset_fault()`` (an operator action), which takes the drive out of FAULT to
+SWITCH ON DISABLED and no further.
 
 Units: position 0x6064 in encoder counts (``Rig.metres_per_count``); torque
-0x6071/0x6077/0x6072 in per-mille of the motor rated torque 0x6076 (mN m,
-read from the drive), force = torque / ``Rig.lever_arm_m``.
+0x6071/0x6077/0x6072 in per-mille of the motor rated torque (0x6076 in mN m
+from the drive, else from the rig), force = torque / ``Rig.lever_arm_m``.
 """
 from __future__ import annotations
 
@@ -32,38 +39,29 @@ import math
 import struct
 import threading
 import time
-from dataclasses import asdict, dataclass, fields
-from pathlib import Path
 
 import can
 import canopen
-from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
+from canopen.sdo import SdoClient
 
-from labbench.drivers import cia402, emcy
-from labbench.drivers.cia402 import Command, State
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
+from labbench.drivers import cia402, emcy
+from labbench.drivers.can_trace import TracedBus
+from labbench.drivers.canopen_check import Assessment, assess, check_eds  # noqa: F401 - API
+from labbench.drivers.canopen_config import CanopenConfig
+from labbench.drivers.canopen_objects import object_name, read_eds, survey
+from labbench.drivers.canopen_pdo import SYNC_ID
+from labbench.drivers.canopen_sdo import Sdo, hexval, where
+from labbench.drivers.cia402 import Command, State
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
 # canopen logs SDO timeouts as errors; the driver turns them into one-line
 # messages, so without logging configured they must not also reach stderr.
 logging.getLogger("canopen").addHandler(logging.NullHandler())
 
-# CiA 402 operation modes (0x6060) and their bits in supported drive modes (0x6502).
-MODE_CST, MODE_PT = 10, 4
-MODE_BITS = {MODE_CST: 1 << 9, MODE_PT: 1 << 3}
-MODE_NAMES = {MODE_CST: "cyclic synchronous torque", MODE_PT: "profile torque"}
-# NMT states as coded in heartbeat frames (CiA 301).
+# NMT states as coded in heartbeat and node-guarding frames (CiA 301).
 NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
-SYNC_ID = 0x080
-
-# The PDO mapping (index, subindex, bits) and the matching struct layouts.
-RPDO1_MAP = ((0x6071, 0, 16), (0x6040, 0, 16))  # target torque, controlword
-TPDO1_MAP = ((0x6064, 0, 32), (0x6041, 0, 16), (0x6077, 0, 16))  # position, status, torque
-TPDO2_MAP = ((0x606C, 0, 32),)  # velocity actual
-RPDO1 = struct.Struct("<hH")
-TPDO1 = struct.Struct("<iHh")
-TPDO2 = struct.Struct("<i")
 
 # SocketCAN error-frame classes (linux/can/error.h), carried in arbitration_id.
 ERROR_CLASSES = {
@@ -77,98 +75,6 @@ FLAG_WARNING = 1  # statusword bit 7
 FLAG_INTERNAL_LIMIT = 2  # statusword bit 11 (e.g. torque limited by 0x6072)
 
 
-@dataclass(frozen=True)
-class CanopenConfig:
-    """The ``[canopen]`` table of a rig file (see docs/canopen.md)."""
-
-    interface: str = "socketcan"
-    channel: str = "can0"
-    bitrate: int = 1_000_000
-    node_id: int = 1
-    eds: str = ""  # the drive's EDS/DCF: checked for the objects used, if given
-    mode: str = "auto"  # "cst", "pt" or "auto" (CST, else profile torque)
-    host_node_id: int = 127  # heartbeat id of this host, watched by the drive (0x1016)
-    host_heartbeat_ms: int = 20
-    heartbeat_consumer_ms: int = 100
-    drive_heartbeat_ms: int = 100  # 0x1017 of the drive
-    rpdo_timeout_ms: int = 50  # RPDO1 event timer 0x1400:05
-    quick_stop_option: int = 0  # 0x605A; 0 = disable drive function (no torque)
-    fault_reaction_option: int = 0  # 0x605E; 0 = disable drive, motor free
-    abort_connection_option: int = 1  # 0x6007; 1 = fault signal
-    stale_periods: int = 3  # a TPDO later than this many periods is a fault
-    sdo_timeout_s: float = 0.5
-    lockstep_timeout_s: float = 1.0  # simulated drive: wait for the TPDO of a SYNC
-    enable_timeout_s: float = 0.5  # OPERATION ENABLED must show in a TPDO within this
-    velocity_tpdo_every: int = 1  # TPDO2 (0x606C) transmission type: every n-th SYNC
-
-    _RANGES = {
-        "bitrate": (10_000, 1_000_000), "node_id": (1, 127), "host_node_id": (1, 127),
-        "host_heartbeat_ms": (1, 1000), "heartbeat_consumer_ms": (1, 65535),
-        "drive_heartbeat_ms": (1, 65535), "rpdo_timeout_ms": (1, 65535),
-        "quick_stop_option": (-32768, 32767), "fault_reaction_option": (-32768, 32767),
-        "abort_connection_option": (0, 3), "stale_periods": (1, 100),
-        "velocity_tpdo_every": (1, 240),
-    }
-
-    @classmethod
-    def from_section(cls, section: dict, source: str = "rig") -> "CanopenConfig":
-        """Validate ``rig.section("canopen")``: one ``UserError`` naming the bad field."""
-        known = {f.name: f for f in fields(cls)}
-        for name in section:
-            if name not in known:
-                raise UserError(f"{source}: unknown field [canopen] {name}")
-        values = {}
-        for name, value in section.items():
-            default = known[name].default
-            where = f"{source}: [canopen] {name}"
-            if isinstance(default, str):
-                if not isinstance(value, str):
-                    raise UserError(f"{where} must be a string, got {value!r}")
-            elif isinstance(default, float):
-                ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-                if not ok or not math.isfinite(value) or value <= 0:
-                    raise UserError(f"{where} must be a positive number, got {value!r}")
-                value = float(value)
-            else:
-                if not isinstance(value, int) or isinstance(value, bool):
-                    raise UserError(f"{where} must be an integer, got {value!r}")
-                lo, hi = cls._RANGES[name]
-                if not lo <= value <= hi:
-                    raise UserError(f"{where} must be in [{lo}, {hi}], got {value}")
-            values[name] = value
-        cfg = cls(**values)
-        if cfg.mode not in ("auto", "cst", "pt"):
-            raise UserError(f"{source}: [canopen] mode must be auto, cst or pt, got {cfg.mode!r}")
-        if cfg.host_node_id == cfg.node_id:
-            raise UserError(f"{source}: [canopen] host_node_id must differ from node_id")
-        if cfg.heartbeat_consumer_ms < 2 * cfg.host_heartbeat_ms:
-            raise UserError(f"{source}: [canopen] heartbeat_consumer_ms must be at least "
-                            "twice host_heartbeat_ms")
-        if cfg.eds and not Path(cfg.eds).is_file():
-            raise UserError(f"{source}: [canopen] eds file not found: {cfg.eds}")
-        return cfg
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-
-# Objects the driver reads or writes; an EDS given in the rig must list them all.
-REQUIRED_OBJECTS = (0x1000, 0x1016, 0x1017, 0x1018, 0x1400, 0x1600, 0x1800, 0x1801, 0x1A00,
-                    0x1A01, 0x603F, 0x6007, 0x6040, 0x6041, 0x605A, 0x605E, 0x6060, 0x6061,
-                    0x6064, 0x606C, 0x6071, 0x6072, 0x6076, 0x6077, 0x607D, 0x6502)
-
-
-def check_eds(path: str, node_id: int) -> None:
-    """The drive's EDS/DCF must describe every object the driver uses."""
-    try:
-        od = canopen.import_od(path, node_id)
-    except Exception as exc:  # the parser raises many types on a bad file
-        raise UserError(f"cannot read EDS {path}: {exc}") from None
-    missing = [f"0x{i:04X}" for i in REQUIRED_OBJECTS if i not in od]
-    if missing:
-        raise UserError(f"EDS {path} lacks object(s) {', '.join(missing)} needed by the driver")
-
-
 class CanopenDrive:
     """The driver. ``open()`` brings the node up; see the module docstring.
 
@@ -176,16 +82,19 @@ class CanopenDrive:
     config (the simulated drive passes its virtual bus); the driver shuts it
     down on ``close()``. ``realtime``: pace SYNC at the sample time (hardware);
     otherwise SYNC goes out as soon as ``read()`` is called and the drive
-    advances one period per SYNC (lock-step simulation).
+    advances one period per SYNC (lock-step simulation). ``can_log``: a file
+    that receives every frame (``drivers/can_trace.py``).
     """
 
     def __init__(self, rig, config: CanopenConfig, bus: can.BusABC | None = None,
-                 realtime: bool = True):
-        self.rig, self.config, self.realtime = rig, config, realtime
+                 realtime: bool = True, can_log: str | None = None):
+        self.rig, self.config, self.realtime, self.can_log = rig, config, realtime, can_log
         self.T = rig.sample_time_s
         self._bus = bus
         self._network: canopen.Network | None = None
-        self._sdo: SdoClient | None = None
+        self._sdo: Sdo | None = None
+        self.dictionary = None  # what the drive has (canopen_objects.Dictionary), after survey()
+        self.assessment: Assessment | None = None
         self._close_hooks: list = []
         self._closed = False
         self._cyclic = False
@@ -194,37 +103,35 @@ class CanopenDrive:
         self._state_seen = State.NOT_READY_TO_SWITCH_ON  # from the latest statusword
         self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]  # sent with each RPDO
         self._next_tick = 0.0  # paced mode: perf_counter time of the next SYNC
-        self._last_hb = -math.inf  # perf_counter time of the last host heartbeat
-        self._consumer_armed = False  # 0x1016 set to watch our heartbeat
+        self._watch_armed = False  # the drive watches our heartbeat / guarding
         self._fault: str | None = None
+        self._last_emcy: emcy.Emcy | None = None
         self._hb = threading.Condition()
         self._nmt_state: int | None = None
         self._identity: dict = {}
-        self._mode = 0
-        self._rated_mnm = 0
-        self._max_permille = 0
-        self._force_to_permille = 0.0
+        self._mode = None
         self._seq = -1
-        # Per-cycle constants.
         self._mpc = rig.metres_per_count
-        self._hb_period = config.host_heartbeat_ms * 1e-3
         self._tpdo_wait = (config.stale_periods * self.T if realtime
                            else config.lockstep_timeout_s)
+        self._window: tuple[int, int] | None = None  # host-side position window [counts]
+        self._guard_life = config.guard_time_ms * config.life_time_factor * 1e-3
+        self._last_answer = 0.0  # perf_counter time of the last node-guarding answer
         self.velocity_m_s = 0.0
-        self.torque_actual_n = 0.0
+        self.torque_actual_n = math.nan
         self.counters = {"error_frames": 0, "emcy": 0, "stray_frames": 0, "late_ticks": 0}
         id_ = config.node_id
-        self._tpdo1_id, self._tpdo2_id, self._rpdo1_id = 0x180 + id_, 0x280 + id_, 0x200 + id_
         self._emcy_id, self._hb_id = 0x80 + id_, 0x700 + id_
         self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
-        self._rpdo_msg = can.Message(arbitration_id=self._rpdo1_id, data=bytes(4),
-                                     is_extended_id=False)
-        self._host_hb_msg = can.Message(arbitration_id=0x700 + config.host_node_id,
-                                        data=bytes([5]), is_extended_id=False)
+        self._periodic: list = []  # [message, period s, last sent] of the cyclic phase
+        self._decoders: dict = {}  # TPDO COB-ID -> (struct, roles, bit of the SYNC set or 0)
+        self._all_sync = 0
+        self._rpdos: list = []  # (message, struct, roles)
+        self._vals: dict = {}
 
     # ---------------------------------------------------------------- bring-up
     def open(self, timeout: float = 3.0) -> "CanopenDrive":
-        """Connect, observe NMT, read identity, map PDOs, select the mode, start the node."""
+        """Connect, survey and assess (no write), then configure and start the node."""
         self.connect()
         try:
             self._bring_up(timeout)
@@ -234,164 +141,195 @@ class CanopenDrive:
         return self
 
     def connect(self) -> "CanopenDrive":
-        """Bus, SDO client and receive thread only: nothing is written to the drive."""
+        """Bus, SDO client and receive thread only: nothing is sent to the drive."""
         cfg = self.config
-        if cfg.eds:
-            check_eds(cfg.eds, cfg.node_id)
+        self._file = read_eds(cfg.eds, cfg.node_id) if cfg.eds else None
         if self._bus is None:
+            kwargs = cfg.bus_kwargs()
             try:
-                self._bus = can.Bus(interface=cfg.interface, channel=cfg.channel,
-                                    bitrate=cfg.bitrate)
-            except (can.CanError, OSError, ValueError, ImportError) as exc:
-                raise DeviceConnectionError(f"cannot open CAN interface {cfg.interface!r} channel "
-                                f"{cfg.channel!r}: {exc}") from None
+                self._bus = can.Bus(**kwargs)
+            except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+                shown = ", ".join(f"{k}={v!r}" for k, v in kwargs.items()) or \
+                    "python-can's own configuration"
+                raise DeviceConnectionError(f"cannot open CAN bus ({shown}): {exc}") from None
+        if self.can_log:
+            self._bus = TracedBus(self._bus, self.can_log)
         self._network = canopen.Network(self._bus)
-        self._sdo = SdoClient(0x600 + cfg.node_id, 0x580 + cfg.node_id,
-                              canopen.ObjectDictionary())
-        self._sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout_s
-        self._sdo.network = self._network
-        self._network.subscribe(0x580 + cfg.node_id, self._sdo.on_response)
+        client = SdoClient(0x600 + cfg.node_id, 0x580 + cfg.node_id, canopen.ObjectDictionary())
+        client.RESPONSE_TIMEOUT = cfg.sdo_timeout_s
+        client.network = self._network
+        self._sdo = Sdo(client, cfg.node_id, self._check_receiver, object_name)
+        self._network.subscribe(0x580 + cfg.node_id, client.on_response)
         self._network.subscribe(self._hb_id, self._on_heartbeat)
         self._network.subscribe(self._emcy_id, self._on_emcy)
         self._start_receiver()
         return self
 
+    def survey(self) -> Assessment:
+        """Read-only: what the drive has (and its file says), and the assessment."""
+        try:
+            d = survey(self._sdo, self._file)
+        except DeviceConnectionError:
+            self._nmt(NMT_PRE_OPERATIONAL)  # a STOPPED node answers no SDO: one more try
+            d = survey(self._sdo, self._file)
+        self.dictionary = d
+        self.assessment = assess(d, self.config, self.rig)
+        return self.assessment
+
     def probe(self, wait_s: float = 0.3) -> dict:
-        """What the node answers, read-only: identity 0x1018, device type 0x1000,
-        supported modes 0x6502, state 0x6041 (error code 0x603F in FAULT) and the
-        NMT state of a heartbeat heard within ``wait_s`` (if the drive sends any)."""
-        with self._hb:
-            self._nmt_state = None
-            self._hb.wait_for(lambda: self._nmt_state is not None, wait_s)
-            nmt = self._nmt_state
-        info = {
-            "node_id": self.config.node_id, "device_type": self._read(0x1000, 0, "<I"),
-            "vendor_id": self._read(0x1018, 1, "<I"), "product_code": self._read(0x1018, 2, "<I"),
-            "revision": self._read(0x1018, 3, "<I"), "serial": self._read(0x1018, 4, "<I"),
-            "supported_modes": self._read(0x6502, 0, "<I"),
-            "nmt_state": NMT_NAMES.get(nmt, "no heartbeat heard") if nmt is not None
-            else "no heartbeat heard",
-        }
-        info["torque_modes"] = [MODE_NAMES[m] for m in (MODE_CST, MODE_PT)
-                                if info["supported_modes"] & MODE_BITS[m]]
-        state = self.drive_state()
-        info["state"] = state.value
-        if state is State.FAULT:
-            info["error_code"] = self._error_code()
+        """Read-only capability report: identity, device type, modes, 402 state, NMT
+        state, error history 0x1003, PDO plan, watchdog, bus load, obstacles, warnings."""
+        a = self.survey()
+        d = self.dictionary
+        nmt = self._observe_nmt(wait_s)
+        info = {"node_id": self.config.node_id, "source": d.source, **self._ident(),
+                "torque_modes": [m.text for m in a.modes],
+                "nmt_state": NMT_NAMES.get(nmt, f"0x{nmt:02X}") if nmt is not None
+                else "no heartbeat or guarding answer",
+                "capabilities": dict(a.capabilities), "plan": a.plan.lines(),
+                "bus_load": a.bus_load(self.config, self.T),
+                "error_history": self._error_history(),
+                "obstacles": list(a.obstacles), "warnings": list(a.warnings)}
+        if d.has(0x6041, 0):
+            state = self.drive_state()
+            info["state"] = state.value
+            if state is State.FAULT:
+                info["error_code"] = self._error_code()
+        else:
+            info["state"] = "absent (no statusword 0x6041)"
         return info
+
+    def _ident(self) -> dict:
+        d = self.dictionary
+        return {"device_type": d.value(0x1000), "vendor_id": d.value(0x1018, 1),
+                "product_code": d.value(0x1018, 2), "revision": d.value(0x1018, 3),
+                "serial": d.value(0x1018, 4), "supported_modes": d.value(0x6502)}
 
     def _bring_up(self, timeout: float) -> None:
         cfg = self.config
+        a = self.survey()
+        a.refuse()  # every obstacle in one message, before any write
+        self._identity = self._ident()
+        self._mode = None
         self._nmt(NMT_PRE_OPERATIONAL)
-        self._write(0x1017, 0, "<H", cfg.drive_heartbeat_ms)
+        for index, sub, value in self._timing_writes(armed=False):
+            self._write_checked(index, sub, self._fmt(index, sub), value)
         self._wait_nmt(127, timeout)
-        device_type = self._read(0x1000, 0, "<I")
-        if device_type & 0xFFFF != 402:
-            raise UserError(f"node {cfg.node_id}: device type 0x1000 = 0x{device_type:08X}"
-                            " is not a CiA 402 drive")
-        self._identity = {
-            "vendor_id": self._read(0x1018, 1, "<I"), "product_code": self._read(0x1018, 2, "<I"),
-            "revision": self._read(0x1018, 3, "<I"), "serial": self._read(0x1018, 4, "<I"),
-            "device_type": device_type, "supported_modes": self._read(0x6502, 0, "<I"),
-        }
-        self._rated_mnm = self._read(0x6076, 0, "<I")
-        if self._rated_mnm <= 0:
-            raise UserError(f"node {cfg.node_id}: motor rated torque 0x6076 is 0")
-        # per-mille of rated torque per newton at the handle
-        self._force_to_permille = self.rig.lever_arm_m / (self._rated_mnm * 1e-3) * 1000.0
-        limit = round(self.rig.force_limit_n * self._force_to_permille)
-        self._max_permille = min(32767, max(1, limit))
         self._map_pdos()
         self._select_mode()
-        for index, sub, fmt, value in self._safety_objects():
+        for index, sub, fmt, value in a.writes:
             self._write_checked(index, sub, fmt, value)
+        lo, hi = self.rig.position_limits_m
+        self._window = None if a.has.get((0x607D, 1)) else (
+            math.floor(lo / self._mpc), math.ceil(hi / self._mpc))
         self._nmt(NMT_START)
         self._wait_nmt(5, timeout)
+        self._setup_cyclic()
+
+    def _fmt(self, index: int, sub: int) -> str:
+        e = self.dictionary.get(index, sub)
+        return "<" + (e.fmt if e is not None and e.fmt else "I")
+
+    def _timing_writes(self, armed: bool) -> list[tuple[int, int, int]]:
+        """Heartbeat/guarding objects: ``armed`` is the cyclic phase (the drive watches)."""
+        a, cfg = self.assessment, self.config
+        out = []
+        if a.nmt_by == "heartbeat":
+            out.append((0x1017, 0, cfg.drive_heartbeat_ms))
+        if a.watchdog == "heartbeat":
+            out.append((0x1016, 1, cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms
+                        if armed else 0))
+        if "guarding" in (a.watchdog, a.nmt_by):
+            # Life guarding starts with the first request: off in the service phase.
+            guard = cfg.guard_time_ms if armed and a.watchdog == "guarding" else 0
+            out += [(0x100D, 0, cfg.life_time_factor), (0x100C, 0, guard)]
+        return out
 
     def _map_pdos(self) -> None:
-        """CiA 301 PDO mapping procedure, every object read back."""
-        cfg = self.config
-        pdos = (
-            (0x1400, 0x1600, self._rpdo1_id, 255, cfg.rpdo_timeout_ms, RPDO1_MAP),
-            (0x1800, 0x1A00, self._tpdo1_id, 1, 0, TPDO1_MAP),
-            (0x1801, 0x1A01, self._tpdo2_id, cfg.velocity_tpdo_every, 0, TPDO2_MAP),
-        )
-        for comm, mapping, cob_id, trans_type, timer, entries in pdos:
-            self._write(comm, 1, "<I", cob_id | 0x8000_0000)  # invalid while changing
-            self._write(mapping, 0, "<B", 0)
-            for sub, (index, subindex, bits) in enumerate(entries, start=1):
-                self._write_checked(mapping, sub, "<I", index << 16 | subindex << 8 | bits)
-            self._write_checked(mapping, 0, "<B", len(entries))
-            self._write_checked(comm, 2, "<B", trans_type)
-            self._write_checked(comm, 5, "<H", timer)
-            self._write_checked(comm, 1, "<I", cob_id)
+        """CiA 301 procedure: PDO invalid, count 0, entries, count, type, timer, valid."""
+        plan = self.assessment.plan
+        for comm, cob_id in plan.disable:
+            self._write_checked(comm, 1, "<I", cob_id | 0x8000_0000)
+        for p in plan.rpdos + plan.tpdos:
+            if p.write_mapping:
+                if not p.cob_fixed:
+                    self._write(p.comm, 1, "<I", p.cob_id | 0x8000_0000)
+                self._write(p.mapping, 0, "<B", 0)
+                for k, e in enumerate(p.entries, 1):
+                    try:
+                        self._write_checked(p.mapping, k, "<I", e.code)
+                    except (DeviceError, UserError) as exc:
+                        raise UserError(f"node {self.config.node_id}: drive refused mapping "
+                                        f"0x{e.index:04X} ({object_name(e.index)}) into {p.name}"
+                                        f" ({where(p.mapping, k)}): {exc}") from None
+                self._write_checked(p.mapping, 0, "<B", len(p.entries))
+            if p.write_trans:
+                self._write_checked(p.comm, 2, "<B", p.trans_type)
+            if p.event_timer_ms is not None:
+                self._write_checked(p.comm, 5, "<H", p.event_timer_ms)
+            if not p.cob_fixed:
+                self._write_checked(p.comm, 1, "<I", p.cob_id)
+            elif self._read(p.comm, 1, "<I") & 0x8000_0000:
+                raise UserError(f"node {self.config.node_id}: {p.name} is switched off and its "
+                                f"COB-ID {where(p.comm, 1)} is read-only")
 
     def _select_mode(self) -> None:
-        supported = self._identity["supported_modes"]
-        wanted = {"cst": [MODE_CST], "pt": [MODE_PT], "auto": [MODE_CST, MODE_PT]}[self.config.mode]
-        usable = [m for m in wanted if supported & MODE_BITS[m]]
-        if not usable:
-            names = " or ".join(MODE_NAMES[m] for m in wanted)
-            raise UserError(f"node {self.config.node_id}: supported drive modes 0x6502 = "
-                            f"0x{supported:08X} offers no {names} mode")
-        self._mode = usable[0]
-        self._write(0x6060, 0, "<b", self._mode)
-        deadline = time.monotonic() + self.config.sdo_timeout_s * 4
-        while (shown := self._read(0x6061, 0, "<b")) != self._mode:
-            if time.monotonic() > deadline:
-                raise UserError(f"node {self.config.node_id}: modes of operation display 0x6061"
-                                f" shows {shown}, expected {self._mode} "
-                                f"({MODE_NAMES[self._mode]}): refusing to enable")
-            time.sleep(0.005)
+        """The first torque mode the drive takes (``auto``: CST, profile torque, vendor)."""
+        refusals = []
+        display = 0x6061 if self.dictionary.has(0x6061, 0) else 0x6060
+        for m in self.assessment.modes:
+            try:
+                self._write(0x6060, 0, "<b", m.code)
+            except DeviceError as exc:
+                refusals.append(exc)
+                continue
+            deadline = time.monotonic() + self.config.sdo_timeout_s * 4
+            while (shown := self._read(display, 0, "<b")) != m.code:
+                if time.monotonic() > deadline:
+                    raise UserError(f"node {self.config.node_id}: 0x{display:04X}:00 "
+                                    f"({object_name(display)}) shows {shown}, expected "
+                                    f"{m.code} ({m.text}): refusing to enable")
+                time.sleep(0.005)
+            self._mode = m
+            return
+        if len(refusals) == 1:
+            raise refusals[0]
+        raise DeviceError(f"node {self.config.node_id}: no torque mode accepted: "
+                          + "; ".join(str(r) for r in refusals))
 
-    def _safety_objects(self) -> list[tuple[int, int, str, int]]:
-        rig, cfg = self.rig, self.config
-        lo, hi = rig.position_limits_m
-        mpc = rig.metres_per_count
-        return [
-            (0x6072, 0, "<H", self._max_permille),
-            (0x607D, 1, "<i", math.floor(lo / mpc)),
-            (0x607D, 2, "<i", math.ceil(hi / mpc)),
-            (0x605A, 0, "<h", cfg.quick_stop_option),
-            (0x605E, 0, "<h", cfg.fault_reaction_option),
-            (0x6007, 0, "<h", cfg.abort_connection_option),
-            (0x6071, 0, "<h", 0),
-        ]
+    def _setup_cyclic(self) -> None:
+        """Per-cycle tables from the plan: TPDO decoders, RPDO frames, periodic frames."""
+        plan, cfg = self.assessment.plan, self.config
+        self._decoders, self._all_sync = {}, 0
+        for k, p in enumerate(plan.tpdos):
+            bit = 1 << k if p.trans_type == 1 else 0
+            self._all_sync |= bit
+            self._decoders[p.cob_id] = (p.struct(), tuple(p.roles()), bit)
+        self._rpdos = [(can.Message(arbitration_id=p.cob_id, data=bytes(p.n_bytes),
+                                    is_extended_id=False), p.struct(), tuple(p.roles()))
+                       for p in plan.rpdos]
+        self._periodic = []
+        a = self.assessment
+        if a.watchdog == "heartbeat":
+            self._periodic.append([can.Message(arbitration_id=0x700 + cfg.host_node_id,
+                                               data=bytes([5]), is_extended_id=False),
+                                   cfg.host_heartbeat_ms * 1e-3, -math.inf])
+        if "guarding" in (a.watchdog, a.nmt_by):
+            self._periodic.append([self._guard_request(), cfg.guard_time_ms * 1e-3, -math.inf])
+
+    def _guard_request(self) -> can.Message:
+        return can.Message(arbitration_id=self._hb_id, is_remote_frame=True, dlc=1,
+                           is_extended_id=False)
 
     # ----------------------------------------------------------------- SDO/NMT
     def _read(self, index: int, sub: int, fmt: str) -> int:
-        self._check_receiver()
-        try:
-            raw = self._sdo.upload(index, sub)
-        except SdoAbortedError as exc:
-            raise DeviceError(f"node {self.config.node_id}: SDO read of 0x{index:04X}:{sub:02X} "
-                            f"refused: {exc}") from None
-        except SdoCommunicationError as exc:
-            self._check_receiver()
-            raise DeviceConnectionError(f"node {self.config.node_id}: no answer to SDO read of "
-                            f"0x{index:04X}:{sub:02X} ({exc})") from None
-        size = struct.calcsize(fmt)
-        return struct.unpack(fmt, bytes(raw[:size]).ljust(size, b"\0"))[0]
+        return self._sdo.read(index, sub, fmt)
 
     def _write(self, index: int, sub: int, fmt: str, value: int) -> None:
-        self._check_receiver()
-        try:
-            self._sdo.download(index, sub, struct.pack(fmt, value))
-        except SdoAbortedError as exc:
-            raise DeviceError(f"node {self.config.node_id}: drive refused writing {value} to "
-                            f"0x{index:04X}:{sub:02X}: {exc}; refusing to enable") from None
-        except SdoCommunicationError as exc:
-            self._check_receiver()
-            raise DeviceConnectionError(f"node {self.config.node_id}: no answer to SDO write of "
-                            f"0x{index:04X}:{sub:02X} ({exc})") from None
+        self._sdo.write(index, sub, fmt, value)
 
     def _write_checked(self, index: int, sub: int, fmt: str, value: int) -> None:
-        """Write, then read back: a drive that ignores a write is caught here."""
-        self._write(index, sub, fmt, value)
-        back = self._read(index, sub, fmt)
-        if back != value:
-            raise UserError(f"node {self.config.node_id}: object 0x{index:04X}:{sub:02X} reads "
-                            f"back {back} after writing {value}: refusing to enable")
+        self._sdo.write_checked(index, sub, fmt, value)
 
     def _nmt(self, command: int) -> None:
         self._send(can.Message(arbitration_id=0, data=bytes([command, self.config.node_id]),
@@ -402,18 +340,30 @@ class CanopenDrive:
             self._nmt_state = data[0] & 0x7F if data else None
             self._hb.notify_all()
 
-    def _wait_nmt(self, state: int, timeout: float) -> None:
-        """Wait for a heartbeat that shows ``state`` (observed, not assumed)."""
+    def _observe_nmt(self, timeout: float) -> int | None:
+        """The NMT state shown by a heartbeat or guarding answer from now on, or None."""
+        guarding = self.assessment is not None and self.assessment.nmt_by == "guarding"
         deadline = time.monotonic() + timeout
         with self._hb:
-            self._nmt_state = None  # only a heartbeat sent from now on counts
-            while self._nmt_state != state:
+            self._nmt_state = None  # only a frame sent from now on counts
+            while self._nmt_state is None:
+                if guarding:
+                    self._send(self._guard_request())
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    seen = NMT_NAMES.get(self._nmt_state, "no heartbeat")
-                    raise UserError(f"node {self.config.node_id}: NMT state not "
-                                    f"{NMT_NAMES[state]} within {timeout:g} s (seen: {seen})")
-                self._hb.wait(left)
+                    return None
+                self._hb.wait(min(left, 0.05) if guarding else left)
+            return self._nmt_state
+
+    def _wait_nmt(self, state: int, timeout: float) -> None:
+        """Wait for a heartbeat or guarding answer that shows ``state`` (observed, not assumed)."""
+        deadline = time.monotonic() + timeout
+        seen = None
+        while (seen := self._observe_nmt(max(0.0, deadline - time.monotonic()))) != state:
+            if time.monotonic() >= deadline:
+                shown = NMT_NAMES.get(seen, "no heartbeat or guarding answer")
+                raise UserError(f"node {self.config.node_id}: NMT state not "
+                                f"{NMT_NAMES[state]} within {timeout:g} s (seen: {shown})")
 
     def _on_emcy(self, can_id, data, timestamp) -> None:
         try:
@@ -423,6 +373,7 @@ class CanopenDrive:
             return
         self.counters["emcy"] += 1
         if not e.is_reset:
+            self._last_emcy = e
             self._latch(f"drive reported {e}")
 
     def _check_receiver(self) -> None:
@@ -465,40 +416,77 @@ class CanopenDrive:
             state = new
 
     def _error_code(self) -> str:
-        code = self._read(0x603F, 0, "<H")
-        return f"error code 0x603F = 0x{code:04X} ({emcy.code_text(code)})"
+        """What explains a FAULT: 0x603F, else the last EMCY, 0x1001 and 0x1003."""
+        d = self.dictionary
+        if d is not None and d.has(0x603F, 0) or d is None:
+            code = self._read(0x603F, 0, "<H")
+            return f"error code 0x603F = 0x{code:04X} ({emcy.code_text(code)})"
+        parts = [f"last EMCY 0x{self._last_emcy.code:04X} ({self._last_emcy.text})"] \
+            if self._last_emcy else []
+        register = self._sdo.upload(0x1001, 0)
+        if register:
+            parts.append(f"error register 0x1001 = 0x{register[0]:02X}")
+        history = self._error_history()
+        if history:
+            parts.append(f"latest error 0x1003:01 = 0x{history[0] & 0xFFFF:04X} "
+                         f"({emcy.code_text(history[0] & 0xFFFF)})")
+        return "; ".join(parts) or "no error code (0x603F and 0x1003 absent, no EMCY heard)"
+
+    def _error_history(self) -> list[int]:
+        """Pre-defined error field 0x1003, newest first (empty when absent)."""
+        count = self._sdo.upload(0x1003, 0)
+        if not count:
+            return []
+        out = []
+        for sub in range(1, min(count[0], 8) + 1):
+            raw = self._sdo.upload(0x1003, sub)
+            if raw is not None:
+                out.append(struct.unpack("<I", raw[:4].ljust(4, b"\0"))[0])
+        return out
 
     # ------------------------------------------------------------------ Device
     def describe(self) -> DeviceDescription:
-        limit = (self._max_permille / self._force_to_permille if self._force_to_permille
-                 else self.rig.force_limit_n)
+        a = self.assessment
+        ftp = a.force_to_permille if a is not None else 0.0
+        limit = a.max_permille / ftp if ftp else self.rig.force_limit_n
+        details = {"config": self.config.as_dict(), "identity": dict(self._identity),
+                   "mode": self._mode.text if self._mode else "", "paced": self.realtime,
+                   "counters": dict(self.counters)}
+        if a is not None:
+            details.update(
+                rated_torque_mnm=a.rated_mnm, torque_scale=a.capabilities.get("torque scale"),
+                max_torque_permille=a.max_permille, watchdog=a.capabilities.get("watched by"),
+                pdo_plan=a.plan.lines(), bus_load=a.bus_load(self.config, self.T)["load_nominal"],
+                warnings=list(a.warnings), dictionary=a.source)
+        if self.can_log:
+            details["can_log"] = self.can_log
         return DeviceDescription(
             kind="canopen", name=f"CiA 402 drive, node {self.config.node_id}",
             sample_time_s=self.T, force_limit_n=limit,
-            position_limits_m=self.rig.position_limits_m,
-            details={"config": self.config.as_dict(), "identity": dict(self._identity),
-                     "mode": MODE_NAMES.get(self._mode, ""), "rated_torque_mnm": self._rated_mnm,
-                     "max_torque_permille": self._max_permille, "paced": self.realtime,
-                     "counters": dict(self.counters)},
-        )
+            position_limits_m=self.rig.position_limits_m, details=details)
 
     def _start_cyclic(self) -> None:
-        """Service -> cyclic phase: re-verify the drive, arm its heartbeat consumer."""
+        """Service -> cyclic phase: re-verify the drive, arm its watch on the host."""
         if self._fault:
             raise self._latched()
+        a = self.assessment
         try:
             state = self.drive_state()
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self._latch(f"drive is in {state.value}: {self._error_code()}")
                 raise self._latched()
-            for index, sub, fmt, value in self._safety_objects() + [
-                    (0x1400, 5, "<H", self.config.rpdo_timeout_ms), (0x6061, 0, "<b", self._mode)]:
+            display = 0x6061 if self.dictionary.has(0x6061, 0) else 0x6060
+            checks = list(a.writes) + [(p.comm, 5, "<H", p.event_timer_ms)
+                                       for p in a.plan.rpdos if p.event_timer_ms] + [
+                (display, 0, "<b", self._mode.code)]
+            for index, sub, fmt, value in checks:
                 if (back := self._read(index, sub, fmt)) != value:
-                    raise UserError(f"node {self.config.node_id}: object 0x{index:04X}:{sub:02X}"
-                                    f" is {back}, expected {value}: refusing to enable")
-            cfg = self.config
-            self._consumer_armed = True
-            self._write_checked(0x1016, 1, "<I", cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms)
+                    raise UserError(f"node {self.config.node_id}: object {where(index, sub)} "
+                                    f"({object_name(index)}) is {hexval(back, fmt)}, expected "
+                                    f"{hexval(value, fmt)}: refusing to enable")
+            self._watch_armed = True
+            for index, sub, value in self._timing_writes(armed=True):
+                self._write_checked(index, sub, self._fmt(index, sub), value)
         except UserError as exc:  # inside a run this is a device fault with the same words
             self._latch(str(exc))
             raise DeviceFault(self._fault) from None
@@ -509,7 +497,9 @@ class CanopenDrive:
         self._confirmed = False
         self._cyclic = True
         self._next_tick = time.perf_counter()
-        self._last_hb = -math.inf
+        self._last_answer = self._next_tick
+        for entry in self._periodic:
+            entry[2] = -math.inf
 
     def enable(self, timeout: float = 1.0) -> None:
         """Ask for OPERATION ENABLED (RPDO controlword); the next TPDOs must confirm it.
@@ -525,11 +515,10 @@ class CanopenDrive:
         if self._enable_deadline is None:
             self._enable_deadline = time.perf_counter() + max(timeout, self.config.enable_timeout_s)
         self._step_toward_enabled(self._state_seen)
-        self._send(can.Message(arbitration_id=self._rpdo1_id,
-                               data=RPDO1.pack(0, self._controlword), is_extended_id=False))
+        self._send_rpdos(0)
 
     def disable(self, timeout: float = 1.0) -> None:
-        """Zero torque, SWITCH ON DISABLED (confirmed over SDO), heartbeat consumer off."""
+        """Zero torque, SWITCH ON DISABLED (confirmed over SDO), the drive's watch off."""
         if self._closed or self._network is None:
             return
         self._zero_force(Command.DISABLE_VOLTAGE)
@@ -537,19 +526,21 @@ class CanopenDrive:
             self._cyclic = False
             self._start_receiver()
         if self._fault:
-            # Perhaps unreachable: one attempt to stop the drive watching a heartbeat
-            # the loop no longer sends; the fault already says what went wrong.
-            if self._consumer_armed:
-                self._consumer_armed = False
+            # Perhaps unreachable: one attempt to stop the drive watching a host that
+            # no longer sends; the fault already says what went wrong.
+            if self._watch_armed:
+                self._watch_armed = False
                 try:
-                    self._write(0x1016, 1, "<I", 0)
+                    for index, sub, value in self._timing_writes(armed=False):
+                        self._write(index, sub, self._fmt(index, sub), value)
                 except (UserError, DeviceError):
                     pass
             return
         try:
             self._drive_to(State.SWITCH_ON_DISABLED, timeout)
-            self._write_checked(0x1016, 1, "<I", 0)
-            self._consumer_armed = False
+            for index, sub, value in self._timing_writes(armed=False):
+                self._write_checked(index, sub, self._fmt(index, sub), value)
+            self._watch_armed = False
         except (UserError, DeviceError) as exc:
             self._latch(f"disable failed: {exc}")
             raise DeviceFault(self._fault) from None
@@ -559,16 +550,24 @@ class CanopenDrive:
         self._zero_force(Command.DISABLE_VOLTAGE)
         self._latch("emergency stop")
 
+    def _send_rpdos(self, permille: int) -> None:
+        cw = self._controlword
+        for msg, st, roles in self._rpdos:
+            msg.data = st.pack(*[permille if r == "torque" else cw for r in roles])
+            self._send(msg)
+
     def _zero_force(self, cmd: Command) -> None:
         try:
             self._controlword = cia402.CONTROLWORD[cmd]
             if self._cyclic:
-                self._bus.send(can.Message(arbitration_id=self._rpdo1_id,
-                                           data=RPDO1.pack(0, self._controlword),
-                                           is_extended_id=False))
+                cw = self._controlword
+                for msg, st, roles in self._rpdos:
+                    msg.data = st.pack(*[0 if r == "torque" else cw for r in roles])
+                    self._bus.send(msg)
             elif self._sdo is not None and self._network.notifier is not None and not self._fault:
-                self._sdo.download(0x6071, 0, struct.pack("<h", 0))
-                self._sdo.download(0x6040, 0, struct.pack("<H", self._controlword))
+                if self.dictionary is None or self.dictionary.has(0x6071, 0):
+                    self._sdo.client.download(0x6071, 0, struct.pack("<h", 0))
+                self._sdo.client.download(0x6040, 0, struct.pack("<H", self._controlword))
         except Exception:  # the bus may be what failed; the drive's timers take over
             pass
 
@@ -587,6 +586,7 @@ class CanopenDrive:
                                       f"{self._error_code()}")
                 time.sleep(0.002)
         self._fault = None
+        self._last_emcy = None
         return state
 
     def status(self) -> DeviceStatus:
@@ -617,7 +617,7 @@ class CanopenDrive:
         return Sample(*self.read_raw(timeout))
 
     def read_raw(self, timeout: float) -> tuple:
-        """SYNC, then the TPDO of that SYNC: ``(seq, t_s, position_m, flags)``.
+        """SYNC, then the TPDOs of that SYNC: ``(seq, t_s, position_m, flags)``.
 
         The position is the drive's at the SYNC, i.e. at the start of the period.
         """
@@ -639,29 +639,51 @@ class CanopenDrive:
         if bus.state is can.BusState.ERROR:
             self._fail("CAN controller is bus-off (error state)")
         self._send(self._sync_msg)
-        if now - self._last_hb >= self._hb_period:
-            self._send(self._host_hb_msg)
-            self._last_hb = now
+        for entry in self._periodic:
+            if now - entry[2] >= entry[1]:
+                self._send(entry[0])
+                entry[2] = now
+        if self._guard_life and now - self._last_answer > self._guard_life \
+                and self.assessment.nmt_by == "guarding":
+            self._fail(f"no node guarding answer for {self._guard_life * 1e3:.0f} ms")
         deadline = now + wait
+        decoders, vals, seen = self._decoders, self._vals, 0
         while True:
             left = deadline - time.perf_counter()
             msg = bus.recv(left if left > 0 else 0.0)
             if msg is None:
                 self._fail(f"stale TPDO: no answer to SYNC {self._seq + 1} within "
                            f"{wait * 1e3:.3g} ms")
-            if msg.arbitration_id == self._tpdo1_id and not msg.is_error_frame:
-                counts, status, torque = TPDO1.unpack_from(msg.data)
-                break
+            dec = decoders.get(msg.arbitration_id)
+            if dec is not None and not msg.is_error_frame:
+                try:
+                    vals.update(zip(dec[1], dec[0].unpack_from(msg.data)))
+                except struct.error:
+                    self._fail(f"TPDO 0x{msg.arbitration_id:03X} of {len(msg.data)} bytes, "
+                               f"expected {dec[0].size}")
+                seen |= dec[2]
+                if seen == self._all_sync:
+                    break
+                continue
             self._dispatch(msg)
             if self._fault:  # EMCY, error frame or NMT change seen while waiting
                 self._fail(self._fault)
+        status, counts = vals["status"], vals["position"]
         if status & 0x6F != 0x27:  # CiA 402 coding of OPERATION ENABLED
             self._not_enabled(status)
         elif self._enable_deadline is not None and not self._confirmed:
             self._confirmed = True
             self._state_seen = State.OPERATION_ENABLED
+        if self._window is not None and self._confirmed and not (
+                self._window[0] <= counts <= self._window[1]):
+            self._fail(f"position {counts * self._mpc:.4g} m outside the rig's window "
+                       f"{list(self.rig.position_limits_m)} (host-side: the drive has no "
+                       "software position limit 0x607D)")
         self._seq += 1
-        self.torque_actual_n = torque / self._force_to_permille
+        if "torque" in vals:
+            self.torque_actual_n = vals["torque"] / self.assessment.force_to_permille
+        if "velocity" in vals:
+            self.velocity_m_s = vals["velocity"] * self._mpc
         flags = (FLAG_WARNING if status & cia402.SW_WARNING else 0) | (
             FLAG_INTERNAL_LIMIT if status & cia402.SW_INTERNAL_LIMIT else 0)
         return self._seq, self._seq * self.T, counts * self._mpc, flags
@@ -691,39 +713,37 @@ class CanopenDrive:
         self._controlword = cia402.CONTROLWORD[cmd or Command.ENABLE_OPERATION]
 
     def _dispatch(self, msg: can.Message) -> None:
-        """Everything but TPDO1 in the cyclic phase."""
+        """Everything but the TPDOs in the cyclic phase."""
         if msg.is_error_frame:
             self.counters["error_frames"] += 1
             cls = [t for bit, t in ERROR_CLASSES.items() if msg.arbitration_id & bit]
             self._latch(f"CAN error frame ({', '.join(cls) or 'unspecified'})")
             return
         cid = msg.arbitration_id
-        if cid == self._tpdo2_id:
-            self.velocity_m_s = TPDO2.unpack_from(msg.data)[0] * self.rig.metres_per_count
-        elif cid == self._emcy_id:
+        if cid == self._emcy_id:
             self._on_emcy(cid, msg.data, msg.timestamp)
-        elif cid == self._hb_id:
+        elif cid == self._hb_id and not msg.is_remote_frame:
             state = msg.data[0] & 0x7F if msg.data else None
+            self._last_answer = time.perf_counter()
             if state != 5:
                 self._latch(f"drive NMT state is {NMT_NAMES.get(state, state)}, not OPERATIONAL")
         else:
             self.counters["stray_frames"] += 1
 
     def command(self, force_n: float) -> None:
-        """RPDO: torque held by the drive from now until the next command.
+        """RPDO(s): torque held by the drive from now until the next command.
 
         Outside a run (or after a fault) only zero is accepted, and sends nothing.
+        The torque is clamped here too (the only clamp when the drive has no 0x6072).
         """
         if self._fault or not self._cyclic:
             if force_n != 0.0:
                 raise DeviceFault(self._fault or "command() outside a run (no read() yet)")
             return
-        p = round(force_n * self._force_to_permille)
-        p = self._max_permille if p > self._max_permille else (
-            -self._max_permille if p < -self._max_permille else p)
-        msg = self._rpdo_msg  # reused: buses copy or serialise a frame when sending it
-        msg.data = RPDO1.pack(p, self._controlword)
-        self._send(msg)
+        a = self.assessment
+        p = round(force_n * a.force_to_permille)
+        m = a.max_permille
+        self._send_rpdos(m if p > m else (-m if p < -m else p))
 
     def identity(self) -> dict:
         return dict(self._identity)
@@ -758,36 +778,8 @@ class CanopenDrive:
         self.close()
 
 
-def frame_bits(n_bytes: int) -> tuple[int, int]:
-    """(nominal, worst-case) bits on the wire of a CAN 2.0A data frame with ``n_bytes``.
-
-    47 + 8n bits: SOF, 11-bit id, RTR, IDE, r0, DLC, data, CRC 15 + delimiter, ACK
-    slot + delimiter, EOF 7, intermission 3 (ISO 11898-1); bit stuffing adds at
-    most one bit per four after the first in the 34 + 8n bits from SOF to CRC.
-    """
-    nominal = 47 + 8 * n_bytes
-    return nominal, nominal + (34 + 8 * n_bytes - 1) // 4
-
-
-def bus_load(config: CanopenConfig, sample_time_s: float) -> dict:
-    """Bus load of this driver's traffic at ``config.bitrate`` (fraction of capacity)."""
-    rate = 1.0 / sample_time_s
-    traffic = [  # (name, data bytes, frames per second)
-        ("SYNC", 0, rate),
-        ("TPDO1 0x6064+0x6041+0x6077", 8, rate),
-        ("TPDO2 0x606C", 4, rate / config.velocity_tpdo_every),
-        ("RPDO1 0x6071+0x6040", 4, rate),
-        ("host heartbeat", 1, 1000.0 / config.host_heartbeat_ms),
-        ("drive heartbeat", 1, 1000.0 / config.drive_heartbeat_ms),
-    ]
-    nominal = sum(frame_bits(n)[0] * f for _, n, f in traffic)
-    worst = sum(frame_bits(n)[1] * f for _, n, f in traffic)
-    return {"bitrate": config.bitrate, "frames": [(name, n, f) for name, n, f in traffic],
-            "bits_per_s_nominal": nominal, "bits_per_s_worst": worst,
-            "load_nominal": nominal / config.bitrate, "load_worst": worst / config.bitrate}
-
-
-def open_canopen(rig, realtime: bool = True, seed=None, **options) -> CanopenDrive:
+def open_canopen(rig, realtime: bool = True, seed=None, can_log: str | None = None,
+                 **options) -> CanopenDrive:
     """Registry factory (``--device canopen``): the drive described by ``rig``'s ``[canopen]``.
 
     ``seed`` is accepted (and unused) so that every device opens with the same call.
@@ -795,4 +787,29 @@ def open_canopen(rig, realtime: bool = True, seed=None, **options) -> CanopenDri
     if options:
         raise UserError(f"canopen device takes no option(s) {', '.join(sorted(options))}")
     config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
-    return CanopenDrive(rig, config, realtime=realtime).open()
+    return CanopenDrive(rig, config, realtime=realtime, can_log=can_log).open()
+
+
+def probe_canopen(rig, fault_reset: bool = False) -> dict:
+    """Registry probe (``labbench devices``): the read-only capability report of the rig's drive.
+
+    ``fault_reset``: the operator's fault reset instead (FAULT -> SWITCH ON
+    DISABLED only), reported as ``{"reset": (before, after)}``. A drive that
+    does not answer gives ``{"no_answer": reason}``.
+    """
+    config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
+    return probe_drive(CanopenDrive(rig, config), fault_reset)
+
+
+def probe_drive(drive: CanopenDrive, fault_reset: bool = False) -> dict:
+    """``probe()`` or ``reset_fault()`` on a driver not yet connected; closes it."""
+    try:
+        with drive:
+            drive.connect()
+            if not fault_reset:
+                return drive.probe()
+            before = drive.drive_state()
+            return {"node_id": drive.config.node_id, "reset": (before.value,
+                                                               drive.reset_fault().value)}
+    except DeviceConnectionError as exc:
+        return {"no_answer": str(exc)}

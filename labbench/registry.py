@@ -11,6 +11,11 @@ a backend or a protocol by declaring, in its own pyproject.toml::
     [project.entry-points."labbench.protocols"]
     sweep = "my_package.sweep:Sweep"           # a labbench.protocol.ProtocolBase
 
+A device backend may also offer a read-only probe for ``labbench devices``
+(group ``labbench.device_probes``, same name as the backend):
+``probe(rig, fault_reset=False) -> dict``; ``{"no_answer": reason}`` when the
+device does not answer.
+
 Targets are imported only when used, so a backend whose optional packages are
 missing never breaks the others. A built-in name cannot be taken over.
 """
@@ -23,6 +28,7 @@ from labbench.errors import UserError
 
 DEVICE_GROUP = "labbench.devices"
 PROTOCOL_GROUP = "labbench.protocols"
+PROBE_GROUP = "labbench.device_probes"
 
 _BUILTIN = {
     DEVICE_GROUP: {
@@ -32,6 +38,10 @@ _BUILTIN = {
         "avr-sim": "labbench.sim_backend.avr_device:open_avr_sim",
         "canopen": "labbench.drivers.canopen_drive:open_canopen",
         "serial": "labbench.drivers.serial_stream:open_serial",
+    },
+    PROBE_GROUP: {
+        "sim-canopen": "labbench.sim_backend.canopen_peer:probe_sim_canopen",
+        "canopen": "labbench.drivers.canopen_drive:probe_canopen",
     },
     PROTOCOL_GROUP: {
         "chirp-id": "labbench.protocols.chirp_id:ChirpId",
@@ -75,6 +85,11 @@ def device_factory(name: str):
 def open_device(name: str, rig, **options):
     """Open backend ``name`` for ``rig`` (a ``labbench.rig.Rig``)."""
     return device_factory(name)(rig, **options)
+
+
+def device_probe(name: str):
+    """The probe ``(rig, fault_reset=False) -> dict`` of backend ``name``, or None."""
+    return _load(PROBE_GROUP, name, "probe") if name in _table(PROBE_GROUP) else None
 
 
 def protocol_class(name: str):

@@ -81,6 +81,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         run_state.uid = start["uid"]
         run_state.emit(start)
         run_state.emit(records.descriptor_record(T))
+        for text in desc.details.get("warnings", ()):  # e.g. a fallback for a missing object
+            run_state.emit(records.event_record(run_state.last_t, "device_warning", text))
         meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
                 "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
                 "protocol": protocol.describe(), "force_hold": desc.force_hold}

@@ -1,20 +1,36 @@
 """A simulated CiA 402 servo drive on python-can's ``virtual`` bus, and ``open_sim_canopen``.
 
-The drive is a canopen ``LocalNode`` (object dictionary from ``drive.eds``, the
-library's SDO server) run by one thread of its own that reads its bus and
-handles, like a drive would: NMT commands and the heartbeat producer (0x1017),
-SYNC (advance the plant one period with the torque held since the last RPDO,
-then sample and send the TPDOs as mapped in 0x1A00/0x1A01), the RPDO (target
-torque, controlword through the pure CiA 402 table of ``labbench.drivers.cia402``), the
-heartbeat consumer (0x1016) and RPDO event timer (0x1400:05) with the reaction
-of 0x6007, the torque limit 0x6072 and software position limits 0x607D.
-``LocalNode`` reacts neither to SYNC nor (through write callbacks) to RPDOs,
-hence the thread. Timers run on wall-clock time; the plant on SYNC time.
+The drive is built from the EDS/DCF the rig names (``[canopen] eds``; our own
+``drive.eds`` otherwise), read as leniently as the driver reads it, so a
+technician can rehearse a drive's dictionary before connecting the drive. It
+is a canopen ``LocalNode`` (the library's SDO server enforces object
+existence, access types and data sizes) run by one thread of its own that
+reads its bus and acts like a drive:
+
+* the rules of the dictionary: value limits (LowLimit/HighLimit, abort
+  0x06090031/32), PDO mappability (0x06040041), mapping length (0x06040042)
+  and the CiA 301 mapping procedure (a mapping is changed only with its PDO
+  invalid and sub-index 0 at zero, else abort 0x08000022);
+* NMT, the heartbeat producer 0x1017, node guarding answers (any RTR on
+  0x700 + id, toggle bit per CiA 301) and life guarding 0x100C x 0x100D;
+* SYNC: advance the plant one period with the torque held since the last
+  RPDO, then sample and send the TPDOs as mapped (every n-th SYNC, their
+  transmission type); RPDOs of transmission type 254/255 apply on arrival,
+  synchronous ones at the next SYNC; controlword through the pure CiA 402
+  table of ``labbench.drivers.cia402``;
+* the heartbeat consumer 0x1016, life guarding and RPDO event timers with the
+  reaction of 0x6007 (fault when absent); the torque limit 0x6072 and the
+  software position limits 0x607D when present; error register 0x1001 and
+  error history 0x1003 when present.
+
+Only objects the dictionary has exist. ``LocalNode`` reacts neither to SYNC
+nor (through write callbacks) to RPDOs, hence the thread. Timers run on
+wall-clock time; the plant on SYNC time.
 
 Fault hooks for tests: ``mute`` (stop answering), ``ignore_sdo_write`` and
 ``abort_sdo_write``, ``inject_emcy``, ``send_error_frame``, and on the host's bus
 (``FaultyVirtualBus``) ``fail_tx_for`` and ``go_bus_off``. A frozen host loop needs no hook: stop
-calling ``read()`` and the heartbeat consumer fires.
+calling ``read()`` and the drive's watch fires.
 """
 from __future__ import annotations
 
@@ -23,22 +39,27 @@ import struct
 import threading
 import time
 import uuid
+from dataclasses import replace
 from pathlib import Path
 
 import can
 import canopen
 from can.interfaces.virtual import VirtualBus
+from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
 from labbench.drivers import cia402, emcy
-from labbench.drivers.canopen_drive import MODE_BITS, CanopenConfig, CanopenDrive
+from labbench.drivers.canopen_config import STANDARD_MODES, CanopenConfig
+from labbench.drivers.canopen_drive import CanopenDrive, probe_drive
+from labbench.drivers.canopen_objects import (RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP, TYPE_FMT,
+                                              read_eds)
 from labbench.drivers.cia402 import State
 from labbench.sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
-# Struct codes of the OD data types the drive can map into a PDO.
-_PDO_TYPES = {0x2: "b", 0x3: "h", 0x4: "i", 0x5: "B", 0x6: "H", 0x7: "I"}
-SDO_ABORT_VALUE_RANGE = 0x06090030
+ABORT_RANGE, ABORT_HIGH, ABORT_LOW = 0x06090030, 0x06090031, 0x06090032
+ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH = 0x06040041, 0x06040042
+ABORT_PARAMETER, ABORT_STATE, ABORT_NO_OBJECT = 0x06040043, 0x08000022, 0x06020000
 
 
 class FaultyVirtualBus(VirtualBus):
@@ -72,12 +93,14 @@ class FaultyVirtualBus(VirtualBus):
 
 
 class _DriveNode(canopen.LocalNode):
-    """LocalNode whose SDO writes can be ignored (acknowledged, not stored) or aborted."""
+    """LocalNode whose SDO writes can be ignored (acknowledged, not stored) or aborted,
+    and which keeps a log of the SDO writes it accepted (tests: "nothing written")."""
 
     def __init__(self, node_id, od):
         super().__init__(node_id, od)
         self.ignored: set[tuple[int, int]] = set()
         self.aborted: dict[tuple[int, int], int] = {}
+        self.writes: list[tuple[int, int]] = []
 
     def set_data(self, index, subindex, data, check_writable=False):
         if (index, subindex) in self.aborted:
@@ -85,21 +108,44 @@ class _DriveNode(canopen.LocalNode):
         if (index, subindex) in self.ignored:
             return
         super().set_data(index, subindex, data, check_writable)
+        if check_writable:  # an SDO write (the drive's own stores pass False)
+            self.writes.append((index, subindex))
+
+    def _find_object(self, index, subindex):
+        """Only declared subindices exist (canopen's arrays make up any 1-255)."""
+        obj = super()._find_object(index, subindex)
+        parent = self.object_dictionary[index]
+        if not isinstance(parent, ODVariable) and subindex not in parent.subindices:
+            raise SdoAbortedError(0x06090011)
+        return obj
+
+
+def _is_dummy(index: int) -> bool:
+    return 1 <= index <= 7
 
 
 class SimCanopenDrive:
-    """The simulated drive; ``start()`` runs its thread, ``close()`` stops it (idempotent)."""
+    """The simulated drive; ``start()`` runs its thread, ``close()`` stops it (idempotent).
+
+    ``config``: the rig's ``[canopen]`` table, for what a dictionary may lack
+    (the rated torque when 0x6076 is absent or 0) and the vendor torque modes
+    of ``[canopen.modes]``, which this drive then offers.
+    """
 
     def __init__(self, channel: str, node_id: int, plant: SimDevice,
-                 metres_per_count: float, lever_arm_m: float, sample_time_s: float):
+                 metres_per_count: float, lever_arm_m: float, sample_time_s: float,
+                 eds: str | Path = EDS_PATH, config: CanopenConfig | None = None):
         self.node_id = node_id
         self.plant = plant
         self.mpc = metres_per_count
         self.lever = lever_arm_m
         self.T = sample_time_s
+        self.config = config or CanopenConfig()
+        self.dictionary = read_eds(str(eds), node_id)
+        self.od = self.dictionary.od
         self.bus = VirtualBus(channel=channel)
         self.network = canopen.Network(self.bus)
-        self.node = _DriveNode(node_id, canopen.import_od(str(EDS_PATH), node_id))
+        self.node = _DriveNode(node_id, self.od)
         self.network.add_node(self.node)
         # Heartbeat is produced by the drive thread, not by a periodic task.
         self.node._write_callbacks.remove(self.node.nmt.on_write)
@@ -113,29 +159,48 @@ class SimCanopenDrive:
         self.target_permille = 0
         self.torque_permille = 0  # applied now (0 unless the power stage is enabled)
         self.error_code = 0
+        self.history: list[int] = []  # error history 0x1003, newest first
         self.mode = 0
         self.muted = False
         self.sync_count = 0
         self.events: list[str] = []  # what the drive did on its own, for tests and docs
+        self._torque_modes = {c for c, _, _ in STANDARD_MODES.values()} | {
+            m["code"] for m in self.config.modes.values()}
         self._hb_next = math.inf
         self._host_hb_last: float | None = None
-        self._rpdo_last: float | None = None
+        self._guard_last: float | None = None  # last guarding request (life guarding)
+        self._toggle = 0
         self._tpdos: list = []
-        self._rpdo: tuple | None = None
+        self._rpdos: dict = {}  # COB-ID -> [indices, struct, timer ms, synchronous, last]
+        self._pending: list = []  # synchronous RPDO values, applied at the next SYNC
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sim-canopen-drive", daemon=True)
 
     # ---------------------------------------------------------------- OD access
-    def _get(self, index: int, sub: int = 0) -> int:
-        """A stored parameter (cached; the write callback keeps the cache current)."""
+    def has(self, index: int, sub: int = 0) -> bool:
+        return self.dictionary.has(index, sub)
+
+    def _get(self, index: int, sub: int = 0, default: int | None = None) -> int:
+        """A stored parameter (cached; the write callback keeps the cache current);
+        ``default`` for an object the dictionary does not have."""
         key = (index, sub)
         if key not in self._params:
+            if not self.has(index, sub):
+                return default
             obj = self.node._find_object(index, sub)
             raw = self.node.data_store.get(index, {}).get(sub)
-            self._params[key] = obj.decode_raw(raw) if raw is not None else obj.default
+            value = obj.decode_raw(raw) if raw is not None else (
+                obj.value if obj.value is not None else obj.default)
+            self._params[key] = value if value is not None else 0
         return self._params[key]
 
-    def _live(self, index: int) -> int | None:
+    def rated_mnm(self) -> float:
+        """The torque unit: 0x6076, else what the rig declares (as the driver resolves it)."""
+        cfg = self.config
+        return (self._get(0x6076, 0, 0) or cfg.rated_torque_mnm
+                or cfg.torque_constant_nm_per_a * (self._get(0x6075, 0, 0) or cfg.rated_current_ma))
+
+    def _live(self, index: int, sub: int) -> int | None:
         """Process values (None for stored parameters)."""
         if index == 0x6064:
             return round(self.plant.x / self.mpc)
@@ -145,34 +210,85 @@ class SimCanopenDrive:
             return self.torque_permille
         if index == 0x606C:
             return round(self.plant.v / self.mpc)
+        if index == 0x1003:
+            return len(self.history) if sub == 0 else (
+                self.history[sub - 1] if sub <= len(self.history) else 0)
+        if index == 0x1001:
+            return 0x01 if self.state is State.FAULT else 0
         return {0x6061: self.mode, 0x603F: self.error_code, 0x6071: self.target_permille,
-                0x6040: self.controlword,
-                0x1001: 0x01 if self.state is State.FAULT else 0}.get(index)
+                0x6040: self.controlword}.get(index)
 
     def _on_sdo_read(self, index, subindex, od):
-        return self._live(index)
+        return self._live(index, subindex)
 
     def _on_sdo_write(self, index, subindex, od, data):
+        value = od.decode_raw(data)
+        if isinstance(value, int):
+            if od.min is not None and value < od.min:
+                raise SdoAbortedError(ABORT_LOW)
+            if od.max is not None and value > od.max:
+                raise SdoAbortedError(ABORT_HIGH)
+        if index & 0xFE00 in (RPDO_MAP, TPDO_MAP):
+            self._check_mapping(index, subindex, value)
         if index == 0x6060:
-            mode = struct.unpack("<b", data)[0]
-            if not (mode in (10, 4) and self._get(0x6502) & MODE_BITS[mode]):
-                raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)  # not stored, not cached
-            self.mode = mode
-        self._params[(index, subindex)] = od.decode_raw(data)
+            if value not in self._torque_modes or not self._mode_supported(value):
+                raise SdoAbortedError(ABORT_RANGE)  # not stored, not cached
+            self.mode = value
+        self._params[(index, subindex)] = value
         if index == 0x6040:
-            self._controlword(struct.unpack("<H", data)[0])
+            self._controlword(value)
         elif index == 0x6071:
-            self.target_permille = struct.unpack("<h", data)[0]
+            self.target_permille = value
             self._apply_torque()
         elif index == 0x1017:
-            ms = struct.unpack("<H", data)[0]
-            self._hb_next = time.monotonic() + ms * 1e-3 if ms else math.inf
+            self._hb_next = time.monotonic() + value * 1e-3 if value else math.inf
+
+    def _mode_supported(self, code: int) -> bool:
+        bits = {c: b for c, b, _ in STANDARD_MODES.values()}
+        bits.update({m["code"]: m["bit"] for m in self.config.modes.values()})
+        bit = bits.get(code)
+        supported = self._get(0x6502, 0, None)
+        return bit is None or supported is None or bool(supported >> bit & 1)
+
+    def _check_mapping(self, index: int, sub: int, value: int) -> None:
+        """CiA 301 PDO mapping rules (see the module docstring)."""
+        comm = index - (RPDO_MAP - RPDO_COMM if index < TPDO_COMM else TPDO_MAP - TPDO_COMM)
+        if not self._get(comm, 1, 0x8000_0000) & 0x8000_0000:
+            raise SdoAbortedError(ABORT_STATE)  # the PDO is valid: invalidate it first
+        if sub == 0:
+            slots = [s for s in self.dictionary.subs(index) if s >= 1]
+            if value > len(slots):
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            total = 0
+            for s in range(1, value + 1):
+                total += self._entry_bits(self._get(index, s, 0))
+            if total > 64:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            return
+        if self._get(index, 0, 0) != 0:
+            raise SdoAbortedError(ABORT_STATE)  # sub-index 0 must be 0 while entries change
+        if value:
+            self._entry_bits(value)
+
+    def _entry_bits(self, entry: int) -> int:
+        index, sub, bits = entry >> 16, entry >> 8 & 0xFF, entry & 0xFF
+        if _is_dummy(index):
+            return bits
+        e = self.dictionary.get(index, sub)
+        if e is None:
+            raise SdoAbortedError(ABORT_NO_OBJECT)
+        if not e.mappable:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        if bits != e.bits:
+            raise SdoAbortedError(ABORT_PARAMETER)
+        return bits
 
     def _statusword(self) -> int:
         extra = cia402.SW_REMOTE
         if self.state in cia402.TORQUE_STATES or self.state is State.SWITCHED_ON:
             extra |= cia402.SW_VOLTAGE_ENABLED
-        if self.state is State.OPERATION_ENABLED and abs(self.target_permille) > self._get(0x6072):
+        if (self.state is State.OPERATION_ENABLED
+                and abs(self.target_permille) > self._get(0x6072, 0, 32767)):
             extra |= cia402.SW_INTERNAL_LIMIT
         return cia402.encode_status(self.state, extra)
 
@@ -181,37 +297,42 @@ class SimCanopenDrive:
         cmd = cia402.decode_controlword(cw, self.controlword)
         self.controlword = cw
         new = cia402.next_state(self.state, cmd)
-        if new is State.QUICK_STOP_ACTIVE and self._get(0x605A) in (0, 1, 2, 3, 4):
+        if new is State.QUICK_STOP_ACTIVE and self._get(0x605A, 0, 2) in (0, 1, 2, 3, 4):
             new = State.SWITCH_ON_DISABLED  # these options end in SWITCH ON DISABLED
-        if new is State.OPERATION_ENABLED and self.mode not in (10, 4):
+        if new is State.OPERATION_ENABLED and self.mode not in self._torque_modes:
             return self._fault(0x6320, "enabled without a torque mode")
         if new is State.SWITCH_ON_DISABLED and self.state is State.FAULT:
             self.error_code = 0
         self.state = new
         if new is not State.OPERATION_ENABLED:
-            self._rpdo_last = None  # RPDO monitoring is armed in OPERATION ENABLED only
+            for r in self._rpdos.values():
+                r[4] = None  # RPDO monitoring is armed in OPERATION ENABLED only
         self._apply_torque()
 
     def _apply_torque(self) -> None:
         if self.state is State.OPERATION_ENABLED:
-            lim = self._get(0x6072)
+            lim = self._get(0x6072, 0, 32767)
             self.torque_permille = max(-lim, min(lim, self.target_permille))
         else:
             self.torque_permille = 0
 
     def _fault(self, code: int, why: str) -> None:
-        """Fault reaction (instantaneous here): torque off, FAULT, EMCY."""
+        """Fault reaction (instantaneous here): torque off, FAULT, EMCY, error history."""
         self.torque_permille = 0
         self.state = State.FAULT
         self.error_code = code
-        self._rpdo_last = None
+        self.history.insert(0, code)
+        del self.history[8:]
+        for r in self._rpdos.values():
+            r[4] = None
         self.events.append(f"fault 0x{code:04X}: {why}")
         register = 0x01 | (0x10 if code >> 8 == 0x81 else 0)  # generic (+ communication)
         self._send(0x80 + self.node_id, emcy.encode(code, register))
 
     def _abort_connection(self, code: int, why: str) -> None:
-        """Reaction of 0x6007 to a lost host (heartbeat or RPDO timeout)."""
-        option = self._get(0x6007)
+        """Reaction of 0x6007 to a lost host (heartbeat, life guarding or RPDO timeout);
+        without 0x6007 this drive faults (its manufacturer's choice)."""
+        option = self._get(0x6007, 0, 1)
         self.events.append(f"connection lost ({why}), 0x6007 = {option}")
         if option == 1:
             self._fault(code, why)
@@ -223,24 +344,34 @@ class SimCanopenDrive:
         if not self.muted:
             self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
 
-    def _load_pdos(self) -> None:
-        """Read the PDO configuration the host wrote (on entering OPERATIONAL)."""
-        self._tpdos = []
-        for comm, mapping in ((0x1800, 0x1A00), (0x1801, 0x1A01)):
-            cob_id = self._get(comm, 1)
-            if cob_id & 0x8000_0000:
+    def _pdo_layout(self, mapping: int) -> tuple[list, struct.Struct]:
+        """Mapped indices (None for dummies) and the frame layout of one PDO."""
+        indices, fmt = [], "<"
+        for s in range(1, self._get(mapping, 0, 0) + 1):
+            entry = self._get(mapping, s, 0)
+            index, sub, bits = entry >> 16, entry >> 8 & 0xFF, entry & 0xFF
+            if _is_dummy(index):
+                fmt += f"{bits // 8}x"
                 continue
-            entries = [self._get(mapping, s) for s in range(1, self._get(mapping, 0) + 1)]
-            fmt = "<" + "".join(_PDO_TYPES[self.node._find_object(e >> 16, e >> 8 & 0xFF).data_type]
-                                for e in entries)
-            self._tpdos.append((cob_id, self._get(comm, 2), [e >> 16 for e in entries],
-                                struct.Struct(fmt)))
-        cob_id = self._get(0x1400, 1)
-        entries = [self._get(0x1600, s) for s in range(1, self._get(0x1600, 0) + 1)]
-        fmt = "<" + "".join(_PDO_TYPES[self.node._find_object(e >> 16, e >> 8 & 0xFF).data_type]
-                            for e in entries)
-        self._rpdo = None if cob_id & 0x8000_0000 else (
-            cob_id, [e >> 16 for e in entries], struct.Struct(fmt), self._get(0x1400, 5))
+            indices.append(index)
+            fmt += TYPE_FMT[self.dictionary.get(index, sub).data_type]
+        return indices, struct.Struct(fmt)
+
+    def _load_pdos(self) -> None:
+        """Read the PDO configuration (on entering OPERATIONAL)."""
+        self._tpdos, self._rpdos = [], {}
+        for n in range(512):
+            comm = TPDO_COMM + n
+            if self.has(comm, 1) and not self._get(comm, 1) & 0x8000_0000:
+                indices, st = self._pdo_layout(TPDO_MAP + n)
+                every = self._get(comm, 2, 255)
+                if indices and every <= 240:
+                    self._tpdos.append((self._get(comm, 1) & 0x7FF, max(every, 1), indices, st))
+            comm = RPDO_COMM + n
+            if self.has(comm, 1) and not self._get(comm, 1) & 0x8000_0000:
+                indices, st = self._pdo_layout(RPDO_MAP + n)
+                self._rpdos[self._get(comm, 1) & 0x7FF] = [
+                    indices, st, self._get(comm, 5, 0), self._get(comm, 2, 255) <= 240, None]
 
     def _on_nmt(self, data: bytes) -> None:
         if len(data) < 2 or data[1] not in (0, self.node_id):
@@ -255,51 +386,77 @@ class SimCanopenDrive:
             self.nmt_state = 127
         elif cs in (0x81, 0x82):
             self.nmt_state = 127
+            self._toggle = 0
             self._send(0x700 + self.node_id, b"\x00")  # boot-up
 
     def _on_sync(self) -> None:
         if self.nmt_state != 5:
             return
+        for values in self._pending:
+            self._take(values)
+        self._pending = []
         # SYNC k samples x[k]; from the second SYNC on the plant first advances one
         # period under the torque held since the last RPDO (as sim_backend.sim_device).
-        self.plant.command(self.torque_permille * 1e-3 * self._get(0x6076) * 1e-3 / self.lever)
+        self.plant.command(self.torque_permille * 1e-3 * self.rated_mnm() * 1e-3 / self.lever)
         self.plant.read_raw(1.0)
         self.sync_count += 1
-        lo, hi = self._get(0x607D, 1), self._get(0x607D, 2)
         counts = round(self.plant.x / self.mpc)
-        if self.state is State.OPERATION_ENABLED and not lo <= counts <= hi:
-            self._fault(0x8612, f"position {counts} counts outside 0x607D [{lo}, {hi}]")
+        if self.state is State.OPERATION_ENABLED and self.has(0x607D, 1):
+            lo, hi = self._get(0x607D, 1), self._get(0x607D, 2)
+            if not lo <= counts <= hi:
+                self._fault(0x8612, f"position {counts} counts outside 0x607D [{lo}, {hi}]")
         for cob_id, every, indices, st in self._tpdos:
             if self.sync_count % every == 0:
-                self._send(cob_id, st.pack(*[self._live(i) for i in indices]))
+                self._send(cob_id, st.pack(*[self._live(i, 0) for i in indices]))
 
-    def _on_rpdo(self, data: bytes, now: float) -> None:
-        _, indices, st, _ = self._rpdo
-        values = dict(zip(indices, st.unpack_from(data)))
+    def _take(self, values: dict) -> None:
         if 0x6071 in values:
             self.target_permille = values[0x6071]
         if 0x6040 in values:
             self._controlword(values[0x6040])  # also applies the torque
         else:
             self._apply_torque()
+
+    def _on_rpdo(self, rpdo: list, data: bytes, now: float) -> None:
+        indices, st, _, synchronous, _ = rpdo
+        if len(data) < st.size:
+            self._send(0x80 + self.node_id, emcy.encode(0x8210, 0x11))  # length error
+            return
+        values = dict(zip(indices, st.unpack_from(data)))
+        if synchronous:
+            self._pending.append(values)
+        else:
+            self._take(values)
         if self.state is State.OPERATION_ENABLED:
-            self._rpdo_last = now
+            rpdo[4] = now
+
+    def _on_guard(self) -> None:
+        """Node guarding request: answer state + toggle; life guarding starts with it."""
+        if not self.has(0x100C):
+            return  # this drive has no node guarding
+        self._guard_last = time.monotonic()
+        self._send(0x700 + self.node_id, bytes([self._toggle | self.nmt_state]))
+        self._toggle ^= 0x80
 
     def _dispatch(self, msg: can.Message, now: float) -> None:
         cid = msg.arbitration_id
-        if msg.is_error_frame or msg.is_remote_frame:
+        if msg.is_error_frame:
+            return
+        if msg.is_remote_frame:
+            if cid == 0x700 + self.node_id:
+                self._on_guard()
             return
         if cid == 0x080:
             self._on_sync()
-        elif self._rpdo is not None and cid == self._rpdo[0] and self.nmt_state == 5:
-            self._on_rpdo(msg.data, now)
+        elif cid in self._rpdos and self.nmt_state == 5:
+            self._on_rpdo(self._rpdos[cid], msg.data, now)
         elif cid == 0x600 + self.node_id:
             if not self.muted:
                 self.node.sdo.on_request(cid, msg.data, msg.timestamp)
         elif cid == 0:
             self._on_nmt(msg.data)
         elif (cid & 0x780) == 0x700:
-            host = self._get(0x1016, 1) >> 16 & 0x7F
+            host = self._get(0x1016, 1, 0) >> 16 & 0x7F
             if cid == 0x700 + host:
                 self._host_hb_last = now
 
@@ -307,16 +464,20 @@ class SimCanopenDrive:
         if now >= self._hb_next:
             self._send(0x700 + self.node_id, bytes([self.nmt_state]))
             self._hb_next = now + self._get(0x1017) * 1e-3
-        consumer = self._get(0x1016, 1)
-        limit_ms = consumer & 0xFFFF
+        limit_ms = self._get(0x1016, 1, 0) & 0xFFFF
         last = self._host_hb_last
         if limit_ms and last is not None and now - last > limit_ms * 1e-3:
             self._host_hb_last = None  # re-armed by the next host heartbeat
             self._abort_connection(0x8130, f"no host heartbeat for {limit_ms} ms")
-        if (self._rpdo is not None and self._rpdo[3] and self._rpdo_last is not None
-                and now - self._rpdo_last > self._rpdo[3] * 1e-3):
-            self._rpdo_last = None
-            self._abort_connection(0x8250, f"no RPDO for {self._rpdo[3]} ms")
+        life_ms = self._get(0x100C, 0, 0) * self._get(0x100D, 0, 0)
+        if life_ms and self._guard_last is not None and now - self._guard_last > life_ms * 1e-3:
+            self._guard_last = None  # re-armed by the next request
+            self._abort_connection(0x8130, f"life guarding: no request for {life_ms} ms")
+        for rpdo in self._rpdos.values():
+            timer, last = rpdo[2], rpdo[4]
+            if timer and last is not None and now - last > timer * 1e-3:
+                rpdo[4] = None
+                self._abort_connection(0x8250, f"no RPDO for {timer} ms")
 
     def _run(self) -> None:
         recv = self.bus.recv
@@ -377,15 +538,19 @@ def plant_for(rig, seed=None, **options) -> SimDevice:
 # real-time (a shared machine stalls it for tens of ms now and then): defaults
 # that survive such stalls. A rig's [canopen] table still overrides them.
 SIM_MONITOR_DEFAULTS = {"heartbeat_consumer_ms": 1000, "rpdo_timeout_ms": 500,
+                        "life_time_factor": 50,  # 1 s at the default 20 ms guard time
                         "stale_periods": 20}  # paced (--realtime) runs only
 
 
 def sim_config(rig) -> CanopenConfig:
-    """The rig's ``[canopen]`` table minus the hardware fields the simulation defines itself."""
+    """The rig's ``[canopen]`` table without the bus: the simulation brings its own.
+
+    The ``eds`` stays: the simulated drive is built from it.
+    """
     section = {**SIM_MONITOR_DEFAULTS, **rig.section("canopen")}
-    for hardware_field in ("interface", "channel", "eds"):
+    for hardware_field in ("interface", "channel", "bitrate"):
         section.pop(hardware_field, None)
-    return CanopenConfig.from_section(section, source=rig.source)
+    return replace(CanopenConfig.from_section(section, source=rig.source), bus_options={})
 
 
 def start_sim_drive(rig, config: CanopenConfig, seed=None,
@@ -394,7 +559,8 @@ def start_sim_drive(rig, config: CanopenConfig, seed=None,
     channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
     plant = plant_for(rig, seed, **options)
     peer = SimCanopenDrive(channel, config.node_id, plant, rig.metres_per_count,
-                           rig.lever_arm_m, rig.sample_time_s).start()
+                           rig.lever_arm_m, rig.sample_time_s, eds=config.eds or EDS_PATH,
+                           config=config).start()
     try:
         return peer, FaultyVirtualBus(channel=channel)
     except Exception:
@@ -402,25 +568,41 @@ def start_sim_drive(rig, config: CanopenConfig, seed=None,
         raise
 
 
-def connect_driver(rig, config, peer, host_bus, realtime: bool = False) -> CanopenDrive:
-    """The real driver, opened against ``peer``; closing the driver stops the peer."""
-    drive = CanopenDrive(rig, config, bus=host_bus, realtime=realtime)
-    drive.peer = peer
-    drive.add_close_hook(peer.close)
+def driver_for(rig, config, peer, host_bus, realtime: bool = False,
+               can_log: str | None = None) -> CanopenDrive:
+    """The real driver on ``host_bus``, not yet opened; closing it stops ``peer``."""
     try:
-        return drive.open()
+        drive = CanopenDrive(rig, config, bus=host_bus, realtime=realtime, can_log=can_log)
     except BaseException:
         host_bus.shutdown()
         peer.close()
         raise
+    drive.peer = peer
+    drive.add_close_hook(peer.close)
+    return drive
 
 
-def open_sim_canopen(rig, realtime: bool = False, seed=None, **options) -> CanopenDrive:
+def connect_driver(rig, config, peer, host_bus, realtime: bool = False,
+                   can_log: str | None = None) -> CanopenDrive:
+    """The real driver, opened against ``peer``; closing the driver stops the peer."""
+    drive = driver_for(rig, config, peer, host_bus, realtime, can_log)
+    drive.open()  # closes the bus and the peer if it fails
+    return drive
+
+
+def open_sim_canopen(rig, realtime: bool = False, seed=None, can_log: str | None = None,
+                     **options) -> CanopenDrive:
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
     ``seed`` and ``options`` are those of the plain simulator (``labbench.sim_backend.sim_device``),
-    applied to the handle behind the drive.
+    applied to the handle behind the drive; ``can_log`` records every frame.
     """
     config = sim_config(rig)
     peer, host_bus = start_sim_drive(rig, config, seed, **options)
-    return connect_driver(rig, config, peer, host_bus, realtime)
+    return connect_driver(rig, config, peer, host_bus, realtime, can_log)
+
+
+def probe_sim_canopen(rig, fault_reset: bool = False) -> dict:
+    """Registry probe (``labbench devices``): the same report from a fresh simulated drive."""
+    config = sim_config(rig)
+    return probe_drive(driver_for(rig, config, *start_sim_drive(rig, config)), fault_reset)

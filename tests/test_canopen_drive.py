@@ -34,17 +34,18 @@ def test_config_defaults_are_valid_and_eds_is_checked(tmp_path):
     assert cfg.node_id == 5 and cfg.mode == "auto"
     from labbench.drivers.canopen_drive import check_eds
 
-    check_eds("sim_backend/drive.eds", 5)  # our own EDS lists every object used
+    a = check_eds("sim_backend/drive.eds", cfg)  # our own EDS: usable, nothing missing
+    assert a.warnings == [] and a.modes[0].code == 10
     bad = tmp_path / "bad.eds"
     bad.write_text("[1000]\nParameterName=Device type\nObjectType=0x7\nDataType=0x0007\n"
                    "AccessType=ro\nDefaultValue=0x00020192\n")
-    with pytest.raises(UserError, match="lacks object"):
-        check_eds(str(bad), 1)
+    with pytest.raises(UserError, match=r"cannot be used, \d+ obstacle\(s\): \(1\) .*0x6060"):
+        check_eds(str(bad))
 
 
 def test_hardware_factory_reports_a_missing_interface_in_one_line():
     rig = make_rig(interface="no-such-interface", channel="x")
-    with pytest.raises(DeviceConnectionError, match="cannot open CAN interface"):
+    with pytest.raises(DeviceConnectionError, match="cannot open CAN bus"):
         open_canopen(rig)
 
 
@@ -212,7 +213,7 @@ def test_devices_command_reports_a_silent_drive_in_one_line(tmp_path, capsys):
     rig = tmp_path / "rig.toml"
     rig.write_text('[canopen]\ninterface = "virtual"\nchannel = "nobody-here"\n'
                    'node_id = 3\nsdo_timeout_s = 0.05\n')
-    assert main(["devices", "--rig", str(rig)]) == 0
+    assert main(["devices", "--rig", str(rig)]) == 1  # the configured hardware is silent
     captured = capsys.readouterr()
     assert "no answer: node 3: no answer to SDO read of 0x1000:00" in captured.out
     assert captured.err == ""
@@ -226,10 +227,11 @@ def test_devices_fault_reset_on_the_simulated_drive(capsys):
 
 
 def test_bus_load_of_the_mapping():
-    from labbench.drivers.canopen_drive import bus_load, frame_bits
+    from labbench.drivers.canopen_check import check_eds
+    from labbench.drivers.canopen_pdo import frame_bits
 
     assert frame_bits(0) == (47, 47 + 8) and frame_bits(8) == (111, 111 + 24)
-    load = bus_load(CanopenConfig(), 0.001)
+    load = check_eds("sim_backend/drive.eds").bus_load(CanopenConfig(), 0.001)
     # Per ms: SYNC 47, TPDO1 111, TPDO2 79, RPDO1 79 bits; heartbeats 55 bits at 50 + 10 Hz.
     assert load["bits_per_s_nominal"] == pytest.approx(316_000 + 55 * 60)
     assert 0.31 < load["load_nominal"] < load["load_worst"] < 0.40
@@ -352,7 +354,7 @@ def drive_on_named_channel(tmp_path):
     """A simulated drive on a named virtual channel and a rig file that points at it."""
     import uuid
 
-    from labbench.sim_backend.canopen_peer import SimCanopenDrive, plant_for
+    from labbench.sim_backend.canopen_peer import EDS_PATH, SimCanopenDrive, plant_for
 
     channel = f"bench-{uuid.uuid4().hex[:6]}"
     rig = make_rig()
@@ -361,7 +363,7 @@ def drive_on_named_channel(tmp_path):
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 4\n'
                         'sdo_timeout_s = 0.2\nheartbeat_consumer_ms = 800\nrpdo_timeout_ms = 600\n'
-                        'eds = "sim_backend/drive.eds"\n')
+                        f'eds = "{EDS_PATH}"\n')
     yield peer, rig_file
     peer.close()
 
@@ -389,7 +391,7 @@ def test_devices_command_shows_a_faulted_node_and_resets_it(drive_on_named_chann
     peer.inject_emcy(0x7305, "encoder")
     assert main(["devices", "--rig", str(rig_file)]) == 0
     out = capsys.readouterr().out
-    assert "node 4: vendor 0x4C4200AB" in out and "FAULT; NMT" in out
+    assert "node 4 answered" in out and "vendor 0x4C4200AB" in out and "FAULT; NMT" in out
     assert "error code 0x603F = 0x7305 (incremental sensor 1 fault)" in out
     assert main(["devices", "--rig", str(rig_file), "--fault-reset"]) == 0
     assert "node 4: FAULT -> SWITCH ON DISABLED" in capsys.readouterr().out
@@ -401,7 +403,7 @@ def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
     from labbench.drivers.canopen_drive import CanopenDrive
 
     peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 3)}  # profile torque only
-    with pytest.raises(UserError, match="0x6502 = 0x00000008 offers no cyclic synchronous"):
+    with pytest.raises(UserError, match="0x6502 = 0x00000008; cyclic synchronous torque: bit 9 of 0x6502 is not set"):
         CanopenDrive(rig, CanopenConfig.from_section({"mode": "cst", "sdo_timeout_s": 0.2}),
                      bus=bus, realtime=False).open()
     assert peer.mode == 0
@@ -409,5 +411,5 @@ def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
 
 def test_drive_refusing_the_mode_write_is_reported_naming_0x6060(sim_parts):
     sim_parts[2].abort_sdo_write(0x6060, 0, code=0x06090030)
-    with pytest.raises(DeviceError, match=r"refused writing 10 to 0x6060:00"):
+    with pytest.raises(DeviceError, match=r"refused writing 0x0A to 0x6060:00 .*value range"):
         connect(sim_parts)

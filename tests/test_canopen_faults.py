@@ -162,7 +162,7 @@ def test_drive_already_in_fault_at_start_is_not_reset_by_the_host(drive):
 def test_ignored_sdo_write_refuses_to_enable_naming_the_object(sim_parts):
     peer = sim_parts[2]
     peer.ignore_sdo_write(0x6072)
-    with pytest.raises(UserError, match=r"0x6072:00 reads back 3000 after writing 5000"):
+    with pytest.raises(UserError, match=r"0x6072:00 \(max torque\) reads back 0x0BB8 after writing 0x1388"):
         connect(sim_parts)
     assert peer.state is State.SWITCH_ON_DISABLED and peer.torque_permille == 0
 
@@ -179,7 +179,7 @@ def test_changed_safety_object_is_caught_before_the_next_run(drive):
     drive.peer._params.clear()
     outcome, events = run_with_fault(drive, lambda p: None)
     reason = assert_fault_event_at_start(outcome, events)
-    assert "0x605A:00 is 5, expected 0" in reason
+    assert "0x605A:00 (quick stop option code) is 0x0005, expected 0x0000" in reason
 
 
 def test_silent_drive_at_bring_up(sim_parts):

@@ -1,20 +1,28 @@
 """``labbench devices [--rig FILE] [--fault-reset] [--json]``: what is configured, what answers.
 
-A CANopen drive (``[canopen]`` in the rig, or the simulated one) is probed
-read-only over SDO: identity 0x1018, device type 0x1000, supported modes
-0x6502, CiA 402 state 0x6041, NMT state from its heartbeat. ``--fault-reset``
-is the operator's fault reset: FAULT -> SWITCH ON DISABLED, never further.
+Each backend the registry offers a probe for (``labbench.registry.device_probe``)
+and the rig configures is asked, read-only, what it is: for a CANopen drive
+the capability report (identity, device type, CiA 402 state, torque modes,
+the planned PDO mapping, how it watches the host, bus load, error history
+0x1003, every obstacle and warning). "no answer" (nothing on the bus answered)
+is told apart from an object the drive says it does not have ("absent").
+Exit code 1 when none of the configured hardware answers (with no hardware
+configured: when no simulated device answers). ``--fault-reset`` is the
+operator's fault reset: FAULT -> SWITCH ON DISABLED, never further.
 """
 from __future__ import annotations
 
 import json
+
+# Rig table each hardware backend needs (absent: nothing to configure).
+_TABLES = {"canopen": "canopen", "serial": "serial"}
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "devices", help="list configured devices and probe what answers",
         description="List the device backends, which of them the rig configures, and what "
-                    "a CANopen drive answers (identity, device type, supported modes, state).")
+                    "each answers (for a CANopen drive: a capability report).")
     p.add_argument("--rig", default=None, help="rig file (TOML); default: the simulated rig")
     p.add_argument("--fault-reset", action="store_true",
                    help="operator fault reset of the CANopen drive (to SWITCH ON DISABLED only)")
@@ -25,86 +33,70 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from labbench.errors import DeviceConnectionError
     from labbench.jsonutil import json_safe
-    from labbench.registry import device_names
+    from labbench.registry import device_names, device_probe
     from labbench.rig import load_rig
 
     rig = load_rig(args.rig)
     if args.fault_reset:
-        return _fault_reset(rig, args.sim)
+        result = device_probe("sim-canopen" if args.sim else "canopen")(rig, fault_reset=True)
+        if "no_answer" in result:
+            raise DeviceConnectionError(result["no_answer"])
+        before, after = result["reset"]
+        print(f"node {result['node_id']}: {before} -> {after}")
+        return 0
     rows = []
     for name in device_names():
         table = _TABLES.get(name)
         configured = table is None or table in rig.sections
         row = {"device": name, "configured": configured,
                "table": f"[{table}]" if table else "(built in)"}
-        if name in ("sim-canopen", "canopen") and configured:
-            row["answer"] = _probe(name, rig)
+        probe = device_probe(name)
+        if probe is not None and configured:
+            row["answer"] = probe(rig)
         rows.append(row)
+    probed = [r for r in rows if "answer" in r]
+    hardware = [r for r in probed if not r["device"].startswith("sim")] or probed
+    status = 0 if not hardware or any("no_answer" not in r["answer"] for r in hardware) else 1
     if args.json:
         print(json.dumps(json_safe({"rig": rig.name, "source": rig.source, "devices": rows}),
                          indent=2))
-        return 0
+        return status
     print(f"rig {rig.name} ({rig.source})")
     for r in rows:
         state = "configured" if r["configured"] else f"not configured (no {r['table']})"
         print(f"{r['device']:<12} {state}")
-        if "answer" in r:
-            print("             " + _describe(r["answer"]))
-    return 0
+        for line in _describe(r.get("answer")):
+            print("             " + line)
+    return status
 
 
-# Rig table each hardware backend needs (None: nothing to configure).
-_TABLES = {"sim": None, "sim-canopen": None, "sim-serial": None,
-           "canopen": "canopen", "serial": "serial"}
+def _hex(value, digits: int = 8) -> str:
+    return "absent" if value is None else f"0x{value:0{digits}X}"
 
 
-def _drive(rig, sim: bool):
-    """The CANopen driver for the rig's drive, or for a fresh simulated drive (closed with it)."""
-    from labbench.drivers.canopen_drive import CanopenConfig, CanopenDrive
-
-    if not sim:
-        return CanopenDrive(rig, CanopenConfig.from_section(rig.section("canopen"), source=rig.source))
-    from labbench.sim_backend.canopen_peer import sim_config, start_sim_drive
-
-    config = sim_config(rig)
-    peer, bus = start_sim_drive(rig, config)
-    try:
-        drive = CanopenDrive(rig, config, bus=bus)
-    except BaseException:
-        peer.close()
-        raise
-    drive.add_close_hook(peer.close)
-    return drive
-
-
-def _probe(name: str, rig) -> dict:
-    """Read-only probe; a drive that does not answer is reported, not raised."""
-    from labbench.errors import LabbenchError
-
-    try:
-        with _drive(rig, sim=name == "sim-canopen") as drive:  # closed even if connect fails
-            drive.connect()
-            return drive.probe()
-    except LabbenchError as exc:
-        return {"no_answer": str(exc)}
-
-
-def _describe(a: dict) -> str:
+def _describe(a: dict | None) -> list[str]:
+    if a is None:
+        return []
     if "no_answer" in a:
-        return f"no answer: {a['no_answer']}"
-    text = (f"node {a['node_id']}: vendor 0x{a['vendor_id']:08X} product 0x{a['product_code']:08X}"
-            f" revision 0x{a['revision']:08X} serial {a['serial']}; device type "
-            f"0x{a['device_type']:08X} (profile {a['device_type'] & 0xFFFF}); supported modes "
-            f"0x{a['supported_modes']:08X} (torque: {', '.join(a['torque_modes']) or 'none'}); "
-            f"{a['state']}; NMT {a['nmt_state']}")
-    return text + (f"; {a['error_code']}" if "error_code" in a else "")
-
-
-def _fault_reset(rig, sim: bool) -> int:
-    with _drive(rig, sim) as drive:
-        drive.connect()
-        before = drive.drive_state()
-        after = drive.reset_fault()
-    print(f"node {drive.config.node_id}: {before.value} -> {after.value}")
-    return 0
+        return [f"no answer: {a['no_answer']}"]
+    dt = a["device_type"]
+    lines = [f"node {a['node_id']} answered ({a['source']}): vendor {_hex(a['vendor_id'])} "
+             f"product {_hex(a['product_code'])} revision {_hex(a['revision'])} serial "
+             f"{_hex(a['serial'])}",
+             f"device type {_hex(dt)}" + (f" (profile {dt & 0xFFFF})" if dt is not None else "")
+             + f"; supported modes {_hex(a['supported_modes'])} (torque: "
+             f"{', '.join(a['torque_modes']) or 'none'})",
+             f"{a['state']}; NMT {a['nmt_state']}" + (f"; {a['error_code']}"
+                                                      if "error_code" in a else ""),
+             "error history 0x1003: " + (", ".join(f"0x{e:08X}" for e in a["error_history"])
+                                         or "empty or absent")]
+    lines += [f"{k}: {v}" for k, v in a["capabilities"].items()]
+    lines += ["PDO plan:"] + [f"  {p}" for p in a["plan"]]
+    load = a["bus_load"]
+    lines.append(f"bus load at 1 Mbit/s: {100 * load['load_nominal']:.1f} % nominal, "
+                 f"{100 * load['load_worst']:.1f} % worst-case stuffing")
+    lines += [f"obstacle: {o}" for o in a["obstacles"]]
+    lines += [f"warning: {w}" for w in a["warnings"]]
+    return lines

@@ -1,0 +1,185 @@
+"""The ``[canopen]`` table of a rig file, validated (see docs/canopen.md).
+
+Every field is checked with one ``UserError`` naming it. Keys that are not
+fields of the driver are options of python-can's ``can.Bus`` (``fd``,
+``data_bitrate``, ``app_name``, ``serial``, ``receive_own_messages``, ...) and
+pass through unchanged; a key one letter or two away from a field is taken for
+a typo and refused. When the rig names no ``interface``/``channel``,
+python-can's own configuration (``~/.canrc``, ``CAN_INTERFACE``,
+``CAN_CHANNEL``) applies. The ``eds`` path is relative to the rig file.
+
+Vendor modes: ``[canopen.modes]`` maps a name to ``{code = -3, bit = 16}``:
+the value written to 0x6060 and, if the drive advertises it, its bit in
+0x6502. ``mode = "auto"`` tries CST, then profile torque, then the table in
+order.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from labbench.errors import UserError
+
+# CiA 402 operation modes (0x6060) with a torque set point, and their bits in 0x6502.
+MODE_CST, MODE_PT = 10, 4
+STANDARD_MODES = {"cst": (MODE_CST, 9, "cyclic synchronous torque"),
+                  "pt": (MODE_PT, 3, "profile torque")}
+
+
+@dataclass(frozen=True)
+class Mode:
+    """A torque mode: 0x6060 code, its 0x6502 bit (None: not advertised) and a name."""
+
+    name: str
+    code: int
+    bit: int | None
+    text: str
+
+
+@dataclass(frozen=True)
+class CanopenConfig:
+    """The ``[canopen]`` table of a rig file."""
+
+    interface: str = ""  # "": python-can's own configuration
+    channel: str = ""
+    bitrate: int = 0  # 0: not passed (python-can's configuration or the interface's)
+    node_id: int = 1
+    eds: str = ""  # the drive's EDS/DCF (relative to the rig file)
+    mode: str = "auto"  # "cst", "pt", "auto" or a name of [canopen.modes]
+    modes: dict = field(default_factory=dict)  # vendor torque modes: name -> {code, bit}
+    watchdog: str = "auto"  # how the drive watches the host: heartbeat, guarding or auto
+    host_node_id: int = 127  # heartbeat id of this host, watched by the drive (0x1016)
+    host_heartbeat_ms: int = 20
+    heartbeat_consumer_ms: int = 100
+    drive_heartbeat_ms: int = 100  # 0x1017 of the drive
+    guard_time_ms: int = 20  # 0x100C: node guarding period (sent by the loop)
+    life_time_factor: int = 5  # 0x100D: the drive's life time = guard time x factor
+    rpdo_timeout_ms: int = 50  # RPDO event timer 0x1400:05
+    quick_stop_option: int = 0  # 0x605A; 0 = disable drive function (no torque)
+    fault_reaction_option: int = 0  # 0x605E; 0 = disable drive, motor free
+    abort_connection_option: int = 1  # 0x6007; 1 = fault signal
+    rated_torque_mnm: float = 0.0  # used when 0x6076 is absent or 0
+    torque_constant_nm_per_a: float = 0.0  # or: per-mille of rated current x this constant
+    rated_current_ma: float = 0.0  # used with the constant when 0x6075 is absent or 0
+    stale_periods: int = 3  # a TPDO later than this many periods is a fault
+    sdo_timeout_s: float = 0.5
+    lockstep_timeout_s: float = 1.0  # simulated drive: wait for the TPDOs of a SYNC
+    enable_timeout_s: float = 0.5  # OPERATION ENABLED must show in a TPDO within this
+    velocity_tpdo_every: int = 1  # a TPDO carrying only 0x606C: every n-th SYNC
+    bus_options: dict = field(default_factory=dict)  # passed on to can.Bus
+
+    _RANGES = {
+        "bitrate": (0, 8_000_000), "node_id": (1, 127), "host_node_id": (1, 127),
+        "host_heartbeat_ms": (1, 1000), "heartbeat_consumer_ms": (1, 65535),
+        "drive_heartbeat_ms": (1, 65535), "guard_time_ms": (1, 65535),
+        "life_time_factor": (1, 255), "rpdo_timeout_ms": (1, 65535),
+        "quick_stop_option": (-32768, 32767), "fault_reaction_option": (-32768, 32767),
+        "abort_connection_option": (0, 3), "stale_periods": (1, 100),
+        "velocity_tpdo_every": (1, 240),
+    }
+    _CHOICES = {"watchdog": ("auto", "heartbeat", "guarding")}
+    _NON_NEGATIVE = ("rated_torque_mnm", "torque_constant_nm_per_a", "rated_current_ma")
+
+    @classmethod
+    def from_section(cls, section: dict, source: str = "rig") -> "CanopenConfig":
+        """Validate ``rig.section("canopen")``: one ``UserError`` naming the bad field."""
+        known = {f.name: f for f in fields(cls) if f.name != "bus_options"}
+        values, bus = {}, {}
+        for name, value in section.items():
+            where = f"{source}: [canopen] {name}"
+            if name not in known:
+                near = difflib.get_close_matches(name, known, n=1, cutoff=0.85)
+                if near:
+                    raise UserError(f"{source}: unknown field [canopen] {name} "
+                                    f"(did you mean {near[0]}?)")
+                if not isinstance(value, (str, int, float, bool)):
+                    raise UserError(f"{where}: a python-can bus option must be a plain value")
+                bus[name] = value
+                continue
+            if name == "modes":
+                values[name] = _modes(value, where)
+                continue
+            default = known[name].default
+            if isinstance(default, str):
+                if not isinstance(value, str):
+                    raise UserError(f"{where} must be a string, got {value!r}")
+                if name in cls._CHOICES and value not in cls._CHOICES[name]:
+                    raise UserError(f"{where} must be one of {', '.join(cls._CHOICES[name])}, "
+                                    f"got {value!r}")
+            elif isinstance(default, float):
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+                positive = name not in cls._NON_NEGATIVE
+                if not ok or not math.isfinite(value) or value < 0 or (positive and value == 0):
+                    kind = "a positive number" if positive else "a number >= 0"
+                    raise UserError(f"{where} must be {kind}, got {value!r}")
+                value = float(value)
+            else:
+                if not isinstance(value, int) or isinstance(value, bool):
+                    raise UserError(f"{where} must be an integer, got {value!r}")
+                lo, hi = cls._RANGES[name]
+                if not lo <= value <= hi:
+                    raise UserError(f"{where} must be in [{lo}, {hi}], got {value}")
+            values[name] = value
+        if values.get("eds"):
+            values["eds"] = str(_beside(source, values["eds"]))
+        cfg = cls(**values, bus_options=bus)
+        if cfg.mode not in ("auto", *STANDARD_MODES, *cfg.modes):
+            raise UserError(f"{source}: [canopen] mode must be auto, cst, pt or a name of "
+                            f"[canopen.modes], got {cfg.mode!r}")
+        if cfg.host_node_id == cfg.node_id:
+            raise UserError(f"{source}: [canopen] host_node_id must differ from node_id")
+        if cfg.heartbeat_consumer_ms < 2 * cfg.host_heartbeat_ms:
+            raise UserError(f"{source}: [canopen] heartbeat_consumer_ms must be at least "
+                            "twice host_heartbeat_ms")
+        if cfg.eds and not Path(cfg.eds).is_file():
+            raise UserError(f"{source}: [canopen] eds file not found: {cfg.eds}")
+        return cfg
+
+    def torque_modes(self) -> list[Mode]:
+        """The modes to try, in order (one unless ``mode = "auto"``)."""
+        table = [Mode(n, c, b, t) for n, (c, b, t) in STANDARD_MODES.items()] + [
+            Mode(n, m["code"], m.get("bit"), f"vendor mode {n} ({m['code']})")
+            for n, m in self.modes.items()]
+        return table if self.mode == "auto" else [m for m in table if m.name == self.mode]
+
+    def bus_kwargs(self) -> dict:
+        """Keyword arguments of ``can.Bus``: only what the rig names."""
+        kw = dict(self.bus_options)
+        for name in ("interface", "channel", "bitrate"):
+            if getattr(self, name):
+                kw[name] = getattr(self, name)
+        return kw
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _modes(table, where: str) -> dict:
+    if not isinstance(table, dict):
+        raise UserError(f"{where} must be a table of name = {{code = ..., bit = ...}}")
+    out = {}
+    for name, entry in table.items():
+        at = f"{where}.{name}"
+        if name in ("auto", *STANDARD_MODES):
+            raise UserError(f"{at}: {name} is a built-in mode name")
+        if not isinstance(entry, dict) or set(entry) - {"code", "bit"} or "code" not in entry:
+            raise UserError(f"{at} must be {{code = <0x6060 value>, bit = <0x6502 bit>}}")
+        code, bit = entry["code"], entry.get("bit")
+        if not isinstance(code, int) or isinstance(code, bool) or not -128 <= code <= 127:
+            raise UserError(f"{at}.code must be an integer in [-128, 127] (0x6060 is INTEGER8)")
+        if bit is not None and (not isinstance(bit, int) or isinstance(bit, bool)
+                                or not 0 <= bit <= 31):
+            raise UserError(f"{at}.bit must be an integer in [0, 31] (a bit of 0x6502)")
+        out[name] = {"code": code, "bit": bit}
+    return out
+
+
+def _beside(source: str, path: str) -> Path:
+    """``path`` relative to the folder of the rig file ``source`` (when it is a file)."""
+    p = Path(path).expanduser()
+    rig_file = Path(source)
+    if not p.is_absolute() and rig_file.is_file():
+        return rig_file.resolve().parent / p
+    return p

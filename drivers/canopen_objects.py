@@ -1,0 +1,306 @@
+"""A drive's object dictionary as the driver sees it: from an EDS/DCF, from the drive, or both.
+
+``read_eds`` reads an EDS or DCF leniently: common defects (a duplicated key
+or section, a sub-object without its parent, an unreadable number, a missing
+DataType) give a warning and the rest of the file is used. ``survey`` asks the
+drive itself, read-only, which of the objects the driver may use exist and
+what they hold; given a ``Dictionary`` from a file it confirms each object
+against the drive (the drive wins), otherwise it probes PDO slots one
+subindex at a time. Without a file, access types and PDO mappability are
+unknown (``access == ""``, ``mappable is None``): the drive's answer to the
+write decides, and a refusal names the object.
+
+Data type codes and object meanings: CiA 301 (communication objects) and
+CiA 402-2 (drive objects).
+"""
+from __future__ import annotations
+
+import io
+import re
+import struct
+from dataclasses import dataclass, field
+
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary.eds import import_eds
+
+from labbench.errors import UserError
+
+# CiA 301 data type codes -> struct code (integers only: nothing else is mapped or compared).
+TYPE_FMT = {0x1: "B", 0x2: "b", 0x3: "h", 0x4: "i", 0x5: "B", 0x6: "H", 0x7: "I",
+            0x15: "q", 0x1B: "Q"}
+U8, I8, U16, I16, U32, I32 = 0x5, 0x2, 0x6, 0x3, 0x7, 0x4
+
+# Objects the driver may use: index -> (name, {subindex: data type}).
+STANDARD = {
+    0x1000: ("device type", {0: U32}),
+    0x1001: ("error register", {0: U8}),
+    0x1003: ("pre-defined error field", {0: U8, 1: U32, 2: U32, 3: U32, 4: U32}),
+    0x100C: ("guard time", {0: U16}),
+    0x100D: ("life time factor", {0: U8}),
+    0x1016: ("consumer heartbeat time", {0: U8, 1: U32}),
+    0x1017: ("producer heartbeat time", {0: U16}),
+    0x1018: ("identity", {0: U8, 1: U32, 2: U32, 3: U32, 4: U32}),
+    0x603F: ("error code", {0: U16}),
+    0x6007: ("abort connection option code", {0: I16}),
+    0x6040: ("controlword", {0: U16}),
+    0x6041: ("statusword", {0: U16}),
+    0x605A: ("quick stop option code", {0: I16}),
+    0x605E: ("fault reaction option code", {0: I16}),
+    0x6060: ("modes of operation", {0: I8}),
+    0x6061: ("modes of operation display", {0: I8}),
+    0x6064: ("position actual value", {0: I32}),
+    0x606C: ("velocity actual value", {0: I32}),
+    0x6071: ("target torque", {0: I16}),
+    0x6072: ("max torque", {0: U16}),
+    0x6075: ("motor rated current", {0: U32}),
+    0x6076: ("motor rated torque", {0: U32}),
+    0x6077: ("torque actual value", {0: I16}),
+    0x607D: ("software position limit", {0: U8, 1: I32, 2: I32}),
+    0x6502: ("supported drive modes", {0: U32}),
+}
+RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
+MAX_PDOS = 8  # per direction: the driver needs at most four; more is never probed
+MAX_SLOTS = 8  # 8 bytes hold at most 8 mapped objects of 8 bits
+_PDO_COMM_TYPES = {1: U32, 2: U8, 3: U16, 5: U16}
+
+
+def object_name(index: int) -> str:
+    if index in STANDARD:
+        return STANDARD[index][0]
+    for base, what in ((RPDO_COMM, "RPDO{} communication"), (RPDO_MAP, "RPDO{} mapping"),
+                       (TPDO_COMM, "TPDO{} communication"), (TPDO_MAP, "TPDO{} mapping")):
+        if base <= index < base + 0x200:
+            return what.format(index - base + 1)
+    return ""
+
+
+@dataclass
+class Entry:
+    """One subindex. ``access``: "ro", "rw", "wo", "const", ... or "" (unknown)."""
+
+    index: int
+    sub: int
+    data_type: int
+    access: str = ""
+    mappable: bool | None = None
+    low: int | None = None
+    high: int | None = None
+    value: int | None = None  # the drive's, else a DCF's ParameterValue, else the default
+    from_dcf: bool = False
+
+    @property
+    def fmt(self) -> str | None:
+        return TYPE_FMT.get(self.data_type)
+
+    @property
+    def bits(self) -> int:
+        return 8 * struct.calcsize(self.fmt) if self.fmt else 0
+
+    @property
+    def writable(self) -> bool:
+        return self.access == "" or "w" in self.access
+
+    @property
+    def fixed(self) -> bool:
+        """Known to be not writable."""
+        return not self.writable
+
+
+@dataclass
+class Dictionary:
+    """Entries by (index, subindex); ``source`` says where they come from."""
+
+    entries: dict = field(default_factory=dict)
+    source: str = "drive"
+    warnings: list = field(default_factory=list)
+    od: object = None  # the canopen ObjectDictionary read from the file (the simulated drive's)
+    from_file: bool = False
+
+    def has(self, index: int, sub: int | None = None) -> bool:
+        if sub is not None:
+            return (index, sub) in self.entries
+        return any(i == index for i, _ in self.entries)
+
+    def get(self, index: int, sub: int = 0) -> Entry | None:
+        return self.entries.get((index, sub))
+
+    def value(self, index: int, sub: int = 0, default=None):
+        e = self.entries.get((index, sub))
+        return default if e is None or e.value is None else e.value
+
+    def subs(self, index: int) -> list[int]:
+        return sorted(s for i, s in self.entries if i == index)
+
+    def indices(self) -> list[int]:
+        return sorted({i for i, _ in self.entries})
+
+
+# ------------------------------------------------------------------ EDS / DCF
+_INDEX = re.compile(r"^([0-9A-Fa-f]{4})$")
+_SUB = re.compile(r"^([0-9A-Fa-f]{4})[Ss][Uu][Bb]([0-9A-Fa-f]+)$")
+_NUMERIC_KEYS = ("DefaultValue", "ParameterValue", "LowLimit", "HighLimit")
+
+
+def _canonical(section: str) -> str:
+    if m := _INDEX.match(section):
+        return m.group(1).upper()
+    if m := _SUB.match(section):
+        return f"{m.group(1).upper()}sub{int(m.group(2), 16):X}"
+    return section
+
+
+def _number(text: str) -> bool:
+    t = re.sub(r"\+?\$NODEID\+?", "", text.replace(" ", ""), flags=re.IGNORECASE)
+    try:
+        int(t or "0", 0)
+        return True
+    except ValueError:
+        return False
+
+
+def _clean(text: str, name: str) -> tuple[str, list[str]]:
+    """INI text a strict parser accepts, and a warning for each defect repaired."""
+    warnings: list[str] = []
+    sections: dict[str, dict[str, str]] = {}
+    current = None
+    for n, raw in enumerate(text.splitlines(), 1):
+        line = raw.split(";", 1)[0].strip() if not raw.lstrip().startswith(";") else ""
+        if not line or line.startswith("#"):
+            continue
+        if line.startswith("["):
+            if not line.endswith("]"):
+                warnings.append(f"{name} line {n}: unterminated section header ignored")
+                current = None
+                continue
+            sec = _canonical(line[1:-1].strip())
+            if sec in sections:
+                warnings.append(f"{name} line {n}: section [{sec}] appears twice (merged)")
+            current = sections.setdefault(sec, {})
+            continue
+        if "=" not in line or current is None:
+            warnings.append(f"{name} line {n}: not a key=value line of a section, ignored")
+            continue
+        key, value = (s.strip() for s in line.split("=", 1))
+        if key in current and current[key] != value:
+            warnings.append(f"{name} line {n}: duplicated key {key} (later value {value} used)")
+        current[key] = value
+    for sec, keys in list(sections.items()):
+        if m := _SUB.match(sec):
+            parent = sections.get(m.group(1).upper())
+            if parent is None or int(parent.get("ObjectType", "7"), 0) not in (8, 9):
+                warnings.append(f"{name}: [{sec}] has no array/record [{m.group(1)}]: ignored")
+                del sections[sec]
+                continue
+        elif not _INDEX.match(sec):
+            continue
+        try:
+            object_type = int(keys.get("ObjectType", "7"), 0)
+        except ValueError:
+            warnings.append(f"{name}: [{sec}] ObjectType {keys['ObjectType']} unreadable: ignored")
+            del sections[sec]
+            continue
+        keys.setdefault("ParameterName", sec)
+        if object_type in (8, 9) and not _SUB.match(sec):
+            continue
+        if not _number(keys.get("DataType", "x")):
+            warnings.append(f"{name}: [{sec}] has no DataType: ignored")
+            del sections[sec]
+            continue
+        access = keys.get("AccessType", "").lower()
+        if access not in ("ro", "wo", "rw", "rwr", "rww", "const"):
+            warnings.append(f"{name}: [{sec}] AccessType {keys.get('AccessType', '(none)')} "
+                            "not understood: taken as ro")
+            access = "ro"
+        keys["AccessType"] = access
+        for key in _NUMERIC_KEYS:
+            if key in keys and int(keys["DataType"], 0) in TYPE_FMT and not _number(keys[key]):
+                warnings.append(f"{name}: [{sec}] {key}={keys[key]} is not a number: ignored")
+                del keys[key]
+    out = io.StringIO()
+    for sec, keys in sections.items():
+        out.write(f"[{sec}]\n" + "".join(f"{k}={v}\n" for k, v in keys.items()) + "\n")
+    return out.getvalue(), warnings
+
+
+def read_eds(path: str, node_id: int) -> Dictionary:
+    """The EDS/DCF at ``path`` for node ``node_id`` ($NODEID resolved)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError as exc:
+        raise UserError(f"cannot read EDS {path}: {exc}") from None
+    clean, warnings = _clean(text, str(path))
+    try:
+        od = import_eds(io.StringIO(clean), node_id)
+    except Exception as exc:  # the parser raises many types on what the cleaner lets through
+        raise UserError(f"cannot read EDS {path}: {exc}") from None
+    d = Dictionary(source=str(path), warnings=warnings, od=od, from_file=True)
+    for obj in od.values():
+        members = [obj] if isinstance(obj, ODVariable) else list(obj.values())
+        for v in members:
+            if not isinstance(v, ODVariable):
+                continue
+            value = v.value if v.value is not None else v.default
+            d.entries[(v.index, v.subindex)] = Entry(
+                v.index, v.subindex, v.data_type, v.access_type, bool(v.pdo_mappable),
+                v.min, v.max, value if isinstance(value, int) else None,
+                from_dcf=v.value is not None)
+    return d
+
+
+# ------------------------------------------------------------------ the drive
+def _pdo_indices(d: Dictionary | None, comm_base: int, sdo) -> list[int]:
+    """PDO numbers (0-based) whose communication object exists."""
+    if d is not None:
+        return [n for n in range(MAX_PDOS) if d.has(comm_base + n, 1)]
+    found = []
+    for n in range(MAX_PDOS):
+        if sdo.upload(comm_base + n, 1) is None:
+            break
+        found.append(n)
+    return found
+
+
+def _wanted(d: Dictionary | None, sdo):
+    """(index, sub, data type) of everything to read from the drive, device type first
+    (PDOs are found as they are read)."""
+    yield from ((i, s, t) for i, (_, subs) in STANDARD.items() for s, t in subs.items())
+    for comm, mapping in ((RPDO_COMM, RPDO_MAP), (TPDO_COMM, TPDO_MAP)):
+        for n in _pdo_indices(d, comm, sdo):
+            yield from ((comm + n, s, t) for s, t in _PDO_COMM_TYPES.items())
+            subs = range(MAX_SLOTS + 1) if d is None else d.subs(mapping + n)
+            yield from ((mapping + n, s, U8 if s == 0 else U32) for s in subs)
+
+
+def survey(sdo, d: Dictionary | None = None) -> Dictionary:
+    """Read-only: what the drive has and holds, as a ``Dictionary`` (a new one).
+
+    With ``d`` (from the drive's file) every object it lists is confirmed on the
+    drive; one the drive says does not exist is dropped with a warning. Without,
+    mapping slots are probed up to the first missing subindex.
+    """
+    out = Dictionary(source=d.source if d else "drive", warnings=list(d.warnings) if d else [],
+                     od=d.od if d else None, from_file=d is not None)
+    gone_mapping = set()
+    for index, sub, dtype in _wanted(d, sdo):
+        known = d.get(index, sub) if d is not None else None
+        if d is not None and known is None:
+            continue
+        if index in gone_mapping:
+            continue
+        raw = sdo.upload(index, sub)
+        if raw is None:
+            if known is not None:
+                out.warnings.append(f"{d.source} lists 0x{index:04X}:{sub:02X} but the drive "
+                                    "says it does not exist: taken as absent")
+            elif (index & 0xFF00) in (RPDO_MAP, TPDO_MAP) and sub > 0:
+                gone_mapping.add(index)  # slots are contiguous: stop at the first gap
+            continue
+        entry = Entry(**{**known.__dict__}) if known is not None else Entry(index, sub, dtype)
+        fmt = entry.fmt
+        if fmt and len(raw) >= 1:
+            size = struct.calcsize(fmt)
+            entry.value = struct.unpack(fmt, raw[:size].ljust(size, b"\0"))[0]
+        out.entries[(index, sub)] = entry
+    return out
+

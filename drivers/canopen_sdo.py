@@ -1,0 +1,102 @@
+"""SDO access to one node with one-line messages: objects and values in hex.
+
+``Sdo.upload`` tells "the object does not exist" (abort 0x06020000 or
+0x06090011, returned as ``None``) from "the node refused" (``DeviceError``)
+and "the node did not answer" (``DeviceConnectionError``). Abort codes and
+their meanings: CiA 301, "SDO abort codes".
+"""
+from __future__ import annotations
+
+import struct
+
+from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
+
+from labbench.errors import DeviceConnectionError, DeviceError, UserError
+
+ABSENT = (0x06020000, 0x06090011)  # object / subindex does not exist
+ABORT_TEXT = {
+    0x06010000: "unsupported access", 0x06010001: "object is write-only",
+    0x06010002: "object is read-only", 0x06020000: "object does not exist",
+    0x06040041: "object cannot be mapped to a PDO",
+    0x06040042: "mapping exceeds the PDO length", 0x06040043: "parameter incompatibility",
+    0x06070010: "data type does not match (length)", 0x06090011: "subindex does not exist",
+    0x06090030: "value range exceeded", 0x06090031: "value too high",
+    0x06090032: "value too low", 0x08000020: "cannot store",
+    0x08000022: "not in the present device state",
+}
+
+
+def hexval(value: int, fmt: str) -> str:
+    """``value`` as hex of the object's width; negatives also in decimal."""
+    size = struct.calcsize(fmt)
+    text = f"0x{value & ((1 << 8 * size) - 1):0{2 * size}X}"
+    return f"{text} ({value})" if value < 0 else text
+
+
+def where(index: int, sub: int) -> str:
+    return f"0x{index:04X}:{sub:02X}"
+
+
+def abort_text(code: int) -> str:
+    return f"SDO abort 0x{code:08X} ({ABORT_TEXT.get(code, 'see CiA 301')})"
+
+
+class Sdo:
+    """Expedited/segmented SDO transfers through a canopen ``SdoClient``.
+
+    ``check`` runs before each transfer (the driver raises there if its
+    receive thread died); ``names`` gives an object's name for messages.
+    """
+
+    def __init__(self, client: SdoClient, node_id: int, check=lambda: None,
+                 names=lambda index: ""):
+        self.client, self.node_id, self._check, self._names = client, node_id, check, names
+
+    def _what(self, index: int, sub: int) -> str:
+        name = self._names(index)
+        return f"{where(index, sub)}" + (f" ({name})" if name else "")
+
+    def upload(self, index: int, sub: int) -> bytes | None:
+        """The raw value, or ``None`` when the node says the object does not exist."""
+        self._check()
+        try:
+            return bytes(self.client.upload(index, sub))
+        except SdoAbortedError as exc:
+            if exc.code in ABSENT:
+                return None
+            raise DeviceError(f"node {self.node_id}: SDO read of {self._what(index, sub)} "
+                              f"refused: {abort_text(exc.code)}") from None
+        except SdoCommunicationError as exc:
+            self._check()
+            raise DeviceConnectionError(f"node {self.node_id}: no answer to SDO read of "
+                                        f"{where(index, sub)} ({exc})") from None
+
+    def read(self, index: int, sub: int, fmt: str) -> int:
+        raw = self.upload(index, sub)
+        if raw is None:
+            raise DeviceError(f"node {self.node_id}: SDO read of {self._what(index, sub)} "
+                              f"refused: {abort_text(0x06020000)}")
+        size = struct.calcsize(fmt)
+        return struct.unpack(fmt, raw[:size].ljust(size, b"\0"))[0]
+
+    def write(self, index: int, sub: int, fmt: str, value: int) -> None:
+        self._check()
+        try:
+            self.client.download(index, sub, struct.pack(fmt, value))
+        except SdoAbortedError as exc:
+            raise DeviceError(f"node {self.node_id}: drive refused writing {hexval(value, fmt)} "
+                              f"to {self._what(index, sub)}: {abort_text(exc.code)}; "
+                              "refusing to enable") from None
+        except SdoCommunicationError as exc:
+            self._check()
+            raise DeviceConnectionError(f"node {self.node_id}: no answer to SDO write of "
+                                        f"{where(index, sub)} ({exc})") from None
+
+    def write_checked(self, index: int, sub: int, fmt: str, value: int) -> None:
+        """Write, then read back: a drive that ignores a write is caught here."""
+        self.write(index, sub, fmt, value)
+        back = self.read(index, sub, fmt)
+        if back != value:
+            raise UserError(f"node {self.node_id}: object {self._what(index, sub)} reads back "
+                            f"{hexval(back, fmt)} after writing {hexval(value, fmt)}: "
+                            "refusing to enable")
