@@ -25,7 +25,6 @@ import uuid
 import can
 import numpy as np
 
-from labbench.drivers.canopen_drive import bus_load
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.device import DeviceFault
 from labbench.rig import Rig, rig_from_dict
@@ -144,7 +143,8 @@ def main() -> int:
               f"{np.percentile(p, 50):.3f} ms, p99 {np.percentile(p, 99):.3f} ms, "
               f"max {p.max():.3f} ms, late ticks {late}"
               + (f"; stopped by: {fault}" if fault else ""))
-    load = bus_load(sim_config(rig), rig.sample_time_s)
+    with open_drive(rig) as d:
+        load = d.assessment.bus_load(d.config, rig.sample_time_s)
     print(f"bus load at {load['bitrate'] / 1e6:g} Mbit/s: {load['load_nominal'] * 100:.1f} % "
           f"nominal, {load['load_worst'] * 100:.1f} % with worst-case stuffing")
     for name, n_bytes, rate in load["frames"]:
