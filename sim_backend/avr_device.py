@@ -43,7 +43,7 @@ class Trace:
 
     tx: list  # (first_s, last_s, nbytes) per 0x00-terminated run sent by the board
     rx: list  # (first_s, last_s, nbytes) per host frame handed to the UART
-    vec: list  # (pending_s, running_s, count_pending, count_running) per traced ISR
+    vec: list  # (pending_s, running_s, return_s, count_pending, count_running) per traced ISR
     force: list  # (t_s, newton) from then on
 
     @classmethod
@@ -54,9 +54,8 @@ class Trace:
             if kind in ("tx", "rx"):
                 out[kind].append((int(fields[0]) / CPU_HZ, int(fields[1]) / CPU_HZ, int(fields[2])))
             elif kind == "vec":
-                out["vec"].append(
-                    (int(fields[0]) / CPU_HZ, int(fields[1]) / CPU_HZ, int(fields[2]), int(fields[3]))
-                )
+                t = [int(v) / CPU_HZ for v in fields[:3]]
+                out["vec"].append((*t, int(fields[3]), int(fields[4])))
             elif kind == "force":
                 out["force"].append((int(fields[0]) / CPU_HZ, float(fields[1])))
         return cls(**out)
@@ -83,6 +82,7 @@ class AvrBoard:
         realtime: bool = False,
         host_latency_us: float = 30.0,
         trace: bool = False,
+        trace_vector: int = VECTOR_TIMER2_COMPA,
         drive_cps: float | None = None,
         drive_ms: tuple[float, float] = (0.0, 0.0),
         max_ms: float = 0.0,
@@ -100,7 +100,7 @@ class AvrBoard:
         if realtime:
             args.append("--realtime")
         if trace:
-            args += ["--trace", str(self.trace_path), "--trace-vector", str(VECTOR_TIMER2_COMPA)]
+            args += ["--trace", str(self.trace_path), "--trace-vector", str(trace_vector)]
         if drive_cps is not None:
             args += ["--drive-cps", repr(drive_cps), "--drive-start-ms", repr(drive_ms[0]),
                      "--drive-stop-ms", repr(drive_ms[1])]
@@ -117,6 +117,11 @@ class AvrBoard:
         self.pty = first[1]
         self.stats: dict | None = None
         self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Release the board from reset (once the host has opened ``pty``)."""
+        self._proc.stdin.write(b"g")
+        self._proc.stdin.flush()
 
     def _stderr_tail(self) -> str:
         self._stderr.flush()
@@ -177,7 +182,8 @@ def _checked(table: dict) -> dict:
     return out
 
 
-def connect_avr_sim(rig, realtime: bool = False, trace: bool = False, defines: dict | None = None,
+def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
+                    trace_vector: int = VECTOR_TIMER2_COMPA, defines: dict | None = None,
                     host_latency_us: float = 30.0, drive_cps: float | None = None,
                     drive_ms: tuple[float, float] = (0.0, 0.0), **options):
     """The real ``SerialStream`` on the emulated board's pty: ``(driver, board)``.
@@ -207,11 +213,13 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False, defines: d
         realtime=realtime,
         host_latency_us=host_latency_us,
         trace=trace,
+        trace_vector=trace_vector,
         drive_cps=drive_cps,
         drive_ms=drive_ms,
     )
     try:
         ser = serial.Serial(board.pty, baudrate=config.baudrate, timeout=0)
+        board.start()
     except BaseException:
         board.close()
         raise

@@ -15,9 +15,11 @@ import math
 import numpy as np
 import pytest
 
+from labbench.drivers import framing
 from labbench.drivers import serial_stream as ss
-from labbench.rig import Rig
+from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend import avr_build
+from labbench.sim_backend.avr_device import connect_avr_sim
 from labbench.theory import zoh_matrices
 
 missing = avr_build.missing_tools()
@@ -32,8 +34,6 @@ BYTE_S = 10 / 500_000  # one byte on a 500 kbit/s wire
 
 def run(n: int, answer, **options):
     """n lock-step samples through the emulated board: (samples, commands, stats, trace)."""
-    from labbench.sim_backend.avr_device import connect_avr_sim
-
     drv, board = connect_avr_sim(RIG, trace=True, **options)
     samples, commands = [], []
     try:
@@ -80,7 +80,7 @@ def test_closed_loop_in_lock_step_counts_and_force_feedback():
 
     vec = np.array(trace.vec)  # one row per sample tick: tick k latches sample seq k
     counts = np.array([round(s.position_m / MPC) for s in samples])
-    lo, hi = vec[seq, 2], vec[seq, 3]
+    lo, hi = vec[seq, 3], vec[seq, 4]
     # The latched count is one the pins showed between the tick and its interrupt.
     assert np.all((counts >= np.minimum(lo, hi)) & (counts <= np.maximum(lo, hi)))
     assert np.ptp(counts) > 50  # the handle really moved
@@ -118,14 +118,84 @@ def test_closed_loop_in_lock_step_counts_and_force_feedback():
         assert abs(x[0] / MPC - counts[j]) <= 1.0
 
 
-@pytest.mark.parametrize("cps", [30_000.0, -30_000.0])
-def test_encoder_counts_exactly_on_a_driven_trajectory(cps):
-    samples, _, counters, stats, trace = run(200, lambda k, s: 0.0, drive_cps=cps,
-                                             drive_ms=(20.0, 150.0))
-    vec = np.array(trace.vec)
+def truth_error(samples, vec):
+    """Per sample: counts outside what the pins showed between its tick and its interrupt."""
     seq = np.array([s.seq for s in samples])
     counts = np.array([round(s.position_m / MPC) for s in samples])
-    lo, hi = vec[seq, 2], vec[seq, 3]
-    assert np.all((counts >= np.minimum(lo, hi)) & (counts <= np.maximum(lo, hi)))
+    lo = np.minimum(vec[seq, 3], vec[seq, 4])
+    hi = np.maximum(vec[seq, 3], vec[seq, 4])
+    return np.where(counts > hi, counts - hi, np.where(counts < lo, counts - lo, 0)), counts
+
+
+@pytest.mark.parametrize("cps", [105_000.0, -105_000.0])
+def test_encoder_counts_exactly_above_100k_counts_per_second(cps):
+    samples, _, counters, stats, trace = run(200, lambda k, s: 0.0, drive_cps=cps,
+                                             drive_ms=(20.0, 150.0))
+    err, counts = truth_error(samples, np.array(trace.vec))
+    assert not err.any()
     assert counts[-1] == stats["count"] == round(cps * 0.130)
-    assert all(s.flags == 0 for s in samples)
+    assert np.ptp(np.diff(counts)[30:140]) <= 2  # about cps / 1000 per sample
+    assert all(s.flags == 0 for s in samples)  # no skipped state, no late or missed sample
+    assert counters["lost"] == 0
+
+
+def test_beyond_its_rate_the_board_flags_every_count_it_loses():
+    # 250 k counts/s: edges 4 us apart, closer than the encoder and UART interrupts
+    # together take; the board loses counts, and says so in the sample it loses them in.
+    samples, _, _, stats, trace = run(200, lambda k, s: 0.0, drive_cps=250_000.0,
+                                      drive_ms=(20.0, 150.0))
+    err, counts = truth_error(samples, np.array(trace.vec))
+    assert counts[-1] != stats["count"]  # counts really were lost
+    flags = np.array([s.flags for s in samples])
+    changed = np.nonzero(np.diff(np.r_[0, err]))[0]
+    assert len(changed) > 0
+    assert all(flags[i] & ss.FLAG_BOARD_ENCODER for i in changed)
+
+
+def test_a_burst_of_8_commands_does_not_delay_the_samples():
+    drv, board = connect_avr_sim(RIG, trace=True)
+    samples, burst_at = [], set()
+    try:
+        drv.enable()
+        for k in range(300):
+            s = drv.read(2.0)
+            samples.append(s)
+            if k % 5 == 0:  # 8 commands at once, the last one the answer
+                burst_at.add(s.seq)
+                drv.port.write(b"".join(framing.encode_command(s.seq, 0.01 * i) for i in range(8)))
+            else:
+                drv.command(0.05 * math.sin(k / 20))
+        counters = drv.counters()
+    finally:
+        drv.close()
+    trace = board.trace()
+    vec = np.array(trace.vec)
+    frames = [t for t in trace.tx if t[2] == 16]  # sample frames, in tick order
+    seq = np.array([s.seq for s in samples])
+    assert np.all(np.diff(seq) == 1) and counters["lost"] == 0
+    first = np.array([frames[q][0] - vec[q, 0] for q in seq])  # first byte on the wire
+    assert first.max() <= 0.4e-3
+    after_burst = [i for i, q in enumerate(seq) if q - 1 in burst_at]
+    assert max(first[after_burst]) > np.median(first)  # the bursts were there to be felt
+    flags = {s.flags & ~ss.FLAG_BACKLOG & ~ss.FLAG_BOARD_LATE for s in samples}
+    assert flags == {0}  # no command lost or corrupt, no sample missed
+
+
+def test_samples_the_board_cannot_send_are_flagged_not_hidden():
+    # 16-byte frames at 500 kbit/s take 0.32 ms: a 0.2 ms period cannot be kept.
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.0002},
+                         "serial": {"tolerate_drops": 5, "sync_timeout_s": 10.0}})
+    drv, board = connect_avr_sim(rig)
+    samples = []
+    try:
+        drv.enable()
+        for k in range(300):
+            samples.append(drv.read(2.0))
+            drv.command(0.0)
+    finally:
+        drv.close()
+    seq = np.array([s.seq for s in samples])
+    gaps = np.nonzero(np.diff(seq) > 1)[0] + 1
+    assert len(gaps) > 50
+    assert all(samples[i].flags & ss.FLAG_BOARD_MISSED_TICK for i in gaps)
+    assert all(s.flags & ss.FLAG_BOARD_LATE for s in samples[1:])

@@ -24,12 +24,15 @@
  * last byte left. Runs are deterministic and independent of the machine's speed.
  * --realtime instead keeps emulated time no faster than wall time and never waits.
  *
- * Output: the first line on stdout is "pty <path>"; at exit one line of JSON
+ * Start: the first line on stdout is "pty <path>"; the board comes out of reset when
+ * one byte arrives on stdin (the host has opened the port by then).
+ * Output: at exit one line of JSON
  * statistics. --trace FILE writes one line per event (all times in CPU cycles):
  *   tx <first> <last> <nbytes>           a 0x00-terminated run of bytes sent by the board
  *   rx <first> <last> <nbytes>           a host frame handed to the UART
- *   vec <pending> <running> <c_pending> <c_running>   the --trace-vector ISR: when it
- *                                         was raised and entered, and the plant's count then
+ *   vec <pending> <running> <return> <c_pending> <c_running>   the --trace-vector ISR:
+ *                                         when it was raised, entered and left, and the
+ *                                         plant's count when raised and entered
  *   force <cycle> <newton>               the force applied from then on
  * Ends on EOF of stdin, SIGTERM, --max-ms of emulated time, or a crashed CPU.
  */
@@ -96,6 +99,7 @@ static int edge_dir[MAX_EDGES];
 static int n_edges, next_edge;
 static uint64_t step_end;
 static avr_irq_t *pin_a, *pin_b;
+static unsigned long long pins_restored;
 
 static int64_t count_of(double x) { return (int64_t)floor(x / opt.metres_per_count + 0.5); }
 
@@ -176,7 +180,10 @@ static void step_count(int dir) {
  * (pinMode INPUT_PULLUP) override a level set before it; set them again then. */
 static void hold_pins(void) {
     uint8_t ab = AB[plant.count & 3], pins = (avr->data[R_PIND] >> 2) & 0x03;
-    if (pins != (uint8_t)((ab >> 1) | (ab & 1) << 1)) show_count(plant.count);
+    if (pins != (uint8_t)((ab >> 1) | (ab & 1) << 1)) {
+        show_count(plant.count);
+        pins_restored++;
+    }
 }
 
 static void emit_due_edges(void) {
@@ -237,7 +244,7 @@ static int host_frames_waiting;  /* complete host frames (0x00 seen) in rxq */
 static int awaiting_host;
 static uint64_t tx_first; static unsigned tx_run;
 static uint8_t txbuf[4096]; static size_t tx_len;
-static unsigned long long tx_bytes, rx_bytes, tx_dropped, lockstep_timeouts;
+static unsigned long long tx_bytes, rx_bytes, tx_dropped, lockstep_timeouts, uart_fifo_full;
 
 static void flush_tx(void) {
     size_t off = 0;
@@ -270,6 +277,13 @@ static void on_uart_out(struct avr_irq_t *irq, uint32_t value, void *param) {
         tx_run = 0;
         flush_tx();
     }
+}
+
+/* simavr's UART holds received bytes in a 64-byte FIFO and hands them to the
+ * firmware one per byte time after each read; when it is full, bytes are lost. */
+static void on_uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param) {
+    (void)irq; (void)param;
+    if (value) uart_fifo_full++;
 }
 
 static void read_host(int timeout_ms) {
@@ -307,7 +321,8 @@ static void feed_uart(void) {
 }
 
 /* ---- traced interrupt vector ------------------------------------------------------ */
-static uint64_t vec_pending_at; static int64_t vec_pending_count;
+static uint64_t vec_pending_at, vec_running_at;
+static int64_t vec_pending_count, vec_running_count;
 
 static void on_vector_pending(struct avr_irq_t *irq, uint32_t value, void *param) {
     (void)irq; (void)param;
@@ -316,10 +331,14 @@ static void on_vector_pending(struct avr_irq_t *irq, uint32_t value, void *param
 
 static void on_vector_running(struct avr_irq_t *irq, uint32_t value, void *param) {
     (void)irq; (void)param;
-    if (value && trace)
-        fprintf(trace, "vec %llu %llu %lld %lld\n", (unsigned long long)vec_pending_at,
-                (unsigned long long)avr->cycle, (long long)vec_pending_count,
-                (long long)plant.count);
+    if (value) {
+        vec_running_at = avr->cycle;
+        vec_running_count = plant.count;
+    } else if (trace) {
+        fprintf(trace, "vec %llu %llu %llu %lld %lld\n", (unsigned long long)vec_pending_at,
+                (unsigned long long)vec_running_at, (unsigned long long)avr->cycle,
+                (long long)vec_pending_count, (long long)vec_running_count);
+    }
 }
 
 /* ---- firmware ------------------------------------------------------------------- */
@@ -454,6 +473,8 @@ int main(int argc, char **argv) {
     uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT),
                             on_uart_out, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF),
+                            on_uart_xoff, NULL);
     uint32_t flags = 0;
     avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
     flags &= ~(AVR_UART_FLAG_STDIO | AVR_UART_FLAG_POLL_SLEEP);
@@ -466,6 +487,10 @@ int main(int argc, char **argv) {
         avr_irq_register_notify(v + AVR_INT_IRQ_PENDING, on_vector_pending, NULL);
         avr_irq_register_notify(v + AVR_INT_IRQ_RUNNING, on_vector_running, NULL);
     }
+
+    /* Reset comes when the host has the port open: opening a tty flushes its input. */
+    char go;
+    if (read(0, &go, 1) != 1) return 0;
 
     plant.x = opt.x0;
     plant.v = opt.v0;
@@ -515,10 +540,11 @@ int main(int argc, char **argv) {
     printf("{\"cycles\": %llu, \"emulated_s\": %.6f, \"wall_s\": %.6f, \"host_wait_s\": %.6f, "
            "\"edges\": %llu, \"count\": %lld, \"position_m\": %.12g, \"velocity_m_s\": %.12g, "
            "\"tx_bytes\": %llu, \"rx_bytes\": %llu, \"tx_dropped\": %llu, "
-           "\"lockstep_timeouts\": %llu, \"crashed\": %s}\n",
+           "\"lockstep_timeouts\": %llu, \"uart_fifo_full\": %llu, \"pins_restored\": %llu, "
+           "\"crashed\": %s}\n",
            (unsigned long long)avr->cycle, emulated, wall, waited,
            (unsigned long long)plant.edges, (long long)plant.count, x, v, tx_bytes, rx_bytes,
-           tx_dropped, lockstep_timeouts, state == cpu_Crashed ? "true" : "false");
+           tx_dropped, lockstep_timeouts, uart_fifo_full, pins_restored, state == cpu_Crashed ? "true" : "false");
     fflush(stdout);
     return state == cpu_Crashed ? 3 : 0;
 }
