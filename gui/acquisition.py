@@ -23,6 +23,10 @@ waits for the other):
 * watchdog: a child thread waits on the parent's process sentinel; if the GUI
   process dies the device is emergency-stopped, the run ends (its session
   closed with a stop record) and the child exits.
+* signals: SIGINT, SIGTERM and SIGHUP (whatever disposition was inherited: a
+  Ctrl-C in the terminal reaches the child too) stop the run like Stop, its
+  session closed ``aborted`` naming the signal; then the device is closed and
+  the child exits with 128 + n (``labbench.interrupts``).
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ import threading
 from multiprocessing.connection import wait as wait_handles
 
 from labbench.device import StatusReporting
+from labbench.interrupts import StopRequest, handle_signals, interrupt_reason
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +65,8 @@ class _Child:
     def __init__(self, commands, messages, estop, stop):
         self.commands, self.messages, self.estop, self.stop = commands, messages, estop, stop
         self.device = None
-        self.run_stop = threading.Event()  # the stop event of the run under way
+        self.run_stop = StopRequest()  # the stop request of the run under way
+        self.signum: int | None = None  # the signal that ends this process
         self.lock = threading.Lock()  # the device reference, between the threads
         self.idle = threading.Event()  # no run under way
         self.idle.set()
@@ -75,7 +81,7 @@ class _Child:
             if self.estop.wait(0.01):
                 with self.lock:
                     dev = self.device
-                self.run_stop.set()
+                self.run_stop.set("emergency stop (E-STOP)")
                 if dev is not None:
                     try:
                         dev.emergency_stop()
@@ -95,7 +101,7 @@ class _Child:
         wait_handles([parent.sentinel])  # returns when the parent process ends
         log.error("GUI process gone: emergency stop and exit")
         self.estop.set()
-        self.run_stop.set()
+        self.run_stop.set("GUI process gone")
         self.idle.wait(PARENT_GONE_GRACE_S)  # the runner zeroes, disables, writes the stop record
         with self.lock:
             dev, self.device = self.device, None
@@ -121,17 +127,30 @@ class _Child:
             self.post("health", health)
 
     # -- commands ------------------------------------------------------------------------------
-    def serve(self) -> None:
+    def on_signal(self, signum: int) -> None:
+        """Signal handler (main thread): end the run under way; ``serve`` then exits."""
+        self.signum = self.signum or signum
+        self.run_stop.set(interrupt_reason(signum), signum)
+
+    def serve(self) -> int:
+        """Answer commands until "quit" (returns 0) or a signal (returns 128 + n)."""
         for body in (self.watch_estop, self.watch_parent, self.report_health):
             threading.Thread(target=body, name=f"acq-{body.__name__}", daemon=True).start()
+        with handle_signals(self.on_signal):
+            return self._serve()
+
+    def _serve(self) -> int:
         while True:
+            if self.signum is not None:
+                self._close_device()
+                return 128 + self.signum
             try:
-                cmd, *args = self.commands.get(timeout=1.0)
+                cmd, *args = self.commands.get(timeout=0.2)
             except queue.Empty:
                 continue
             if cmd == "quit":
                 self._close_device()
-                return
+                return 0
             try:
                 value = getattr(self, f"do_{cmd}")(*args)
             except BaseException as exc:  # noqa: BLE001 - reported to the window, never a crash
@@ -182,8 +201,10 @@ class _Child:
 
         device = self._dev()
         self.idle.clear()
-        self.run_stop = threading.Event()
-        if self.estop.is_set() or self.stop.is_set():
+        self.run_stop = StopRequest()
+        if self.signum is not None:  # arrived before this request existed
+            self.run_stop.set(interrupt_reason(self.signum), self.signum)
+        elif self.estop.is_set() or self.stop.is_set():
             self.run_stop.set()
         consumers = [lambda rec: self.post("record", rec)]
         writer = None
@@ -216,7 +237,7 @@ def _describe(exc: BaseException) -> str:
 def _child_main(commands, messages, estop, stop) -> None:
     """Entry point of the acquisition process."""
     logging.basicConfig(level=logging.WARNING)
-    _Child(commands, messages, estop, stop).serve()
+    sys.exit(_Child(commands, messages, estop, stop).serve())
 
 
 # ----- the GUI side ------------------------------------------------------------------------------

@@ -44,8 +44,10 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         close: bool = True, simulated: bool | None = None) -> RunResult:
     """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
 
-    ``stop`` (set from another thread, e.g. a GUI's stop button) or Ctrl-C ends
-    the run with status "aborted" and zero force. ``progress(fraction, message)``
+    ``stop`` (a ``threading.Event`` or ``labbench.interrupts.StopRequest``, set from
+    another thread, e.g. a GUI's stop button, or by a signal handler) or Ctrl-C ends
+    the run with status "aborted" and zero force; the stop record's reason is the
+    request's ``reason`` when it has one. ``progress(fraction, message)``
     is called from this thread. ``rig`` gives calibration, limits and the nominal
     plant (default: the simulated Phantom-like rig). The device is disabled and,
     with ``close`` (default), closed on the way out. Raises UserError (before
@@ -110,7 +112,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
                 "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
                 "timing": dict(outcome.timing)})
             if outcome.status == "aborted":
-                return run_state.finish("aborted", outcome.reason or "stopped")
+                return run_state.finish("aborted", _stop_reason(stop, outcome.reason))
             if outcome.status in _FAILED and not (outcome.status == "tripped"
                                                    and segment.trip_expected):
                 return run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
@@ -130,10 +132,12 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         except Exception as exc:  # noqa: BLE001 - a failed analysis must not lose a good recording
             run_state.results = {"error": f"analysis failed ({type(exc).__name__}: {exc}); "
                                           "the recording is complete: re-analyse the session"}
+        if stop.is_set():  # asked to stop (a signal) while analysing: the run did not finish
+            return run_state.finish("aborted", _stop_reason(stop, "stopped during the analysis"))
         return run_state.finish("success", "completed")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         _stop_device(device, close=False)
-        return run_state.finish("aborted", "interrupted (Ctrl-C)")
+        return run_state.finish("aborted", str(exc) or "interrupted (Ctrl-C)")
     except UserError as exc:
         _stop_device(device, close=False)
         run_state.finish("failed", str(exc))
@@ -224,6 +228,11 @@ def summarize(results: dict, max_len: int = 64):
 
 def _is_seq(v) -> bool:
     return isinstance(v, (list, tuple, np.ndarray))
+
+
+def _stop_reason(stop, fallback: str) -> str:
+    """Why the run was stopped: a ``labbench.interrupts.StopRequest`` says (e.g. the signal)."""
+    return getattr(stop, "reason", "") or fallback or "stopped"
 
 
 def _stop_device(device, close: bool, timeout: float = 1.0) -> None:

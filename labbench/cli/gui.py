@@ -22,7 +22,7 @@ def register(subparsers) -> None:
                         "(with --demo: after the live estimate of the whole run shows)")
     p.add_argument("--timeout", type=float, default=180.0, metavar="S",
                    help="with --screenshot: give up after S seconds (exit 1)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, own_signals=True)  # Qt's loop; its acquisition process has its own
 
 
 def run(args) -> int:

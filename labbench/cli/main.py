@@ -9,10 +9,13 @@ fails (``DeviceError``: dead bus, no answer, a fault) prints one line and exits 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import sys
+import threading
 
 from labbench.errors import DeviceError, LabbenchError, UserError
+from labbench.interrupts import raising
 
 # Order is the order shown in --help.
 COMMANDS = ("theory", "analyze", "run", "replay", "export", "report", "devices", "gui")
@@ -42,21 +45,25 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except LabbenchError as exc:
-        print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
-        return 1 if isinstance(exc, DeviceError) else 2
-    except KeyboardInterrupt:
-        print(f"labbench {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:
-        # The reader (e.g. `| head`) went away: not an error of ours; silence the
-        # second failure Python would report when flushing stdout at exit.
-        import os
+    # SIGINT/SIGTERM/SIGHUP raise Interrupted whatever was inherited (labbench.interrupts);
+    # `run` narrows that to stopping the run. The GUI's Qt loop keeps its own.
+    own = getattr(args, "own_signals", False) or threading.current_thread() is not threading.main_thread()
+    with contextlib.nullcontext() if own else raising():
+        try:
+            return int(args.func(args) or 0)
+        except LabbenchError as exc:
+            print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
+            return 1 if isinstance(exc, DeviceError) else 2
+        except KeyboardInterrupt as exc:  # Interrupted (a signal) or a bare Ctrl-C
+            print(f"labbench {args.command}: {str(exc) or 'interrupted'}", file=sys.stderr)
+            return getattr(exc, "exit_code", 130)
+        except BrokenPipeError:
+            # The reader (e.g. `| head`) went away: not an error of ours; silence the
+            # second failure Python would report when flushing stdout at exit.
+            import os
 
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
 
 
 def float_list(text: str) -> list[float]:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import threading
 from dataclasses import MISSING, fields
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from labbench.registry import device_names, open_device
 from labbench.errors import UserError
 from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
+from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
 
 # Config fields the CLI sets itself (from the rig).
@@ -140,7 +140,7 @@ def last_identified(directory, rig) -> dict | None:
     return None
 
 
-def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
+def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     """Make the protocol, open the device, run with a session writer; (result, session path)."""
     from labbench.runner import run
     from labbench.session_format import SessionWriter
@@ -170,13 +170,15 @@ def _run_one(args, rig, name: str, options: dict, stop: threading.Event):
 
 def cmd_run(args) -> int:
     rig = load_rig(args.rig)
-    result, path = _run_one(args, rig, args.protocol, _options(args), threading.Event())
+    stop = StopRequest()
+    with stopping(stop):  # SIGINT/SIGTERM/SIGHUP: zero force, session closed "aborted"
+        result, path = _run_one(args, rig, args.protocol, _options(args), stop)
     out = {"protocol": args.protocol, "status": result.status, "reason": result.reason,
            "sessions": [str(path)] if path else [], "session": str(path) if path else None,
            "results": result.results,
            "timing": result.timing}
     _print(args, out, [(args.protocol, result, path)])
-    return _EXIT.get(result.status, 1)
+    return stop.exit_code or _EXIT.get(result.status, 1)
 
 
 def cmd_demo(args) -> int:
@@ -185,20 +187,23 @@ def cmd_demo(args) -> int:
         if not getattr(args, name) > 0:
             raise UserError(f"--{name.replace('_', '-')} must be positive")
     rig = load_rig(args.rig)
-    stop = threading.Event()
+    stop = StopRequest()
     runs = []
-    chirp, chirp_path = _run_one(args, rig, "chirp-id",
-                                 {"duration_s": args.chirp_duration_s}, stop)
+    with stopping(stop):
+        chirp, chirp_path = _run_one(args, rig, "chirp-id",
+                                     {"duration_s": args.chirp_duration_s}, stop)
     runs.append(("chirp-id", chirp, chirp_path))
     out = {"protocol": "demo", "sessions": [str(chirp_path)], "results": {"chirp-id": chirp.results}}
     m, b = chirp.results.get("m"), chirp.results.get("b")
     if chirp.status != "success" or m is None or b is None or not m > 0 or b < 0:
         out.update(status="failed", reason=f"chirp-ID did not give a plant: {chirp.reason}")
         _print(args, out, runs)
-        return _EXIT.get(chirp.status, 1) or 1
-    etfe, etfe_path = _run_one(args, rig, "etfe", {
-        "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
-        "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m, "plant_b": b}, stop)
+        return stop.exit_code or _EXIT.get(chirp.status, 1) or 1
+    with stopping(stop):
+        etfe, etfe_path = _run_one(args, rig, "etfe", {
+            "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
+            "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m,
+            "plant_b": b}, stop)
     runs.append(("etfe", etfe, etfe_path))
     out["sessions"].append(str(etfe_path))
     out["results"]["etfe"] = etfe.results
@@ -209,7 +214,7 @@ def cmd_demo(args) -> int:
         html, pdf = write_report([chirp_path, etfe_path], args.out)
         out["report"] = {"html": str(html), "pdf": str(pdf)}
     _print(args, out, runs)
-    return _EXIT.get(out["status"], 1)
+    return stop.exit_code or _EXIT.get(out["status"], 1)
 
 
 def _print(args, out: dict, runs) -> None:
