@@ -363,7 +363,8 @@ def drive_on_named_channel(tmp_path):
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 4\n'
                         'sdo_timeout_s = 0.2\nheartbeat_consumer_ms = 800\nrpdo_timeout_ms = 600\n'
-                        f'eds = "{EDS_PATH}"\n')
+                        f'eds = "{EDS_PATH}"\n'
+                        '[safety]\nwatchdog_s = 2.0\n')  # lock-step on a shared machine
     yield peer, rig_file
     peer.close()
 
@@ -380,7 +381,7 @@ def test_canopen_factory_opens_a_python_can_bus_and_runs(drive_on_named_channel)
     with open_canopen(rig, realtime=False) as d:  # lock-step: the node is simulated
         assert d.describe().details["identity"]["vendor_id"] == 0x4C4200AB
         out = run_loop(d, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc, lambda r: None)
-    assert out.status == "completed" and out.n_done == 300
+    assert out.status == "completed" and out.n_done == 300, out
     assert peer.state is State.SWITCH_ON_DISABLED and peer.torque_permille == 0
 
 
@@ -413,3 +414,50 @@ def test_drive_refusing_the_mode_write_is_reported_naming_0x6060(sim_parts):
     sim_parts[2].abort_sdo_write(0x6060, 0, code=0x06090030)
     with pytest.raises(DeviceError, match=r"refused writing 0x0A to 0x6060:00 .*value range"):
         connect(sim_parts)
+
+
+# ------------------------------------------------------------------- CAN trace
+@pytest.mark.parametrize("suffix", ["asc", "blf", "log", "trc", "csv"])
+def test_can_log_records_every_frame_and_reads_back(tmp_path, suffix):
+    import can
+
+    from labbench.sim_backend.canopen_peer import open_sim_canopen
+
+    path = tmp_path / f"trace.{suffix}"
+    with open_sim_canopen(make_rig(), can_log=str(path)) as d:
+        enabled(d)
+        for _ in range(50):
+            d.read(1.0)
+            d.command(0.1)
+        n_sync = d.peer.sync_count
+    frames = list(can.LogReader(str(path)))
+    ids = [m.arbitration_id for m in frames if not m.is_error_frame]
+    assert ids.count(0x080) == n_sync == 53  # every SYNC the host sent
+    assert ids.count(0x181) == ids.count(0x281) == n_sync  # every TPDO the drive sent
+    assert ids.count(0x201) >= 53 and ids.count(0x601) > 20 and ids.count(0x581) > 20  # RPDO, SDO
+    assert ids.count(0x000) == 2  # NMT pre-operational, start
+    if suffix == "asc":  # directions are kept where the format has them
+        assert {m.is_rx for m in frames if m.arbitration_id == 0x080} == {False}
+        assert {m.is_rx for m in frames if m.arbitration_id == 0x181} == {True}
+
+
+def test_cli_run_notes_the_can_log_in_the_session(tmp_path):
+    import can
+
+    from labbench.cli import main
+    from labbench.session_content import load_session
+
+    out, log = tmp_path / "s", tmp_path / "run.asc"
+    argv = ["run", "etfe", "--device", "sim-canopen", "--duration-s", "1", "--out", str(out),
+            "--can-log", str(log), "--json"]
+    import contextlib
+    import io
+    import json
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(argv) == 0
+    start = load_session(json.loads(buf.getvalue())["session"])[0]
+    assert start["device"]["details"]["can_log"] == str(log)
+    assert sum(m.arbitration_id == 0x080 for m in can.LogReader(str(log))) >= 1000
+    assert main(["run", "etfe", "--device", "sim", "--can-log", str(log)]) == 2

@@ -57,6 +57,8 @@ def _common(sp) -> None:
     sp.add_argument("--realtime", action="store_true", help="pace the simulator in real time")
     sp.add_argument("--out", metavar="DIR", default="sessions", help="session directory (./sessions)")
     sp.add_argument("--json", action="store_true", help="print one JSON object: sessions, results")
+    sp.add_argument("--can-log", metavar="FILE", default=None,
+                    help="CANopen devices: record every CAN frame (.asc, .blf, .log, .trc, .csv)")
 
 
 def _config_options(sp, config_cls) -> None:
@@ -113,7 +115,8 @@ def _words(text: str) -> tuple:
     return tuple(w.strip() for w in text.split(",") if w.strip())
 
 
-_COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from")
+_COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from",
+           "can_log")
 
 
 def _options(args) -> dict:
@@ -157,6 +160,13 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     dev_opts = {"seed": protocol.seed}
     if args.realtime:
         dev_opts["realtime"] = True
+    if args.can_log:
+        if args.device not in ("canopen", "sim-canopen"):
+            raise UserError("--can-log records CAN frames: use it with --device canopen or "
+                            "sim-canopen")
+        log = Path(args.can_log)  # demo: one file per run
+        dev_opts["can_log"] = str(log if args.protocol != "demo"
+                                  else log.with_name(f"{log.stem}-{name}{log.suffix}"))
     writer = SessionWriter(args.out)
     try:
         device = open_device(args.device, rig, **dev_opts)
