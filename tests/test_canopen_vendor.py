@@ -411,3 +411,66 @@ def test_config_passes_bus_options_and_catches_typos(tmp_path):
     rig = load_rig(rig_file)  # the eds is found beside the rig file, from any folder
     cfg = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
     assert cfg.eds == str(tmp_path / "drives" / "mine.eds")
+
+
+# ------------------------------------------- the hardware path on a named channel
+@pytest.fixture
+def node_on_channel(tmp_path):
+    """Factory: a simulated drive of a variant on a named virtual channel (closed after)."""
+    import uuid
+
+    from labbench.sim_backend.canopen_peer import SimCanopenDrive, plant_for
+
+    peers = []
+
+    def make(name, node_id=5, **canopen):
+        path = F.write(tmp_path / f"{name.lower()}.eds", **getattr(F, name))
+        channel = f"node-{uuid.uuid4().hex[:6]}"
+        rig = rig_for(path, **canopen)
+        peer = SimCanopenDrive(channel, node_id, plant_for(rig), rig.metres_per_count,
+                               rig.lever_arm_m, rig.sample_time_s, eds=path,
+                               config=sim_config(rig)).start()
+        peers.append(peer)
+        return peer, channel, path
+
+    yield make
+    for p in peers:
+        p.close()
+
+
+def test_python_can_configuration_applies_when_the_rig_names_no_bus(node_on_channel, tmp_path,
+                                                                   monkeypatch):
+    from labbench.drivers.canopen_drive import open_canopen
+
+    peer, channel, path = node_on_channel("GUARDING_ONLY")
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", channel)
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(f'[canopen]\nnode_id = 5\neds = "{path.name}"\nsdo_timeout_s = 0.2\n'
+                        'receive_own_messages = false\n')  # a python-can option, passed on
+    from labbench.rig import load_rig
+
+    with open_canopen(load_rig(rig_file), realtime=False) as d:
+        assert d.config.interface == "" and d.config.bus_options == {
+            "receive_own_messages": False}
+        assert run_forces(d, FORCES[:20]) == oracle_counts(d.rig, FORCES[:20])
+    assert peer.state is State.SWITCH_ON_DISABLED
+
+
+def test_devices_prints_the_capability_report_and_tells_absent_from_no_answer(
+        node_on_channel, tmp_path, capsys):
+    from labbench.cli import main
+
+    peer, channel, path = node_on_channel("OPTIONAL_MISSING")
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 5\n'
+                        f'eds = "{path}"\nsdo_timeout_s = 0.2\n')
+    assert main(["devices", "--rig", str(rig_file)]) == 0
+    out = capsys.readouterr().out.split("canopen      configured")[1]
+    assert "node 5 answered" in out and "serial absent" in out and "vendor 0x00ABCDEF" in out
+    for words in ("CiA 402: yes", "torque mode: cyclic synchronous torque then profile torque",
+                  "watched by: heartbeat consumer 0x1016", "PDO plan:",
+                  "RPDO1 COB-ID 0x205", "bus load at 1 Mbit/s: 31.9 % nominal",
+                  "error history 0x1003: empty or absent", "warning: 0x603F:00 absent"):
+        assert words in out, (words, out)
+    assert "no answer" not in out and peer.node.writes == []  # the probe wrote nothing
