@@ -154,8 +154,7 @@ class CanopenDrive:
                         "no CAN interface: [canopen] names none and python-can's own "
                         "configuration (~/.canrc, CAN_INTERFACE) has none") from None
                 shown = ", ".join(f"{k}={v!r}" for k, v in kwargs.items())
-                raise DeviceConnectionError(f"cannot open CAN bus ({shown or 'python-can '
-                                            'configuration'}): {exc}") from None
+                raise DeviceConnectionError(f"cannot open CAN bus ({shown}): {exc}") from None
         if self.can_log:
             self._bus = TracedBus(self._bus, self.can_log)
         self._network = canopen.Network(self._bus)
