@@ -242,6 +242,8 @@ class SimCanopenDrive:
             self._apply_torque()
         elif index == 0x1017:
             self._hb_next = time.monotonic() + value * 1e-3 if value else math.inf
+        elif index in (0x100C, 0x100D):
+            self._guard_last = None  # life guarding (re)starts with the next request
 
     def _mode_supported(self, code: int) -> bool:
         bits = {c: b for c, b, _ in STANDARD_MODES.values()}

@@ -235,6 +235,7 @@ def test_guarding_only_drive_runs_and_a_frozen_loop_is_stopped_within_the_life_t
     d = opened("GUARDING_ONLY", life_time_factor=15)  # 20 ms x 15 = 300 ms
     a = d.assessment
     assert a.watchdog == "guarding" and a.nmt_by == "guarding"
+    time.sleep(0.5)  # longer than the life time: guarding starts with the run, not at open
     assert run_forces(d, FORCES[:200]) == oracle_counts(d.rig, FORCES[:200])
     assert d.peer._get(0x100C) == 20 and d.peer._get(0x100D) == 15
     d.command(0.3)
