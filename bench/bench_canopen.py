@@ -13,14 +13,20 @@
    can miss it, and the run stops with the fault, as it must), once with a
    limit of 100 periods to see the whole timing distribution.
 4. Bus load at 1 Mbit/s of the mapping, from frame bits with a stuffing bound.
+5. For each synthetic dictionary of ``tests/eds_family.py`` (one-slot PDOs,
+   fixed mappings, guarding only, ...): the planned mapping's bus load and the
+   host CPU per cycle against the floor of the same frames.
 
     .venv/bin/python bench/bench_canopen.py [--cycles 5000] [--paced-s 3]
 """
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
 import time
 import uuid
+from pathlib import Path
 
 import can
 import numpy as np
@@ -34,30 +40,34 @@ from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_
 GOAL_US = 60.0
 
 
-def frames_floor(n: int) -> float:
-    """Host thread CPU [s] per cycle for 2 sends + 2 receives of already queued frames."""
+def frames_floor(n: int, rpdos: int = 1, tpdos: int = 2) -> float:
+    """Host thread CPU [s] per cycle to send SYNC and ``rpdos`` frames and receive ``tpdos``
+    already queued frames on a virtual bus (no drive behind: the floor of any driver)."""
     ch = f"bench-{uuid.uuid4().hex[:6]}"
     a, b = can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
     sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
     rpdo = can.Message(arbitration_id=0x201, data=bytes(4), is_extended_id=False)
     tpdo = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
     try:
-        c0 = time.thread_time()
+        mine = 0.0
         for _ in range(n):
+            c0 = time.thread_time()
             a.send(sync)
-            b.send(tpdo)
-            b.send(tpdo)  # TPDO2 stands in: same recv cost
-            a.recv(0)
-            a.recv(0)
-            a.send(rpdo)
-            b.recv(0)
-            b.recv(0)
-        total = time.thread_time() - c0
+            mine += time.thread_time() - c0
+            for _ in range(tpdos):
+                b.send(tpdo)
+            c0 = time.thread_time()
+            for _ in range(tpdos):
+                a.recv(0)
+            for _ in range(rpdos):
+                a.send(rpdo)
+            mine += time.thread_time() - c0
+            for _ in range(rpdos + 1):
+                b.recv(0)
     finally:
         a.shutdown()
         b.shutdown()
-    # a's share: 2 sends + 2 receives; b's sends and receives are the drive's.
-    return total / n / 2
+    return mine / n
 
 
 def open_drive(rig, realtime=False):
@@ -93,6 +103,26 @@ def loop_cycles(rig, n: int) -> tuple[float, float]:
         out = run_loop(d, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc, lambda r: None)
         assert out.status == "completed", out
         return (time.thread_time() - c0) / n, (time.process_time() - p0) / n
+
+
+# Dictionary variants of tests/eds_family.py: (label, variant, extra [canopen] fields).
+VARIANTS = (("synthetic, complete", {}, {}), ("one-slot PDOs (4+4)", "ONE_SLOT", {}),
+            ("fixed mappings", "FIXED", {}), ("guarding only", "GUARDING_ONLY", {}),
+            ("optional objects missing", "OPTIONAL_MISSING", {}),
+            ("0x6076 = 0, vendor mode",
+             dict(default={0x6076: "0", 0x6502: "0x00010000"}, limits={0x6060: (-3, 10)}),
+             {"rated_torque_mnm": 100.0, "modes": {"current": {"code": -3, "bit": 16}}}))
+
+
+def variant_rigs(folder: Path):
+    """(label, rig) of each dictionary variant, its EDS written into ``folder``."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import eds_family as F
+
+    for k, (label, name, extra) in enumerate(VARIANTS):
+        spec = getattr(F, name) if isinstance(name, str) else name
+        path = F.write(folder / f"variant{k}.eds", **spec)
+        yield label, rig_from_dict({"canopen": {"eds": str(path), **extra}}, source="bench")
 
 
 def paced_periods(rig, seconds: float) -> tuple[np.ndarray, int, str]:
@@ -149,6 +179,20 @@ def main() -> int:
           f"nominal, {load['load_worst'] * 100:.1f} % with worst-case stuffing")
     for name, n_bytes, rate in load["frames"]:
         print(f"  {name:<28} {n_bytes} bytes  {rate:7.1f} /s")
+    n = max(args.cycles // 2, 500)
+    print(f"planned mappings of the synthetic dictionaries ({n} cycles each, lock-step; "
+          "floor: the same frames with no drive):")
+    with tempfile.TemporaryDirectory() as folder:
+        for label, vrig in variant_rigs(Path(folder)):
+            with open_drive(vrig) as d:
+                plan = d.assessment.plan
+                vload = d.assessment.bus_load(d.config, vrig.sample_time_s)
+            vfloor = frames_floor(n, len(plan.rpdos), len(plan.tpdos))
+            vhost = driver_cycles(vrig, n)[0]
+            print(f"  {label:<26} {len(plan.rpdos)} RPDO + {len(plan.tpdos)} TPDO: bus load "
+                  f"{vload['load_nominal'] * 100:5.1f} % nominal, {vload['load_worst'] * 100:5.1f}"
+                  f" % worst; host CPU {vhost * us:5.1f} us = {vhost / vfloor:.2f}x floor "
+                  f"({vfloor * us:.1f} us)")
     return 0
 
 
