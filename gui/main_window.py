@@ -708,17 +708,20 @@ def identify_all(data: dict, meta: dict) -> dict:
 
 
 def export_session(path: str, fmt: str, out_dir: Path) -> list[Path]:
+    """Export into ``out_dir`` under a name not taken yet (nothing is replaced)."""
+    from labbench.safe_write import free_name
+
     stem = Path(path).stem
     if fmt == "hdf5":
         from labbench.export import export_hdf5
 
-        return [export_hdf5(path, out_dir / f"{stem}.h5")]
+        return [export_hdf5(path, free_name(out_dir / f"{stem}.h5"))]
     if fmt == "csv":
         from labbench.export import export_csv
 
-        return [export_csv(path, out_dir / f"{stem}.csv")]
+        return [export_csv(path, free_name(out_dir / f"{stem}.csv"))]
     if fmt == "report":
         from labbench.report import write_report
 
-        return list(write_report(path, out_dir / stem))
+        return list(write_report(path, free_name(out_dir / stem)))
     raise UserError(f"unknown export format {fmt!r}")

@@ -23,6 +23,8 @@ import numpy as np
 from labbench import records
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
+from labbench.escape import one_line
+from labbench.safe_write import output_path, replacing
 from labbench.session_content import analysis_meta, load_session
 
 FORMAT = "labbench-session-export 1"
@@ -31,66 +33,70 @@ CSV_COLUMNS = ("t", "force", "position") + tuple(
     c for c in records.CHANNELS if c not in ("t", "position", "excitation"))
 
 
-def _out_path(path) -> Path:
-    p = Path(path)
-    if p.is_dir():
-        raise UserError(f"output {p} is a directory; give a file name")
-    if not p.parent.is_dir():
-        raise UserError(f"output directory {p.parent} does not exist")
-    return p
-
-
 def _json(obj) -> str:
     return json.dumps(json_safe(obj))
 
 
-def export_hdf5(session_path, out_path) -> Path:
-    """Write the whole session to one HDF5 file; returns its path."""
+def export_hdf5(session_path, out_path, force: bool = False) -> Path:
+    """Write the whole session to one HDF5 file; returns its path.
+
+    An existing ``out_path`` is replaced only with ``force`` (``labbench.safe_write``).
+    """
     import h5py
 
-    out = _out_path(out_path)
+    output_path(out_path, [session_path], force)  # before the work
     start, desc, ch, events, stop, problem = load_session(session_path)
     units = dict(desc.get("channels") or records.CHANNELS)
-    try:
-        f = h5py.File(out, "w")
-    except OSError as exc:
-        raise UserError(f"cannot write {out}: {exc}") from None
-    with f:
-        f.attrs["format"] = FORMAT
-        f.attrs["source"] = str(session_path)
-        for key in ("uid", "software", "time"):
-            if start.get(key) is not None:
-                f.attrs[key] = start[key]
-        f.attrs["protocol"] = analysis_meta(start, desc)["protocol"]
-        f.attrs["status"] = str(stop.get("status")) if stop else "incomplete"
-        if desc.get("sample_time_s"):
-            f.attrs["sample_time_s"] = float(desc["sample_time_s"])
-        if problem:
-            f.attrs["damaged_tail"] = problem
-        g = f.create_group("channels")
-        for name, values in ch.items():
-            g.create_dataset(name, data=values)
-            g[name].attrs["units"] = units.get(name, "")
-        g["force"] = g["excitation"]  # hard link: the analysis name of the exogenous force
-        r = f.create_group("records")
-        r["start"] = _json(start)
-        r["descriptor"] = _json(desc)
-        r["stop"] = _json(stop)
-        r["events"] = _json(events)
-    return out
+    with replacing(out_path, [session_path], force) as tmp:
+        try:
+            f = h5py.File(tmp, "w")
+        except OSError as exc:
+            raise UserError(f"cannot write {out_path}: {exc}") from None
+        with f:
+            _fill_hdf5(f, session_path, start, desc, ch, events, stop, problem, units)
+    return Path(out_path)
 
 
-def export_csv(session_path, out_path) -> Path:
-    """Write the analysis CSV (``# key=value`` lines, header, columns); returns its path."""
-    out = _out_path(out_path)
+def _fill_hdf5(f, session_path, start, desc, ch, events, stop, problem, units) -> None:
+    """The layout in the module doc."""
+    f.attrs["format"] = FORMAT
+    f.attrs["source"] = str(session_path)
+    for key in ("uid", "software", "time"):
+        if start.get(key) is not None:
+            f.attrs[key] = start[key]
+    f.attrs["protocol"] = analysis_meta(start, desc)["protocol"]
+    f.attrs["status"] = str(stop.get("status")) if stop else "incomplete"
+    if desc.get("sample_time_s"):
+        f.attrs["sample_time_s"] = float(desc["sample_time_s"])
+    if problem:
+        f.attrs["damaged_tail"] = problem
+    g = f.create_group("channels")
+    for name, values in ch.items():
+        g.create_dataset(name, data=values)
+        g[name].attrs["units"] = units.get(name, "")
+    g["force"] = g["excitation"]  # hard link: the analysis name of the exogenous force
+    r = f.create_group("records")
+    r["start"] = _json(start)
+    r["descriptor"] = _json(desc)
+    r["stop"] = _json(stop)
+    r["events"] = _json(events)
+
+
+def export_csv(session_path, out_path, force: bool = False) -> Path:
+    """Write the analysis CSV (``# key=value`` lines, header, columns); returns its path.
+
+    An existing ``out_path`` is replaced only with ``force`` (``labbench.safe_write``).
+    """
+    out = output_path(out_path, [session_path], force)  # before the work
     start, desc, ch, _events, _stop, _problem = load_session(session_path)
     meta = analysis_meta(start, desc)
     table = {"force": ch["excitation"], **ch}
     cols = np.column_stack([np.asarray(table[c], dtype=float) for c in CSV_COLUMNS])
     fmt = ["%d" if np.asarray(table[c]).dtype.kind in "iub" else "%.17g" for c in CSV_COLUMNS]
-    header = "".join(f"# {k}={v}\n" for k, v in meta.items()) + ",".join(CSV_COLUMNS)
-    try:
-        np.savetxt(out, cols, delimiter=",", fmt=fmt, header=header, comments="")
-    except OSError as exc:
-        raise UserError(f"cannot write {out}: {exc.strerror}") from None
+    header = "".join(f"# {k}={one_line(v)}\n" for k, v in meta.items()) + ",".join(CSV_COLUMNS)
+    with replacing(out, [session_path], force) as tmp:
+        try:
+            np.savetxt(tmp, cols, delimiter=",", fmt=fmt, header=header, comments="")
+        except OSError as exc:
+            raise UserError(f"cannot write {out}: {exc.strerror}") from None
     return out

@@ -14,6 +14,8 @@ from matplotlib.figure import Figure
 
 from labbench.effective import effective_impedances
 from labbench.errors import UserError
+from labbench.escape import literal_mpl
+from labbench.safe_write import output_path, replacing
 
 FORMATS = (".png", ".svg", ".pdf")
 STYLES = ("line", "points")
@@ -36,17 +38,20 @@ class Curve:
 
 
 def paper_figure(curves: list[Curve], path, title: str | None = None,
-                 marks: dict | None = None) -> None:
+                 marks: dict | None = None, inputs=(), force: bool = False) -> None:
     """Write Bode magnitude (dB), phase (deg) and ES, ED, EM panels of each curve.
 
     ES is drawn where Im Z < 0 and EM where Im Z > 0, zero elsewhere (paper
     sec. 2.2, Figure 2). ``marks`` maps a label to a frequency [rad/s] drawn as
     a dashed vertical line on every panel, e.g. ``{"ws*": 23.1, "wb*": 125}``.
-    The format follows the suffix of ``path`` (.png, .svg, .pdf).
+    The format follows the suffix of ``path`` (.png, .svg, .pdf). The file is
+    written by ``labbench.safe_write.replacing``: never onto one of ``inputs``,
+    an existing one replaced only with ``force``, its folder never created.
     """
     path = Path(path)
     if path.suffix.lower() not in FORMATS:
         raise UserError(f"figure {path}: use a .png, .svg or .pdf file name")
+    output_path(path, inputs, force)  # before the drawing
     for c in curves:
         if c.style not in STYLES:
             raise ValueError(f"curve style {c.style!r}; choose one of {', '.join(STYLES)}")
@@ -65,7 +70,7 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
         Z = np.asarray(c.Z, complex)
         eff = effective_impedances(w, Z)
         stiff = Z.imag < 0
-        fmt = dict(color=f"C{i}", label=c.label)
+        fmt = dict(color=f"C{i}", label=literal_mpl(c.label))
         fmt.update(dict(lw=1.5) if c.style == "line" else dict(ls="none", marker=".", ms=3))
         mag.semilogx(w, 20 * np.log10(np.abs(Z)), **fmt)
         phase.semilogx(w, eff.theta_deg, **fmt)
@@ -100,9 +105,9 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
     handles, labels = mag.get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4), fontsize=9)
     if title:
-        fig.suptitle(title)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fig.savefig(path, dpi=120)
-    except OSError as exc:
-        raise UserError(f"cannot write figure {path}: {exc.strerror or exc}")
+        fig.suptitle(literal_mpl(title))
+    with replacing(path, inputs, force) as tmp:
+        try:
+            fig.savefig(tmp, dpi=120)
+        except OSError as exc:
+            raise UserError(f"cannot write figure {path}: {exc.strerror or exc}") from None

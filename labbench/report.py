@@ -29,8 +29,10 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from labbench.errors import UserError
+from labbench.escape import literal_mpl, one_line
 from labbench.numfmt import fmt
 from labbench.records import protocol_name
+from labbench.safe_write import output_folder, output_path, replacing
 from labbench.session_content import load_session, session_ve
 from labbench.ve import Plant
 
@@ -483,9 +485,9 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
                 page, rest = lines[:per_page], lines[per_page:]
                 fig = Figure(figsize=A4)
                 for i, (text, style) in enumerate(page):
-                    fig.text(0.06, top - i * line_h, text, family=style.get("family", "monospace"),
-                             size=style.get("size", 7), weight=style.get("weight", "normal"),
-                             va="top")
+                    fig.text(0.06, top - i * line_h, literal_mpl(one_line(text)),
+                             family=style.get("family", "monospace"), size=style.get("size", 7),
+                             weight=style.get("weight", "normal"), va="top")
                 pdf.savefig(fig)
                 lines[:] = rest
 
@@ -505,14 +507,14 @@ def render_pdf(title: str, blocks: list, path: Path) -> None:
             elif isinstance(b, Picture):
                 flush_text()
                 if b.figure is not None:
-                    b.figure.suptitle(b.caption, fontsize=10)
+                    b.figure.suptitle(literal_mpl(b.caption), fontsize=10)
                     pdf.savefig(b.figure)
                 else:
                     fig = Figure(figsize=(A4[1], A4[0]))  # landscape page for wide figures
                     ax = fig.add_axes((0.02, 0.02, 0.96, 0.9))
                     ax.imshow(_decode_png(b.png))
                     ax.set_axis_off()
-                    fig.suptitle(b.caption, fontsize=10)
+                    fig.suptitle(literal_mpl(b.caption), fontsize=10)
                     pdf.savefig(fig)
         flush_text()
 
@@ -523,32 +525,38 @@ def _decode_png(png: bytes) -> np.ndarray:
     return image.imread(io.BytesIO(png), format="png")
 
 
-def write_report(session_path, out_dir) -> tuple[Path, Path]:
+def write_report(session_path, out_dir, force: bool = False) -> tuple[Path, Path]:
     """Write ``<name>.html`` and ``<name>.pdf`` into ``out_dir`` for one session or a list.
 
     Returns ``(html_path, pdf_path)``. Raises UserError for a missing or foreign
-    session file or an unusable output directory.
+    session file or an unusable output folder (created if missing, never its
+    parents); existing outputs are replaced only with ``force``, each atomically
+    (``labbench.safe_write``).
     """
     paths = [session_path] if isinstance(session_path, (str, Path)) else list(session_path)
     if not paths:
         raise UserError("no session given")
     out = Path(out_dir)
+    stem = Path(paths[0]).stem + (f"+{len(paths) - 1}" if len(paths) > 1 else "")
+    html_path, pdf_path = out / f"{stem}.html", out / f"{stem}.pdf"
     if out.exists() and not out.is_dir():
         raise UserError(f"output {out} is a file, not a directory")
+    if out.is_dir():  # before the work: refuse what would be refused at the end
+        for target in (html_path, pdf_path):
+            output_path(target, paths, force)
+    elif not out.parent.is_dir():
+        raise UserError(f"cannot create output folder {out}: {out.parent} does not exist "
+                        "(labbench creates no folders you did not name)")
     blocks = []
     for p in paths:
         blocks += session_blocks(p)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create output directory {out}: {exc.strerror}") from None
-    stem = Path(paths[0]).stem + (f"+{len(paths) - 1}" if len(paths) > 1 else "")
+    output_folder(out)
     title = "labbench report: " + ", ".join(Path(p).name for p in paths)
-    html_path, pdf_path = out / f"{stem}.html", out / f"{stem}.pdf"
     try:
-        html_path.write_text(render_html(title, blocks), encoding="utf-8")
-        render_pdf(title, blocks, pdf_path)
+        with replacing(html_path, paths, force) as tmp:
+            tmp.write_text(render_html(title, blocks), encoding="utf-8")
+        with replacing(pdf_path, paths, force) as tmp:
+            render_pdf(title, blocks, tmp)
     except OSError as exc:
         raise UserError(f"cannot write report into {out}: {exc.strerror or exc}") from None
     return html_path, pdf_path
-

@@ -95,7 +95,7 @@ def test_table(capsys):
 
 @pytest.mark.parametrize("suffix", [".png", ".svg", ".pdf"])
 def test_plot_overlays_delays(tmp_path, suffix, capsys):
-    path = tmp_path / "sub" / f"fig{suffix}"
+    path = tmp_path / f"fig{suffix}"
     code, out, err = run_cli(SD + ["--td", "0,0.002,0.005", "--plot", str(path)], capsys)
     assert code == 0, err
     assert len(out.strip().splitlines()) == 4  # one line per td, then "wrote ..."

@@ -49,6 +49,7 @@ def register(subparsers) -> None:
     e.add_argument("--b", type=float, metavar="NS_PER_M", help="device damping for the theory overlay")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--plot", metavar="FILE", help="paper-style figure (.png, .svg, .pdf)")
+    e.add_argument("--force", action="store_true", help="replace an existing output file (never one of the inputs)")
     e.set_defaults(func=run_etfe)
 
 
@@ -86,8 +87,11 @@ def run_etfe(args) -> int:
     from labbench.analysis import compare
     from labbench.analysis.dataio import load_recording
     from labbench.analysis.etfe import etfe
+    from labbench.safe_write import output_path
     from labbench.ve import Plant
 
+    if args.plot:
+        output_path(args.plot, [args.file], args.force)  # before the work
     rec = load_recording(args.file)
     res = etfe(rec, args.estimator, args.window)
     d = res.as_dict()
@@ -114,7 +118,7 @@ def run_etfe(args) -> int:
 
         d["wb_star"] = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
     if args.plot:
-        _plot(args.plot, rec, res, cmp)
+        _plot(args, rec, res, cmp)
     if args.json:
         print(json.dumps(json_safe(d)))
     else:
@@ -148,7 +152,7 @@ def _pct(v) -> str:
     return "-" if v is None else f"{100 * v:.2f} %"
 
 
-def _plot(path, rec, res, cmp) -> None:
+def _plot(args, rec, res, cmp) -> None:
     from labbench.figures import Curve, paper_figure
 
     # paper-style range: up to 0.3 x Nyquist, where the sampled loop's own
@@ -166,4 +170,5 @@ def _plot(path, rec, res, cmp) -> None:
                                    ("wb*", cmp["predicted_wb_star"])) if v}
         ve = cmp["ve"]
         title = f"{rec.source}: {ve['kind']} K = {ve['K']:g}, B = {ve['B']:g}, td = {ve['td']:g} s"
-    paper_figure(curves, path, title=title, marks=marks)
+    paper_figure(curves, args.plot, title=title, marks=marks, inputs=[args.file],
+                 force=args.force)

@@ -11,12 +11,14 @@ def register(subparsers) -> None:
     out = p.add_mutually_exclusive_group(required=True)
     out.add_argument("--hdf5", metavar="FILE", help="HDF5 output file")
     out.add_argument("--csv", metavar="FILE", help="CSV output file")
+    p.add_argument("--force", action="store_true", help="replace an existing output file (never one of the inputs)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from labbench.export import export_csv, export_hdf5
 
-    path = export_hdf5(args.session, args.hdf5) if args.hdf5 else export_csv(args.session, args.csv)
+    export = export_hdf5 if args.hdf5 else export_csv
+    path = export(args.session, args.hdf5 or args.csv, force=args.force)
     print(path)
     return 0

@@ -13,13 +13,14 @@ def register(subparsers) -> None:
     p.add_argument("sessions", nargs="+", metavar="SESSION", help="session file(s)")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--json", action="store_true", help="print the output paths as JSON")
+    p.add_argument("--force", action="store_true", help="replace existing report files")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from labbench.report import write_report
 
-    html_path, pdf_path = write_report(args.sessions, args.out)
+    html_path, pdf_path = write_report(args.sessions, args.out, force=args.force)
     if args.json:
         print(json.dumps({"html": str(html_path), "pdf": str(pdf_path)}))
     else:

@@ -40,10 +40,15 @@ def register(subparsers) -> None:
     p.add_argument("--w", type=float_list, metavar="W1,W2,...", help="frequencies (rad/s)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="FILE", help="write a paper-style figure (.png, .svg, .pdf)")
+    p.add_argument("--force", action="store_true", help="replace an existing --plot file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from labbench.safe_write import output_path
+
+    if args.plot:
+        output_path(args.plot, force=args.force)  # before the work
     plant = Plant(args.m, args.b)
     ves = [_ve(args, td) for td in args.td]
     if len(ves) > 1 and (args.json or not args.plot):
@@ -187,4 +192,5 @@ def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray) -> N
         gains += f", w0 = {ve.w0:g}"
     title = (f"{ve.kind} VE ({args.model} model): m = {plant.m:g} kg, b = {plant.b:g} N s/m, "
              f"{gains}, T = {ve.T:g} s")
-    paper_figure(curves, args.plot, title=title, marks={k: v for k, v in marks.items() if v})
+    paper_figure(curves, args.plot, title=title, marks={k: v for k, v in marks.items() if v},
+                 force=args.force)
