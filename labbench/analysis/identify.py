@@ -390,7 +390,7 @@ def _flags(res: IdResult, data: _Data, fit, method: str, selection: dict) -> lis
     if stuck > STICK_FRACTION:
         flags.append(f"stick-slip: the handle is at rest under a nonzero force for {100 * stuck:.0f} % "
                      "of the samples; there the friction force is anything up to the Coulomb level, "
-                     "f = m x'' + b x' + Fc sign(x') does not hold, and b and Coulomb are biased "
+                     "f = m x'' + b x' + Fc sign(x') does not hold, and b and Coulomb may be biased "
                      "(b typically high): raise the excitation so the handle keeps moving")
     return flags
 
