@@ -14,6 +14,17 @@ Two models of the same loop (signs and units: docs/conventions.md):
   ``F_exo(e^{jwT}) / (jw X(e^{jwT}))`` is what an ETFE of sampled force and
   position converges to.
 
+  ``latency`` [s] (any value >= 0, fractions of a sample included) extends it
+  with the rig's own actuator delay on the whole command ``u[k] = f_exo[k] -
+  f[k - n]`` (amplifier, transport, filters: what a bench adds beyond the
+  software's ``td``). With ``latency = (d + alpha) T``, 0 <= alpha < 1, the
+  plant holds ``u[k - d - 1]`` for the first ``alpha T`` of step k and
+  ``u[k - d]`` for the rest, so one step is ``x+ = Ad x + G_late u[k - d] +
+  G_early u[k - d - 1]`` with ``G_late = Gamma((1 - alpha) T)``, ``G_early =
+  e^{A (1 - alpha) T} Gamma(alpha T)`` (``G_late + G_early = Bd``): the
+  modified z-transform of the held input (Franklin, Powell & Workman sec. 4.3.4
+  on fractional delays). ``labbench.analysis.loopfit`` fits it to a measured Z.
+
 Bandwidths read off measured curves live in ``labbench.effective``; this
 module holds the formulas.
 """
@@ -68,14 +79,39 @@ def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
     return E[:2, :2], E[:2, 2]
 
 
-def _plant_response(plant: Plant, T: float, w: np.ndarray) -> np.ndarray:
-    """P(e^{jwT}) = X/U of the ZOH-sampled plant, [1 0](zI - Ad)^{-1} Bd."""
-    Ad, Bd = zoh_matrices(plant.m, plant.b, T)
+def latency_split(latency: float, T: float) -> tuple[int, float]:
+    """(d, alpha): latency = (d + alpha) T with d whole and 0 <= alpha < 1 (alpha within
+    1e-9 of 0 or 1 snaps to the whole sample)."""
+    if not (latency >= 0 and math.isfinite(latency)):
+        raise UserError(f"latency must be a finite number >= 0 s, got {latency!r}")
+    d = math.floor(latency / T + 1e-9)
+    alpha = latency / T - d
+    return d, (0.0 if abs(alpha) < 1e-9 else alpha)
+
+
+def latency_inputs(plant: Plant, T: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """(G_late, G_early): input vectors of u[k - d] and u[k - d - 1] over one step (module doc)."""
+    Ad_late, G_late = zoh_matrices(plant.m, plant.b, (1 - alpha) * T)
+    if alpha == 0.0:
+        return G_late, np.zeros(2)
+    _, G_a = zoh_matrices(plant.m, plant.b, alpha * T)
+    return G_late, Ad_late @ G_a
+
+
+def _plant_response(plant: Plant, T: float, w: np.ndarray, latency: float = 0.0) -> np.ndarray:
+    """P(e^{jwT}) = X/U of the ZOH-sampled plant, [1 0](zI - Ad)^{-1} G(z), with
+    G = Bd without latency, else z^-d (G_late + G_early z^-1) (module doc)."""
+    Ad, _ = zoh_matrices(plant.m, plant.b, T)
+    d, alpha = latency_split(latency, T)
+    g_late, g_early = latency_inputs(plant, T, alpha)
     z = np.exp(1j * w * T)
+    zinv = np.exp(-1j * w * T)
+    g0 = (g_late[0] + g_early[0] * zinv) * zinv**d
+    g1 = (g_late[1] + g_early[1] * zinv) * zinv**d
     # z - Ad[0,0] as expm1 + (1 - Ad[0,0]): no cancellation near w = 0
     z_minus_a00 = np.expm1(1j * w * T) + (1.0 - Ad[0, 0])
     det = z_minus_a00 * (z - Ad[1, 1]) - Ad[0, 1] * Ad[1, 0]
-    return ((z - Ad[1, 1]) * Bd[0] + Ad[0, 1] * Bd[1]) / det
+    return ((z - Ad[1, 1]) * g0 + Ad[0, 1] * g1) / det
 
 
 def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:
@@ -86,17 +122,18 @@ def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:
     return ve.K + ve.B * velocity
 
 
-def z_sampled(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
+def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> np.ndarray:
     """Exact sampled-data impedance F_exo(e^{jwT}) / (jw X(e^{jwT})).
 
     From ``x = P (f_exo - z^-n C x)`` (module docstring):
-    ``Z = 1 / (jw P) + z^-n C / (jw)``, the sampled counterpart of eq. 2.
-    Raises UserError when td is not a whole number of samples.
+    ``Z = 1 / (jw P) + z^-n C / (jw)``, the sampled counterpart of eq. 2; with an
+    actuator ``latency`` P carries it (module doc). Raises UserError when td is
+    not a whole number of samples.
     """
     w = np.asarray(w, dtype=float)
     n = ve.delay_samples
     jw = 1j * w
-    Z = 1.0 / (jw * _plant_response(plant, ve.T, w))
+    Z = 1.0 / (jw * _plant_response(plant, ve.T, w, latency))
     if ve.kind != "none":
         Z = Z + np.exp(-1j * w * n * ve.T) * _ve_sampled(ve, w) / jw
     return Z
@@ -115,10 +152,11 @@ def theory_curve(plant: Plant, ve: VirtualEnvironment, w, model: str = "paper") 
 class DiscreteLoop:
     """The exact sampled loop as ``s[k+1] = A s[k] + B f_exo[k]``, ``x[k] = C s[k] + D f_exo[k]``.
 
-    State ``s[k] = [x[k], x'[k], x[k-1], v[k-1], f[k-1], ..., f[k-n]]`` (plant
-    position and velocity at the start of step k, previous sample, previous
-    velocity estimate, VE forces still in the delay line). ``as_dlti()`` gives
-    the tuple ``scipy.signal.dlsim`` takes.
+    State ``s[k] = [x[k], x'[k], x[k-1], v[k-1], f[k-1], ..., f[k-n], u[k-1], ...,
+    u[k-D]]`` (plant position and velocity at the start of step k, previous
+    sample, previous velocity estimate, VE forces still in the delay line, and
+    with an actuator latency the D commands still in flight). ``as_dlti()``
+    gives the tuple ``scipy.signal.dlsim`` takes.
     """
 
     A: np.ndarray
@@ -131,30 +169,45 @@ class DiscreteLoop:
         return (self.A, self.B, self.C, self.D, self.T)
 
 
-def closed_loop(plant: Plant, ve: VirtualEnvironment) -> DiscreteLoop:
-    """State-space form of the exact sampled loop (input f_exo[k], output x[k])."""
+def closed_loop(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> DiscreteLoop:
+    """State-space form of the exact sampled loop (input f_exo[k], output x[k]);
+    ``latency`` [s]: the actuator delay on the command (module doc)."""
     n = ve.delay_samples
     T, a = ve.T, ve.filter_pole
-    Ad, Bd = zoh_matrices(plant.m, plant.b, T)
-    size = 4 + n
-    X, XD, XP, VP = 0, 1, 2, 3
+    Ad, _ = zoh_matrices(plant.m, plant.b, T)
+    d, alpha = latency_split(latency, T)
+    g_late, g_early = latency_inputs(plant, T, alpha)
+    n_u = d + (alpha > 0)  # commands in flight
+    size = 4 + n + n_u
+    X, XD, XP, VP, F0, U0 = 0, 1, 2, 3, 4, 4 + n
     # f[k] = K x[k] + B (a v[k-1] + (1 - a)(x[k] - x[k-1]) / T) as a row on s[k]
     force = np.zeros(size)
     force[X] = ve.K + ve.B * (1 - a) / T
     force[XP] = -ve.B * (1 - a) / T
     force[VP] = ve.B * a
-    applied = force if n == 0 else np.eye(size)[4 + n - 1]  # f[k - n]
+    applied = force if n == 0 else np.eye(size)[F0 + n - 1]  # f[k - n]
+    # u[k - j] as (row on s[k], coefficient of f_exo[k])
+    def command(j):
+        return (-applied, 1.0) if j == 0 else (np.eye(size)[U0 + j - 1], 0.0)
+
     A = np.zeros((size, size))
+    B = np.zeros((size, 1))
     A[:2, :2] = Ad
-    A[:2, :] -= np.outer(Bd, applied)
+    for g, j in ((g_late, d), (g_early, d + 1)):
+        if g.any():
+            row, coef = command(j)
+            A[:2, :] += np.outer(g, row)
+            B[:2, 0] += g * coef
     A[XP, X] = 1.0
     A[VP, X], A[VP, XP], A[VP, VP] = (1 - a) / T, -(1 - a) / T, a
     if n:
-        A[4] = force
+        A[F0] = force
         for i in range(1, n):
-            A[4 + i, 4 + i - 1] = 1.0
-    B = np.zeros((size, 1))
-    B[:2, 0] = Bd
+            A[F0 + i, F0 + i - 1] = 1.0
+    if n_u:
+        A[U0], B[U0, 0] = command(0)
+        for i in range(1, n_u):
+            A[U0 + i, U0 + i - 1] = 1.0
     C = np.zeros((1, size))
     C[0, X] = 1.0
     return DiscreteLoop(A=A, B=B, C=C, D=np.zeros((1, 1)), T=T)
@@ -167,7 +220,7 @@ class Stability:
     spectral_radius: float
 
 
-def stability(plant: Plant, ve: VirtualEnvironment) -> Stability:
+def stability(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> Stability:
     """Stability of the exact sampled loop: spectral radius of A below 1.
 
     Without a virtual spring (K = 0) any constant position offset is an
@@ -177,7 +230,7 @@ def stability(plant: Plant, ve: VirtualEnvironment) -> Stability:
     complement of e, ``Q^T A Q`` carries the remaining eigenvalues (Schur
     deflation, Golub & Van Loan, Matrix Computations, sec. 7.3).
     """
-    A = closed_loop(plant, ve).A
+    A = closed_loop(plant, ve, latency).A
     if ve.K == 0:
         e = np.zeros(A.shape[0])
         e[0] = e[2] = 1.0
@@ -187,11 +240,11 @@ def stability(plant: Plant, ve: VirtualEnvironment) -> Stability:
     return Stability(stable=rho < _STABLE_BELOW, spectral_radius=rho)
 
 
-def _stable_with_k(plant: Plant, ve: VirtualEnvironment, K: float) -> bool:
-    return stability(plant, ve.with_(K=K)).stable
+def _stable_with_k(plant: Plant, ve: VirtualEnvironment, K: float, latency: float = 0.0) -> bool:
+    return stability(plant, ve.with_(K=K), latency).stable
 
 
-def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4) -> float | None:
+def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4, latency: float = 0.0) -> float | None:
     """Largest K keeping the exact sampled loop stable (other parameters fixed).
 
     Defined as the first loss of stability as K grows from 0: K is raised by
@@ -202,34 +255,35 @@ def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4) -> float 
     """
     if ve.kind not in ("spring", "spring-damper"):
         return None
-    guess = k_max_approx(plant, ve)
+    guess = k_max_approx(plant, ve, latency)
     lo = 1e-6 * guess if guess and math.isfinite(guess) else 1e-6
-    if not _stable_with_k(plant, ve, lo):
+    if not _stable_with_k(plant, ve, lo, latency):
         return 0.0
     hi = lo * 1.25
-    while _stable_with_k(plant, ve, hi):
+    while _stable_with_k(plant, ve, hi, latency):
         lo, hi = hi, hi * 1.25
         if hi > 1e12:
             return math.inf
     while hi - lo > rel_tol * lo:
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if _stable_with_k(plant, ve, mid) else (lo, mid)
+        lo, hi = (mid, hi) if _stable_with_k(plant, ve, mid, latency) else (lo, mid)
     return lo
 
 
-def k_max_approx(plant: Plant, ve: VirtualEnvironment) -> float | None:
+def k_max_approx(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> float | None:
     """The paper's approximate stability boundary, solved for K.
 
     Spring: ``b > K (T/2 + td)`` (paper sec. 3.1, after Gil et al. 2009), so
     ``K_max ~ b / (T/2 + td)``. Spring-damper: the same condition on the
     low-frequency effective damping ``b + B - K (T/2 + td) > 0`` (paper
     sec. 3.3), ``K_max ~ (b + B) / (T/2 + td)``; it ignores the velocity
-    filter, so compare it with ``k_max``. None for kinds without a spring.
+    filter, so compare it with ``k_max``. None for kinds without a spring. An
+    actuator ``latency`` adds to the delay.
     """
     if ve.kind == "spring":
-        return plant.b / ve.delay
+        return plant.b / (ve.delay + latency)
     if ve.kind == "spring-damper":
-        return (plant.b + ve.B) / ve.delay
+        return (plant.b + ve.B) / (ve.delay + latency)
     return None
 
 

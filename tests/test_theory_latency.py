@@ -1,0 +1,80 @@
+"""The sampled model with a fractional actuator latency against a brute-force simulation."""
+import math
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from labbench import theory
+from labbench.ve import Plant, VirtualEnvironment
+
+PLANT = Plant(0.094, 0.10)
+T = 0.001
+
+
+def _brute_force(plant, ve, f_exo, latency, substeps=40):
+    """The loop in time on a grid of T/substeps: the controller samples x[k], computes the VE
+    force (backward difference, low-pass, K x + B v), sends u[k] = f_exo[k] - f[k - n]; the
+    actuator applies u[k] from kT + latency to (k + 1) T + latency. latency must fall on the grid."""
+    h = T / substeps
+    shift = round(latency / h)
+    assert abs(shift * h - latency) < 1e-12
+    Ad, Bd = theory.zoh_matrices(plant.m, plant.b, h)
+    n, a = ve.delay_samples, ve.filter_pole
+    state = np.zeros(2)
+    x_prev = v_prev = 0.0
+    f_line = [0.0] * (n + 1)
+    u_sent = []
+    xs = []
+    for k, fe in enumerate(f_exo):
+        x = state[0]
+        xs.append(x)
+        v = a * v_prev + (1 - a) * (x - x_prev) / T
+        f_line = [ve.K * x + ve.B * v] + f_line[:-1]
+        u_sent.append(fe - f_line[n])
+        x_prev, v_prev = x, v
+        for i in range(substeps):  # step k on the fine grid: command index (k*substeps + i - shift) // substeps
+            j = (k * substeps + i - shift) // substeps
+            u = u_sent[j] if j >= 0 else 0.0
+            state = Ad @ state + Bd * u
+    return np.array(xs)
+
+
+@pytest.mark.parametrize("latency_samples", [0.0, 0.35, 1.0, 1.5, 3.0, 2.725])
+@pytest.mark.parametrize("ve", [VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, td=0.002),
+                                VirtualEnvironment("damper", B=0.5, w0=300.0)])
+def test_closed_loop_with_latency_equals_brute_force(ve, latency_samples):
+    f = np.random.default_rng(1).standard_normal(400)
+    latency = latency_samples * T
+    _, y, _ = signal.dlsim(theory.closed_loop(PLANT, ve, latency).as_dlti(), f)
+    ref = _brute_force(PLANT, ve, f, latency)
+    assert np.max(np.abs(y[:, 0] - ref)) < 1e-9 * np.max(np.abs(ref))
+
+
+@pytest.mark.parametrize("latency_samples", [0.0, 0.35, 1.5, 3.0])
+def test_z_sampled_with_latency_is_the_state_space_response(latency_samples):
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, td=0.001)
+    loop = theory.closed_loop(PLANT, ve, latency_samples * T)
+    w = np.geomspace(1.0, 0.9 * math.pi / T, 25)
+    z = np.exp(1j * w * T)
+    H = np.array([(loop.C @ np.linalg.solve(zk * np.eye(len(loop.A)) - loop.A, loop.B))[0, 0] for zk in z])
+    Z = theory.z_sampled(PLANT, ve, w, latency_samples * T)
+    assert np.allclose(Z, 1 / (1j * w * H), rtol=1e-8)
+
+
+def test_latency_is_continuous_across_whole_samples():
+    ve = VirtualEnvironment("spring", K=30.0)
+    w = np.array([5.0, 50.0, 500.0])
+    below = theory.z_sampled(PLANT, ve, w, (2 - 1e-7) * T)
+    at = theory.z_sampled(PLANT, ve, w, 2 * T)
+    assert np.allclose(below, at, rtol=1e-5)
+
+
+def test_latency_lowers_k_max_like_extra_td():
+    # the exogenous path does not enter the characteristic equation: a latency of whole
+    # samples on the command is, for stability, the same as that much more td
+    ve = VirtualEnvironment("spring", K=10.0, td=0.001)
+    k_lat = theory.k_max(PLANT, ve, latency=2 * T)
+    k_td = theory.k_max(PLANT, ve.with_(td=0.003))
+    assert k_lat == pytest.approx(k_td, rel=1e-3)
+    assert theory.k_max(PLANT, ve, latency=1.5 * T) < theory.k_max(PLANT, ve, latency=1.0 * T)
