@@ -12,7 +12,9 @@ Options (rig table ``[sim]``, overridden by keyword options of ``open_sim``):
 inside the step, ``labbench.sim_backend.friction``), ``quantize`` (report positions in
 encoder counts of ``rig.metres_per_count``), ``force_noise_n`` [N] std of white
 noise added to the applied force, ``extra_delay_samples`` whole samples of
-actuator latency, ``x0_m`` / ``v0_m_s`` initial state.
+actuator latency and ``extra_delay_fraction`` in [0, 1) more (each step then
+holds the previous command for that fraction of T first: the latency model of
+``labbench.theory``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
 """
 from __future__ import annotations
 
@@ -23,9 +25,9 @@ import numpy as np
 
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import UserError
-from labbench.ve import DEFAULT_PLANT
+from labbench.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import reversing_step
-from labbench.theory import zoh_matrices
+from labbench.theory import latency_inputs, zoh_matrices
 
 # name -> (default, check, what the check demands)
 _OPTIONS = {
@@ -36,6 +38,7 @@ _OPTIONS = {
     "force_noise_n": (0.0, lambda v: _num(v) and v >= 0, "a number >= 0 [N]"),
     "extra_delay_samples": (0, lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 1000,
                             "a whole number of samples in 0..1000"),
+    "extra_delay_fraction": (0.0, lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1) [samples]"),
     "x0_m": (0.0, lambda v: _num(v), "a number [m]"),
     "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
 }
@@ -57,8 +60,10 @@ def sim_options(rig, **options) -> dict:
             if not _OPTIONS[name][1](value):
                 raise UserError(f"{origin} {name} must be {_OPTIONS[name][2]}, got {value!r}")
             settings[name] = value
-    for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s"):
+    for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s", "extra_delay_fraction"):
         settings[name] = float(settings[name])
+    if settings["extra_delay_fraction"] and settings["coulomb_n"]:
+        raise UserError("sim extra_delay_fraction needs coulomb_n = 0 (the friction step holds one force)")
     return settings
 
 
@@ -90,6 +95,9 @@ class SimDevice:
         self._noise: list[float] = []
         self._noise_i = 0
         self._delay = [0.0] * o["extra_delay_samples"]
+        # input vector of the previous command, held for the first extra_delay_fraction of a step
+        self._early = (latency_inputs(Plant(o["m"], o["b"]), T, o["extra_delay_fraction"])[1].tolist()
+                       if o["extra_delay_fraction"] else None)
         self._delay_i = 0
         self.x, self.v = o["x0_m"], o["v0_m_s"]  # true state at the start of the current step
         self.applied_n = 0.0  # force applied over the last completed step (after noise/gating)
@@ -167,13 +175,16 @@ class SimDevice:
                     self._noise_i = 0
                 u += self._noise[self._noise_i]
                 self._noise_i += 1
-            self.applied_n = u
+            u_early, self.applied_n = self.applied_n, u
             x, v = self.x, self.v
             a11, a12, a21, a22, b1, b2 = self._coef
             fc = self._fc
             if not fc:
                 self.v = a21 * x + a22 * v + b2 * u
                 self.x = x = a11 * x + a12 * v + b1 * u
+                if self._early:  # x+ = Ad x + G_late u + G_early u_early, G_late = Bd - G_early
+                    self.v += self._early[1] * (u_early - u)
+                    self.x = x = x + self._early[0] * (u_early - u)
             elif v == 0.0 and -fc <= u <= fc:
                 pass  # at rest and the force cannot break it loose
             else:

@@ -78,3 +78,31 @@ def test_latency_lowers_k_max_like_extra_td():
     k_td = theory.k_max(PLANT, ve.with_(td=0.003))
     assert k_lat == pytest.approx(k_td, rel=1e-3)
     assert theory.k_max(PLANT, ve, latency=1.5 * T) < theory.k_max(PLANT, ve, latency=1.0 * T)
+
+
+@pytest.mark.parametrize("whole, fraction", [(0, 0.5), (1, 0.5), (3, 0.0), (2, 0.25)])
+def test_simulator_latency_is_the_model_latency(whole, fraction):
+    from labbench.rig import Rig
+    from labbench.sim_backend.sim_device import open_sim
+
+    f = np.random.default_rng(2).standard_normal(300)
+    dev = open_sim(Rig(), extra_delay_samples=whole, extra_delay_fraction=fraction)
+    dev.enable()
+    xs = [dev.read_raw(1.0)[2]]
+    for u in f[:-1]:
+        dev.command(u)
+        xs.append(dev.read_raw(1.0)[2])
+    loop = theory.closed_loop(PLANT, VirtualEnvironment("none"), (whole + fraction) * T)
+    _, y, _ = signal.dlsim(loop.as_dlti(), f)
+    assert np.max(np.abs(np.array(xs) - y[:, 0])) < 1e-10 * np.max(np.abs(y))
+
+
+def test_simulator_fractional_latency_refuses_friction():
+    from labbench.errors import UserError
+    from labbench.rig import Rig
+    from labbench.sim_backend.sim_device import open_sim
+
+    with pytest.raises(UserError, match="extra_delay_fraction"):
+        open_sim(Rig(), extra_delay_fraction=0.5, coulomb_n=0.01)
+    with pytest.raises(UserError, match="extra_delay_fraction"):
+        open_sim(Rig(), extra_delay_fraction=1.0)
