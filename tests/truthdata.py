@@ -101,16 +101,20 @@ def with_noise(rec: Recording, rng, force_noise: float = 0.0, quantum: float = 0
 
 
 def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PAPER_B,
-                          seed: int = 0, force_std: float = 1.0) -> Recording:
-    """White-noise exogenous force through the exact sampled loop (theory.closed_loop)."""
+                          seed: int = 0, force_std: float = 1.0, latency: float = 0.0,
+                          process_noise: float = 0.0) -> Recording:
+    """White-noise exogenous force through the exact sampled loop (theory.closed_loop; ``latency``
+    [s]: the rig's actuator delay, not in the metadata; ``process_noise`` [N rms]: white force
+    the plant feels but the record does not hold, like the simulator's force_noise_n)."""
     from scipy import signal
 
     from labbench import theory
     from labbench.ve import Plant
 
-    f = force_std * np.random.default_rng(seed).standard_normal(n)
-    loop = theory.closed_loop(Plant(m, b), ve)
-    _, y, _ = signal.dlsim(loop.as_dlti(), f)
+    rng = np.random.default_rng(seed)
+    f = force_std * rng.standard_normal(n)
+    loop = theory.closed_loop(Plant(m, b), ve, latency)
+    _, y, _ = signal.dlsim(loop.as_dlti(), f + process_noise * rng.standard_normal(n))
     meta = {"fs": 1.0 / ve.T, **{k: v for k, v in ve.as_dict().items() if k != "T" and v is not None}}
     meta["ve"] = meta.pop("kind")
     return recording_from_arrays(np.arange(n) * ve.T, f, y[:, 0], meta, "<closed-loop truth>")

@@ -84,13 +84,18 @@ def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "
                     model="mb", method=method)
 
 
-def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment) -> dict:
+def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> dict:
     """Theory curve at the measured w and the complex relative deviation |Z - Zt| / |Zt|.
 
-    The exact sampled model when td is whole samples, else the paper's eq. 2.
+    The exact sampled model when td is whole samples, else the paper's eq. 2;
+    ``latency`` [s]: the rig's extra loop delay (``labbench.theory`` module doc),
+    in the paper's model simply added to td.
     """
     model = "sampled" if theory.whole_samples(ve) else "paper"
-    Zt = theory.theory_curve(plant, ve, res.w, model)
+    if model == "sampled":
+        Zt = theory.z_sampled(plant, ve, res.w, latency)
+    else:
+        Zt = theory.z_paper(plant, ve.with_(td=ve.td + latency), res.w)
     dev = np.abs(res.Z - Zt) / np.abs(Zt)
     band = (res.w >= W_BAND[0]) & (res.w <= W_BAND[1])
     eff = effective_impedances(res.w, res.Z)
@@ -98,6 +103,7 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment) -> dict:
         "model": model,
         "plant": {"m": plant.m, "b": plant.b},
         "ve": ve.as_dict(),
+        "latency_s": latency,
         "Z_theory": Zt,
         "deviation": dev,
         "deviation_median": float(np.median(dev[band])) if band.any() else None,

@@ -47,6 +47,11 @@ def register(subparsers) -> None:
                    help="Hamming window length in bins for --estimator paper (default 200)")
     e.add_argument("--m", type=float, metavar="KG", help="device mass for the theory overlay")
     e.add_argument("--b", type=float, metavar="NS_PER_M", help="device damping for the theory overlay")
+    e.add_argument("--fit", action="store_true",
+                   help="fit the exact sampled closed-loop model of the metadata's VE to Z: plant m, b "
+                        "and the extra loop delay td (fractions of a sample), with 95 %% intervals")
+    e.add_argument("--fit-ve", action="store_true",
+                   help="with --fit: also fit the rendered K and B")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--plot", metavar="FILE", help="paper-style figure (.png, .svg, .pdf)")
     e.add_argument("--force", action="store_true", help="replace an existing output file (never one of the inputs)")
@@ -101,12 +106,20 @@ def run_etfe(args) -> int:
     b = args.b if args.b is not None else compare.meta_number(rec.meta, "b")
     if (m is None) != (b is None):
         raise UserError("give both --m and --b (or neither, to identify them from the record)")
+    if (args.fit or args.fit_ve) and ve is None:
+        raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
     if ve is not None:
-        source = "given"
+        source, latency = "given", 0.0
         if m is None:
             ident = compare.identify_closed_loop(rec, ve)
-            m, b, source = ident.m, ident.b, "identified from this record"
-        cmp = compare.compare(res, Plant(float(m), float(b)), ve)
+            m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"
+        if args.fit or args.fit_ve:
+            from labbench.analysis.loopfit import fit_loop
+
+            fit = fit_loop(res, ve, Plant(float(m), float(b)), fit_ve=args.fit_ve)
+            d["fit"] = fit.as_dict()
+            m, b, latency, source = fit.m, fit.b, fit.td_s, "fitted (with the fitted extra delay td)"
+        cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
         cmp["plant_source"] = source
         d["wb_star"] = cmp["wb_star"]
         d["theory"] = {k: v for k, v in cmp.items() if k not in ("Z_theory", "deviation")}
@@ -136,6 +149,8 @@ def _print_table(path, d, cmp) -> None:
         print(f"theory ({cmp['model']} model, m = {cmp['plant']['m']:.4g} kg, b = {cmp['plant']['b']:.4g} "
               f"N s/m {cmp['plant_source']}): deviation median {_pct(cmp['deviation_median'])}, "
               f"max {_pct(cmp['deviation_max'])} over {cmp['band_rad_s'][0]:g}-{cmp['band_rad_s'][1]:g} rad/s")
+    if "fit" in d:
+        _print_fit(d["fit"])
     for f in d["flags"]:
         print(f"flag: {f}")
     print(f"{'w rad/s':>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
@@ -146,6 +161,19 @@ def _print_table(path, d, cmp) -> None:
               f"{d['coherence'][i]:6.3f} {d['ES'][i]:10.4g} {d['ED'][i]:10.4g} {d['EM'][i]:10.4g}")
 
 
+
+
+def _print_fit(fit: dict) -> None:
+    ci = fit["ci95"]
+    print(f"closed-loop fit ({fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-{fit['band_rad_s'][1]:.4g} "
+          f"rad/s, residual rms {100 * fit['residual_rms']:.2f} % of |Z|):")
+    rows = [("m", "m", "kg", 1.0), ("b", "b", "N s/m", 1.0), ("td", "td_s", "ms", 1e3)]
+    rows += [(k, k, u, 1.0) for k, u in (("K", "N/m"), ("B", "N s/m")) if k in fit]
+    for name, key, unit, scale in rows:
+        lo, hi = ci[key]
+        print(f"  {name:3s} = {scale * fit[key]:.6g} {unit}   95 % [{scale * lo:.6g}, {scale * hi:.6g}]")
+    print(f"  td in the metadata (the VE's own delay, in the model): {1e3 * fit['td_meta_s']:g} ms; "
+          f"loop delay {1e3 * fit['loop_delay_s']:.4g} ms")
 
 
 def _pct(v) -> str:
