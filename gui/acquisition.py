@@ -4,8 +4,9 @@ In one process, the GUI thread holds the GIL inside Qt/pyqtgraph drawing calls
 for milliseconds at a time, and a 1 kHz loop on another thread of that process
 misses its periods. So the device lives in a child process (``spawn``: nothing
 of the GUI's state or Qt is inherited; this module imports no Qt) that opens
-it, enables it, runs protocols through ``labbench.runner.run`` and records the
-session with ``labbench.session_format.SessionWriter``.
+it, enables it, and runs protocols through ``labbench.runner.run_recorded`` (as
+``labbench run`` does: real-time scheduling of the loop's thread, the session
+recorded with ``labbench.session_format.SessionWriter``).
 
 Pipes between the two (all put calls are non-blocking, so neither side ever
 waits for the other):
@@ -20,6 +21,7 @@ waits for the other):
   and, the moment it is set, calls ``device.emergency_stop()`` and sets the
   run's stop event (the GUI never waits for the child to notice);
 * Stop: a second shared event, passed on to the run's stop event by the same thread;
+* timing: the loop's overruns and worst stall so far, 4 times a second, for the status bar;
 * watchdog: a child thread waits on the parent's process sentinel; if the GUI
   process dies the device is emergency-stopped, the run ends (its session
   closed with a stop record) and the child exits.
@@ -36,6 +38,7 @@ import os
 import queue
 import sys
 import threading
+import time
 from multiprocessing.connection import wait as wait_handles
 
 from labbench.device import StatusReporting
@@ -70,9 +73,17 @@ class _Child:
         self.lock = threading.Lock()  # the device reference, between the threads
         self.idle = threading.Event()  # no run under way
         self.idle.set()
+        self._timing_sent = -1e9
 
     def post(self, kind: str, payload=None) -> None:
         self.messages.put((kind, payload))  # a feeder thread pickles and writes: never blocks
+
+    def post_timing(self, snapshot: dict, every_s: float = 0.25) -> None:
+        """The loop's timing so far, for the status bar: at most 4 a second."""
+        now = time.monotonic()
+        if now - self._timing_sent >= every_s:
+            self._timing_sent = now
+            self.post("timing", snapshot)
 
     # -- threads ----------------------------------------------------------------------------
     def watch_estop(self) -> None:
@@ -194,10 +205,9 @@ class _Child:
         self._dev().disable(timeout)
 
     def do_run(self, protocol_name, settings, rig, session_dir, start_extra):
-        from labbench.records import START
-        from labbench.runner import run
-        from labbench.session_format import SessionWriter
+        from labbench.realtime import RealtimeConfig
         from labbench.registry import make_protocol
+        from labbench.runner import run_recorded
 
         device = self._dev()
         self.idle.clear()
@@ -206,25 +216,17 @@ class _Child:
             self.run_stop.set(interrupt_reason(self.signum), self.signum)
         elif self.estop.is_set() or self.stop.is_set():
             self.run_stop.set()
-        consumers = [lambda rec: self.post("record", rec)]
-        writer = None
-        if session_dir is not None:
-            writer = SessionWriter(session_dir)
-
-            def record(rec, _write=writer):
-                _write({**rec, **start_extra} if start_extra and rec.get("kind") == START else rec)
-
-            consumers.insert(0, record)
         try:
             protocol = make_protocol(protocol_name, **settings)
             # close=False: the device stays connected in the window for the next run
-            return run(device, protocol, consumers, stop=self.run_stop, rig=rig, close=False,
-                       progress=lambda frac, text: self.post("progress", (frac, text)))
+            return run_recorded(
+                device, protocol, session_dir, [lambda rec: self.post("record", rec)],
+                start_extra=start_extra, on_session=lambda path: self.post("session", path),
+                stop=self.run_stop, rig=rig, close=False, realtime=RealtimeConfig.from_rig(rig),
+                progress=lambda frac, text: self.post("progress", (frac, text)),
+                live_timing=self.post_timing,
+                warn=lambda line: self.post("warning", line))[0]
         finally:
-            if writer is not None:
-                writer.close()
-                if writer.path is not None:  # None when the run was refused before its start record
-                    self.post("session", str(writer.path))
             self.idle.set()
 
 

@@ -206,7 +206,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.setCentralWidget(central)
 
         self.status = {k: QtWidgets.QLabel(f"{k}: -") for k in
-                       ("mode", "loop rate", "period p99", "overruns", "bus load")}
+                       ("mode", "loop rate", "period p99", "overruns", "worst stall", "bus load")}
+        self._live_timing = False  # the acquisition process sends the loop's timing live
         for lab in self.status.values():
             self.statusBar().addPermanentWidget(lab)
 
@@ -296,7 +297,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if self.mode == "running":
                 health["drops"] = str(self._count_flag(SEQ_GAP))
             self.device_panel.set_health(health)
-        if self.mode == "running":
+        if self.mode == "running" and not self._live_timing:  # a replay: from the flags
             self.status["overruns"].setText(f"overruns: {self._count_flag(OVERRUN)} (live)")
         self._update_rate()
 
@@ -360,6 +361,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_event = threading.Event()
         self._device_used = True
         self.mode = "running"
+        self._live_timing = False
         self._run_started = time.monotonic()
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
@@ -419,6 +421,9 @@ class MainWindow(QtWidgets.QMainWindow):
             elapsed = now - self._run_started
             left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
             self.protocol_panel.set_progress(frac, f"{text}: {100 * frac:.0f} %  {left}".strip())
+        elif kind == "timing":
+            self._live_timing = True
+            self._show_timing(payload, live=True)
         elif kind == "warning":
             self.log.add("warning", payload)
         elif kind == "session":
@@ -552,13 +557,18 @@ class MainWindow(QtWidgets.QMainWindow):
         return ve, plant, meta
 
     # ----- results -------------------------------------------------------------------------
-    def _show_timing(self, timing: dict):
+    def _show_timing(self, timing: dict, live: bool = False):
         def ms(key):
             v = timing.get(key)
             return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
 
-        self.status["period p99"].setText(f"period p99: {ms('p99_s')}")
-        self.status["overruns"].setText(f"overruns: {timing.get('overruns', '-')}")
+        tag = " (live)" if live else ""
+        if not live:
+            self.status["period p99"].setText(f"period p99: {ms('p99_s')}")
+        self.status["overruns"].setText(f"overruns: {timing.get('overruns', '-')}{tag}")
+        when = timing.get("worst_t_s", (timing.get("worst") or {}).get("t_s"))
+        at = f" at {when:.1f} s" if isinstance(when, (int, float)) else ""
+        self.status["worst stall"].setText(f"worst stall: {ms('max_s')}{at}{tag}")
         if "bus_load" in timing:
             self.status["bus load"].setText(f"bus load: {100 * timing['bus_load']:.0f} %")
 

@@ -43,7 +43,7 @@ from itertools import chain
 
 import numpy as np
 
-from labbench import records
+from labbench import records, timing as loop_timing
 from labbench.device import DeviceFault, RawReading
 from labbench.errors import UserError
 from labbench.safety import (
@@ -207,8 +207,9 @@ class LoopOutcome:
 
     ``status``: "completed", "tripped" (a safety trip or the watchdog zeroed the
     force), "aborted" (stop requested) or "fault" (the device failed).
-    ``timing``: loop period p50_s, p99_s, max_s, overruns (periods > 1.5 T, paced
-    devices only), paced, wall_s, realtime_factor. ``stats``: counts of samples
+    ``timing``: ``labbench.timing.period_stats`` (period p50_s, p99_s, max_s,
+    overruns = periods > 1.5 T on paced devices, histogram, the worst stall and
+    when) plus wall_s and realtime_factor. ``stats``: counts of samples
     clamped / rate-limited / with sequence gaps, peak observer energy.
     """
 
@@ -225,7 +226,8 @@ _LOUD = CLAMP | RATE | SEQ_GAP | DEVICE | FADE | TRIPPED  # bits that may need a
 def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Consumer,
              stop: threading.Event | None = None,
              progress: Callable[[int, int], None] | None = None,
-             page_size: int = 100, first_page: int = 0) -> LoopOutcome:
+             page_size: int = 100, first_page: int = 0,
+             live: Callable[[dict], None] | None = None) -> LoopOutcome:
     """Run ``len(excitation)`` samples of ``loop`` on ``device``; emit pages and events.
 
     The device is enabled here, at the sample where the enable gate opens, and
@@ -236,7 +238,11 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     first, which zeroes the force at the device at once. Pages are numbered from
     ``first_page`` (several runs can share one stream). Devices may offer
     ``read_raw(timeout) -> (seq, t_s, position_m, flags)`` as a fast form of
-    ``read``.
+    ``read``. ``live(snapshot)``, if given, is called after each page with the
+    timing so far: ``n`` samples, ``overruns``, ``max_s`` and ``worst_t_s``.
+
+    Steady state allocates nothing that outlives a page: the periods go to a
+    list made before the loop, a page's rows are freed when it is emitted.
     """
     desc = device.describe()
     T = loop.ve.T
@@ -260,7 +266,8 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
             return s.seq, s.t_s, s.position_m, s.flags
 
     rows: list[tuple] = []  # one ROW per sample of the page being filled
-    stamps = [0.0] * (n + 1)  # wall time at each sample's arrival (loop period = difference)
+    periods = [0.0] * n  # wall time from the previous sample's arrival to this one's
+    worst = [0.0, -1, None, None]  # longest period so far: seconds, sample, t_s, wall offset
     counts = {"clamp": 0, "rate": 0, "seq_gap": 0, "device_flags": 0, "overrun": 0}
     last_event_t: dict[str, float] = {}
     pages = [first_page, 0]  # next page index, rows emitted before the current ``rows``
@@ -282,6 +289,9 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
         pages[1] += m
         if progress is not None:
             progress(pages[1], n)
+        if live is not None:
+            live({"n": pages[1], "overruns": counts["overrun"], "max_s": worst[0],
+                  "worst_t_s": worst[2]})
 
     def last_event(t_s, name, reason):
         """The event that ends the run, after the samples that led to it."""
@@ -313,7 +323,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     status, reason, i = "completed", "", 0
     t_s = 0.0
     left = page_size
-    stamps[0] = prev = clock()
+    start = prev = clock()
     try:
         for i in range(n):
             if stop_set():
@@ -330,15 +340,17 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                 last_event(t_s, "watchdog", reason)
                 break
             now = clock()
-            stamps[i + 1] = now
+            d = periods[i] = now - prev
+            prev = now
             extra = dflags and DEVICE
-            if now - prev > late:
+            if d > late and i:  # the first period includes starting the device
                 extra |= OVERRUN
                 counts["overrun"] += 1
-                if now - prev > too_late:
-                    loop.trip("watchdog", f"watchdog: loop period {(now - prev) * 1e3:.3g} ms"
+                if d > too_late:
+                    loop.trip("watchdog", f"watchdog: loop period {d * 1e3:.3g} ms"
                                           f" > {wd * 1e3:g} ms")
-            prev = now
+            if d > worst[0] and i:
+                worst[:] = d, i, t_s, now - start
             row = advance(seq, t_s, x, exc[i])
             flags = row[7]
             if not enabled and not flags & (GATED | TRIPPED):
@@ -372,15 +384,11 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     finally:
         _safe(lambda: device.command(0.0))
         _safe(lambda: device.disable(timeout=wd))
-    wall = clock() - stamps[0]
+    wall = clock() - start
     flush()
     done = pages[1]
-    p = np.diff(stamps[1:done + 1]) if done > 1 else np.zeros(1)
-    timing = {
-        "p50_s": float(np.percentile(p, 50)), "p99_s": float(np.percentile(p, 99)),
-        "max_s": float(p.max()), "overruns": counts["overrun"], "paced": paced,
-        "wall_s": wall, "realtime_factor": done * T / wall if wall > 0 else float("inf"),
-    }
+    timing = loop_timing.period_stats(periods[1:done], T, paced, *worst[1:])
+    timing.update(wall_s=wall, realtime_factor=done * T / wall if wall > 0 else float("inf"))
     stats = {**counts, "energy_max_j": loop.energy_max_j, "pages": pages[0] - first_page}
     return LoopOutcome(status, reason or "", done, timing, stats)
 

@@ -367,16 +367,9 @@ def _events_table(s: SessionData) -> Table:
 
 
 def _timing_table(s: SessionData) -> Table:
-    timing = (s.stop or {}).get("timing") or {}
-    labels = {"p50_s": "period p50 (ms)", "p99_s": "period p99 (ms)", "max_s": "period max (ms)",
-              "wall_s": "wall time (s)", "realtime_factor": "simulated s per wall s"}
-    items = [(labels.get(k, k), v * 1e3 if k in ("p50_s", "p99_s", "max_s") and v is not None
-              else v) for k, v in timing.items()]
-    p50 = timing.get("p50_s")
-    if p50 is not None and p50 < 0.5 * s.T:
-        items.append(("note", ("unpaced run (simulator as fast as possible): the periods are "
-                               "compute times per sample")))
-    return _kv("Loop timing", items or [("timing", "not recorded")])
+    from labbench.timing import report_rows
+
+    return _kv("Loop timing", report_rows((s.stop or {}).get("timing") or {}))
 
 
 def session_blocks(path) -> list:

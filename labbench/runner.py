@@ -6,19 +6,26 @@ segment, each announced by a ``segment`` event) -> ``stop``. Every consumer
 sees every record in order. Whatever happens (a refused VE, Ctrl-C, the stop
 event, a device fault, a bug) the force is set to zero, the device disabled
 and closed, and - once a start record went out - a stop record follows.
+
+On a paced device the segments run under ``labbench.realtime.acquire``
+(SCHED_FIFO, CPU affinity, locked memory, GC frozen; the analysis after them
+does not); the start record's ``realtime`` and the stop record's
+``timing.realtime`` say what the OS granted, ``timing`` (``labbench.timing``)
+how well the loop kept time.
 """
 from __future__ import annotations
 
 import contextlib
 import threading
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from labbench import records
+from labbench import records, timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
+from labbench.realtime import RealtimeConfig, acquire
 from labbench.rig import Rig
 from labbench.protocol import ProtocolBase, SegmentOutcome, precheck
 
@@ -38,10 +45,44 @@ class RunResult:
     n_samples: int = 0
 
 
+def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
+                 start_extra: dict | None = None,
+                 on_session: Callable[[str], None] | None = None, **options):
+    """The one way a run is driven (``labbench run`` and the GUI's acquisition process):
+    ``run(device, protocol, ...)`` recording a session in ``session_dir`` (None: none)
+    ahead of ``consumers``. ``start_extra`` fields are added to the start record as
+    written; ``on_session(path)`` hears where the session went, even if the run raised.
+    ``options`` are ``run``'s. Returns (RunResult, session path or None when the run
+    was refused before its start record)."""
+    from labbench.session_format import SessionWriter
+
+    sinks = list(consumers)
+    try:
+        writer = SessionWriter(session_dir) if session_dir is not None else None
+    except BaseException:
+        _stop_device(device, close=options.get("close", True))
+        raise
+    if writer is not None:
+        def record(rec, _write=writer):
+            _write({**rec, **start_extra} if start_extra and rec["kind"] == records.START else rec)
+
+        sinks.insert(0, record)
+    try:
+        return run(device, protocol, sinks, **options), writer.path if writer else None
+    finally:
+        if writer is not None:
+            writer.close()
+            if writer.path is not None and on_session is not None:
+                on_session(str(writer.path))
+
+
 def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         stop: threading.Event | None = None,
         progress: Callable[[float, str], None] | None = None, rig: Rig | None = None,
-        close: bool = True, simulated: bool | None = None) -> RunResult:
+        close: bool = True, simulated: bool | None = None,
+        realtime: RealtimeConfig | None = None,
+        live_timing: Callable[[dict], None] | None = None,
+        warn: Callable[[str], None] | None = None) -> RunResult:
     """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
 
     ``stop`` (a ``threading.Event`` or ``labbench.interrupts.StopRequest``, set from
@@ -56,8 +97,13 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     simulator (the only place ``allow_unstable`` is accepted); None: its
     description's kind starts with "sim" (a real driver talking to a simulated
     peer reports the driver's kind, so the caller who opened it must say).
+    ``realtime``: what the loop's thread asks the OS for on a paced device
+    (default ``RealtimeConfig()``: on); ``warn(line)`` gets the one line saying
+    how to grant what was refused (default: a logging warning).
+    ``live_timing(snapshot)``: the run's timing so far after each page (overruns,
+    max_s, worst_t_s, n), e.g. for a status bar.
     """
-    from labbench.loop import HapticLoop, SafetyConfig, run_loop
+    from labbench.loop import SafetyConfig
 
     rig = rig or Rig()
     stop = stop or threading.Event()
@@ -76,55 +122,18 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         plant = protocol.plant(rig)
         check = precheck(protocol, plant, rig)
         safety = SafetyConfig.from_rig(rig)
-        start = records.start_record(
-            rig.as_dict(), protocol.describe(), protocol.seed,
-            device=asdict(desc), plant={"m": plant.m, "b": plant.b},
-            precheck=json_safe(check), safety=safety.as_dict())
-        run_state.uid = start["uid"]
-        run_state.emit(start)
-        run_state.emit(records.descriptor_record(T))
-        for text in desc.details.get("warnings", ()):  # e.g. a fallback for a missing object
-            run_state.emit(records.event_record(run_state.last_t, "device_warning", text))
-        meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
-                "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
-                "protocol": protocol.describe(), "force_hold": desc.force_hold}
-
-        total = max(int(protocol.n_samples), 1)
-        gen = protocol.segments(plant)
-        segment = next(gen)
-        while True:
-            first = run_state.n_samples
-            run_state.emit(records.event_record(
-                run_state.last_t, "segment", segment.label, role=segment.role,
-                ve=segment.ve.as_dict(),
-                n_samples=len(segment.excitation)))
-
-            def on_progress(n_done, n_total, _first=first, _label=segment.label):
-                if progress is not None:
-                    progress(min((_first + n_done) / total, 1.0), _label)
-
-            outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
-                               run_state.emit, stop=stop, progress=on_progress,
-                               first_page=len(run_state.pages))
-            run_state.segments.append({
-                "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
-                "start": first,
-                "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
-                "timing": dict(outcome.timing)})
-            if outcome.status == "aborted":
-                return run_state.finish("aborted", _stop_reason(stop, outcome.reason))
-            if outcome.status in _FAILED and not (outcome.status == "tripped"
-                                                   and segment.trip_expected):
-                return run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
-            try:
-                segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
-                                                  run_state.data(first)))
-            except StopIteration:
-                break
+        rt = realtime or RealtimeConfig()
+        if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
+            rt = replace(rt, enabled=False)
+        with acquire(rt, warn) as grant:
+            run_state.realtime = grant.record
+            meta = _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop,
+                             progress, live_timing)
+        if run_state.finished is not None:  # aborted or failed in a segment
+            return run_state.finished
         _stop_device(device, close=False)
         if progress is not None:
             progress(1.0, "analysis")
-        meta["segments"] = run_state.segments
         try:
             run_state.results = protocol.analyze(run_state.data(0), meta)
         except UserError as exc:
@@ -150,6 +159,73 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         _stop_device(device, close=close)
 
 
+def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop, progress,
+              live_timing) -> dict:
+    """Start record, descriptor, then the protocol's segments through the loop; returns the
+    analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``)."""
+    from labbench.loop import HapticLoop, run_loop
+
+    T = float(desc.sample_time_s)
+    start = records.start_record(
+        rig.as_dict(), protocol.describe(), protocol.seed,
+        device=asdict(desc), plant={"m": plant.m, "b": plant.b},
+        precheck=json_safe(check), safety=safety.as_dict(), realtime=run_state.realtime)
+    run_state.uid = start["uid"]
+    run_state.emit(start)
+    run_state.emit(records.descriptor_record(T))
+    for text in desc.details.get("warnings", ()):  # e.g. a fallback for a missing object
+        run_state.emit(records.event_record(run_state.last_t, "device_warning", text))
+    meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
+            "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
+            "protocol": protocol.describe(), "force_hold": desc.force_hold,
+            "segments": run_state.segments}
+    total = max(int(protocol.n_samples), 1)
+    gen = protocol.segments(plant)
+    segment = next(gen)
+    before = {"overruns": 0, "max_s": 0.0, "worst_t_s": None}  # earlier segments, for live_timing
+    while True:
+        first = run_state.n_samples
+
+        def on_progress(n_done, n_total, _first=first, _label=segment.label):
+            if progress is not None:
+                progress(min((_first + n_done) / total, 1.0), _label)
+
+        def on_live(snap, _first=first):
+            worse = snap["max_s"] > before["max_s"]
+            live_timing({"n": _first + snap["n"], "overruns": before["overruns"] + snap["overruns"],
+                         "max_s": snap["max_s"] if worse else before["max_s"],
+                         "worst_t_s": snap["worst_t_s"] if worse else before["worst_t_s"]})
+
+        run_state.emit(records.event_record(
+            run_state.last_t, "segment", segment.label, role=segment.role,
+            ve=segment.ve.as_dict(), n_samples=len(segment.excitation)))
+        outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
+                           run_state.emit, stop=stop, progress=on_progress,
+                           first_page=len(run_state.pages),
+                           live=on_live if live_timing is not None else None)
+        t = outcome.timing
+        if t.get("max_s", 0.0) > before["max_s"]:
+            before.update(max_s=t["max_s"], worst_t_s=t.get("worst", {}).get("t_s"))
+        before["overruns"] += t.get("overruns", 0)
+        run_state.segments.append({
+            "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
+            "start": first,
+            "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
+            "timing": dict(t)})
+        if outcome.status == "aborted":
+            run_state.finish("aborted", _stop_reason(stop, outcome.reason))
+            return meta
+        if outcome.status in _FAILED and not (outcome.status == "tripped"
+                                               and segment.trip_expected):
+            run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
+            return meta
+        try:
+            segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
+                                              run_state.data(first)))
+        except StopIteration:
+            return meta
+
+
 class _Run(records.RecordRouter):
     """Fans records out, keeps the page data and segment table, writes the stop record once."""
 
@@ -164,6 +240,7 @@ class _Run(records.RecordRouter):
         self.finished: RunResult | None = None
         self.n_samples = 0
         self.last_t = 0.0
+        self.realtime: dict | None = None  # labbench.realtime.Grant.record of the segments
 
     def emit(self, rec: dict) -> None:
         self(rec)
@@ -189,20 +266,14 @@ class _Run(records.RecordRouter):
         return {k: v[first:] for k, v in joined.items()}
 
     def timing(self) -> dict:
-        """Loop timing over all segments: worst p99/max, median of p50, total overruns and wall
-        time, and the real-time factor (simulated seconds per wall second)."""
-        parts = [s["timing"] for s in self.segments if s.get("timing")]
-        if not parts:
-            return {}
-        out = {"segments": len(parts)}
-        for key, agg in (("p50_s", np.median), ("p99_s", max), ("max_s", max), ("overruns", sum),
-                         ("wall_s", sum)):
-            vals = [p[key] for p in parts if p.get(key) is not None]
-            if vals:
-                out[key] = agg(vals)
+        """Loop timing over all segments (``labbench.timing.merge``), the real-time factor
+        (simulated seconds per wall second) and what the OS granted (``realtime``)."""
+        out = loop_timing.merge([s["timing"] for s in self.segments],
+                                [s["start"] for s in self.segments])
         if out.get("wall_s"):
-            T = self.segments[0]["ve"]["T"]
-            out["realtime_factor"] = self.n_samples * T / out["wall_s"]
+            out["realtime_factor"] = self.n_samples * out["T_s"] / out["wall_s"]
+        if out and self.realtime is not None:
+            out["realtime"] = self.realtime
         return json_safe(out)
 
     def finish(self, status: str, reason: str) -> RunResult:

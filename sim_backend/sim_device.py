@@ -25,6 +25,7 @@ import numpy as np
 
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import UserError
+from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import reversing_step
 from labbench.theory import latency_inputs, zoh_matrices
@@ -215,7 +216,8 @@ class SimDevice:
 
     # -- internals -------------------------------------------------------------------
     def _pace(self, k: int, timeout: float) -> None:
-        """Sleep until sample k is due at ``t0 + k T``.
+        """Wait until sample k is due at ``t0 + k T`` (``labbench.realtime.sleep_until``:
+        sleep, then spin the last 150 us, so the sample is on time to a few us).
 
         The schedule starts at the first read, and starts again at any read more than
         one period past its due time: time nobody was reading (idle after open or
@@ -233,7 +235,7 @@ class SimDevice:
             time.sleep(timeout)
             raise TimeoutError(f"no simulated sample within {timeout} s")
         if wait > 0:
-            time.sleep(wait)
+            sleep_until(t0 + k * self.T)
 
     def _check_open(self) -> None:
         if self.closed:

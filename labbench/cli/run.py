@@ -55,6 +55,10 @@ def _common(sp) -> None:
     sp.add_argument("--device", choices=device_names(), default="sim", help="backend (default sim)")
     sp.add_argument("--rig", metavar="FILE", help="rig TOML file (default: simulated Phantom-like)")
     sp.add_argument("--realtime", action="store_true", help="pace the simulator in real time")
+    sp.add_argument("--no-rt", dest="rt", action="store_false", default=None,
+                    help="do not ask for real-time scheduling (default: asked for on paced "
+                         "devices; rig table [realtime])")
+    sp.add_argument("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority (default 80)")
     sp.add_argument("--out", metavar="DIR", default="sessions", help="session directory (./sessions)")
     sp.add_argument("--json", action="store_true", help="print one JSON object: sessions, results")
     sp.add_argument("--can-log", metavar="FILE", default=None,
@@ -116,7 +120,7 @@ def _words(text: str) -> tuple:
 
 
 _COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from",
-           "can_log")
+           "can_log", "rt", "rt_priority")
 
 
 def _options(args) -> dict:
@@ -145,8 +149,8 @@ def last_identified(directory, rig) -> dict | None:
 
 def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     """Make the protocol, open the device, run with a session writer; (result, session path)."""
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.realtime import RealtimeConfig
+    from labbench.runner import run_recorded
     from labbench.registry import make_protocol
 
     if (getattr(args, "plant_from", "nominal") == "last-id" and name != "chirp-id"
@@ -167,15 +171,12 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
         log = Path(args.can_log)  # demo: one file per run
         dev_opts["can_log"] = str(log if args.protocol != "demo"
                                   else log.with_name(f"{log.stem}-{name}{log.suffix}"))
-    writer = SessionWriter(args.out)
-    try:
-        device = open_device(args.device, rig, **dev_opts)
-        with ProgressBar(name) as bar:
-            result = run(device, protocol, [writer], stop=stop, progress=bar, rig=rig,
-                         simulated=args.device.startswith("sim"))
-    finally:
-        writer.close()
-    return result, writer.path
+    rt = RealtimeConfig.from_rig(rig, enabled=getattr(args, "rt", None),
+                                 priority=getattr(args, "rt_priority", None))
+    device = open_device(args.device, rig, **dev_opts)
+    with ProgressBar(name) as bar:
+        return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
+                            simulated=args.device.startswith("sim"), realtime=rt)
 
 
 def cmd_run(args) -> int:

@@ -1,0 +1,147 @@
+"""Loop overruns at 1 kHz, as a user starts the program, against the machine's floor.
+
+Each arm is a fresh process, started as a user would start it:
+
+* ``floor``: the pacing alone (``labbench.realtime.sleep_until`` at 1 kHz, under the
+  same real-time settings, no loop work): what this machine and its scheduler allow;
+* ``sim``: ``labbench run etfe --realtime`` (simulator, real-time scheduling asked for);
+* ``sim-nort``: the same with ``--no-rt`` (what the program did before);
+* ``canopen``: ``labbench run etfe --device sim-canopen --realtime`` with the driver's
+  real monitor limits (stale TPDO after 3 periods, heartbeat 100 ms, RPDO 50 ms), not
+  the simulation's relaxed defaults.
+
+with 0 and 2 CPU hogs (``while True: pass`` processes at normal priority, one per core
+of this 2-core machine). Printed per arm: periods > 1.5 T, max period and when, p99,
+and the ratio of overruns to the floor's in the same conditions. Arms are interleaved
+and repeated so the machine's other load falls on all; the load average is printed.
+
+    .venv/bin/python bench/bench_realtime.py [--seconds 120] [--arms floor,sim,...]
+        [--hogs 0,2] [--repeats 1]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PY = sys.executable
+FLOOR = """
+import json, sys, time
+from labbench.realtime import RealtimeConfig, acquire, sleep_until
+from labbench.timing import period_stats
+n, T = int(float(sys.argv[1]) / 1e-3), 1e-3
+per = [0.0] * n
+with acquire(RealtimeConfig()) as g:
+    t0 = prev = time.perf_counter()
+    for k in range(n):
+        sleep_until(t0 + (k + 1) * T)
+        now = time.perf_counter(); per[k] = now - prev; prev = now
+p = per[1:]
+i = max(range(len(p)), key=p.__getitem__)
+s = period_stats(p, T, True, i + 1, (i + 1) * T)
+s["realtime"] = g.record
+print(json.dumps({"status": "success", "timing": s}))
+"""
+RIG = """
+[rig]
+name = "bench"
+[canopen]
+stale_periods = 3
+heartbeat_consumer_ms = 100
+rpdo_timeout_ms = 50
+"""
+
+
+def arm_command(arm: str, seconds: float, out: str, rig: str) -> list[str]:
+    if arm == "floor":
+        return [PY, "-c", FLOOR, str(seconds)]
+    cmd = [PY, "-m", "labbench", "run", "etfe", "--realtime", "--json", "--out", out,
+           "--duration-s", str(seconds), "--plant-from", "nominal"]
+    if arm == "sim-nort":
+        cmd.append("--no-rt")
+    if arm == "canopen":
+        cmd += ["--device", "sim-canopen", "--rig", rig]
+    return cmd
+
+
+def run_arm(arm, seconds, out, rig) -> dict:
+    load0 = os.getloadavg()[0]
+    t0 = time.monotonic()
+    proc = subprocess.run(arm_command(arm, seconds, out, rig), capture_output=True, text=True,
+                          timeout=seconds * 3 + 120)
+    res = {"arm": arm, "wall": time.monotonic() - t0, "load": (load0 + os.getloadavg()[0]) / 2}
+    try:
+        res.update(json.loads(proc.stdout.strip().splitlines()[-1]))
+    except (ValueError, IndexError):
+        res.update(status="crashed", reason=proc.stderr.strip()[-300:])
+    return res
+
+
+def start_hogs(n: int) -> list[subprocess.Popen]:
+    return [subprocess.Popen([PY, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def stop_hogs(hogs) -> None:
+    for h in hogs:
+        h.kill()
+        h.wait()
+
+
+def line(r: dict) -> str:
+    t = r.get("timing") or {}
+    w = t.get("worst") or {}
+    rt = t.get("realtime") or {}
+    sched = (f"{rt.get('policy', '?')} {rt.get('priority') or ''}".strip()
+             if rt.get("requested") else "rt off")
+    if not t:
+        return f"{r['arm']:9s} {r.get('status')}: {r.get('reason', '')}"
+    at = f"{w['t_s']:.1f}" if isinstance(w.get("t_s"), (int, float)) else "-"
+    return (f"{r['arm']:9s} {r.get('status', '?'):8s} periods {t.get('periods', 0):7d}  overruns "
+            f"{t['overruns']:5d}  max {t['max_s'] * 1e3:6.2f} ms at {at:>6s} s  p99 "
+            f"{t['p99_s'] * 1e3:5.3f} ms  [{sched}]  load {r['load']:.1f}"
+            + ("" if r.get("status") == "success" else f"  ({r.get('reason', '')})"))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=600.0, help="per arm (issue goal: 600)")
+    ap.add_argument("--arms", default="floor,sim,sim-nort,canopen")
+    ap.add_argument("--hogs", default="0,2")
+    ap.add_argument("--repeats", type=int, default=1)
+    args = ap.parse_args()
+    arms = args.arms.split(",")
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        rig = Path(tmp) / "rig.toml"
+        rig.write_text(RIG)
+        for rep in range(args.repeats):
+            for n_hogs in (int(h) for h in args.hogs.split(",")):
+                print(f"-- {n_hogs} CPU hogs, {args.seconds:g} s per arm, repeat {rep + 1}",
+                      flush=True)
+                hogs = start_hogs(n_hogs)
+                try:
+                    for arm in arms:
+                        r = run_arm(arm, args.seconds, tmp, str(rig))
+                        r["hogs"] = n_hogs
+                        results.append(r)
+                        print("  " + line(r), flush=True)
+                finally:
+                    stop_hogs(hogs)
+    print("overruns relative to the floor in the same conditions (sum over repeats):")
+    for n_hogs in sorted({r["hogs"] for r in results}):
+        total = {a: sum((r.get("timing") or {}).get("overruns", 0) for r in results
+                        if r["arm"] == a and r["hogs"] == n_hogs) for a in arms}
+        floor = total.get("floor")
+        parts = [f"{a} {total[a]}" + (f" ({total[a] / floor:.2g}x)" if floor else "")
+                 for a in arms]
+        print(f"  {n_hogs} hogs: " + ", ".join(parts))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

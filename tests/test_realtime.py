@@ -1,0 +1,92 @@
+"""Real-time scheduling of the loop's thread: granted and undone, refused with one line."""
+from __future__ import annotations
+
+import gc
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import pytest
+
+from labbench.errors import UserError
+from labbench.realtime import RealtimeConfig, acquire, sleep_until
+from labbench.rig import Rig
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling")
+
+
+@linux
+def test_what_is_granted_is_recorded_and_undone_on_the_way_out():
+    policy, cpus, gc_on = os.sched_getscheduler(0), os.sched_getaffinity(0), gc.isenabled()
+    idle = threading.Event()
+    sibling = threading.Thread(target=idle.wait, daemon=True)
+    sibling.start()
+    try:
+        with acquire(RealtimeConfig(priority=10), warn=lambda line: None) as grant:
+            rec = grant.record
+            assert not gc.isenabled() and rec["gc"] == "frozen, disabled"
+            assert rec["affinity"] == sorted(os.sched_getaffinity(0))
+            if len(cpus) >= 2:
+                assert rec["affinity"] == [max(cpus)]
+            if rec["policy"] == "SCHED_FIFO":
+                assert os.sched_getscheduler(0) == os.SCHED_FIFO
+                assert os.sched_getparam(0).sched_priority == rec["priority"] == 10
+                assert os.sched_getscheduler(sibling.native_id) == os.SCHED_FIFO
+                assert os.sched_getparam(sibling.native_id).sched_priority == 9
+            else:
+                assert rec["refused"]
+    finally:
+        idle.set()
+    assert os.sched_getscheduler(0) == policy and os.sched_getaffinity(0) == cpus
+    assert gc.isenabled() == gc_on
+
+
+@linux
+def test_a_blas_call_under_realtime_scheduling_returns():
+    """BLAS worker threads are not moved below the loop (that livelocked scipy's expm)."""
+    code = ("import numpy as np, scipy.linalg as la\n"
+            "from labbench.realtime import acquire, RealtimeConfig\n"
+            "a = np.random.default_rng(0).normal(size=(400, 400))\n"
+            "with acquire(RealtimeConfig(priority=10), warn=print) as g:\n"
+            "    la.expm(a / 400); (a @ a).sum()\n"
+            "print('done', g.record['policy'])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "done" in out.stdout, out.stderr
+
+
+def test_sleep_until_never_returns_early():
+    for k in range(50):
+        deadline = time.perf_counter() + (k % 5) * 2e-4
+        sleep_until(deadline)
+        assert time.perf_counter() >= deadline
+
+
+def test_settings_from_the_rig_and_the_flags():
+    rig = Rig(sections={"realtime": {"priority": 60, "cpu": 0}})
+    assert RealtimeConfig.from_rig(rig) == RealtimeConfig(priority=60, cpu=0)
+    assert RealtimeConfig.from_rig(rig, enabled=False, priority=None).enabled is False
+    for bad in ({"priority": 99}, {"priority": "high"}, {"colour": 1}, {"enabled": 1}):
+        with pytest.raises(UserError):
+            RealtimeConfig.from_rig(Rig(sections={"realtime": bad}))
+
+
+@linux
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to become an unprivileged user")
+def test_refused_gives_one_line_and_the_run_goes_on():
+    """As an unprivileged user (no CAP_SYS_NICE, rtprio limit 0) a paced run still records."""
+    with tempfile.TemporaryDirectory() as out_dir:  # in /tmp: pytest's tmp_path is root-only
+        os.chmod(out_dir, 0o777)
+        cmd = [sys.executable, "-m", "labbench", "run", "etfe", "--realtime", "--duration-s", "1",
+               "--json", "--out", out_dir]
+        out = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", *cmd],
+                             capture_output=True, text=True, timeout=120, cwd=out_dir)
+    assert out.returncode == 0, out.stderr
+    warnings = [line for line in out.stderr.splitlines() if "real-time scheduling refused" in line]
+    assert len(warnings) == 1 and "limits.conf" in warnings[0] and "CAP_SYS_NICE" in warnings[0]
+    rt = json.loads(out.stdout)["timing"]["realtime"]
+    assert rt["policy"] == "SCHED_OTHER" and any("SCHED_FIFO" in r for r in rt["refused"])
