@@ -268,11 +268,16 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
     a.capabilities["torque object"] = "0x6071 target torque" if has_target else "none"
     _torque_scale(a, d, config)
     _watch(a, d, config)
-    # Objects the loop cannot do without.
+    # Objects the loop cannot do without, of the size it decodes.
     _writable(a, d, 0x6040, 0, True)
     for index in (0x6041, 0x6064):
         if not d.has(index, 0):
             a.obstacles.append(f"{_what(index)} absent")
+    for index, bits in ((0x6040, 16), (0x6041, 16), (0x6064, 32)):
+        e = d.get(index, 0)
+        if e is not None and e.bits and e.bits != bits:
+            a.obstacles.append(f"{_what(index)} is {e.bits} bit (data type 0x{e.data_type:04X})"
+                               f", CiA 402 makes it {bits}")
     # PDOs.
     a.plan = plan_pdos(d, config.node_id, config.rpdo_timeout_ms, config.velocity_tpdo_every)
     a.obstacles += a.plan.obstacles

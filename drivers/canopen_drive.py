@@ -47,7 +47,7 @@ from canopen.sdo import SdoClient
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.drivers import cia402, emcy
 from labbench.drivers.can_trace import TracedBus
-from labbench.drivers.canopen_check import Assessment, assess, check_eds  # noqa: F401 - API
+from labbench.drivers.canopen_check import Assessment, assess
 from labbench.drivers.canopen_config import CanopenConfig
 from labbench.drivers.canopen_objects import object_name, read_eds, survey
 from labbench.drivers.canopen_pdo import SYNC_ID
@@ -115,7 +115,7 @@ class CanopenDrive:
         self._tpdo_wait = (config.stale_periods * self.T if realtime
                            else config.lockstep_timeout_s)
         self._window: tuple[int, int] | None = None  # host-side position window [counts]
-        self._guard_life = config.guard_time_ms * config.life_time_factor * 1e-3
+        self._guard_life = 0.0  # guarding answers expected within [s] (0: not guarded)
         self._last_answer = 0.0  # perf_counter time of the last node-guarding answer
         self.velocity_m_s = 0.0
         self.torque_actual_n = math.nan
@@ -319,6 +319,8 @@ class CanopenDrive:
                                    cfg.host_heartbeat_ms * 1e-3, -math.inf])
         if "guarding" in (a.watchdog, a.nmt_by):
             self._periodic.append([self._guard_request(), cfg.guard_time_ms * 1e-3, -math.inf])
+        self._guard_life = (cfg.guard_time_ms * cfg.life_time_factor * 1e-3
+                            if a.nmt_by == "guarding" else 0.0)
 
     def _guard_request(self) -> can.Message:
         return can.Message(arbitration_id=self._hb_id, is_remote_frame=True, dlc=1,
@@ -646,8 +648,7 @@ class CanopenDrive:
             if now - entry[2] >= entry[1]:
                 self._send(entry[0])
                 entry[2] = now
-        if self._guard_life and now - self._last_answer > self._guard_life \
-                and self.assessment.nmt_by == "guarding":
+        if self._guard_life and now - self._last_answer > self._guard_life:
             self._fail(f"no node guarding answer for {self._guard_life * 1e3:.0f} ms")
         deadline = now + wait
         decoders, vals, seen = self._decoders, self._vals, 0

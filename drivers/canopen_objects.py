@@ -131,9 +131,6 @@ class Dictionary:
     def subs(self, index: int) -> list[int]:
         return sorted(s for i, s in self.entries if i == index)
 
-    def indices(self) -> list[int]:
-        return sorted({i for i, _ in self.entries})
-
 
 # ------------------------------------------------------------------ EDS / DCF
 _INDEX = re.compile(r"^([0-9A-Fa-f]{4})$")
@@ -216,6 +213,9 @@ def _clean(text: str, name: str) -> tuple[str, list[str]]:
             if key in keys and int(keys["DataType"], 0) in TYPE_FMT and not _number(keys[key]):
                 warnings.append(f"{name}: [{sec}] {key}={keys[key]} is not a number: ignored")
                 del keys[key]
+    if "DeviceInfo" not in sections:
+        warnings.append(f"{name}: no [DeviceInfo] section (mandatory): taken as empty")
+        sections["DeviceInfo"] = {}
     out = io.StringIO()
     for sec, keys in sections.items():
         out.write(f"[{sec}]\n" + "".join(f"{k}={v}\n" for k, v in keys.items()) + "\n")

@@ -32,7 +32,7 @@ def test_config_errors_name_the_field(section, field):
 def test_config_defaults_are_valid_and_eds_is_checked(tmp_path):
     cfg = CanopenConfig.from_section({"eds": "sim_backend/drive.eds", "node_id": 5})
     assert cfg.node_id == 5 and cfg.mode == "auto"
-    from labbench.drivers.canopen_drive import check_eds
+    from labbench.drivers.canopen_check import check_eds
 
     a = check_eds("sim_backend/drive.eds", cfg)  # our own EDS: usable, nothing missing
     assert a.warnings == [] and a.modes[0].code == 10

@@ -218,6 +218,16 @@ def test_position_not_mappable_is_refused_naming_the_object(tmp_path):
     assert "1 obstacle(s)" in text
 
 
+def test_position_of_the_wrong_size_is_refused(tmp_path):
+    path = tmp_path / "size.eds"
+    path.write_text(F.eds_text().replace("ParameterName=Position actual value\nObjectType=0x7\n"
+                                         "DataType=0x0004", "ParameterName=Position actual "
+                                         "value\nObjectType=0x7\nDataType=0x0003"))
+    with pytest.raises(UserError, match=r"0x6064:00 \(position actual value\) is 16 bit \(data "
+                                        r"type 0x0003\), CiA 402 makes it 32"):
+        check_eds(str(path))
+
+
 def test_mapping_refusal_names_the_object_not_the_slot(tmp_path):
     """The file says 0x6071 is mappable, the drive (built from a stricter copy) refuses."""
     lax = F.write(tmp_path / "lax.eds")
