@@ -40,3 +40,13 @@ class DeviceFault(DeviceError, RuntimeError):
 def missing_extra(package: str, extra: str, feature: str) -> MissingExtraError:
     """The one-line error for an optional package that is not installed."""
     return MissingExtraError(f"{feature} needs {package}: pip install 'haptic-labbench[{extra}]'")
+
+
+def unknown_name(what: str, name, known) -> UserError:
+    """``unknown <what> 'nmae'; did you mean 'name'?`` (difflib), else the list of known names."""
+    import difflib
+
+    known = sorted(str(k) for k in known)
+    close = difflib.get_close_matches(str(name), known, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}?" if close else f"known: {', '.join(known)}"
+    return UserError(f"unknown {what} {str(name)!r}; {hint}")

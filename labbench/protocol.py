@@ -10,6 +10,7 @@ the last one. ``analyze(data, meta)`` turns the recorded channels into results.
 """
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Generator
 from dataclasses import asdict, dataclass, fields
@@ -22,6 +23,10 @@ from labbench.ve import DEFAULT_PLANT, Plant, VirtualEnvironment
 
 # Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
 MAX_DURATION_S = 1800.0
+# Most samples in one run: 10 million x 8 channels x 8 bytes = 640 MB held in memory.
+MAX_SAMPLES = 10_000_000
+SAMPLE_TIME_RANGE_S = (1e-5, 1.0)  # 100 kHz .. 1 Hz
+MAX_FORCE_N = 1000.0  # largest excitation force a protocol may ask for (no bench exceeds it)
 
 
 
@@ -56,8 +61,10 @@ def integer(name: str, value, lo: int | None = None, none_ok: bool = False):
 
 
 def choice(name: str, value, options: tuple[str, ...]):
-    if value not in options:
-        raise UserError(f"{name} must be one of {', '.join(options)}, got {value!r}")
+    if not isinstance(value, str) or value not in options:
+        close = difflib.get_close_matches(str(value), options, n=1) if isinstance(value, str) else []
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise UserError(f"{name} must be one of {', '.join(options)}, got {value!r}{hint}")
     return value
 
 
@@ -65,7 +72,16 @@ class Config:
     """Mixin for frozen config dataclasses: ``check()`` validates, ``as_dict()`` serialises."""
 
     def __post_init__(self):
+        names = {f.name for f in fields(self)}
+        if "sample_time_s" in names:  # before anything divides by it
+            lo, hi = SAMPLE_TIME_RANGE_S
+            self._set("sample_time_s", number("sample_time_s", self.sample_time_s, "s", lo=lo, hi=hi))
         self.check()
+        if "sample_time_s" in names and "duration_s" in names:  # before anything is allocated
+            n = self.duration_s / self.sample_time_s
+            if n > MAX_SAMPLES:
+                raise UserError(f"duration_s {self.duration_s:g} s at {self.sample_time_s:g} s per "
+                                f"sample is {n:.3g} samples; at most {MAX_SAMPLES:.0e} fit in memory")
 
     def check(self) -> None:  # pragma: no cover - every config overrides it
         raise NotImplementedError

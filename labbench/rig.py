@@ -17,7 +17,9 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench.errors import UserError
+from labbench.errors import UserError, unknown_name
+from labbench.input_files import read_text
+from labbench.safety import SafetyConfig
 from labbench.ve import DEFAULT_PLANT, Plant
 
 
@@ -65,52 +67,85 @@ class Rig:
         }
 
 
-_POSITIVE = ("sample_time_s", "counts_per_rev", "lever_arm_m", "force_limit_n", "velocity_limit_m_s",
-             "nominal_mass_kg")
-_NON_NEGATIVE = ("nominal_damping_ns_m",)
+# [rig] numbers: (lowest, highest, unit); a lowest of 0 is excluded except for damping.
+# Upper bounds are physical: no haptic bench is beyond them, and a typo (1e308) is caught.
+_BOUNDS = {
+    "sample_time_s": (1e-5, 1.0, "s"),  # 100 kHz .. 1 Hz; the loop keeps every sample in memory
+    "counts_per_rev": (0.0, 1e9, "counts"),
+    "lever_arm_m": (0.0, 10.0, "m"),
+    "force_limit_n": (0.0, 1000.0, "N"),
+    "velocity_limit_m_s": (0.0, 1000.0, "m/s"),
+    "nominal_mass_kg": (1e-6, 1000.0, "kg"),
+    "nominal_damping_ns_m": (0.0, 1e4, "N s/m"),
+}
+_ZERO_OK = ("nominal_damping_ns_m",)
+MAX_POSITION_M = 1000.0
+MAX_NAME = 200
+MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a rig file
+
+
+def _tables() -> tuple[str, ...]:
+    """Tables a rig file may hold: [rig], [safety], and one per device backend (its name)."""
+    from labbench.registry import device_names  # names only: no backend is imported
+
+    return ("rig", "safety", *device_names())
 
 
 def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
-    """Validate a parsed rig table (``{"rig": {...}, "sim": {...}, ...}``)."""
+    """Validate a parsed rig table (``{"rig": {...}, "sim": {...}, ...}``).
+
+    Unknown tables and fields are errors naming the nearest valid one; numbers
+    must lie within ``_BOUNDS``; [safety] is validated here too
+    (``labbench.safety.SafetyConfig``), so a bad limit stops before any device
+    is opened.
+    """
+    tables = _tables()
+    for k, v in d.items():
+        if k not in tables:
+            raise UserError(f"{source}: {unknown_name('table', k, tables)}")
+        if not isinstance(v, dict):
+            raise UserError(f"{source}: [{k}] must be a table, got {type(v).__name__}")
     common = dict(d.get("rig", {}))
     known = set(Rig.__dataclass_fields__) - {"sections", "source"}
-    unknown = set(common) - known
-    if unknown:
-        raise UserError(f"{source}: unknown field(s) in [rig]: {', '.join(sorted(unknown))}")
-    for name in _POSITIVE + _NON_NEGATIVE:
+    for name in common:
+        if name not in known:
+            raise UserError(f"{source}: [rig] {unknown_name('field', name, known)}")
+    for name, (lo, hi, unit) in _BOUNDS.items():
         if name in common:
             v = common[name]
             ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            if not ok or not (v > 0 or (name in _NON_NEGATIVE and v == 0)):
-                kind = "a number >= 0" if name in _NON_NEGATIVE else "a positive number"
-                raise UserError(f"{source}: [rig] {name} must be {kind}, got {v!r}")
+            closed = lo > 0 or name in _ZERO_OK  # the lowest value itself allowed
+            if not ok or not ((v >= lo if closed else v > lo) and v <= hi):
+                low = f"[{lo:g}" if closed else f"({lo:g}"
+                raise UserError(f"{source}: [rig] {name} must be a number in {low}, {hi:g}] {unit}, "
+                                f"got {v!r}")
             common[name] = float(v)
     if "position_limits_m" in common:
         lim = common["position_limits_m"]
         if (not isinstance(lim, list) or len(lim) != 2
-                or not all(isinstance(x, (int, float)) for x in lim) or not lim[0] < lim[1]):
-            raise UserError(f"{source}: [rig] position_limits_m must be [low, high] with low < high")
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                           and abs(x) <= MAX_POSITION_M for x in lim) or not lim[0] < lim[1]):
+            raise UserError(f"{source}: [rig] position_limits_m must be [low, high] with low < high, "
+                            f"each within +-{MAX_POSITION_M:g} m")
         common["position_limits_m"] = (float(lim[0]), float(lim[1]))
-    if "name" in common and not isinstance(common["name"], str):
-        raise UserError(f"{source}: [rig] name must be a string")
+    if "name" in common and (not isinstance(common["name"], str) or len(common["name"]) > MAX_NAME):
+        raise UserError(f"{source}: [rig] name must be a string of at most {MAX_NAME} characters")
     sections = {k: v for k, v in d.items() if k != "rig"}
-    for k, v in sections.items():
-        if not isinstance(v, dict):
-            raise UserError(f"{source}: [{k}] must be a table")
-    return Rig(**common, sections=sections, source=source)
+    rig = Rig(**common, sections=sections, source=source)
+    SafetyConfig.from_rig(rig)  # raises for a bad [safety] table
+    return rig
 
 
 def load_rig(path: str | Path | None) -> Rig:
-    """Read a rig file; ``None`` gives the default simulated rig."""
+    """Read a rig file (a regular file of at most 1 MiB); ``None`` gives the default simulated rig."""
     if path is None:
         return Rig()
     p = Path(path)
+    text = read_text(p, "rig file", MAX_RIG_FILE_BYTES)
     try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise UserError(f"rig file not found: {p}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"cannot read rig file {p}: {exc}") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{p}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise UserError(f"{p}: not valid TOML: nested too deeply") from None
     return rig_from_dict(data, source=str(p))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
-from labbench.errors import UserError
+from labbench.errors import UserError, unknown_name
 
 # Bits of the page channel "flags" (one int per sample; 0 = nothing happened).
 CLAMP = 1  # force clamp engaged (|command| held at force_limit_n)
@@ -69,14 +69,17 @@ class SafetyConfig:
             if not _is_number(v) or not math.isfinite(v):
                 raise UserError(f"safety {f.name} must be a finite number, got {v!r}")
             minimum_ok = v >= 0 if f.name in _NON_NEGATIVE else v > 0
-            if not minimum_ok:
-                kind = ">= 0" if f.name in _NON_NEGATIVE else "positive"
-                raise UserError(f"safety {f.name} must be {kind}, got {v!r}")
+            hi, unit = _MAX[f.name]
+            if not minimum_ok or v > hi:
+                low = "[0" if f.name in _NON_NEGATIVE else "(0"
+                raise UserError(f"safety {f.name} must be in {low}, {hi:g}] {unit}, got {v!r}")
             object.__setattr__(self, f.name, float(v))
         lim = self.position_limits_m
         if (not isinstance(lim, (list, tuple)) or len(lim) != 2
-                or not all(_is_number(x) and math.isfinite(x) for x in lim) or not lim[0] < lim[1]):
-            raise UserError(f"safety position_limits_m must be (low, high) with low < high, got {lim!r}")
+                or not all(_is_number(x) and abs(x) <= _MAX_POSITION_M for x in lim)
+                or not lim[0] < lim[1]):
+            raise UserError(f"safety position_limits_m must be (low, high) with low < high, each "
+                            f"within +-{_MAX_POSITION_M:g} m, got {lim!r}")
         object.__setattr__(self, "position_limits_m", (float(lim[0]), float(lim[1])))
 
     @classmethod
@@ -90,10 +93,9 @@ class SafetyConfig:
         }
         table = rig.section("safety")
         known = {f.name for f in fields(cls)} - {"force_limit_n", "position_limits_m", "velocity_limit_m_s"}
-        unknown = set(table) - known
-        if unknown:
-            raise UserError(f"{rig.source}: unknown field(s) in [safety]: {', '.join(sorted(unknown))}"
-                            f" (known: {', '.join(sorted(known))})")
+        for name in table:
+            if name not in known:
+                raise UserError(f"{rig.source}: [safety] {unknown_name('field', name, known)}")
         settings.update(table)
         settings.update(overrides)
         try:
@@ -110,6 +112,18 @@ class SafetyConfig:
 
 
 _NON_NEGATIVE = {"nominal_damping_ns_m", "enable_force_threshold_n"}
+# Physical upper bound of each limit (no haptic bench is beyond them; 1e308 is a typo).
+_MAX = {
+    "force_limit_n": (1000.0, "N"),
+    "force_rate_limit_n_per_s": (1e9, "N/s"),  # above 1000 N per 10 us sample: no limit
+    "velocity_limit_m_s": (1000.0, "m/s"),
+    "energy_limit_j": (1000.0, "J"),
+    "energy_fade_s": (10.0, "s"),
+    "nominal_damping_ns_m": (1e4, "N s/m"),
+    "watchdog_s": (10.0, "s"),
+    "enable_force_threshold_n": (1000.0, "N"),
+}
+_MAX_POSITION_M = 1000.0
 
 
 def _is_number(v) -> bool:

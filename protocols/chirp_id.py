@@ -20,6 +20,7 @@ from labbench.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
     MAX_DURATION_S,
+    MAX_FORCE_N,
     Config,
     ProtocolBase,
     Segment,
@@ -59,13 +60,15 @@ class ChirpIdConfig(Config):
         if self.f1_hz >= nyquist:
             raise UserError(f"f1_hz must be below the Nyquist frequency {nyquist:g} Hz, got {self.f1_hz:g}")
         choice("sweep", self.sweep, excitation.SWEEPS)
-        self._set("amplitude_n", number("amplitude_n", self.amplitude_n, "N", lo=0, lo_open=True))
+        self._set("amplitude_n", number("amplitude_n", self.amplitude_n, "N", lo=0, lo_open=True,
+                                        hi=MAX_FORCE_N))
         self._set("x_max_m", number("x_max_m", self.x_max_m, "m", lo=0, lo_open=True))
         self._set("duration_s", number("duration_s", self.duration_s, "s", lo=0, lo_open=True,
                                               hi=MAX_DURATION_S))
         self._set("fade_s", number("fade_s", self.fade_s, "s", lo=0, hi=self.duration_s / 2))
-        if not isinstance(self.model, str) or not self.model:
-            raise UserError(f"model must be a model name, got {self.model!r}")
+        from labbench.analysis.identify import MODEL_CHOICES  # checked now: not after the run
+
+        choice("model", self.model, MODEL_CHOICES)
         if isinstance(self.methods, str):
             methods = (self.methods,)
         elif isinstance(self.methods, (list, tuple)):

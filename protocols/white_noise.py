@@ -18,6 +18,7 @@ from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
     MAX_DURATION_S,
+    MAX_FORCE_N,
     Config,
     ProtocolBase,
     Segment,
@@ -59,7 +60,7 @@ class EtfeConfig(Config):
         check_ve_fields(self)
         self._set("sample_time_s", number("sample_time_s", self.sample_time_s, "s", lo=0, lo_open=True))
         nyquist = 0.5 / self.sample_time_s
-        self._set("std_n", number("std_n", self.std_n, "N", lo=0, lo_open=True))
+        self._set("std_n", number("std_n", self.std_n, "N", lo=0, lo_open=True, hi=MAX_FORCE_N))
         self._set("band_lo_hz", number("band_lo_hz", self.band_lo_hz, "Hz", lo=0, hi=nyquist))
         self._set("band_hi_hz", number("band_hi_hz", self.band_hi_hz, "Hz", lo=0, lo_open=True,
                                        hi=nyquist, none_ok=True))
@@ -72,8 +73,10 @@ class EtfeConfig(Config):
             self._set("seed", secrets.randbits(32))
         self._set("seed", integer("seed", self.seed, lo=0))
         self._set("window", integer("window", self.window, lo=1))
-        if self.estimator is not None and not isinstance(self.estimator, str):
-            raise UserError(f"estimator must be a name, got {self.estimator!r}")
+        if self.estimator is not None:  # checked now: not after the whole run
+            from labbench.analysis.etfe import ESTIMATORS
+
+            choice("estimator", self.estimator, ESTIMATORS)
         check_plant_fields(self)
         if not isinstance(self.allow_unstable, bool):
             raise UserError(f"allow_unstable must be true or false, got {self.allow_unstable!r}")

@@ -180,10 +180,23 @@ def test_device_with_other_sample_time_is_refused():
         run(Spy(), p, [], rig=Rig())
 
 
-def test_analysis_error_is_reported_not_raised():
-    p = make_protocol("chirp-id", duration_s=12.0, methods=("l2",), model="no-such-model")
+def test_analysis_error_is_reported_not_raised(monkeypatch):
+    from labbench.analysis import identify
+
+    def refuses(*_a, **_kw):
+        raise UserError("too little excitation to identify")
+
+    monkeypatch.setattr(identify, "identify", refuses)
+    p = make_protocol("chirp-id", duration_s=12.0, methods=("l2",))
     res = run(Spy(), p, [], rig=Rig())
-    assert res.status == "success" and "unknown model" in res.results["error"]
+    assert res.status == "success" and "too little excitation" in res.results["error"]
+
+
+def test_bad_analysis_option_is_refused_before_the_run():
+    with pytest.raises(UserError, match="did you mean 'mb'"):
+        make_protocol("chirp-id", duration_s=12.0, model="mbx")
+    with pytest.raises(UserError, match="did you mean 'lpm'"):
+        make_protocol("etfe", duration_s=12.0, estimator="lmp")
 
 
 def test_probe_segments_are_announced_and_homing_kept_apart():
