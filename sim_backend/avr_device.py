@@ -21,11 +21,14 @@ sketch's ``PWM_PER_NEWTON``.
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from labbench.errors import DeviceConnectionError, UserError
 from labbench.sim_backend import avr_build
@@ -45,6 +48,32 @@ class Trace:
     rx: list  # (first_s, last_s, nbytes) per host frame handed to the UART
     vec: list  # (pending_s, running_s, return_s, count_pending, count_running) per traced ISR
     force: list  # (t_s, newton) from then on
+
+    def force_at(self, t) -> np.ndarray:
+        """The force the plant felt at times ``t`` [s] (0 before the first change)."""
+        times = np.array([at for at, _ in self.force])
+        values = np.r_[0.0, [f for _, f in self.force]]
+        return values[np.searchsorted(times, np.asarray(t, float), side="right")]
+
+    def plant_positions(self, t, m: float, b: float) -> np.ndarray:
+        """Positions at ascending times ``t`` of a mass-damper at rest at 0 under the
+        recorded forces, integrated exactly between changes (labbench.theory.zoh_matrices),
+        independently of the harness's own closed form."""
+        from labbench.theory import zoh_matrices
+
+        x, t_now, out = np.zeros(2), 0.0, []
+        events = iter(self.force + [(math.inf, 0.0)])
+        at, f_next = next(events)
+        f_now = 0.0
+        for t_k in np.asarray(t, float):
+            while at <= t_k:
+                Ad, Bd = zoh_matrices(m, b, at - t_now)
+                x, t_now, f_now = Ad @ x + Bd * f_now, at, f_next
+                at, f_next = next(events)
+            Ad, Bd = zoh_matrices(m, b, t_k - t_now)
+            x, t_now = Ad @ x + Bd * f_now, t_k
+            out.append(x[0])
+        return np.array(out)
 
     @classmethod
     def read(cls, path: Path) -> Trace:

@@ -20,7 +20,6 @@ from labbench.drivers import serial_stream as ss
 from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend import avr_build
 from labbench.sim_backend.avr_device import connect_avr_sim
-from labbench.theory import zoh_matrices
 
 missing = avr_build.missing_tools()
 pytestmark = pytest.mark.skipif(
@@ -96,26 +95,10 @@ def test_closed_loop_in_lock_step_counts_and_force_feedback():
         i = np.searchsorted(starts, at) - 1
         assert 0 <= i and at - starts[i] < 30e-6
 
-    # The plant, integrated here from the forces the firmware applied, is where
-    # the board's encoder says it is (one count: edges are timed within 4 us steps).
-    Ad, Bd = None, None
-    x = np.zeros(2)
-    t_now, f_now, k_event = 0.0, 0.0, 0
-    for j, s in enumerate(samples):
-        t_tick = vec[s.seq, 0]
-        while True:
-            t_next = events[k_event][0] if k_event < len(events) else math.inf
-            t_stop = min(t_next, t_tick)
-            if t_stop > t_now:
-                Ad, Bd = zoh_matrices(RIG.nominal_mass_kg, RIG.nominal_damping_ns_m, t_stop - t_now)
-                x = Ad @ x + Bd * f_now
-                t_now = t_stop
-            if t_next <= t_tick:
-                f_now = events[k_event][1]
-                k_event += 1
-            else:
-                break
-        assert abs(x[0] / MPC - counts[j]) <= 1.0
+    # The plant, integrated again from the forces the firmware applied, is where the
+    # board's encoder says it is (one count: edges are timed within 4 us steps).
+    x = trace.plant_positions(vec[seq, 0], RIG.nominal_mass_kg, RIG.nominal_damping_ns_m)
+    assert np.max(np.abs(x / MPC - counts)) <= 1.0
 
 
 def truth_error(samples, vec):

@@ -151,13 +151,15 @@ int16_t duty_of(float force_n) {
 }
 
 inline void drive_duty(int16_t duty) {
-  if (duty < 0) {
-    PORTB |= _BV(PB0);
-    OCR1A = -duty;
-  } else {
-    PORTB &= ~_BV(PB0);
-    OCR1A = duty;
+  // On a change of sign the magnitude goes to zero first: DIR flipping under the
+  // old magnitude would be a pulse of the wrong force, not just a step.
+  bool negative = duty < 0;
+  if (negative != (bool)(PORTB & _BV(PB0))) {
+    OCR1A = 0;
+    if (negative) PORTB |= _BV(PB0);
+    else PORTB &= ~_BV(PB0);
   }
+  OCR1A = negative ? -duty : duty;
 }
 
 // ---- UART0: own interrupt-driven rings (the core's Serial costs twice the cycles) --
@@ -223,19 +225,17 @@ uint32_t next_us = 0;                  // time of the coming tick
 ISR(TIMER2_COMPA_vect) {
   // Interrupts are off here: an edge coming now is counted after the latch.
   tick_count = extend_count();
+  // The force for this period, right after the latch (the sampled model's ZOH).
+  if (command_age < 255) command_age++;
+  bool fed = command_age <= WATCHDOG_PERIODS;
+  drive_duty(fed ? command_duty : 0);
+  sei();  // latched and driven: from here on an encoder edge may interrupt this one
+  if (!fed) tick_status |= STATUS_WATCHDOG;
   tick_us = next_us;
   next_us += PERIOD_US;
   if (sample_ready) tick_status |= STATUS_MISSED_TICK;
   tick_seq++;
   sample_ready = true;
-  sei();  // latched: from here on an encoder edge may interrupt this one
-  if (command_age < 255) command_age++;
-  if (command_age > WATCHDOG_PERIODS) {
-    drive_duty(0);
-    tick_status |= STATUS_WATCHDOG;
-  } else {
-    drive_duty(command_duty);
-  }
   if (GPIOR0 & ENC_SKIPPED) {
     GPIOR0 &= ~ENC_SKIPPED;
     tick_status |= STATUS_ENCODER;
