@@ -12,6 +12,8 @@ Two board -> host forms (docs/serial-protocol.md is the user-facing spec):
   ``'S' u8 | seq u16 | micros u32 | count i32 | status u8 | crc u16``
   command (host -> board,  9 bytes):
   ``'F' u8 | seq u16 | value f32 | crc u16``
+  params  (host -> board, 24 bytes, protocol v2, on-board VE):
+  ``'P' u8 | on u8 | K f32 | B f32 | w0 f32 | limit f32 | metres_per_count f32 | crc u16``
 
 The parsers take arbitrary chunks, keep the partial tail, never raise on bad
 input, and count what they threw away, so a stream resynchronises by itself
@@ -27,8 +29,10 @@ from typing import NamedTuple
 
 SAMPLE_TYPE = 0x53  # 'S'
 COMMAND_TYPE = 0x46  # 'F'
+PARAMS_TYPE = 0x50  # 'P' (protocol v2): the VE the board renders itself
 _SAMPLE = struct.Struct("<BHIiB")
 _COMMAND = struct.Struct("<BHf")
+_PARAMS = struct.Struct("<BBfffff")
 _CRC = struct.Struct("<H")
 SAMPLE_PAYLOAD_LEN = _SAMPLE.size + _CRC.size  # 14
 COMMAND_PAYLOAD_LEN = _COMMAND.size + _CRC.size  # 9
@@ -43,6 +47,8 @@ STATUS_BAD_COMMAND = 0x02  # board discarded a command frame (CRC/format) since 
 STATUS_MISSED_TICK = 0x04  # v2: a sample before this one was latched but never sent
 STATUS_LATE = 0x08  # v2: this frame was queued late after its tick (its timing is suspect)
 STATUS_ENCODER = 0x10  # v2: the encoder skipped a state (an edge came too fast to count)
+STATUS_RENDERING = 0x20  # v2: the board renders the VE itself ('F' values are excitation)
+STATUS_RENDER_LATE = 0x40  # v2: a rendered force was not ready by its tick (the last one held)
 
 # One accepted ASCII line: decimal micros (0..4294967295, at most 10 digits),
 # one separator (comma, semicolon, tab or spaces; blanks allowed around it),
@@ -105,6 +111,13 @@ def encode_sample(seq: int, t_us: int, count: int, status: int = 0) -> bytes:
 def encode_command(seq: int, value: float) -> bytes:
     """One framed force command answering sample ``seq``."""
     return _frame(_COMMAND.pack(COMMAND_TYPE, seq & 0xFFFF, value))
+
+
+def encode_params(on: bool, K: float, B: float, w0_rad_s: float, limit_n: float,
+                  metres_per_count: float) -> bytes:
+    """One framed on-board VE (v2): spring K [N/m], damper B [N s/m] on the velocity
+    low-passed at w0 [rad/s] (inf: none), force limit [N], encoder metres per count."""
+    return _frame(_PARAMS.pack(PARAMS_TYPE, bool(on), K, B, w0_rad_s, limit_n, metres_per_count))
 
 
 def format_ascii(t_us: int, count: int) -> bytes:

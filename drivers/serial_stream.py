@@ -44,12 +44,16 @@ FLAG_BACKLOG = 16  # more samples were already waiting behind this one (host is 
 FLAG_BOARD_MISSED_TICK = 32  # protocol v2: the board latched a sample it could not send
 FLAG_BOARD_LATE = 64  # protocol v2: the board queued this frame late after its tick
 FLAG_BOARD_ENCODER = 128  # protocol v2: the board's encoder skipped a state (count lost)
+FLAG_BOARD_RENDERING = 256  # protocol v2: the board renders the VE (command = excitation)
+FLAG_BOARD_RENDER_LATE = 512  # protocol v2: a rendered force came late (the last one held)
 _STATUS_FLAGS = (
     (framing.STATUS_WATCHDOG, FLAG_BOARD_WATCHDOG),
     (framing.STATUS_BAD_COMMAND, FLAG_BOARD_BAD_COMMAND),
     (framing.STATUS_MISSED_TICK, FLAG_BOARD_MISSED_TICK),
     (framing.STATUS_LATE, FLAG_BOARD_LATE),
     (framing.STATUS_ENCODER, FLAG_BOARD_ENCODER),
+    (framing.STATUS_RENDERING, FLAG_BOARD_RENDERING),
+    (framing.STATUS_RENDER_LATE, FLAG_BOARD_RENDER_LATE),
 )
 
 SYNC_SAMPLES = 5  # consecutive good samples that make a stream "in sync"
@@ -406,6 +410,21 @@ class SerialStream:
             self._force = 0.0
             self._send(0.0)
 
+    def render_on_board(self, ve, on: bool = True) -> None:
+        """Have a protocol-v2 board render ``ve`` (spring, damper, spring-damper: K, B,
+        w0) from its own encoder at its render rate, clamped to the rig's force limit;
+        ``command()`` values are then the excitation added to it. ``on=False``: back to
+        the host loop. Samples carry ``FLAG_BOARD_RENDERING`` while it renders."""
+        if not self.config.force_command:
+            raise UserError("on-board rendering needs [serial] force_command = true")
+        if ve.td:
+            raise UserError(f"the board renders with its own delay (one render tick), not td = {ve.td:g} s")
+        u = self._unit  # values in command units: N, or N m at the joint
+        scale = self.config.direction * self.rig.metres_per_count
+        frame = framing.encode_params(on, ve.K * u, ve.B * u, ve.w0, self.rig.force_limit_n * u,
+                                      scale)
+        self._write_frame(frame)
+
     @property
     def commanded_force_n(self) -> float:
         """The force last sent (0 after any fault)."""
@@ -495,15 +514,17 @@ class SerialStream:
     def _send(self, force_n: float) -> None:
         if not self.config.force_command or self._closed:
             return
-        frame = framing.encode_command(self._last_seq, force_n * self._unit)
         try:
-            if self._fd is None:
-                self.port.write(frame)
-            elif os.write(self._fd, frame) != len(frame):
-                raise BlockingIOError("output buffer full")
+            self._write_frame(framing.encode_command(self._last_seq, force_n * self._unit))
         except Exception as exc:  # noqa: BLE001 - full buffer, write timeout or lost port
             if force_n != 0.0:
                 self._trip(f"cannot send force command: {exc}")
+
+    def _write_frame(self, frame: bytes) -> None:
+        if self._fd is None:
+            self.port.write(frame)
+        elif os.write(self._fd, frame) != len(frame):
+            raise BlockingIOError("output buffer full")
 
     def _latch(self, reason: str) -> None:
         """Zero the force and latch ``reason`` (never raises)."""

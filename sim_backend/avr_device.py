@@ -35,7 +35,8 @@ from labbench.sim_backend import avr_build
 
 CPU_HZ = 16_000_000
 PWM_PER_NEWTON = 40.0  # the sketch's default: duty counts (of 255) per newton
-VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's sample tick
+VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's tick
+RENDER_DIV = 5  # the sketch's default: render ticks per sample (5 kHz at T = 1 ms)
 LOCKSTEP_TIMEOUT_S = 1.0
 _PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s")
 
@@ -48,6 +49,14 @@ class Trace:
     rx: list  # (first_s, last_s, nbytes) per host frame handed to the UART
     vec: list  # (pending_s, running_s, return_s, count_pending, count_running) per traced ISR
     force: list  # (t_s, newton) from then on
+    period_s: float = 0.001
+
+    def sample_ticks(self) -> np.ndarray:
+        """``vec`` rows of the ticks that latched samples (row k: sample seq k): the
+        ticks on the sample grid (the render ticks between them are off it)."""
+        vec = np.array(self.vec)
+        phase = (vec[:, 0] - vec[0, 0]) / self.period_s
+        return vec[np.abs(phase - np.round(phase)) < 0.05]
 
     def force_at(self, t) -> np.ndarray:
         """The force the plant felt at times ``t`` [s] (0 before the first change)."""
@@ -76,7 +85,7 @@ class Trace:
         return np.array(out)
 
     @classmethod
-    def read(cls, path: Path) -> Trace:
+    def read(cls, path: Path, period_s: float) -> Trace:
         out = {"tx": [], "rx": [], "vec": [], "force": []}
         for line in path.read_text().splitlines():
             kind, *fields = line.split()
@@ -87,7 +96,7 @@ class Trace:
                 out["vec"].append((*t, int(fields[3]), int(fields[4])))
             elif kind == "force":
                 out["force"].append((int(fields[0]) / CPU_HZ, float(fields[1])))
-        return cls(**out)
+        return cls(**out, period_s=period_s)
 
 
 class AvrBoard:
@@ -112,6 +121,7 @@ class AvrBoard:
         host_latency_us: float = 30.0,
         trace: bool = False,
         trace_vector: int = VECTOR_TIMER2_COMPA,
+        sample_time_s: float = 0.001,
         drive_cps: float | None = None,
         drive_ms: tuple[float, float] = (0.0, 0.0),
         max_ms: float = 0.0,
@@ -119,6 +129,7 @@ class AvrBoard:
         exe = avr_build.build_harness()
         self._dir = Path(tempfile.mkdtemp(prefix="avr-sim-"))
         self.trace_path = self._dir / "trace.txt" if trace else None
+        self.sample_time_s = sample_time_s
         args = [
             str(exe), "--hex", str(hex_path), "--mass", repr(mass_kg),
             "--damping", repr(damping_ns_m), "--metres-per-count", repr(metres_per_count),
@@ -178,7 +189,7 @@ class AvrBoard:
 
     def trace(self) -> Trace:
         """The events of the run (after ``close``)."""
-        return Trace.read(self.trace_path)
+        return Trace.read(self.trace_path, self.sample_time_s)
 
     def __del__(self):
         proc = getattr(self, "_proc", None)
@@ -243,6 +254,7 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
         host_latency_us=host_latency_us,
         trace=trace,
         trace_vector=trace_vector,
+        sample_time_s=rig.sample_time_s,
         drive_cps=drive_cps,
         drive_ms=drive_ms,
     )

@@ -63,7 +63,7 @@ def test_the_host_loop_closes_through_the_board_one_sample_late_quantised():
     exc = np.random.default_rng(5).normal(0.0, 0.5, 1500)
     exc[0] = 0.0  # the enable gate opens at the first sample
     data, trace = through_board(ve, exc, trace=True)
-    ticks = np.array(trace.vec)[data["seq"], 0]
+    ticks = trace.sample_ticks()[data["seq"], 0]
     # Over each period the board drives the command sent after the previous sample.
     np.testing.assert_array_equal(trace.force_at(ticks + 50e-6), applied(data["command"]))
     measured = data["position"] / RIG.metres_per_count
@@ -78,6 +78,7 @@ def test_the_host_loop_closes_through_the_board_one_sample_late_quantised():
 def test_etfe_through_the_firmware_matches_the_sampled_theory_with_td_one_sample():
     proto = make_protocol("etfe", duration_s=120.0, seed=11, td_s=0.0)
     exc = proto.excitation()
+    exc[0] = 0.0  # the enable gate opens at the first sample
     data = through_board(proto.ve, exc)
     rec = recording_from_arrays(data["t"], np.r_[0.0, data["excitation"][:-1]], data["position"])
     est = etfe(rec)

@@ -36,6 +36,9 @@
 #ifndef LATE_US
 #define LATE_US 40                // a frame queued later than this after its tick is flagged
 #endif
+#ifndef RENDER_DIV
+#define RENDER_DIV 5              // render ticks per sample: the on-board VE runs at 5 kHz
+#endif
 #define ENC_A 2                   // encoder channels: PD2 (INT0) and PD3 (INT1)
 #define ENC_B 3
 #define PWM_PIN 9                 // force magnitude: OC1A (PB1), 8-bit phase-correct PWM, 31.4 kHz
@@ -47,23 +50,28 @@
 #define STATUS_MISSED_TICK 0x04   // a sample before this one was latched but never sent
 #define STATUS_LATE 0x08          // this frame was queued more than LATE_US after its tick
 #define STATUS_ENCODER 0x10       // the encoder skipped a state (counted as two steps on)
+#define STATUS_RENDERING 0x20     // the board renders the VE itself (on-board mode)
+#define STATUS_RENDER_LATE 0x40   // a render force was not ready by its tick (the last one held)
 
-// ---- Timer2 tick: prescaler and compare value for PERIOD_US ------------------
-// 16 MHz / prescaler must divide the period into at most 256 timer counts.
+// ---- Timer2 tick: prescaler and compare values -------------------------------
+// 16 MHz / prescaler must divide the period into at most 256 timer counts; the
+// render tick (PERIOD_US / RENDER_DIV, only while the board renders) uses the same.
 #if PERIOD_US * 16UL / 64UL <= 256UL && (PERIOD_US * 16UL) % 64UL == 0
 #define TICK_PRESCALE_BITS (_BV(CS22))                      // /64: 4 us per count
-#define TICK_COUNTS (PERIOD_US * 16UL / 64UL)
 #define US_PER_COUNT 4
 #elif PERIOD_US * 16UL / 128UL <= 256UL && (PERIOD_US * 16UL) % 128UL == 0
 #define TICK_PRESCALE_BITS (_BV(CS22) | _BV(CS20))          // /128: 8 us per count
-#define TICK_COUNTS (PERIOD_US * 16UL / 128UL)
 #define US_PER_COUNT 8
 #elif PERIOD_US * 16UL / 256UL <= 256UL && (PERIOD_US * 16UL) % 256UL == 0
 #define TICK_PRESCALE_BITS (_BV(CS22) | _BV(CS21))          // /256: 16 us per count
-#define TICK_COUNTS (PERIOD_US * 16UL / 256UL)
 #define US_PER_COUNT 16
 #else
 #error "PERIOD_US must be a multiple of 4 us up to 1024, of 8 up to 2048, or of 16 up to 4096"
+#endif
+#define PERIOD_COUNTS (PERIOD_US / US_PER_COUNT)
+#define RENDER_COUNTS (PERIOD_COUNTS / RENDER_DIV)
+#if RENDER_COUNTS * RENDER_DIV != PERIOD_COUNTS
+#error "PERIOD_US / RENDER_DIV must be a whole number of timer counts"
 #endif
 
 // ---- encoder: 4x quadrature decoding from the port register -----------------
@@ -133,13 +141,7 @@ ISR(INT1_vect, ISR_ALIASOF(INT0_vect));
 int32_t enc_count = 0;        // the 32-bit count, extended in the tick
 uint16_t enc_seen = 0;        // the 16-bit counter at the last extension
 
-// Called with interrupts off: fewer than 32768 counts per tick (33 M counts/s at 1 kHz).
-inline int32_t extend_count() {
-  uint16_t now = GPIOR1 | (uint16_t)GPIOR2 << 8;
-  enc_count += (int16_t)(now - enc_seen);
-  enc_seen = now;
-  return enc_count;
-}
+// The tick extends the 16-bit counter: fewer than 32768 counts per tick (33 M counts/s).
 
 // ---- force output -------------------------------------------------------------
 // Duty is a signed count -255..255; DIR and OCR1A are written together in the tick.
@@ -150,16 +152,17 @@ int16_t duty_of(float force_n) {
   return (int16_t)(d < 0 ? d - 0.5f : d + 0.5f);  // nearest, halves away from zero
 }
 
-inline void drive_duty(int16_t duty) {
-  // On a change of sign the magnitude goes to zero first: DIR flipping under the
-  // old magnitude would be a pulse of the wrong force, not just a step.
-  bool negative = duty < 0;
-  if (negative != (bool)(PORTB & _BV(PB0))) {
-    OCR1A = 0;
-    if (negative) PORTB |= _BV(PB0);
-    else PORTB &= ~_BV(PB0);
-  }
-  OCR1A = negative ? -duty : duty;
+// The force of the coming tick, prepared by the loop (a host command, a rendered
+// force) or by the tick itself (the watchdog): the tick's first instructions drive it.
+volatile uint8_t drive_ocr = 0;  // |duty|
+volatile uint8_t drive_dir = 0;  // 1: negative (DIR high)
+
+void prepare_duty(int16_t duty) {
+  uint8_t dir = duty < 0, ocr = duty < 0 ? -duty : duty;
+  noInterrupts();
+  drive_ocr = ocr;
+  drive_dir = dir;
+  interrupts();
 }
 
 // ---- UART0: own interrupt-driven rings (the core's Serial costs twice the cycles) --
@@ -212,35 +215,145 @@ void uart_write(const uint8_t *p, uint8_t n) {
 
 void uart_print(const char *text) { uart_write((const uint8_t *)text, strlen(text)); }
 
+// ---- on-board rendering ("the Hapkit way": the VE from the board's own encoder) ---
+// Per render tick j (T_r = PERIOD_US / RENDER_DIV), in duty counts:
+//   v[j] = a v[j-1] + (1 - a) (x[j] - x[j-1])      velocity [counts per tick], a = exp(-w0 T_r)
+//   u[j] = e - (K' x[j] + B' v[j]),  K' = K mpc PWM_PER_NEWTON,  B' = B mpc PWM_PER_NEWTON / T_r
+// clamped to the force limit and driven from tick j+1 (td = T_r): labbench's sampled
+// model at the board's own period. The tick latches x[j]; the loop computes u[j]
+// (float, ~60 us) before anything else, well within the 200 us to tick j+1. e is the host's excitation (its 'F' value), taken
+// at each sample tick and zero when the host is silent: a stalled host never touches
+// the rendering.
+struct Render {
+  float k, b, c, limit;   // K', B', 1 - a, limit [duty]
+  float v;                // filtered velocity
+  int32_t x_prev;
+};
+Render render;
+volatile bool render_on = false;
+volatile bool render_due = false;  // a render tick waits for the loop
+volatile int32_t render_x;         // its count
+volatile float render_e;           // its excitation [duty]
+
+int16_t render_step(int32_t x, float e) {
+  render.v += render.c * ((float)(int16_t)(x - render.x_prev) - render.v);
+  render.x_prev = x;
+  float u = e - (render.k * (float)x + render.b * render.v);
+  if (u > render.limit) u = render.limit;
+  if (u < -render.limit) u = -render.limit;
+  return (int16_t)(u < 0 ? u - 0.5f : u + 0.5f);
+}
+
 // ---- tick ---------------------------------------------------------------------
 volatile int16_t command_duty = 0;     // newest valid command, as duty
-volatile uint8_t command_age = 255;    // ticks since it arrived (saturates)
+volatile float command_raw = 0;        // the same, unrounded (the excitation when rendering)
+volatile uint8_t command_age = 255;    // sample ticks since it arrived (saturates)
 volatile bool sample_ready = false;    // a latched sample waits for the loop
 volatile uint8_t tick_status = 0;      // status bits found in the tick
 volatile uint16_t tick_seq = 0;        // index of the latched sample (wraps)
 volatile uint32_t tick_us = 0;         // its time
 volatile int32_t tick_count = 0;       // its count
-uint32_t next_us = 0;                  // time of the coming tick
+uint32_t next_us = 0;                  // time of the coming sample tick
+uint8_t sub_tick = 0;                  // ticks since the sample tick
+volatile uint8_t ticks_per_sample = 1; // RENDER_DIV while the board renders, else 1
+volatile uint8_t render_wanted = 0;    // 0 off, 1 on: taken at the next sample tick
+float excitation = 0;                  // the excitation rendered until the next sample tick
 
-ISR(TIMER2_COMPA_vect) {
-  // Interrupts are off here: an edge coming now is counted after the latch.
-  tick_count = extend_count();
-  // The force for this period, right after the latch (the sampled model's ZOH).
-  if (command_age < 255) command_age++;
-  bool fed = command_age <= WATCHDOG_PERIODS;
-  drive_duty(fed ? command_duty : 0);
-  sei();  // latched and driven: from here on an encoder edge may interrupt this one
-  if (!fed) tick_status |= STATUS_WATCHDOG;
-  tick_us = next_us;
-  next_us += PERIOD_US;
-  if (sample_ready) tick_status |= STATUS_MISSED_TICK;
-  tick_seq++;
-  sample_ready = true;
-  if (GPIOR0 & ENC_SKIPPED) {
-    GPIOR0 &= ~ENC_SKIPPED;
-    tick_status |= STATUS_ENCODER;
+volatile uint8_t tick_lo, tick_hi;     // the 16-bit encoder counter at the tick
+extern "C" void tick_after_latch(void) __attribute__((signal, used));
+
+// The tick's first 30 cycles, with interrupts off: latch the counter, drive the
+// prepared force (on a change of sign the magnitude goes to zero first: DIR
+// flipping under the old magnitude would be a pulse of the wrong force). The rest
+// runs with interrupts on, so the encoder is never held off for more than this.
+ISR(TIMER2_COMPA_vect, ISR_NAKED) {
+  asm volatile(
+      "push r24\n\t"
+      "in r24, __SREG__\n\t"
+      "push r24\n\t"
+      "push r25\n\t"
+      "in r24, %[lo]\n\t"
+      "sts %[tlo], r24\n\t"
+      "in r24, %[hi]\n\t"
+      "sts %[thi], r24\n\t"
+      "clr r25\n\t"
+      "lds r24, %[dir]\n\t"
+      "sbrs r24, 0\n\t"
+      "rjmp 1f\n\t"
+      "sbic %[portb], 0\n\t"        // negative wanted: DIR already high?
+      "rjmp 2f\n\t"
+      "sts %[ocrh], r25\n\t"
+      "sts %[ocrl], r25\n\t"
+      "sbi %[portb], 0\n\t"
+      "rjmp 2f\n\t"
+      "1:\n\t"
+      "sbis %[portb], 0\n\t"        // positive wanted: DIR already low?
+      "rjmp 2f\n\t"
+      "sts %[ocrh], r25\n\t"
+      "sts %[ocrl], r25\n\t"
+      "cbi %[portb], 0\n\t"
+      "2:\n\t"
+      "lds r24, %[ocr]\n\t"
+      "sts %[ocrh], r25\n\t"
+      "sts %[ocrl], r24\n\t"
+      "pop r25\n\t"
+      "pop r24\n\t"
+      "out __SREG__, r24\n\t"
+      "pop r24\n\t"
+      "sei\n\t"
+      "jmp tick_after_latch\n\t"
+      :
+      : [lo] "I"(_SFR_IO_ADDR(GPIOR1)), [hi] "I"(_SFR_IO_ADDR(GPIOR2)),
+        [portb] "I"(_SFR_IO_ADDR(PORTB)), [ocrl] "n"(_SFR_MEM_ADDR(OCR1AL)),
+        [ocrh] "n"(_SFR_MEM_ADDR(OCR1AH)), [tlo] "i"(&tick_lo), [thi] "i"(&tick_hi),
+        [dir] "i"(&drive_dir), [ocr] "i"(&drive_ocr));
+}
+
+void tick_after_latch(void) {
+  uint16_t now = tick_lo | (uint16_t)tick_hi << 8;
+  enc_count += (int16_t)(now - enc_seen);
+  enc_seen = now;
+  int32_t count = enc_count;
+  bool sample = sub_tick == 0;
+  if (++sub_tick == ticks_per_sample) sub_tick = 0;
+  if (sample) {
+    tick_count = count;
+    if (command_age < 255) command_age++;
+    bool fed = command_age <= WATCHDOG_PERIODS;
+    if (!fed) tick_status |= STATUS_WATCHDOG;
+    excitation = fed ? command_raw : 0.0f;
+    if (render_on != (bool)render_wanted) {
+      // Switch between the host loop and rendering on a sample tick: the ticks stay
+      // on the sample grid.
+      render_on = render_wanted;
+      ticks_per_sample = render_on ? RENDER_DIV : 1;
+      sub_tick = ticks_per_sample > 1 ? 1 : 0;
+      OCR2A = (render_on ? RENDER_COUNTS : PERIOD_COUNTS) - 1;
+      render.x_prev = count;
+      render.v = 0;
+      prepare_duty(render_on || !fed ? 0 : command_duty);
+    } else if (!render_on && command_age + 1 > WATCHDOG_PERIODS) {
+      prepare_duty(0);  // the next tick finds no fresh command
+    }
+    if (render_on) tick_status |= STATUS_RENDERING;
+    tick_us = next_us;
+    next_us += PERIOD_US;
+    if (sample_ready) tick_status |= STATUS_MISSED_TICK;
+    tick_seq++;
+    sample_ready = true;
+    if (GPIOR0 & ENC_SKIPPED) {
+      GPIOR0 &= ~ENC_SKIPPED;
+      tick_status |= STATUS_ENCODER;
+    }
+  }
+  if (render_on) {  // the loop computes the force for the next tick (no float here)
+    if (render_due) tick_status |= STATUS_RENDER_LATE;
+    render_x = count;
+    render_e = excitation;
+    render_due = true;
   }
 }
+
 
 // ---- CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF), one table lookup per byte ---
 uint16_t crc_table[256];  // built at boot from the bitwise definition
@@ -279,41 +392,73 @@ uint8_t cobs_encode(const uint8_t *in, uint8_t n, uint8_t *out) {
 // ---- commands -------------------------------------------------------------------
 // Decoded one byte at a time as it arrives (COBS and CRC), so the loop never
 // spends more than one byte's work (or, on the delimiter, one check and one float
-// conversion: ~25 us) before it looks at the tick again.
-#define CMD_LEN 9                  // 'F' | seq u16 | force f32 | crc u16
-uint8_t cmd[CMD_LEN];
+// conversion: ~25 us) before it looks at the tick again. Two frames:
+//   'F' | seq u16 | value f32 | crc             force [N] (host loop) or excitation (on board)
+//   'P' | on u8 | K f32 | B f32 | w0 f32 | limit f32 | mpc f32 | crc   on-board VE
+#define CMD_MAX 24
+#define FORCE_LEN 9
+#define PARAMS_LEN 24
+uint8_t cmd[CMD_MAX];
 uint8_t cmd_n = 0;                 // decoded bytes so far
 uint8_t cobs_left = 0;             // data bytes left in the current COBS block
 uint8_t cobs_code = 0;             // code of the current block (0: none yet)
 bool cmd_bad = false;              // this frame is broken: skip to its delimiter
 bool cmd_any = false;              // bytes since the last delimiter
-uint16_t cmd_crc = 0xFFFF;
+uint16_t cmd_crc = 0xFFFF;         // over all decoded bytes but the last two
 uint8_t loop_status = 0;           // status bits found by the loop
 
 void cmd_push(uint8_t x) {
-  if (cmd_n == CMD_LEN) {
+  if (cmd_n == CMD_MAX) {
     cmd_bad = true;
     return;
   }
-  if (cmd_n < CMD_LEN - 2) cmd_crc = (cmd_crc << 8) ^ crc_table[(uint8_t)(cmd_crc >> 8) ^ x];
+  if (cmd_n >= 2) cmd_crc = (cmd_crc << 8) ^ crc_table[(uint8_t)(cmd_crc >> 8) ^ cmd[cmd_n - 2]];
   cmd[cmd_n++] = x;
 }
 
-void take_command_frame() {
-  bool ok = !cmd_bad && cobs_left == 0 && cmd_n == CMD_LEN && cmd[0] == 'F' &&
-            cmd_crc == (uint16_t)(cmd[7] | (cmd[8] << 8));
-  if (!ok) {
-    if (cmd_any) loop_status |= STATUS_BAD_COMMAND;
-    return;
-  }
+void take_force() {
   float f;
   memcpy(&f, cmd + 3, 4);  // AVR float is IEEE-754 binary32, little-endian
   if (f != f) return;      // NaN: keep the previous command
+  float d = f * PWM_PER_NEWTON;
   int16_t duty = duty_of(f);
   noInterrupts();
   command_duty = duty;
+  command_raw = d;
   command_age = 0;
   interrupts();
+  if (!render_on) prepare_duty(duty);
+}
+
+// The VE for on-board rendering (coefficients in duty counts per count and tick).
+void take_params() {
+  float p[5];  // K, B, w0, limit, mpc
+  memcpy(p, cmd + 2, sizeof p);
+  for (uint8_t i = 0; i < 5; i++)
+    if (p[i] != p[i] || (i != 2 && (p[i] < 0 || p[i] > 1e30f))) {
+      loop_status |= STATUS_BAD_COMMAND;
+      return;
+    }
+  const float t_r = RENDER_COUNTS * US_PER_COUNT * 1e-6f;  // the render period
+  Render r;
+  r.k = p[0] * p[4] * PWM_PER_NEWTON;
+  r.b = p[1] * p[4] * PWM_PER_NEWTON / t_r;
+  r.c = p[2] > 0 ? 1.0f - expf(-p[2] * t_r) : 1.0f;  // w0 = inf: no filter
+  r.limit = p[3] * PWM_PER_NEWTON > 255.0f ? 255.0f : p[3] * PWM_PER_NEWTON;
+  noInterrupts();
+  r.x_prev = render.x_prev;
+  r.v = render.v;
+  render = r;
+  render_wanted = cmd[1] != 0;  // the tick switches at the next sample
+  interrupts();
+}
+
+void take_command_frame() {
+  bool ok = !cmd_bad && cobs_left == 0 && cmd_n >= 3 &&
+            cmd_crc == (uint16_t)(cmd[cmd_n - 2] | (cmd[cmd_n - 1] << 8));
+  if (ok && cmd[0] == 'F' && cmd_n == FORCE_LEN) take_force();
+  else if (ok && cmd[0] == 'P' && cmd_n == PARAMS_LEN) take_params();
+  else if (cmd_any) loop_status |= STATUS_BAD_COMMAND;
 }
 
 // One byte of the command stream. A frame run into garbage without a delimiter
@@ -346,13 +491,17 @@ void send_sample() {
   uint32_t t_us = tick_us;
   int32_t count = tick_count;
   uint8_t status = tick_status | loop_status;
-  uint8_t since_tick = TCNT2;   // timer counts since the tick (no tick in between:
-  bool next_tick = TIFR2 & _BV(OCF2A);  // else the compare flag is up)
+  // Time since the sample tick: whole render ticks since, plus this one's timer count
+  // (plus one more tick if its compare flag is already up).
+  uint8_t tps = ticks_per_sample, sub = sub_tick, counts = TCNT2, top = OCR2A;
+  bool flag = TIFR2 & _BV(OCF2A);
   tick_status = 0;
   sample_ready = false;
-  interrupts();
+  interrupts();  // (the encoder waits for this block: keep it short)
   loop_status = 0;
-  if (next_tick || (uint16_t)since_tick * US_PER_COUNT > LATE_US || !uart_tx_idle())
+  uint8_t ticks = (sub == 0 ? tps - 1 : sub - 1) + flag;  // whole ticks since the sample's
+  uint16_t since = ticks * (uint16_t)(top + 1) + counts;
+  if (since * US_PER_COUNT > LATE_US || !uart_tx_idle())
     status |= STATUS_LATE;
 #if LABBENCH_ASCII
   char line[24];
@@ -389,7 +538,8 @@ void setup() {
   // the core's analogWrite runs it at 490 Hz, too slow to change force every tick).
   TCCR1A = _BV(COM1A1) | _BV(WGM10);
   TCCR1B = _BV(CS10);
-  drive_duty(0);
+  prepare_duty(0);
+  OCR1A = 0;
   uart_begin();
   uart_print("#labbench encoder v2\r\n");
 #if !LABBENCH_ASCII
@@ -401,19 +551,28 @@ void setup() {
   EICRA = _BV(ISC00) | _BV(ISC10);  // INT0, INT1 on any change
   EIFR = _BV(INTF0) | _BV(INTF1);
   EIMSK = _BV(INT0) | _BV(INT1);
-  // Timer2: clear on compare match A every PERIOD_US.
+  // Timer2: clear on compare match A every PERIOD_US (every render tick when rendering).
   TCCR2A = _BV(WGM21);
   TCCR2B = 0;
   TCNT2 = 0;
-  OCR2A = TICK_COUNTS - 1;
+  OCR2A = PERIOD_COUNTS - 1;
   TIFR2 = _BV(OCF2A);
   TIMSK2 = _BV(OCIE2A);
   TCCR2B = TICK_PRESCALE_BITS;
 }
 
 void loop() {
-  // The sample first; then one command byte, so a tick waits at most one decode.
-  if (sample_ready) send_sample();
+  // The render force first (due by the next tick), then the sample, then one command
+  // byte, so a tick waits at most one decode.
+  if (render_due) {
+    noInterrupts();
+    int32_t x = render_x;
+    float e = render_e;
+    render_due = false;
+    interrupts();
+    int16_t duty = render_step(x, e);
+    if (render_on) prepare_duty(duty);
+  } else if (sample_ready) send_sample();
   else if (rx_tail != rx_head) {
     uint8_t b = rx_buf[rx_tail];
     rx_tail = (rx_tail + 1) & (RX_SIZE - 1);
