@@ -64,6 +64,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
 
     Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
     """
+    from labbench.analysis.compare import measured_td
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
 
@@ -97,7 +98,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     if plant is not None and ve is not None:
         from labbench.theory import predicted_wb_star, predicted_ws_star
 
-        out.theory = _theory(plant, ve, w)
+        out.theory = _theory(plant, ve, w, measured_td(meta))
         out.ws_theory = predicted_ws_star(plant, ve)
         out.wb_theory = predicted_wb_star(ve)
     return out
@@ -115,19 +116,19 @@ def _identify_l2(rec) -> Plant | None:
         return None
 
 
-def _theory(plant: Plant, ve: VirtualEnvironment, w: np.ndarray) -> dict:
-    return _theory_on(plant, ve, float(max(w[w > 0].min(), 1e-2)), float(w.max()))
+def _theory(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, latency: float = 0.0) -> dict:
+    return _theory_on(plant, ve, float(max(w[w > 0].min(), 1e-2)), float(w.max()), latency)
 
 
 @functools.lru_cache(maxsize=8)
-def _theory_on(plant: Plant, ve: VirtualEnvironment, w_lo: float, w_hi: float) -> dict:
-    """Theory on 400 log-spaced points; cached, so an unchanged theory is the same object
-    (the plots then skip re-drawing it)."""
-    from labbench.theory import theory_curve
+def _theory_on(plant: Plant, ve: VirtualEnvironment, w_lo: float, w_hi: float, latency: float) -> dict:
+    """Theory on 400 log-spaced points (with the rig's measured extra delay ``latency``);
+    cached, so an unchanged theory is the same object (the plots then skip re-drawing it)."""
+    from labbench.analysis.compare import theory_curves
 
     wt = np.geomspace(w_lo, w_hi, 400)
-    key = (plant, ve, w_lo, w_hi)  # equal keys: the plots keep the theory already drawn
-    Zt = np.asarray(theory_curve(plant, ve, wt, "sampled"), complex)
+    key = (plant, ve, w_lo, w_hi, latency)  # equal keys: the plots keep the theory already drawn
+    Zt = np.asarray(theory_curves(plant, ve, wt, latency)["Z"], complex)
     eff = effective_impedances(wt, Zt)
     return {"w": wt, "Z": Zt, "ES": eff.ES, "ED": eff.ED, "EM": eff.EM, "key": key}
 

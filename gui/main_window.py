@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import math
 import threading
 import time
 from pathlib import Path
@@ -33,7 +32,8 @@ from labbench.gui.worker import Mailbox, describe_error, run_in_background, star
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.analysis.compare import ve_from_meta
+from labbench.ve import Plant
 
 log = logging.getLogger(__name__)
 
@@ -666,15 +666,6 @@ def scalar_summary(results: dict, prefix: str = "", depth: int = 2) -> str:
         elif isinstance(v, (int, str)) or v is None:
             parts.append(f"{prefix}{k} {v}")
     return ", ".join(p for p in parts if p)
-
-
-def ve_from_meta(meta: dict) -> VirtualEnvironment | None:
-    """The run's VE from analysis metadata (``labbench.session_content.analysis_meta``)."""
-    if "ve" not in meta or not meta.get("fs"):
-        return None
-    w0 = meta.get("w0")
-    return VirtualEnvironment(meta["ve"], meta.get("K", 0.0), meta.get("B", 0.0),
-                              math.inf if w0 is None else w0, 1.0 / meta["fs"], meta.get("td", 0.0))
 
 
 def precheck_text(rep: dict) -> str:

@@ -36,6 +36,11 @@ class Rig:
     # stability pre-checks and credited as dissipation by the loop's energy observer.
     nominal_mass_kg: float = DEFAULT_PLANT.m
     nominal_damping_ns_m: float = DEFAULT_PLANT.b
+    # The rig's own extra loop delay [s] beyond the VE's td (amplifier, transport, filters),
+    # as measured by ``labbench analyze etfe --fit`` (its td_s); None: not measured. The
+    # stability pre-check and theory overlays use it. ``measured_td_from``: where it came from.
+    measured_td_s: float | None = None
+    measured_td_from: str = ""
     sections: dict = field(default_factory=dict)  # backend tables, validated by the backend
     source: str = "<defaults>"
 
@@ -62,6 +67,8 @@ class Rig:
             "velocity_limit_m_s": self.velocity_limit_m_s,
             "nominal_mass_kg": self.nominal_mass_kg,
             "nominal_damping_ns_m": self.nominal_damping_ns_m,
+            "measured_td_s": self.measured_td_s,
+            "measured_td_from": self.measured_td_from,
             "sections": self.sections,
             "source": self.source,
         }
@@ -77,8 +84,9 @@ _BOUNDS = {
     "velocity_limit_m_s": (0.0, 1000.0, "m/s"),
     "nominal_mass_kg": (1e-6, 1000.0, "kg"),
     "nominal_damping_ns_m": (0.0, 1e4, "N s/m"),
+    "measured_td_s": (0.0, 1.0, "s"),
 }
-_ZERO_OK = ("nominal_damping_ns_m",)
+_ZERO_OK = ("nominal_damping_ns_m", "measured_td_s")
 MAX_POSITION_M = 1000.0
 MAX_NAME = 200
 MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a rig file
@@ -130,6 +138,9 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
         common["position_limits_m"] = (float(lim[0]), float(lim[1]))
     if "name" in common and (not isinstance(common["name"], str) or len(common["name"]) > MAX_NAME):
         raise UserError(f"{source}: [rig] name must be a string of at most {MAX_NAME} characters")
+    if "measured_td_from" in common and (not isinstance(common["measured_td_from"], str)
+                                         or len(common["measured_td_from"]) > MAX_NAME):
+        raise UserError(f"{source}: [rig] measured_td_from must be a string of at most {MAX_NAME} characters")
     sections = {k: v for k, v in d.items() if k != "rig"}
     rig = Rig(**common, sections=sections, source=source)
     SafetyConfig.from_rig(rig)  # raises for a bad [safety] table

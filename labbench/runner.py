@@ -178,7 +178,7 @@ def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop
     meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
             "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
             "protocol": protocol.describe(), "force_hold": desc.force_hold,
-            "segments": run_state.segments}
+            "td_measured": check["measured_td"]["td_s"], "segments": run_state.segments}
     total = max(int(protocol.n_samples), 1)
     gen = protocol.segments(plant)
     segment = next(gen)

@@ -2,8 +2,10 @@
 2 minutes at 1 kHz by default -> ETFE, effective impedances, theory overlay.
 
 The overlay is the exact sampled model ``labbench.theory.z_sampled`` (and the
-paper's continuous eq. 2 for comparison) with the plant m, b given in the
-config (the demo passes the chirp-ID's identified values) or the rig's nominal.
+paper's continuous eq. 2 for comparison; both from
+``labbench.analysis.compare.theory_curves``, with the rig's measured extra loop
+delay when the rig file has one) with the plant m, b given in the config (the
+demo passes the chirp-ID's identified values) or the rig's nominal.
 """
 from __future__ import annotations
 
@@ -113,6 +115,7 @@ class WhiteNoiseEtfe(ProtocolBase):
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
         impedances (labbench.effective) and the deviation from the exact sampled theory."""
         from labbench import theory
+        from labbench.analysis import compare
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
 
@@ -123,8 +126,8 @@ class WhiteNoiseEtfe(ProtocolBase):
         ve = self.ve
         w = np.asarray(est.w)
         Z = np.asarray(est.Z)
-        z_s = theory.z_sampled(plant, ve, w)
-        z_p = theory.z_paper(plant, ve, w)
+        curves = compare.theory_curves(plant, ve, w, compare.measured_td(meta))  # rig's measured delay
+        z_s, z_p = curves["sampled"], curves["paper"]
         band = (w >= DEVIATION_BAND_RAD_S[0]) & (w <= DEVIATION_BAND_RAD_S[1])
         rel = np.abs(Z[band] - z_s[band]) / np.abs(z_s[band])
         eff = effective_impedances(w, Z)

@@ -96,3 +96,68 @@ def test_fit_measures_the_simulator_latency_from_a_session(tmp_path, whole, frac
     fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START)
     assert abs(fit.td_s / T - (whole + fraction)) < 0.01
     assert abs(fit.m / PAPER_M - 1) < 1e-3
+
+
+def test_measured_td_in_the_rig_file_sets_the_precheck_boundary(tmp_path):
+    # K between the nominal K_max and the one with the rig's measured 1.5-sample delay:
+    # accepted without the measurement, refused with it, and the precheck says which td it used
+    from labbench import theory
+    from labbench.protocol import precheck
+    from labbench.registry import make_protocol
+    from labbench.rig import load_rig
+
+    p = tmp_path / "rig.toml"
+    p.write_text('[rig]\nmeasured_td_s = 0.0015\nmeasured_td_from = "analyze etfe --fit of s1"\n')
+    rig = load_rig(p)
+    plant = Plant(PAPER_M, PAPER_B)
+    ve = VirtualEnvironment("spring", K=1.0, td=0.001)
+    k_nominal = theory.k_max(plant, ve)
+    k_rig = theory.k_max(plant, ve, latency=0.0015)
+    assert k_rig < 0.7 * k_nominal
+    proto = make_protocol("etfe", ve="spring", K=0.5 * (k_rig + k_nominal), B=0.0, td_s=0.001)
+    rep = precheck(proto, plant)
+    assert rep["stable"] and rep["measured_td"]["td_s"] == 0.0
+    with pytest.raises(UserError, match="1.5 ms measured rig delay"):
+        precheck(proto, plant, rig)
+    ok = precheck(make_protocol("etfe", ve="spring", K=0.9 * k_rig, B=0.0, td_s=0.001), plant, rig)
+    assert ok["checks"][0]["k_max"] == pytest.approx(k_rig, rel=1e-3)
+    assert ok["measured_td"] == {"td_s": 0.0015, "source": f"{p}: [rig] measured_td_s (analyze etfe --fit of s1)"}
+
+
+def test_bad_measured_td_is_one_error(tmp_path):
+    from labbench.rig import load_rig
+
+    p = tmp_path / "rig.toml"
+    p.write_text("[rig]\nmeasured_td_s = -0.001\n")
+    with pytest.raises(UserError, match="measured_td_s"):
+        load_rig(p)
+
+
+def test_session_overlay_uses_the_rigs_measured_delay(tmp_path, capsys):
+    # a simulated rig with 1.5 samples of actuator latency: measured once by --fit, stored in the
+    # rig file; the next run's theory overlay (protocol results and analyze etfe) then matches
+    from labbench.registry import make_protocol
+    from labbench.rig import Rig
+    from labbench.runner import run
+    from labbench.session_format import SessionWriter
+    from labbench.sim_backend.sim_device import open_sim
+
+    def session(rig):
+        writer = SessionWriter(tmp_path / rig.source.strip("<>"))
+        dev = open_sim(rig, seed=3, extra_delay_samples=1, extra_delay_fraction=0.5)
+        res = run(dev, make_protocol("etfe", duration_s=30.0, seed=3, K=20.0), [writer], rig=rig)
+        writer.close()
+        assert res.status == "success", res.reason
+        return res, writer.path
+
+    before, path = session(Rig(source="<nominal>"))
+    assert main(["analyze", "etfe", str(path), "--fit", "--json"]) == 0
+    td = json.loads(capsys.readouterr().out)["fit"]["td_s"]
+    rig = Rig(measured_td_s=td, measured_td_from=f"analyze etfe --fit of {path.name}", source="<measured>")
+    after, path2 = session(rig)
+    dev_before = before.results["deviation_vs_sampled"]["median_rel"]
+    dev_after = after.results["deviation_vs_sampled"]["median_rel"]
+    assert dev_after < 0.01 < dev_before, (dev_before, dev_after)
+    assert main(["analyze", "etfe", str(path2), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["theory"]["latency_s"] == pytest.approx(td) and d["theory"]["deviation_median"] < 0.01

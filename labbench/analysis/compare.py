@@ -24,10 +24,11 @@ from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 
 
-def ve_from_meta(meta: dict, fs: float) -> VirtualEnvironment | None:
-    """The VE of the metadata keys ve, K, B, w0, td (None when ``ve`` is absent)."""
+def ve_from_meta(meta: dict, fs: float | None = None) -> VirtualEnvironment | None:
+    """The VE of the metadata keys ve, K, B, w0, td, fs (``fs`` when the metadata have
+    none; None when ``ve`` is absent or no sample rate is known)."""
     kind = meta.get("ve")
-    if kind is None:
+    if kind is None or (fs is None and meta.get("fs") is None):
         return None
     if kind not in VE_KINDS:
         raise UserError(f"metadata ve={kind!r} is not one of {', '.join(VE_KINDS)}")
@@ -54,48 +55,72 @@ def meta_number(meta: dict, key: str, default: float | None = None) -> float | N
         raise UserError(f"metadata {key}={value!r} is not a number") from None
 
 
-def plant_force(rec: Recording, ve: VirtualEnvironment) -> np.ndarray:
-    """Force on the plant, f_exo[k] - f_ve[k - n], with f_ve from the sampled position."""
-    x = np.asarray(rec.position, float)
-    a, T = ve.filter_pole, ve.T
-    xp = np.concatenate([[x[0]], x])  # at rest before the record: x[-1] = x[0]
-    v = signal.lfilter([(1 - a) / T, -(1 - a) / T], [1.0, -a], xp)[1:]
-    f_ve = ve.K * x + ve.B * v
-    n = ve.delay_samples if ve.td else 0
-    if n:
-        f_ve = np.concatenate([np.zeros(n), f_ve[:-n]])
-    return np.asarray(rec.force, float) - f_ve
+def plant_force(rec: Recording, ve: VirtualEnvironment | None, latency: float = 0.0) -> np.ndarray:
+    """Force on the plant: the command f_exo[k] - f_ve[k - n] (f_ve from the sampled
+    position; none in open loop) as the plant holds it after the rig's extra delay
+    ``latency`` = (d + alpha) T: (1 - alpha) u[k - d] + alpha u[k - d - 1], the two held
+    values the split step carries (``labbench.theory`` module doc), at rest before the record."""
+    u = np.asarray(rec.force, float)
+    if ve is not None and ve.kind != "none":
+        x = np.asarray(rec.position, float)
+        a, T = ve.filter_pole, ve.T
+        xp = np.concatenate([[x[0]], x])  # at rest before the record: x[-1] = x[0]
+        v = signal.lfilter([(1 - a) / T, -(1 - a) / T], [1.0, -a], xp)[1:]
+        f_ve = ve.K * x + ve.B * v
+        n = ve.delay_samples if ve.td else 0
+        u = u - np.concatenate([np.zeros(n), f_ve[: len(f_ve) - n]])
+    if latency:
+        d, alpha = theory.latency_split(latency, rec.T)
+        late = np.concatenate([np.zeros(d), u[: len(u) - d]])
+        u = (1 - alpha) * late + alpha * np.concatenate([[0.0], late[:-1]])
+    return u
 
 
 def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | None]:
-    """The record with the force the plant felt: unchanged in open loop, f_exo - f_ve when
-    the metadata name a VE. Returns (recording, ve or None)."""
+    """The record with the force the plant felt (``plant_force``, with the metadata's VE and
+    measured extra delay td_measured): unchanged in open loop without a measured delay.
+    Returns (recording, ve or None)."""
     ve = ve_from_meta(rec.meta, rec.fs)
-    if ve is None or ve.kind == "none":
+    if ve is not None and ve.kind == "none":
+        ve = None
+    latency = measured_td(rec.meta)
+    if ve is None and not latency:
         return rec, None
-    u = plant_force(rec, ve)
-    return recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source), ve
+    return recording_from_arrays(rec.t, plant_force(rec, ve, latency), rec.position, rec.meta,
+                                 rec.source), ve
 
 
-def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "l2") -> IdResult:
-    """m, b from a closed-loop record (see module doc)."""
-    u = plant_force(rec, ve)
+def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "l2",
+                         latency: float = 0.0) -> IdResult:
+    """m, b from a closed-loop record (see module doc; ``latency``: the rig's extra delay)."""
+    u = plant_force(rec, ve, latency)
     return identify(recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source),
                     model="mb", method=method)
 
 
-def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> dict:
-    """Theory curve at the measured w and the complex relative deviation |Z - Zt| / |Zt|.
+def measured_td(meta: dict) -> float:
+    """The rig's measured extra loop delay [s] of the metadata (``td_measured``; 0 when absent)."""
+    return meta_number(meta, "td_measured", 0.0)
 
-    The exact sampled model when td is whole samples, else the paper's eq. 2;
-    ``latency`` [s]: the rig's extra loop delay (``labbench.theory`` module doc),
-    in the paper's model simply added to td.
-    """
-    model = "sampled" if theory.whole_samples(ve) else "paper"
-    if model == "sampled":
-        Zt = theory.z_sampled(plant, ve, res.w, latency)
-    else:
-        Zt = theory.z_paper(plant, ve.with_(td=ve.td + latency), res.w)
+
+def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> dict:
+    """The theory overlay at w: ``sampled``, the exact sampled model (None when td is not
+    whole samples), and ``paper``, eq. 2, both with the rig's extra loop delay ``latency``
+    [s] (``labbench.theory`` module doc; in eq. 2 it simply adds to td); ``model`` and
+    ``Z``: the one to compare with, the sampled model when it exists."""
+    w = np.asarray(w, float)
+    sampled = theory.z_sampled(plant, ve, w, latency) if theory.whole_samples(ve) else None
+    paper = theory.z_paper(plant, ve.with_(td=ve.td + latency), w)
+    model = "sampled" if sampled is not None else "paper"
+    return {"model": model, "Z": sampled if sampled is not None else paper, "sampled": sampled, "paper": paper}
+
+
+def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> dict:
+    """Measured against predicted: the theory curve (``theory_curves``) at the measured w
+    and the complex relative deviation |Z - Zt| / |Zt|, its median and max over W_BAND,
+    bandwidths measured and predicted. ``Z_paper``: eq. 2 as well, for plots."""
+    curves = theory_curves(plant, ve, res.w, latency)
+    model, Zt = curves["model"], curves["Z"]
     dev = np.abs(res.Z - Zt) / np.abs(Zt)
     band = (res.w >= W_BAND[0]) & (res.w <= W_BAND[1])
     eff = effective_impedances(res.w, res.Z)
@@ -105,6 +130,7 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
         "ve": ve.as_dict(),
         "latency_s": latency,
         "Z_theory": Zt,
+        "Z_paper": curves["paper"],
         "deviation": dev,
         "deviation_median": float(np.median(dev[band])) if band.any() else None,
         "deviation_max": float(np.max(dev[band])) if band.any() else None,

@@ -68,6 +68,9 @@ def run_id(args) -> int:
                    hold=args.force_hold)
     d = res.as_dict()
     d["force_source"] = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
+    latency = compare.measured_td(rec.meta)
+    if latency:
+        d["force_source"] += f", as held after the rig's measured extra delay of {1e3 * latency:.4g} ms"
     if args.json:
         print(json.dumps(json_safe(d)))
         return 0
@@ -109,9 +112,9 @@ def run_etfe(args) -> int:
     if (args.fit or args.fit_ve) and ve is None:
         raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
     if ve is not None:
-        source, latency = "given", 0.0
+        source, latency = "given", compare.measured_td(rec.meta)
         if m is None:
-            ident = compare.identify_closed_loop(rec, ve)
+            ident = compare.identify_closed_loop(rec, ve, latency=latency)
             m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"
         if args.fit or args.fit_ve:
             from labbench.analysis.loopfit import fit_loop
@@ -122,7 +125,7 @@ def run_etfe(args) -> int:
         cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
         cmp["plant_source"] = source
         d["wb_star"] = cmp["wb_star"]
-        d["theory"] = {k: v for k, v in cmp.items() if k not in ("Z_theory", "deviation")}
+        d["theory"] = {k: v for k, v in cmp.items() if k not in ("Z_theory", "Z_paper", "deviation")}
         d["theory"]["Z_re"] = cmp["Z_theory"].real
         d["theory"]["Z_im"] = cmp["Z_theory"].imag
         d["deviation"] = cmp["deviation"]
