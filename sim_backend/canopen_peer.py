@@ -10,7 +10,8 @@ reads its bus and acts like a drive:
 * the rules of the dictionary: value limits (LowLimit/HighLimit, abort
   0x06090031/32), PDO mappability (0x06040041), mapping length (0x06040042)
   and the CiA 301 mapping procedure (a mapping is changed only with its PDO
-  invalid and sub-index 0 at zero, else abort 0x08000022);
+  invalid and sub-index 0 at zero, else abort 0x08000022; the COB-ID of a
+  valid PDO is not changed, 0x06090030);
 * NMT, the heartbeat producer 0x1017, node guarding answers (any RTR on
   0x700 + id, toggle bit per CiA 301) and life guarding 0x100C x 0x100D;
 * SYNC: advance the plant one period with the torque held since the last
@@ -230,6 +231,10 @@ class SimCanopenDrive:
                 raise SdoAbortedError(ABORT_HIGH)
         if index & 0xFE00 in (RPDO_MAP, TPDO_MAP):
             self._check_mapping(index, subindex, value)
+        elif index & 0xFE00 in (RPDO_COMM, TPDO_COMM) and subindex == 1:
+            now = self._get(index, 1, 0x8000_0000)
+            if not (now | value) & 0x8000_0000 and (now ^ value) & 0x7FF:
+                raise SdoAbortedError(ABORT_RANGE)  # the COB-ID of a valid PDO stays
         if index == 0x6060:
             if value not in self._torque_modes or not self._mode_supported(value):
                 raise SdoAbortedError(ABORT_RANGE)  # not stored, not cached

@@ -378,6 +378,7 @@ def sdo(tmp_path):
     (0x2000, 0, "<H", 0, "0x06020000"),  # no such object
     (0x1A00, 1, "<I", F.entry(0x6064, 32), "0x08000022"),  # TPDO1 still valid
     (0x607D, 3, "<i", 0, "0x06090011"),  # no such subindex
+    (0x1800, 1, "<I", 0x182, "0x06090030"),  # another COB-ID while TPDO1 is valid
 ])
 def test_simulated_drive_enforces_its_dictionary(sdo, index, sub, fmt, value, code):
     with pytest.raises(DeviceError, match=code):

@@ -174,9 +174,21 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     rt = RealtimeConfig.from_rig(rig, enabled=getattr(args, "rt", None),
                                  priority=getattr(args, "rt_priority", None))
     device = open_device(args.device, rig, **dev_opts)
+    _print_device_notes(device.describe().details)
     with ProgressBar(name) as bar:
         return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
                             simulated=args.device.startswith("sim"), realtime=rt)
+
+
+def _print_device_notes(details: dict) -> None:
+    """What a driver planned and replaced (e.g. a CANopen drive's PDO plan, its fallbacks)."""
+    for line in details.get("pdo_plan", ()):
+        print(f"labbench run: {line}", file=sys.stderr)
+    if "bus_load" in details:
+        print(f"labbench run: bus load at 1 Mbit/s {100 * details['bus_load']:.1f} %",
+              file=sys.stderr)
+    for text in details.get("warnings", ()):
+        print(f"labbench run: warning: {text}", file=sys.stderr)
 
 
 def cmd_run(args) -> int:
