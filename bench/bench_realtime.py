@@ -132,13 +132,17 @@ def main() -> int:
                         print("  " + line(r), flush=True)
                 finally:
                     stop_hogs(hogs)
-    print("overruns relative to the floor in the same conditions (sum over repeats):")
+    print("overruns per 100 000 periods, against the floor in the same conditions "
+          "(all repeats; a run that tripped counts up to its trip):")
     for n_hogs in sorted({r["hogs"] for r in results}):
-        total = {a: sum((r.get("timing") or {}).get("overruns", 0) for r in results
-                        if r["arm"] == a and r["hogs"] == n_hogs) for a in arms}
-        floor = total.get("floor")
-        parts = [f"{a} {total[a]}" + (f" ({total[a] / floor:.2g}x)" if floor else "")
-                 for a in arms]
+        rate = {}
+        for a in arms:
+            ts = [r.get("timing") or {} for r in results if r["arm"] == a and r["hogs"] == n_hogs]
+            periods = sum(t.get("periods", 0) for t in ts)
+            rate[a] = 1e5 * sum(t.get("overruns", 0) for t in ts) / periods if periods else None
+        floor = rate.get("floor")
+        parts = [f"{a} {rate[a]:.3g}" + (f" ({rate[a] / floor:.2g}x)" if floor else "")
+                 for a in arms if rate[a] is not None]
         print(f"  {n_hogs} hogs: " + ", ".join(parts))
     return 0
 

@@ -1,9 +1,13 @@
-"""Live effective impedances: re-estimate Z from the data so far, off the GUI thread.
+"""Live effective impedances: estimate Z from the data so far, off the GUI thread.
 
-The estimate is the ETFE of ``labbench.analysis.etfe`` (paper sec. 4.2) on
-everything recorded so far, decomposed by ``labbench.effective`` (paper
-Figure 2), with the theory of ``labbench.theory`` for the configured VE and
-the plant (given, or identified by l2 on the same data, paper sec. 4.1).
+While a run streams in, the estimate is the incremental Welch H1 of
+``labbench.analysis.etfe_live`` (``LIVE``): each update adds only the samples
+new since the last one, so it costs the same at any record length. Once the
+stream has ended it is the run's own ETFE of ``labbench.analysis.etfe`` (paper
+sec. 4.2) on the whole record, as the analysis computes it. Either is decomposed
+by ``labbench.effective`` (paper Figure 2), with the theory of
+``labbench.theory`` for the configured VE and the plant (given, or identified
+by l2 on the newest data, paper sec. 4.1).
 No Qt here: ``LiveEstimator`` runs ``estimate`` on one worker thread and the
 window polls for the newest finished result.
 """
@@ -16,12 +20,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from labbench.analysis.etfe_live import NAME as LIVE, LiveEtfe
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.ve import Plant, VirtualEnvironment
 
 log = logging.getLogger(__name__)
 
-MIN_SAMPLES = 2000  # below ~2 s at 1 kHz the smoothed ETFE has too few bins to show
+MIN_SAMPLES = 2048  # the live estimate's shortest segment; fewer bins are not worth showing
+LIVE_BUDGET = 2**15  # samples of segments transformed per live update (<= ~1.5 ms)
 # Live identification uses the newest ID_SAMPLES only and is redone when the data have
 # doubled: l2 with intervals costs ~0.5 s on 120 000 samples, the plant does not change.
 ID_SAMPLES = 20_000
@@ -59,10 +65,12 @@ class Estimate:
 
 def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,
              plant: Plant | None, window: int = 200, estimator: str | None = None,
-             plant_source: str = "given") -> Estimate | None:
+             plant_source: str = "given", live: LiveEtfe | None = None) -> Estimate | None:
     """ETFE of force (excitation) to position so far; None while too short to estimate.
 
-    Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
+    ``estimator`` LIVE: the samples of ``data`` beyond ``live.n`` are added to the
+    incremental ``live`` and its estimate is used; else the batch ETFE of the whole
+    record. Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
     """
     from labbench.analysis.compare import measured_td
     from labbench.analysis.dataio import recording_from_arrays
@@ -71,8 +79,17 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     n = len(data["t"])
     if n < MIN_SAMPLES:
         return None
-    rec = recording_from_arrays(data["t"], data["excitation"], data["position"], meta)
-    res = etfe(rec, estimator=estimator, window=window)
+    if estimator == LIVE:
+        live = live if live is not None else LiveEtfe(float(meta["fs"]))
+        live.add(data["excitation"][live.n:], data["position"][live.n:], budget=LIVE_BUDGET)
+        res = live.estimate()
+        if res is None:
+            return None
+        fs = live.fs
+    else:
+        rec = recording_from_arrays(data["t"], data["excitation"], data["position"], meta)
+        res = etfe(rec, estimator=estimator, window=window)
+        fs = rec.fs
     w = np.asarray(res.w, float)
     Z = np.asarray(res.Z, complex)
     Z_err = np.asarray(res.Z_err, float) if res.Z_err is not None else np.zeros_like(w)
@@ -92,7 +109,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     out = Estimate(
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
         ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
-        plant=plant, plant_source=source, w_nyquist=np.pi * rec.fs,
+        plant=plant, plant_source=source, w_nyquist=np.pi * fs,
         identified_now=identified_now, estimator=res.estimator,
     )
     if plant is not None and ve is not None:
@@ -147,11 +164,13 @@ class LiveEstimator:
         self._future: cf.Future | None = None
         self.last_error: str | None = None
         self._identified: tuple[Plant, int] | None = None  # (plant, samples it was fitted on)
+        self._live: LiveEtfe | None = None  # the incremental sums of this stream
 
     def reset(self) -> None:
         """A new stream: forget the identified plant and any estimate of the old one."""
         self._identified = None
         self._future = None
+        self._live = None
 
     @property
     def busy(self) -> bool:
@@ -165,7 +184,13 @@ class LiveEstimator:
         n = len(data["t"])
         if plant is None and self._identified and n < 2 * self._identified[1]:
             plant, source = self._identified[0], "identified (l2)"
-        self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator, source)
+        live = None
+        if estimator == LIVE:
+            if self._live is None or n < self._live.n or self._live.fs != float(meta["fs"]):
+                self._live = LiveEtfe(float(meta["fs"]))  # a new stream
+            live = self._live
+        self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator,
+                                         source, live)
         return True
 
     def poll(self) -> Estimate | None:

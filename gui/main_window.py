@@ -24,6 +24,9 @@ from labbench.gui.buffers import StreamBuffer
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.event_log import EventLog
 from labbench.gui.id_view import IdView, model_force
+# While a run streams, the estimate is updated with the new samples only (constant cost,
+# labbench.analysis.etfe_live); once it has ended, the run's own estimator on all data.
+from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
 from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.protocol_panel import ProtocolPanel
@@ -38,10 +41,6 @@ from labbench.ve import Plant
 log = logging.getLogger(__name__)
 
 ESTOP_KEYS = ("Esc", "Space")
-# While a run streams, the estimate is redone twice a second on all data so far, on a
-# thread that competes with the loop: the cheapest estimator of labbench.analysis.etfe
-# (H1 over log-spaced bands, ~half the time of the default on 120 000 samples).
-LIVE_ESTIMATOR = "h1-log"
 SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial")
 
 

@@ -125,10 +125,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
             rt = replace(rt, enabled=False)
-        with acquire(rt, warn) as grant:
-            run_state.realtime = grant.record
-            meta = _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop,
-                             progress, live_timing)
+        meta = _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop,
+                         progress, live_timing, lambda: acquire(rt, warn))
         if run_state.finished is not None:  # aborted or failed in a segment
             return run_state.finished
         _stop_device(device, close=False)
@@ -160,70 +158,85 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
 
 
 def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop, progress,
-              live_timing) -> dict:
+              live_timing, realtime) -> dict:
     """Start record, descriptor, then the protocol's segments through the loop; returns the
-    analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``)."""
+    analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``).
+    Each ``run_loop`` runs under ``realtime()`` (the protocol's work between segments does
+    not); the start record says what the first was granted."""
     from labbench.loop import HapticLoop, run_loop
 
     T = float(desc.sample_time_s)
-    start = records.start_record(
-        rig.as_dict(), protocol.describe(), protocol.seed,
-        device=asdict(desc), plant={"m": plant.m, "b": plant.b},
-        precheck=json_safe(check), safety=safety.as_dict(), realtime=run_state.realtime)
-    run_state.uid = start["uid"]
-    run_state.emit(start)
-    run_state.emit(records.descriptor_record(T))
-    for text in desc.details.get("warnings", ()):  # e.g. a fallback for a missing object
-        run_state.emit(records.event_record(run_state.last_t, "device_warning", text))
-    meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
-            "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
-            "protocol": protocol.describe(), "force_hold": desc.force_hold,
-            "td_measured": check["measured_td"]["td_s"], "segments": run_state.segments}
-    total = max(int(protocol.n_samples), 1)
-    gen = protocol.segments(plant)
-    segment = next(gen)
-    before = {"overruns": 0, "max_s": 0.0, "worst_t_s": None}  # earlier segments, for live_timing
-    while True:
-        first = run_state.n_samples
+    grant = realtime().__enter__()  # the first segment's, now: the start record says what it got
+    run_state.realtime = grant.record
+    try:
+        start = records.start_record(
+            rig.as_dict(), protocol.describe(), protocol.seed,
+            device=asdict(desc), plant={"m": plant.m, "b": plant.b},
+            precheck=json_safe(check), safety=safety.as_dict(), realtime=run_state.realtime)
+        run_state.uid = start["uid"]
+        run_state.emit(start)
+        run_state.emit(records.descriptor_record(T))
+        for text in desc.details.get("warnings", ()):  # e.g. a fallback for a missing object
+            run_state.emit(records.event_record(run_state.last_t, "device_warning", text))
+        meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
+                "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
+                "protocol": protocol.describe(), "force_hold": desc.force_hold,
+                "td_measured": check["measured_td"]["td_s"], "segments": run_state.segments}
+        total = max(int(protocol.n_samples), 1)
+        gen = protocol.segments(plant)
+        segment = next(gen)
+        # the earlier segments' share of live_timing
+        before = {"overruns": 0, "max_s": 0.0, "worst_t_s": None}
+        while True:
+            first = run_state.n_samples
 
-        def on_progress(n_done, n_total, _first=first, _label=segment.label):
-            if progress is not None:
-                progress(min((_first + n_done) / total, 1.0), _label)
+            def on_progress(n_done, n_total, _first=first, _label=segment.label):
+                if progress is not None:
+                    progress(min((_first + n_done) / total, 1.0), _label)
 
-        def on_live(snap, _first=first):
-            worse = snap["max_s"] > before["max_s"]
-            live_timing({"n": _first + snap["n"], "overruns": before["overruns"] + snap["overruns"],
-                         "max_s": snap["max_s"] if worse else before["max_s"],
-                         "worst_t_s": snap["worst_t_s"] if worse else before["worst_t_s"]})
+            def on_live(snap, _first=first):
+                worse = snap["max_s"] > before["max_s"]
+                live_timing({"n": _first + snap["n"],
+                             "overruns": before["overruns"] + snap["overruns"],
+                             "max_s": snap["max_s"] if worse else before["max_s"],
+                             "worst_t_s": snap["worst_t_s"] if worse else before["worst_t_s"]})
 
-        run_state.emit(records.event_record(
-            run_state.last_t, "segment", segment.label, role=segment.role,
-            ve=segment.ve.as_dict(), n_samples=len(segment.excitation)))
-        outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
-                           run_state.emit, stop=stop, progress=on_progress,
-                           first_page=len(run_state.pages),
-                           live=on_live if live_timing is not None else None)
-        t = outcome.timing
-        if t.get("max_s", 0.0) > before["max_s"]:
-            before.update(max_s=t["max_s"], worst_t_s=t.get("worst", {}).get("t_s"))
-        before["overruns"] += t.get("overruns", 0)
-        run_state.segments.append({
-            "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
-            "start": first,
-            "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
-            "timing": dict(t)})
-        if outcome.status == "aborted":
-            run_state.finish("aborted", _stop_reason(stop, outcome.reason))
-            return meta
-        if outcome.status in _FAILED and not (outcome.status == "tripped"
-                                               and segment.trip_expected):
-            run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
-            return meta
-        try:
-            segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
-                                              run_state.data(first)))
-        except StopIteration:
-            return meta
+            run_state.emit(records.event_record(
+                run_state.last_t, "segment", segment.label, role=segment.role,
+                ve=segment.ve.as_dict(), n_samples=len(segment.excitation)))
+            grant = grant or realtime().__enter__()
+            try:
+                outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
+                                   run_state.emit, stop=stop, progress=on_progress,
+                                   first_page=len(run_state.pages),
+                                   live=on_live if live_timing is not None else None)
+            finally:
+                grant.__exit__(None, None, None)
+                grant = None
+            t = outcome.timing
+            if t.get("max_s", 0.0) > before["max_s"]:
+                before.update(max_s=t["max_s"], worst_t_s=t.get("worst", {}).get("t_s"))
+            before["overruns"] += t.get("overruns", 0)
+            run_state.segments.append({
+                "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
+                "start": first,
+                "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
+                "timing": dict(t)})
+            if outcome.status == "aborted":
+                run_state.finish("aborted", _stop_reason(stop, outcome.reason))
+                return meta
+            if outcome.status in _FAILED and not (outcome.status == "tripped"
+                                                   and segment.trip_expected):
+                run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
+                return meta
+            try:
+                segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
+                                                  run_state.data(first)))
+            except StopIteration:
+                return meta
+    finally:
+        if grant is not None:  # a segment raised
+            grant.__exit__(None, None, None)
 
 
 class _Run(records.RecordRouter):
