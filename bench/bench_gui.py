@@ -9,15 +9,20 @@
    session (as ``labbench run`` does), then from the window (the run in its
    acquisition process, ``labbench.gui.acquisition``; redraw timer and live ETFE in the
    window's process) under the Qt event loop. Goal: the GUI adds none.
-   Runs alternate to spread the noise of this shared machine over both arms.
+   Runs alternate to spread the noise of this shared machine over both arms. With
+   ``--hogs N``, N CPU-bound processes (``while True: pass``) compete for the cores
+   during the loop runs (not the frame timing). Both arms ask for real-time
+   scheduling (``labbench.realtime``; in the window, its acquisition process does).
 
-Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]``
+Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]
+[--hogs 2] [--skip-frames]``
 """
 from __future__ import annotations
 
 import argparse
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -32,12 +37,14 @@ from PySide6 import QtWidgets  # noqa: E402
 from labbench.gui.app import tune_interpreter  # noqa: E402
 from labbench.gui.screenshot import wait_until  # noqa: E402
 from labbench.gui.buffers import StreamBuffer  # noqa: E402
-from labbench.gui.live_estimate import estimate  # noqa: E402
+from labbench.analysis.etfe_live import LiveEtfe  # noqa: E402
+from labbench.gui.live_estimate import LIVE, estimate  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.registry import open_device  # noqa: E402
 from labbench.records import PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.runner import run  # noqa: E402
+from labbench.timing import summary as timing_summary  # noqa: E402
 from labbench.session_format import SessionWriter  # noqa: E402
 from labbench.registry import make_protocol  # noqa: E402
 
@@ -70,8 +77,12 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60):
     from labbench.gui.main_window import ve_from_meta
 
     meta = analysis_meta(start, desc)
+    # the live update as the window makes it: the newest 0.1 s added to the running sums
+    data, plant, ve = buf.snapshot(), Rig().nominal_plant, ve_from_meta(meta)
+    live = LiveEtfe(float(meta["fs"]))
+    estimate({k: v[:-100] for k, v in data.items()}, meta, ve, plant, estimator=LIVE, live=live)
     t0 = time.perf_counter()
-    est = estimate(buf.snapshot(), meta, ve_from_meta(meta), None)
+    est = estimate(data, meta, ve, plant, estimator=LIVE, live=live)
     etfe_s = time.perf_counter() - t0
     win.tabs.setCurrentIndex(0)
     app.processEvents()
@@ -115,6 +126,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--hogs", type=int, default=0, help="CPU hogs during the loop runs")
+    ap.add_argument("--skip-frames", action="store_true", help="loop runs only")
     args = ap.parse_args()
     tune_interpreter()
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
@@ -124,6 +137,39 @@ def main() -> int:
     win.show()
     app.processEvents()
 
+    if not args.skip_frames:
+        print_frame_times(app, win)
+    gui_run(app, win, 3.0)  # warm-up: first connection, first paint, lazy imports
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
+    try:
+        headless, in_gui = [], []
+        for i in range(args.repeats):
+            headless.append(recorded_run(args.seconds, realtime=True, session_dir=tmp)[1])
+            in_gui.append(gui_run(app, win, args.seconds))
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    print(f"loop timing, {args.seconds:g} s real-time ETFE runs x {args.repeats} (alternating), "
+          f"{args.hogs} CPU hogs, load average {os.getloadavg()[0]:.1f}:")
+    for name, runs in (("without GUI", headless), ("with GUI", in_gui)):
+        ov = [r.get("overruns") for r in runs]
+        p99 = [r.get("p99_s", float("nan")) * 1e3 for r in runs]
+        mx = [r.get("max_s", float("nan")) * 1e3 for r in runs]
+        extra = (f", frames {[r['frames'] for r in runs]}, estimates {[r['estimates'] for r in runs]}"
+                 if "frames" in runs[0] else "")
+        print(f"  {name:12s} overruns {ov} in {[r.get('periods') for r in runs]} periods, p99 "
+              f"{[f'{v:.2f}' for v in p99]} ms, max {[f'{v:.1f}' for v in mx]} ms{extra}")
+        print(f"  {'':12s} {[timing_summary(r) for r in runs]}")
+    added = statistics.mean(r["overruns"] for r in in_gui) - statistics.mean(
+        r["overruns"] for r in headless)
+    print(f"  overruns added by the GUI (mean difference): {added:+.1f} per {args.seconds:g} s run")
+    win.close()
+    threading.Event().wait(0.1)
+    return 0
+
+
+def print_frame_times(app, win) -> None:
     recs, _ = recorded_run(60.0, realtime=False)
     n = sum(len(r["data"]["t"]) for r in recs if r["kind"] == PAGE)
     with_data, floor, traces_only, etfe_s, n_est = frame_times(app, win, recs)
@@ -134,28 +180,8 @@ def main() -> int:
           f" (goal <= 8 ms); floor (same widgets repainted, no new data) {med(floor) * 1e3:.2f} ms;"
           f" ratio {med(with_data) / med(floor):.2f}")
     print(f"  traces only (a frame between two estimates) {med(traces_only) * 1e3:.2f} ms;"
-          f" ETFE + theory on {n_est} of {n} samples (worker thread) {etfe_s * 1e3:.0f} ms")
-
-    gui_run(app, win, 3.0)  # warm-up: first connection, first paint, lazy imports
-    headless, in_gui = [], []
-    for i in range(args.repeats):
-        headless.append(recorded_run(args.seconds, realtime=True, session_dir=tmp)[1])
-        in_gui.append(gui_run(app, win, args.seconds))
-    print(f"loop timing, {args.seconds:g} s real-time ETFE runs x {args.repeats} (alternating):")
-    for name, runs in (("without GUI", headless), ("with GUI", in_gui)):
-        ov = [r.get("overruns") for r in runs]
-        p99 = [r.get("p99_s", float("nan")) * 1e3 for r in runs]
-        mx = [r.get("max_s", float("nan")) * 1e3 for r in runs]
-        extra = (f", frames {[r['frames'] for r in runs]}, estimates {[r['estimates'] for r in runs]}"
-                 if "frames" in runs[0] else "")
-        print(f"  {name:12s} overruns {ov}, p99 {[f'{v:.2f}' for v in p99]} ms, "
-              f"max {[f'{v:.1f}' for v in mx]} ms{extra}")
-    added = statistics.mean(r["overruns"] for r in in_gui) - statistics.mean(
-        r["overruns"] for r in headless)
-    print(f"  overruns added by the GUI (mean difference): {added:+.1f} per {args.seconds:g} s run")
-    win.close()
-    threading.Event().wait(0.1)
-    return 0
+          f" live ETFE update + theory on {n_est} of {n} samples (worker thread) "
+          f"{etfe_s * 1e3:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -166,8 +166,9 @@ class LiveEtfe:
         sff = _band_sum(level.sff, k, half)
         sxx = _band_sum(level.sxx, k, half)
         sfx = _band_sum(level.sfx, k, half)
-        Z = sff / (1j * w * sfx)
-        coh = np.clip(np.abs(sfx) ** 2 / (sff * sxx), 0, 1)
+        with np.errstate(divide="ignore", invalid="ignore"):  # no force or no motion in a band
+            Z = sff / (1j * w * sfx)
+            coh = np.clip(np.abs(sfx) ** 2 / (sff * sxx), 0, 1)
         n_avg = level.count * (2 * half + 1) / HANN_ENBW_BINS
         return EtfeResult(NAME, w, Z, coh, _h1_err(Z, coh, n_avg), coh < LOW_COHERENCE,
                           force_power=sff / (2 * half + 1))
