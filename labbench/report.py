@@ -269,7 +269,7 @@ def _etfe_blocks(s: SessionData) -> list:
 def _chirp_blocks(s: SessionData) -> list:
     """Chirp-ID sessions: the identification table; the open-loop ETFE against Z = b + j w m
     of the identified plant (exact sampled model, VE off)."""
-    from labbench import theory
+    from labbench.analysis.compare import theory_curves
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
     from labbench.figures import Curve
@@ -290,7 +290,7 @@ def _chirp_blocks(s: SessionData) -> list:
         if r.get("m") and r.get("b") is not None:
             plant = Plant(float(r["m"]), float(r["b"]))
             curves.append(Curve(f"identified {method}: m = {plant.m:.4g}, b = {plant.b:.4g}",
-                                w[keep], theory.z_sampled(plant, ve, w[keep])))
+                                w[keep], theory_curves(plant, ve, w[keep])["Z"]))
     curves.append(Curve("measured (ETFE)", w[keep], Z[keep], "points"))  # drawn on top
     blocks.append(Picture("Open-loop impedance during the chirp: data vs identified model",
                           _paper_figure_png(curves, "chirp identification, VE off", {})))

@@ -34,7 +34,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm, null_space
+from scipy.linalg import null_space
 
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
@@ -68,15 +68,29 @@ def z_paper(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
 def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
     """(Ad, Bd) of the state [x, x'] of ``m x'' + b x' = u`` for u held constant over T.
 
-    The exact discretisation: matrix exponential of the augmented system
-    (Franklin, Powell & Workman, Digital Control of Dynamic Systems, sec. 4.3).
+    The exact discretisation, the matrix exponential of the augmented system
+    (Franklin, Powell & Workman, Digital Control of Dynamic Systems, sec. 4.3),
+    in closed form for this plant: with z = b T / m,
+    ``Ad = [[1, T p1], [0, e^-z]]``, ``Bd = [T^2 p2, T p1] / m``,
+    ``p1 = (1 - e^-z) / z``, ``p2 = (z - 1 + e^-z) / z^2`` (1 and 1/2 at b = 0),
+    by their Taylor series below z = 0.01 where the closed forms cancel (series
+    error < 1e-20; above, rounding < 1e-13 relative). ~100x cheaper than ``expm``,
+    which the closed-loop fit calls thousands of times.
     """
-    M = np.zeros((3, 3))
-    M[0, 1] = 1.0
-    M[1, 1] = -b / m
-    M[1, 2] = 1.0 / m
-    E = expm(M * T)
-    return E[:2, :2], E[:2, 2]
+    z = b * T / m
+    if z < 1e-2:
+        k = np.arange(8)
+        terms = (-z) ** k
+        p1 = float(np.sum(terms / _FACT[k + 1]))
+        p2 = float(np.sum(terms / _FACT[k + 2]))
+    else:
+        p1 = -math.expm1(-z) / z
+        p2 = (z + math.expm1(-z)) / z**2
+    Ad = np.array([[1.0, T * p1], [0.0, math.exp(-z)]])
+    return Ad, np.array([T * T * p2, T * p1]) / m
+
+
+_FACT = np.array([math.factorial(k) for k in range(10)], float)
 
 
 def latency_split(latency: float, T: float) -> tuple[int, float]:

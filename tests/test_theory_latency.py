@@ -106,3 +106,16 @@ def test_simulator_fractional_latency_refuses_friction():
         open_sim(Rig(), extra_delay_fraction=0.5, coulomb_n=0.01)
     with pytest.raises(UserError, match="extra_delay_fraction"):
         open_sim(Rig(), extra_delay_fraction=1.0)
+
+
+@pytest.mark.parametrize("m, b, tau", [(0.094, 0.1, 1e-3), (0.094, 0.0, 1e-3), (0.005, 40.0, 1e-3),
+                                       (25.0, 40.0, 0.01), (0.094, 0.1, 3e-7), (1.0, 9.9, 1e-3)])
+def test_closed_form_zoh_is_the_matrix_exponential(m, b, tau):
+    from scipy.linalg import expm
+
+    M = np.zeros((3, 3))
+    M[0, 1], M[1, 1], M[1, 2] = 1.0, -b / m, 1.0 / m
+    E = expm(M * tau)
+    Ad, Bd = theory.zoh_matrices(m, b, tau)
+    assert np.allclose(Ad, E[:2, :2], rtol=1e-13, atol=0)
+    assert np.allclose(Bd, E[:2, 2], rtol=1e-12, atol=0)
