@@ -107,6 +107,17 @@ def test_force_hold_given_or_from_metadata_is_used_as_is():
         identify(rec)
 
 
+def test_force_hold_undecided_when_the_readings_agree():
+    # a slow chirp under noise: half a sample of force timing changes nothing the data can
+    # see; the result says the comparison was undecided, and both readings give the same plant
+    rec = with_noise(chirp_recording(n=20000, f1=0.5), np.random.default_rng(9), force_noise=0.05)
+    r = identify(rec)
+    assert r.force_hold["value"] == "zoh" and "undecided" in r.force_hold["source"]
+    assert r.force_hold["loss_ratio"] < 1.1
+    other = identify(rec, hold="sample")
+    assert abs(other.m / r.m - 1) < 0.01 and abs(other.b / r.b - 1) < 0.05
+
+
 def test_wrong_hold_friction_is_rejected_by_the_data():
     # the same record once read each way: the data decide for the continuous one and
     # the half-sample misalignment of the wrong reading costs orders of magnitude in CV loss
