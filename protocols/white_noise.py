@@ -113,11 +113,13 @@ class WhiteNoiseEtfe(ProtocolBase):
 
     def analyze(self, data: dict, meta: dict) -> dict:
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
-        impedances (labbench.effective) and the deviation from the exact sampled theory."""
+        impedances (labbench.effective), the deviation from the exact sampled theory, and the
+        closed-loop fit of m, b and the rig's extra delay (labbench.analysis.loopfit)."""
         from labbench import theory
         from labbench.analysis import compare
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
+        from labbench.analysis.loopfit import fit_loop
 
         rec = recording_from_arrays(data["t"], data["excitation"], data["position"],
                                     {**meta, "protocol": self.name})
@@ -131,8 +133,13 @@ class WhiteNoiseEtfe(ProtocolBase):
         band = (w >= DEVIATION_BAND_RAD_S[0]) & (w <= DEVIATION_BAND_RAD_S[1])
         rel = np.abs(Z[band] - z_s[band]) / np.abs(z_s[band])
         eff = effective_impedances(w, Z)
+        try:
+            loop_fit = fit_loop(est, ve, plant).as_dict()
+        except UserError as exc:  # too few coherent frequencies: say so in the results
+            loop_fit = {"error": str(exc)}
         return {
             "etfe": est.as_dict(),
+            "loop_fit": loop_fit,
             "plant": {"m": plant.m, "b": plant.b},
             "theory": {"sampled": {"Z_re": z_s.real, "Z_im": z_s.imag},
                        "paper": {"Z_re": z_p.real, "Z_im": z_p.imag}},

@@ -96,6 +96,8 @@ def test_fit_measures_the_simulator_latency_from_a_session(tmp_path, whole, frac
     fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START)
     assert abs(fit.td_s / T - (whole + fraction)) < 0.01
     assert abs(fit.m / PAPER_M - 1) < 1e-3
+    # the protocol's own results carry the same fit (started from the rig's nominal plant)
+    assert res.results["loop_fit"]["td_s"] == pytest.approx(fit.td_s, abs=1e-3 * T)
 
 
 def test_measured_td_in_the_rig_file_sets_the_precheck_boundary(tmp_path):
