@@ -486,3 +486,36 @@ def test_devices_prints_the_capability_report_and_tells_absent_from_no_answer(
                   "error history 0x1003: empty or absent", "warning: 0x603F:00 absent"):
         assert words in out, (words, out)
     assert "no answer" not in out and peer.node.writes == []  # the probe wrote nothing
+
+
+def test_an_object_the_file_lists_but_the_drive_lacks_is_absent(tmp_path):
+    """The drive is asked: its answer wins over its EDS (here 0x6072, 0x605A gone)."""
+    listed = F.write(tmp_path / "listed.eds")
+    actual = F.write(tmp_path / "actual.eds", drop=[0x6072, 0x605A])
+    rig = rig_for(listed)
+    config = sim_config(rig)
+    d = connect_driver(rig, config, *start_sim_drive(rig, sim_config(rig_for(actual))))
+    try:
+        w = d.assessment.warnings
+        assert any("lists 0x6072:00 but the drive says it does not exist" in x for x in w), w
+        assert any(x.startswith("0x6072:00 absent") for x in w)
+        assert any(x.startswith("0x605A:00 absent") for x in w)
+        assert (0x6072, 0) not in d.peer.node.writes  # not written: host clamp only
+    finally:
+        d.close()
+
+
+def test_devices_shows_the_error_history_of_a_faulted_drive(node_on_channel, tmp_path, capsys):
+    from labbench.cli import main
+
+    peer, channel, path = node_on_channel("ONE_SLOT")  # has 0x603F and 0x1003
+    peer.inject_emcy(0x4310, "too hot")
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 5\n'
+                        'sdo_timeout_s = 0.2\n')  # no eds: everything from the drive itself
+    assert main(["devices", "--rig", str(rig_file)]) == 0
+    out = capsys.readouterr().out.split("canopen      configured")[1]
+    assert "node 5 answered (drive)" in out
+    assert "FAULT; NMT" in out and "error code 0x603F = 0x4310" in out
+    assert "error history 0x1003: 0x00004310" in out
+    assert "TPDO4 COB-ID 0x485 (planned, 1 slot(s))" in out  # slots probed on the drive
