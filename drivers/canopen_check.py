@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from labbench.drivers.canopen_config import CanopenConfig, Mode
+from labbench.drivers.canopen_config import CanopenConfig
 from labbench.drivers.canopen_objects import (STANDARD, TYPE_FMT, Dictionary, object_name,
                                               read_eds)
 from labbench.drivers.canopen_pdo import PdoPlan, bus_load, plan_pdos
@@ -95,17 +95,6 @@ class Assessment:
     def bus_load(self, config: CanopenConfig, sample_time_s: float,
                  bitrate: int = 1_000_000) -> dict:
         return bus_load(self.traffic(config, sample_time_s), bitrate)
-
-    def report(self, config: CanopenConfig, sample_time_s: float) -> list[str]:
-        """The capability report: capabilities, plan, bus load, obstacles, warnings."""
-        lines = [f"{k}: {v}" for k, v in self.capabilities.items()]
-        lines += ["PDO plan:"] + [f"  {line}" for line in self.plan.lines()]
-        load = self.bus_load(config, sample_time_s)
-        lines.append(f"bus load at 1 Mbit/s: {100 * load['load_nominal']:.1f} % nominal, "
-                     f"{100 * load['load_worst']:.1f} % worst-case stuffing")
-        lines += [f"obstacle: {o}" for o in self.obstacles]
-        lines += [f"warning: {w}" for w in self.warnings]
-        return lines
 
 
 def _missing(a: Assessment, index: int, sub: int, present: bool) -> bool:

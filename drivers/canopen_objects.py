@@ -20,7 +20,7 @@ import re
 import struct
 from dataclasses import dataclass, field
 
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.eds import import_eds
 
 from labbench.errors import UserError
