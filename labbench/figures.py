@@ -37,21 +37,23 @@ class Curve:
     Z_err: np.ndarray | None = None
 
 
-def paper_figure(curves: list[Curve], path, title: str | None = None,
-                 marks: dict | None = None, inputs=(), force: bool = False) -> None:
+def paper_figure(curves: list[Curve], path=None, title: str | None = None,
+                 marks: dict | None = None, inputs=(), force: bool = False) -> Figure:
     """Write Bode magnitude (dB), phase (deg) and ES, ED, EM panels of each curve.
 
     ES is drawn where Im Z < 0 and EM where Im Z > 0, zero elsewhere (paper
     sec. 2.2, Figure 2). ``marks`` maps a label to a frequency [rad/s] drawn as
     a dashed vertical line on every panel, e.g. ``{"ws*": 23.1, "wb*": 125}``.
-    The format follows the suffix of ``path`` (.png, .svg, .pdf). The file is
-    written by ``labbench.safe_write.replacing``: never onto one of ``inputs``,
-    an existing one replaced only with ``force``, its folder never created.
+    Returns the figure. With ``path`` it is also written, in the format of the
+    suffix (.png, .svg, .pdf), by ``labbench.safe_write.replacing``: never onto one
+    of ``inputs``, an existing one replaced only with ``force``, its folder never
+    created.
     """
-    path = Path(path)
-    if path.suffix.lower() not in FORMATS:
-        raise UserError(f"figure {path}: use a .png, .svg or .pdf file name")
-    output_path(path, inputs, force)  # before the drawing
+    if path is not None:
+        path = Path(path)
+        if path.suffix.lower() not in FORMATS:
+            raise UserError(f"figure {path}: use a .png, .svg or .pdf file name")
+        output_path(path, inputs, force)  # before the drawing
     for c in curves:
         if c.style not in STYLES:
             raise ValueError(f"curve style {c.style!r}; choose one of {', '.join(STYLES)}")
@@ -106,8 +108,10 @@ def paper_figure(curves: list[Curve], path, title: str | None = None,
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4), fontsize=9)
     if title:
         fig.suptitle(literal_mpl(title))
-    with replacing(path, inputs, force) as tmp:
-        try:
-            fig.savefig(tmp, dpi=120)
-        except OSError as exc:
-            raise UserError(f"cannot write figure {path}: {exc.strerror or exc}") from None
+    if path is not None:
+        with replacing(path, inputs, force) as tmp:
+            try:
+                fig.savefig(tmp, dpi=120)
+            except OSError as exc:
+                raise UserError(f"cannot write figure {path}: {exc.strerror or exc}") from None
+    return fig

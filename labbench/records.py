@@ -128,6 +128,14 @@ class StreamCollector(RecordRouter):
         self.stop = rec
 
 
+def iso_time(epoch: float) -> str:
+    """A record's ``time`` (seconds since the epoch) as ISO 8601 local time with its UTC
+    offset, e.g. ``2026-11-26T11:33:29+01:00``."""
+    from datetime import datetime
+
+    return datetime.fromtimestamp(epoch).astimezone().isoformat(timespec="seconds")
+
+
 def fan_out(records: Iterable[dict], consumers: Iterable[Consumer]) -> None:
     """Feed a stream to every consumer in order (replay uses this too)."""
     consumers = list(consumers)

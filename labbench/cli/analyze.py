@@ -10,7 +10,6 @@ import json
 import numpy as np
 
 from labbench.jsonutil import json_safe
-from labbench.errors import UserError
 from labbench.numfmt import fmt
 
 
@@ -59,18 +58,12 @@ def register(subparsers) -> None:
 
 
 def run_id(args) -> int:
-    from labbench.analysis import compare
     from labbench.analysis.dataio import load_recording
-    from labbench.analysis.identify import identify
+    from labbench.session_api import identify_recording
 
-    rec, ve = compare.plant_recording(load_recording(args.file))
-    res = identify(rec, model=args.model, method=args.method, cutoff_hz=args.cutoff, solver=args.solver,
-                   hold=args.force_hold)
-    d = res.as_dict()
-    d["force_source"] = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
-    latency = compare.measured_td(rec.meta)
-    if latency:
-        d["force_source"] += f", as held after the rig's measured extra delay of {1e3 * latency:.4g} ms"
+    d = identify_recording(load_recording(args.file), model=args.model, method=args.method,
+                           cutoff_hz=args.cutoff, solver=args.solver,
+                           force_hold=args.force_hold).as_dict()
     if args.json:
         print(json.dumps(json_safe(d)))
         return 0
@@ -92,53 +85,21 @@ def run_id(args) -> int:
 
 
 def run_etfe(args) -> int:
-    from labbench.analysis import compare
     from labbench.analysis.dataio import load_recording
-    from labbench.analysis.etfe import etfe
     from labbench.safe_write import output_path
-    from labbench.ve import Plant
+    from labbench.session_api import etfe_recording
 
     if args.plot:
         output_path(args.plot, [args.file], args.force)  # before the work
-    rec = load_recording(args.file)
-    res = etfe(rec, args.estimator, args.window)
-    d = res.as_dict()
-    ve = compare.ve_from_meta(rec.meta, rec.fs)
-    cmp = None
-    m = args.m if args.m is not None else compare.meta_number(rec.meta, "m")
-    b = args.b if args.b is not None else compare.meta_number(rec.meta, "b")
-    if (m is None) != (b is None):
-        raise UserError("give both --m and --b (or neither, to identify them from the record)")
-    if (args.fit or args.fit_ve) and ve is None:
-        raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
-    if ve is not None:
-        source, latency = "given", compare.measured_td(rec.meta)
-        if m is None:
-            ident = compare.identify_closed_loop(rec, ve, latency=latency)
-            m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"
-        if args.fit or args.fit_ve:
-            from labbench.analysis.loopfit import fit_loop
-
-            fit = fit_loop(res, ve, Plant(float(m), float(b)), fit_ve=args.fit_ve)
-            d["fit"] = fit.as_dict()
-            m, b, latency, source = fit.m, fit.b, fit.td_s, "fitted (with the fitted extra delay td)"
-        cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
-        cmp["plant_source"] = source
-        d["wb_star"] = cmp["wb_star"]
-        d["theory"] = {k: v for k, v in cmp.items() if k not in ("Z_theory", "Z_paper", "deviation")}
-        d["theory"]["Z_re"] = cmp["Z_theory"].real
-        d["theory"]["Z_im"] = cmp["Z_theory"].imag
-        d["deviation"] = cmp["deviation"]
-    elif m is not None:
-        from labbench.effective import effective_impedances, measured_wb_star
-
-        d["wb_star"] = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
+    fr = etfe_recording(load_recording(args.file), args.estimator, args.window, m=args.m, b=args.b,
+                        fit=args.fit, fit_ve=args.fit_ve)
+    d = fr.as_dict()
     if args.plot:
-        _plot(args, rec, res, cmp)
+        fr.plot(args.plot, inputs=[args.file], force=args.force)
     if args.json:
         print(json.dumps(json_safe(d)))
     else:
-        _print_table(args.file, d, cmp)
+        _print_table(args.file, d, fr.comparison)
     if args.plot:
         print(f"wrote {args.plot}")
     return 0
@@ -164,8 +125,6 @@ def _print_table(path, d, cmp) -> None:
               f"{d['coherence'][i]:6.3f} {d['ES'][i]:10.4g} {d['ED'][i]:10.4g} {d['EM'][i]:10.4g}")
 
 
-
-
 def _print_fit(fit: dict) -> None:
     ci = fit["ci95"]
     print(f"closed-loop fit ({fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-{fit['band_rad_s'][1]:.4g} "
@@ -181,25 +140,3 @@ def _print_fit(fit: dict) -> None:
 
 def _pct(v) -> str:
     return "-" if v is None else f"{100 * v:.2f} %"
-
-
-def _plot(args, rec, res, cmp) -> None:
-    from labbench.figures import Curve, paper_figure
-
-    # paper-style range: up to 0.3 x Nyquist, where the sampled loop's own
-    # near-Nyquist blow-up would otherwise set the scale of every panel
-    keep = res.w <= 0.3 * np.pi * rec.fs
-    w = res.w[keep]
-    curves = [Curve(label=f"measured ({res.estimator})", w=w, Z=res.Z[keep], style="points",
-                    Z_err=res.Z_err[keep])]
-    marks = {}
-    title = rec.source
-    if cmp is not None:
-        curves.append(Curve(label=f"theory ({cmp['model']}, m = {cmp['plant']['m']:.3g}, "
-                                  f"b = {cmp['plant']['b']:.3g})", w=w, Z=cmp["Z_theory"][keep]))
-        marks = {k: v for k, v in (("ws*", cmp["predicted_ws_star"]),
-                                   ("wb*", cmp["predicted_wb_star"])) if v}
-        ve = cmp["ve"]
-        title = f"{rec.source}: {ve['kind']} K = {ve['K']:g}, B = {ve['B']:g}, td = {ve['td']:g} s"
-    paper_figure(curves, args.plot, title=title, marks=marks, inputs=[args.file],
-                 force=args.force)
