@@ -142,12 +142,17 @@ class _Tty(io.StringIO):
 
 def test_progress_bar_draws_on_a_terminal_only():
     tty = _Tty()
-    with ProgressBar("etfe", stream=tty, min_interval_s=0.0) as bar:
-        bar(0.5, "white-noise")
+    now = [100.0]
+    with ProgressBar("etfe", stream=tty, min_interval_s=0.0, clock=lambda: now[0]) as bar:
+        bar(0.0, "start")
+        now[0] += 12.0
+        bar(0.25, "white-noise")  # 12 s for a quarter: 36 s to go
+        now[0] += 3600.0
         bar(1.0, "analysis")
     text = tty.getvalue()
-    assert "[###############---------------]  50.0% white-noise" in text
-    assert " 100.0% analysis" in text and text.endswith("\n")
+    assert "[########----------------------]  25.0% 0:12 ETA 0:36    white-noise" in text
+    assert "ETA ?" in text  # nothing done yet: no estimate
+    assert " 100.0% 1:00:12 ETA 0:00    analysis" in text and text.endswith("\n")
     pipe = io.StringIO()
     with ProgressBar("etfe", stream=pipe) as bar:
         bar(0.5, "x")

@@ -1,4 +1,5 @@
-"""``labbench devices [--rig FILE] [--fault-reset] [--json]``: what is configured, what answers.
+"""``labbench devices [--rig FILE] [--fault-reset] [--serial] [--json]``: what is configured,
+what answers.
 
 Each backend the registry offers a probe for (``labbench.registry.device_probe``)
 and the rig configures is asked, read-only, what it is: for a CANopen drive
@@ -9,6 +10,10 @@ is told apart from an object the drive says it does not have ("absent").
 Exit code 1 when none of the configured hardware answers (with no hardware
 configured: when no simulated device answers). ``--fault-reset`` is the
 operator's fault reset: FAULT -> SWITCH ON DISABLED, never further.
+
+``--serial`` lists the serial ports of this computer (pyserial's
+``serial.tools.list_ports``) with what the operating system says about them,
+to find the port for ``labbench run ... --device serial --port PORT``.
 """
 from __future__ import annotations
 
@@ -28,6 +33,8 @@ def register(subparsers) -> None:
                    help="operator fault reset of the CANopen drive (to SWITCH ON DISABLED only)")
     p.add_argument("--sim", action="store_true",
                    help="with --fault-reset: act on a fresh simulated drive (a demonstration)")
+    p.add_argument("--serial", action="store_true",
+                   help="list the serial ports of this computer (for --device serial --port)")
     p.add_argument("--json", action="store_true", help="print the listing as JSON")
     p.set_defaults(func=run)
 
@@ -38,6 +45,8 @@ def run(args) -> int:
     from labbench.registry import device_names, device_probe
     from labbench.rig import load_rig
 
+    if args.serial:
+        return _list_serial(args.json)
     rig = load_rig(args.rig)
     if args.fault_reset:
         result = device_probe("sim-canopen" if args.sim else "canopen")(rig, fault_reset=True)
@@ -70,6 +79,32 @@ def run(args) -> int:
         for line in _describe(r.get("answer")):
             print("             " + line)
     return status
+
+
+def serial_ports() -> list[dict]:
+    """Every serial port the OS reports: device, description, hardware id, USB ids."""
+    from serial.tools import list_ports
+
+    out = []
+    for p in sorted(list_ports.comports(), key=lambda p: p.device):
+        usb = f"{p.vid:04x}:{p.pid:04x}" if p.vid is not None and p.pid is not None else None
+        out.append({"device": p.device, "description": p.description, "hwid": p.hwid,
+                    "usb_id": usb, "manufacturer": p.manufacturer, "serial_number": p.serial_number})
+    return out
+
+
+def _list_serial(as_json: bool) -> int:
+    ports = serial_ports()
+    if as_json:
+        print(json.dumps({"serial_ports": ports}, indent=2))
+        return 0
+    if not ports:
+        print("no serial ports found")
+    for p in ports:
+        extra = ", ".join(x for x in (p["manufacturer"], p["usb_id"] and f"USB {p['usb_id']}",
+                                      p["serial_number"] and f"serial {p['serial_number']}") if x)
+        print(f"{p['device']:<16} {p['description']}" + (f" ({extra})" if extra else ""))
+    return 0
 
 
 def _hex(value, digits: int = 8) -> str:

@@ -3,22 +3,34 @@
 Each subcommand lives in its own module ``labbench/cli/<name>.py`` exposing
 ``register(subparsers)``, which adds its parser and sets ``func`` to a callable
 taking the parsed namespace and returning an exit code. Errors a user can
-cause (``UserError``) print one line on stderr and exit 2; a device that
-fails (``DeviceError``: dead bus, no answer, a fault) prints one line and exits 1.
+cause (``UserError``, a missing optional package) print one line on stderr and
+exit 2; a device that fails (``DeviceError``: dead bus, no answer, a fault)
+prints one line and exits 1.
+
+``-v``/``-q`` (before the command) set the level of Python's logging: default
+warnings, ``-v`` info, ``-vv`` debug, ``-q`` errors only; the libraries under
+labbench (canopen's SDO/NMT messages, python-can) speak from ``-v`` on.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import importlib
+import logging
 import sys
 import threading
 
-from labbench.errors import DeviceError, LabbenchError, UserError
+from labbench import __version__
+from labbench.errors import DeviceError, LabbenchError, UserError, missing_extra
 from labbench.interrupts import raising
 
 # Order is the order shown in --help.
 COMMANDS = ("theory", "analyze", "run", "replay", "export", "report", "devices", "gui")
+# Optional packages -> the extra that installs them (pyproject.toml).
+OPTIONAL = {"cvxpy": "cvxpy", "PySide6": "gui", "pyqtgraph": "gui", "pandas": "pandas"}
+# Libraries whose log lines are shown from -v on only: their errors (an SDO abort, a bus
+# timeout) reach the user as our own one-line error already.
+LIBRARY_LOGGERS = ("canopen", "can")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -29,7 +41,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="labbench", description=__doc__.splitlines()[0])
+    # no abbreviations: "--ve" of a subcommand must not read as --version or --verbose
+    parser = _Parser(prog="labbench", description=__doc__.splitlines()[0], allow_abbrev=False)
+    parser.add_argument("--version", action="version", version=f"labbench {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output: -v info (canopen's SDO/NMT too), -vv debug")
+    parser.add_argument("-q", "--quiet", action="count", default=0, help="errors only")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name in COMMANDS:
         try:
@@ -45,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    setup_logging(args.verbose - args.quiet)
     # SIGINT/SIGTERM/SIGHUP raise Interrupted whatever was inherited (labbench.interrupts);
     # `run` narrows that to stopping the run. The GUI's Qt loop keeps its own.
     own = getattr(args, "own_signals", False) or threading.current_thread() is not threading.main_thread()
@@ -54,6 +72,14 @@ def main(argv: list[str] | None = None) -> int:
         except LabbenchError as exc:
             print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
             return 1 if isinstance(exc, DeviceError) else 2
+        except ModuleNotFoundError as exc:
+            top = (exc.name or "").split(".")[0]
+            if top not in OPTIONAL:
+                raise
+            print(f"labbench {args.command}: error: "
+                  f"{missing_extra(top, OPTIONAL[top], f'labbench {args.command}')}",
+                  file=sys.stderr)
+            return 2
         except KeyboardInterrupt as exc:  # Interrupted (a signal) or a bare Ctrl-C
             print(f"labbench {args.command}: {str(exc) or 'interrupted'}", file=sys.stderr)
             return getattr(exc, "exit_code", 130)
@@ -64,6 +90,37 @@ def main(argv: list[str] | None = None) -> int:
 
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return 0
+
+
+_HANDLER_NAME = "labbench-cli"
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is now (tests and redirections replace it)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
+
+def setup_logging(verbosity: int) -> None:
+    """One stderr handler on the root logger; ``verbosity`` 0 = warnings, 1 = info,
+    2 = debug, -1 = errors only; the libraries' loggers speak from 1 on."""
+    level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(
+        max(-1, min(verbosity, 2)), logging.DEBUG)
+    root = logging.getLogger()
+    if not any(h.get_name() == _HANDLER_NAME for h in root.handlers):
+        handler = _StderrHandler()
+        handler.set_name(_HANDLER_NAME)
+        handler.setFormatter(logging.Formatter("%(name)s: %(levelname)s: %(message)s"))
+        root.addHandler(handler)
+    root.setLevel(level)
+    for name in LIBRARY_LOGGERS:
+        logging.getLogger(name).setLevel(level if verbosity > 0 else logging.CRITICAL + 1)
 
 
 def float_list(text: str) -> list[float]:

@@ -1,36 +1,59 @@
-"""A one-line terminal progress bar on stderr, drawn only when stderr is a terminal."""
+"""A one-line terminal progress bar on stderr with elapsed time and ETA, drawn only on a terminal."""
 from __future__ import annotations
 
 import sys
 import time
 
 
+def clock_text(seconds: float) -> str:
+    """``m:ss`` (``h:mm:ss`` from an hour on)."""
+    s = int(round(max(seconds, 0.0)))
+    h, rest = divmod(s, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
 class ProgressBar:
     """Callable ``(fraction, message)``, as ``labbench.runner.run`` expects.
 
+    Shows the time since the first call and an estimate of the time left
+    (elapsed x (1 - f) / f: a run's samples come at a steady rate).
     Redraws at most every ``min_interval_s`` (the loop reports every page) and
     stays silent when ``stream`` is not a tty (pipes, files, ``--json``).
     """
 
-    def __init__(self, label: str, stream=None, width: int = 30, min_interval_s: float = 0.1):
+    def __init__(self, label: str, stream=None, width: int = 30, min_interval_s: float = 0.1,
+                 clock=time.monotonic):
         self.stream = stream if stream is not None else sys.stderr
         self.label, self.width, self.min_interval_s = label, width, min_interval_s
         isatty = getattr(self.stream, "isatty", None)
         self.enabled = bool(isatty and isatty())
-        self._last = 0.0
+        self._clock = clock
+        self._t0: float | None = None
+        self._last = -float("inf")
         self._drawn = False
+
+    def line(self, fraction: float, message: str = "") -> str:
+        """The text of the bar at ``fraction`` done (0-1)."""
+        now = self._clock()
+        if self._t0 is None:
+            self._t0 = now
+        elapsed = now - self._t0
+        fraction = min(max(fraction, 0.0), 1.0)
+        filled = round(fraction * self.width)
+        bar = "#" * filled + "-" * (self.width - filled)
+        eta = clock_text(elapsed * (1 - fraction) / fraction) if fraction > 0 else "?"
+        return (f"{self.label} [{bar}] {fraction * 100:5.1f}% {clock_text(elapsed)} "
+                f"ETA {eta:<7} {message[:30]:<30}")
 
     def __call__(self, fraction: float, message: str = "") -> None:
         if not self.enabled:
             return
-        now = time.monotonic()
-        if fraction < 1.0 and now - self._last < self.min_interval_s:
+        now = self._clock()
+        if self._t0 is not None and fraction < 1.0 and now - self._last < self.min_interval_s:
             return
         self._last = now
-        fraction = min(max(fraction, 0.0), 1.0)
-        filled = round(fraction * self.width)
-        bar = "#" * filled + "-" * (self.width - filled)
-        self.stream.write(f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {message[:30]:<30}")
+        self.stream.write("\r" + self.line(fraction, message))
         self.stream.flush()
         self._drawn = True
 

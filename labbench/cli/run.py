@@ -60,6 +60,9 @@ def _common(sp) -> None:
                          "devices; rig table [realtime])")
     sp.add_argument("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority (default 80)")
     sp.add_argument("--out", metavar="DIR", default="sessions", help="session directory (./sessions)")
+    sp.add_argument("--port", metavar="PORT", help="with --device serial: the serial port "
+                    "(e.g. /dev/ttyACM0; overrides the rig's [serial] port; "
+                    "`labbench devices --serial` lists them)")
     sp.add_argument("--json", action="store_true", help="print one JSON object: sessions, results")
     sp.add_argument("--can-log", metavar="FILE", default=None,
                     help="CANopen devices: record every CAN frame (.asc, .blf, .log, .trc, .csv)")
@@ -120,7 +123,7 @@ def _words(text: str) -> tuple:
 
 
 _COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from",
-           "can_log", "rt", "rt_priority")
+           "can_log", "rt", "rt_priority", "port", "verbose", "quiet")
 
 
 def _options(args) -> dict:
@@ -171,6 +174,10 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
         log = Path(args.can_log)  # demo: one file per run
         dev_opts["can_log"] = str(log if args.protocol != "demo"
                                   else log.with_name(f"{log.stem}-{name}{log.suffix}"))
+    if args.port:
+        if args.device != "serial":
+            raise UserError(f"--port is for --device serial, not --device {args.device}")
+        dev_opts["port"] = args.port
     rt = RealtimeConfig.from_rig(rig, enabled=getattr(args, "rt", None),
                                  priority=getattr(args, "rt_priority", None))
     device = open_device(args.device, rig, **dev_opts)
