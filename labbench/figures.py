@@ -35,6 +35,7 @@ class Curve:
     Z: np.ndarray
     style: str = "line"
     Z_err: np.ndarray | None = None
+    color: str | None = None  # None: the next colour of the cycle
 
 
 def paper_figure(curves: list[Curve], path=None, title: str | None = None,
@@ -72,7 +73,7 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
         Z = np.asarray(c.Z, complex)
         eff = effective_impedances(w, Z)
         stiff = Z.imag < 0
-        fmt = dict(color=f"C{i}", label=literal_mpl(c.label))
+        fmt = dict(color=c.color or f"C{i}", label=literal_mpl(c.label))
         fmt.update(dict(lw=1.5) if c.style == "line" else dict(ls="none", marker=".", ms=3))
         mag.semilogx(w, 20 * np.log10(np.abs(Z)), **fmt)
         phase.semilogx(w, eff.theta_deg, **fmt)
@@ -81,7 +82,7 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
         em.semilogx(w, np.where(stiff, 0.0, eff.EM), **fmt)
         if c.Z_err is not None:
             dz = np.asarray(c.Z_err, float)
-            band = dict(color=f"C{i}", alpha=0.2, lw=0)
+            band = dict(color=c.color or f"C{i}", alpha=0.2, lw=0)
             absz = np.abs(Z)
             mag.fill_between(w, 20 * np.log10(np.maximum(absz - dz, 1e-3 * absz)),
                              20 * np.log10(absz + dz), **band)
@@ -114,4 +115,34 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
                 fig.savefig(tmp, dpi=120)
             except OSError as exc:
                 raise UserError(f"cannot write figure {path}: {exc.strerror or exc}") from None
+    return fig
+
+
+def effective_figure(curves: list[Curve], size=(7.2, 2.3)) -> Figure:
+    """ES, ED and EM side by side (paper Figures 5-8 without the Bode panels), for a
+    summary page: lines for theory, points for measurements, ES where Im Z < 0 and EM
+    where Im Z > 0 as in ``paper_figure``. Overlay several runs by giving their curves
+    one ``color`` each. Returns the figure."""
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    es, ed, em = fig.subplots(1, 3, sharex=True)
+    for i, c in enumerate(curves):
+        w = np.asarray(c.w, float)
+        Z = np.asarray(c.Z, complex)
+        eff = effective_impedances(w, Z)
+        stiff = Z.imag < 0
+        style = dict(color=c.color or f"C{i}", label=literal_mpl(c.label))
+        # theory thin and under, measured points on top: both stay visible in one colour
+        style.update(dict(lw=1.0, alpha=0.75, zorder=2) if c.style == "line"
+                     else dict(ls="none", marker="o", ms=2.2, mew=0, zorder=3))
+        es.semilogx(w, np.where(stiff, eff.ES, 0.0), **style)
+        ed.semilogx(w, eff.ED, **style)
+        em.semilogx(w, np.where(stiff, 0.0, eff.EM), **style)
+    for ax, ylabel in ((es, "ES (N/m)"), (ed, "ED (N s/m)"), (em, "EM (kg)")):
+        ax.set_ylabel(ylabel, fontsize=8)
+        ax.set_xlabel("frequency (rad/s)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+    handles, labels = es.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=7)
     return fig

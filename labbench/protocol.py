@@ -200,6 +200,17 @@ class ProtocolBase:
     def describe(self) -> dict:
         return {"protocol": self.name, **self.config.as_dict()}
 
+    def report_sections(self, session):
+        """This protocol's part of a report on ``session`` (a
+        ``labbench.report.session.ReportSession`` of a run of this protocol): a
+        ``labbench.report.blocks.ReportSections`` with the verdict rows for page 1,
+        curves for its overlay figure, flags and the detail blocks. This default
+        lists the run's scalar results."""
+        from labbench.report.blocks import ReportSections, key_values
+
+        items = [(k, v) for k, v in session.results.items() if not isinstance(v, (dict, list))]
+        return ReportSections(details=[key_values("Results", items)] if items else [])
+
 
 def measured_td(rig=None) -> dict:
     """The rig's extra loop delay beyond the VE's td and where it came from:

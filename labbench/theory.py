@@ -312,6 +312,27 @@ def predicted_wb_star(ve: VirtualEnvironment) -> float | None:
     return ve.w0 if ve.B > 0 and math.isfinite(ve.w0) else None
 
 
+def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sampled",
+                         n: int = 4000) -> dict:
+    """``{"ws_star", "wb_star"}`` [rad/s] read off the model's own ES and ED curves with the
+    rules used on measurements (``labbench.effective.measured_ws_star`` /
+    ``measured_wb_star``), on a log grid of ``n`` points from 1e-3 of the slowest rate
+    of the loop to 0.999 of Nyquist (None where the curve never crosses).
+
+    With the exact sampled model this is what a measurement should show: its damping
+    falls well before w0 (on the paper's demo, K = 50, B = 1, w0 = 125 rad/s at 1 kHz,
+    wb* = 72.6 rad/s), where ``predicted_wb_star`` (w0, paper sec. 3.2) and
+    ``predicted_ws_star`` (eq. 5) are the continuous model's closed forms.
+    """
+    from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+
+    rates = [r for r in (predicted_ws_star(plant, ve), ve.w0 if math.isfinite(ve.w0) else None,
+                         (plant.b + ve.B) / plant.m) if r]
+    w = np.geomspace(1e-3 * min(rates + [1.0 / ve.T]), 0.999 * math.pi / ve.T, n)
+    eff = effective_impedances(w, theory_curve(plant, ve, w, model))
+    return {"ws_star": measured_ws_star(w, eff.ES), "wb_star": measured_wb_star(w, eff.ED, plant.b)}
+
+
 def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str) -> tuple[float, float]:
     """(ED, EM) in the limit w -> 0, by Richardson extrapolation in w^2.
 

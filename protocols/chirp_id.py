@@ -152,7 +152,94 @@ class ChirpId(ProtocolBase):
         best = fits.get("l2") or fits[self.config.methods[0]]
         return {"identification": fits, "m": best["m"], "b": best["b"]}
 
+    def report_sections(self, session):
+        """Page 1: the identified m, b with intervals and the model chosen; details: every
+        fit, and the open-loop impedance of the chirp against the identified model."""
+        return _report_sections(self, session)
+
 
 def _run_tf(tf, u: np.ndarray) -> np.ndarray:
     num, den = tf
     return lfilter(num[0], den, u)
+
+
+def _report_sections(protocol: ChirpId, session):
+    from labbench.report.blocks import (Figure, Markup, Paragraph, ReportSections, Table, fmt,
+                                        interval, plus_minus)
+    from labbench.report.content import analysis_flags
+
+    ident = session.results.get("identification") or {}
+    if not ident:
+        return ReportSections()
+    primary = "l2" if "l2" in ident else next(iter(ident))
+    r = ident[primary]
+    ci = r.get("ci95") or {}
+    sel = r.get("selection") or {}
+    how = "chosen by cross-validation" if r.get("model") and "cross" in str(sel.get("criterion")) \
+        else "as configured"
+    verdict = [
+        ("model", f"f = {_model_text(r.get('model'))} ({how}, {primary} fit)"),
+        ("mass m (kg), 95 % interval", plus_minus(r.get("m"), *ci.get("m", (None, None)))),
+        ("damping b (N s/m), 95 % interval", plus_minus(r.get("b"), *ci.get("b", (None, None)))),
+    ]
+    if r.get("coulomb") is not None:
+        verdict.append((Markup("Coulomb friction F<sub>c</sub> (N), 95 % interval"),
+                        plus_minus(r["coulomb"], *ci.get("coulomb", (None, None)))))
+    for method, other in ident.items():
+        if method != primary:
+            verdict.append((f"cross-check: {method} fit", f"m = {fmt(other.get('m'), 5)} kg, "
+                                                          f"b = {fmt(other.get('b'), 5)} N s/m"))
+    flags = [f for method, fit in ident.items()
+             for f in analysis_flags(session.tag, fit.get("flags") or [], f"{method} fit: ")]
+    rows = []
+    for method, fit in ident.items():
+        fci = fit.get("ci95") or {}
+        rows.append([method, str(fit.get("model")), fmt(fit.get("m"), 6),
+                     interval(*fci.get("m", (None, None)), 5), fmt(fit.get("b"), 6),
+                     interval(*fci.get("b", (None, None)), 5), fmt(fit.get("coulomb")),
+                     fmt(fit.get("rms_residual"), 3), f"{100 * fit.get('explained', 0):.4f} %",
+                     str(fit.get("n_used"))])
+    details = [Table("Identification f = m x'' + b x' [+ Fc sign(x')] [+ f0], every fit",
+                     ["fit", "model", "m (kg)", "m 95 %", "b (N s/m)", "b 95 %", "Fc (N)",
+                      "rms residual (N)", "explained", "samples"], rows,
+                     note=f"Model selection: {sel.get('criterion', 'as configured')}.")]
+    figure = _open_loop_figure(protocol, session, ident)
+    if figure is not None:
+        details.append(Figure("Open-loop impedance during the chirp (points) against the "
+                              "identified model (lines, exact sampled, VE off)", figure))
+    else:
+        details.append(Paragraph("No open-loop impedance figure: the chirp's band is empty."))
+    return ReportSections(verdict_title="Identified device", verdict=verdict, flags=flags,
+                          details=details)
+
+
+def _model_text(model) -> str:
+    return {"mb": "m x'' + b x'", "mbc": "m x'' + b x' + Fc sign(x')",
+            "mbco": "m x'' + b x' + Fc sign(x') + f0"}.get(model, str(model))
+
+
+def _open_loop_figure(protocol: ChirpId, session, ident: dict):
+    """ETFE of the applied force (``command``) over position in the chirp's band, against
+    Z = b + j w m of each fit through the exact sampled model with the VE off."""
+    import math
+
+    from labbench.analysis.compare import theory_curves
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.analysis.etfe import etfe
+    from labbench.figures import Curve, paper_figure
+
+    c = protocol.config
+    rec = recording_from_arrays(session.ch["t"], session.ch["command"], session.ch["position"],
+                                {"fs": 1 / session.T})
+    est = etfe(rec)
+    w, Z = np.asarray(est.w), np.asarray(est.Z)
+    keep = (w >= 2 * math.pi * c.f0_hz) & (w <= 2 * math.pi * c.f1_hz)
+    if not keep.any():
+        return None
+    off = VirtualEnvironment("none", T=session.T)
+    curves = [Curve(f"identified ({method}): m = {fit['m']:.4g} kg, b = {fit['b']:.4g} N s/m",
+                    w[keep], theory_curves(Plant(float(fit["m"]), float(fit["b"])), off, w[keep])["Z"])
+              for method, fit in ident.items() if fit.get("m") and fit.get("b") is not None]
+    curves.append(Curve("measured (ETFE of the chirp)", w[keep], Z[keep], "points"))
+    return paper_figure(curves, title=f"{session.tag} chirp identification, VE off")
+

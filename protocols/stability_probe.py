@@ -286,6 +286,11 @@ class StabilityProbe(ProtocolBase):
             "rel_error_approx_vs_measured": _rel(approx, measured),
         }
 
+    def report_sections(self, session):
+        """Page 1: the measured stability boundary against the exact sampled and the paper's
+        predictions; details: every step's growth rate."""
+        return _report_sections(self, session)
+
 
 def _rel(a, b):
     return None if a is None or b is None or b == 0 else float((a - b) / b)
@@ -315,3 +320,47 @@ def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig):
             break
     approx = plant.b / ve.K - ve.T / 2 if ve.kind == "spring" else None
     return exact, approx
+
+
+def _report_sections(protocol: StabilityProbe, session):
+    from labbench.report.blocks import Figure, ReportSections, Table, fmt, new_figure, percent
+
+    res = session.results
+    var = res.get("variable", protocol.config.variable)
+    unit = "N/m" if var == "K" else "s"
+    verdict = [
+        ("probed variable", f"{var} ({unit}), {len(res.get('steps') or [])} steps"),
+        ("boundary measured", f"{fmt(res.get('measured_boundary'))} {unit}"),
+        ("boundary, exact sampled model", f"{fmt(res.get('exact_boundary'))} {unit}"),
+        ("boundary, paper approximation", f"{fmt(res.get('approx_boundary'))} {unit}"),
+        ("measured against exact", percent(res.get("rel_error_vs_exact"))),
+    ]
+    steps = res.get("steps") or []
+    details = []
+    if steps:
+        details.append(Table("Probe steps", ["K (N/m)", "td (ms)", "status", "growth rate (1/s)",
+                                             "unstable"],
+                             [[fmt(p.get("K")), fmt(1e3 * p.get("td_s", 0.0)), str(p.get("status")),
+                               fmt(p.get("sigma_per_s")), fmt(p.get("unstable"))] for p in steps]))
+        key = "K" if var == "K" else "td_s"
+        x = np.array([p.get(key) for p in steps], float)
+        sig = np.array([np.nan if p.get("sigma_per_s") is None else p["sigma_per_s"]
+                        for p in steps])
+        fig = new_figure((7.2, 3.4))
+        ax = fig.add_subplot()
+        ax.plot(x, sig, "o-", label="measured growth rate")
+        for name, v, style in (("measured", res.get("measured_boundary"), "-"),
+                               ("exact sampled", res.get("exact_boundary"), "--"),
+                               ("paper approx.", res.get("approx_boundary"), ":")):
+            if v is not None:
+                ax.axvline(v, color="0.3", ls=style, label=f"{name} boundary {v:.4g}")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel("K (N/m)" if var == "K" else "td (s)", fontsize=8)
+        ax.set_ylabel("growth rate σ (1/s)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        details.append(Figure("Stability probe: growth rate of each step against the boundaries",
+                              fig))
+    return ReportSections(verdict_title="Stability boundary", verdict=verdict, details=details,
+                          margin=False)

@@ -32,6 +32,9 @@ from labbench.protocol import (
     number,
 )
 
+# Summary figures stop at this fraction of Nyquist: above, the sampled loop's ED and EM
+# swing towards Nyquist and would set the scale of panels meant for the rendered band.
+SUMMARY_W_MAX_NYQUIST = 0.1
 # Frequency band of the accuracy figure [rad/s] (docs/protocols.md: within 5 % over 2-100 rad/s).
 DEVIATION_BAND_RAD_S = (2.0, 100.0)
 
@@ -137,6 +140,7 @@ class WhiteNoiseEtfe(ProtocolBase):
             loop_fit = fit_loop(est, ve, plant).as_dict()
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
+        predicted = theory.predicted_bandwidths(plant, ve, "sampled")
         return {
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
@@ -149,10 +153,86 @@ class WhiteNoiseEtfe(ProtocolBase):
                 "max_rel": float(np.max(rel)) if rel.size else None,
                 "n_points": int(rel.size),
             },
+            # predicted = read off the exact sampled model's curves, which the data follow;
+            # the continuous model's closed forms (eq. 5, w0) are kept beside them
             "bandwidths": {
                 "ws_star_measured": measured_ws_star(w, eff.ES),
-                "ws_star_predicted": theory.predicted_ws_star(plant, ve),
+                "ws_star_predicted": predicted["ws_star"],
+                "ws_star_eq5": theory.predicted_ws_star(plant, ve),
                 "wb_star_measured": measured_wb_star(w, eff.ED, plant.b),
-                "wb_star_predicted": theory.predicted_wb_star(ve),
+                "wb_star_predicted": predicted["wb_star"],
+                "wb_star_w0": theory.predicted_wb_star(ve),
             },
         }
+
+    def report_sections(self, session):
+        """Page 1: the rendered impedance against the exact sampled theory (deviation,
+        bandwidths measured and predicted by that theory) and this run's curves for the
+        overlay figure; details: the paper-style figure and the numbers behind it."""
+        return _report_sections(self, session)
+
+
+def _report_sections(protocol: WhiteNoiseEtfe, session):
+    import math
+
+    from labbench.figures import Curve, paper_figure
+    from labbench.report.blocks import Figure, Markup, ReportSections, Table, fmt, percent
+    from labbench.report.content import analysis_flags, nyquist_band, overlay_color
+
+    plant = session.plant or protocol.plant()
+    full = protocol.analyze(session.ch, {"plant": {"m": plant.m, "b": plant.b}})
+    e, th, dev, bw = full["etfe"], full["theory"], full["deviation_vs_sampled"], full["bandwidths"]
+    ve = protocol.ve
+    w = np.asarray(e["w"])
+    keep = nyquist_band(w, session.T)
+    Z = (np.asarray(e["Z_re"]) + 1j * np.asarray(e["Z_im"]))[keep]
+    err = np.asarray(e["Z_err"])[keep]
+    z_s = (np.asarray(th["sampled"]["Z_re"]) + 1j * np.asarray(th["sampled"]["Z_im"]))[keep]
+    z_p = (np.asarray(th["paper"]["Z_re"]) + 1j * np.asarray(th["paper"]["Z_im"]))[keep]
+    w = w[keep]
+    w0 = f"{ve.w0:g} rad/s" if math.isfinite(ve.w0) else "none"
+    configured = protocol.config.plant_m_kg is not None and protocol.config.plant_b is not None
+    band = dev.get("band_rad_s") or [None, None]
+    verdict = [
+        ("virtual environment", Markup(f"{ve.kind}: K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
+                                       f"ω<sub>0</sub> = {w0}, t<sub>d</sub> = {1e3 * ve.td:g} ms")),
+        ("device model of the theory", f"m = {plant.m:.4g} kg, b = {plant.b:.4g} N s/m "
+                                       f"({'as given to the run' if configured else 'rig nominal'})"),
+        (Markup(f"|Z − Z<sub>theory</sub>| / |Z<sub>theory</sub>|, {fmt(band[0])}–{fmt(band[1])} rad/s"),
+         f"median {percent(dev.get('median_rel'))}, max {percent(dev.get('max_rel'))}"),
+        (Markup("stiffness bandwidth ω<sub>s</sub>*: measured / sampled theory (rad/s)"),
+         f"{fmt(bw.get('ws_star_measured'))} / {fmt(bw.get('ws_star_predicted'))}"),
+        (Markup("damping bandwidth ω<sub>b</sub>*: measured / sampled theory (rad/s)"),
+         f"{fmt(bw.get('wb_star_measured'))} / {fmt(bw.get('wb_star_predicted'))}"),
+    ]
+    color = overlay_color(session)
+    name = f"{session.tag} K {ve.K:g}, B {ve.B:g}, td {1e3 * ve.td:g} ms"
+    low = w <= SUMMARY_W_MAX_NYQUIST * math.pi / session.T
+    curves = [Curve(f"{name}: sampled theory", w[low], z_s[low], color=color),
+              Curve(f"{name}: measured", w[low], Z[low], "points", color=color)]
+    marks = {"ws*": bw.get("ws_star_measured"), "wb*": bw.get("wb_star_measured")}
+    fig = paper_figure([Curve("exact sampled theory", w, z_s), Curve("paper eq. 2", w, z_p),
+                        Curve("measured (ETFE)", w, Z, "points", err)],
+                       title=f"{session.tag} {ve.kind} K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
+                             f"w0 = {w0}, td = {1e3 * ve.td:g} ms", marks=marks)
+    details = [
+        Figure("Closed-loop impedance and effective impedances: data (points, 95 % band) against "
+               "the exact sampled theory and the paper's eq. 2; dashed: measured bandwidths", fig),
+        Table("Accuracy against the exact sampled theory",
+              ["band (rad/s)", "frequencies", "median deviation", "max deviation"],
+              [[f"{fmt(band[0])} to {fmt(band[1])}", str(dev.get("n_points")),
+                percent(dev.get("median_rel"), 3), percent(dev.get("max_rel"), 3)]]),
+        Table("Bandwidths", ["", "measured (rad/s)", "exact sampled theory (rad/s)",
+                             "continuous closed form (rad/s)"],
+              [[Markup("ω<sub>s</sub>* (ES crosses zero)"), fmt(bw.get("ws_star_measured")),
+                fmt(bw.get("ws_star_predicted")), fmt(bw.get("ws_star_eq5"))],
+               [Markup("ω<sub>b</sub>* (ED half-way to b)"), fmt(bw.get("wb_star_measured")),
+                fmt(bw.get("wb_star_predicted")), fmt(bw.get("wb_star_w0"))]],
+              note="Closed forms: sqrt(K/m) (paper eq. 5) and w0 (sec. 3.2). The sampled theory "
+                   "is read off its own curves with the rules applied to the measurement."),
+    ]
+    return ReportSections(verdict_title="Rendered impedance against the exact sampled theory",
+                          verdict=verdict, curves=curves,
+                          flags=analysis_flags(session.tag, e.get("flags") or [], "ETFE: "),
+                          details=details)
+

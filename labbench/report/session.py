@@ -1,0 +1,97 @@
+"""One session as a report sees it: its records and channels, and facts derived from them."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from labbench.records import iso_time, protocol_name
+from labbench.session_content import load_session, session_ve
+from labbench.ve import Plant, VirtualEnvironment
+
+
+@dataclass
+class ReportSession:
+    path: Path
+    start: dict
+    desc: dict
+    ch: dict
+    events: list
+    stop: dict | None
+    problem: str | None
+    index: int = 1  # its number in the report: "#1", "#2", ...
+
+    @property
+    def tag(self) -> str:
+        return f"#{self.index}"
+
+    @property
+    def protocol(self) -> str:
+        return protocol_name(self.start)
+
+    @property
+    def config(self) -> dict:
+        """The protocol's settings as recorded (``describe()`` less the name)."""
+        proto = self.start.get("protocol")
+        if not isinstance(proto, dict):
+            return {}
+        return {k: v for k, v in proto.items() if k not in ("protocol", "name")}
+
+    @property
+    def results(self) -> dict:
+        return dict((self.stop or {}).get("results") or {})
+
+    @property
+    def status(self) -> str:
+        return str((self.stop or {}).get("status", "incomplete"))
+
+    @property
+    def T(self) -> float:
+        rig = self.start.get("rig") or {}
+        return float(self.desc.get("sample_time_s") or rig.get("sample_time_s") or 0.001)
+
+    @property
+    def plant(self) -> Plant | None:
+        """The device model the run assumed (results first: what analysis used)."""
+        for p in (self.results.get("plant"), (self.start.get("precheck") or {}).get("plant"),
+                  self.start.get("plant")):
+            if isinstance(p, dict) and "m" in p and "b" in p:
+                return Plant(float(p["m"]), float(p["b"]))
+        return None
+
+    @property
+    def ve(self) -> VirtualEnvironment | None:
+        return session_ve(self.start)
+
+    @property
+    def rig_name(self) -> str:
+        return str((self.start.get("rig") or {}).get("name") or "-")
+
+    @property
+    def device(self) -> str:
+        return str((self.start.get("device") or {}).get("kind") or "-")
+
+    @property
+    def started(self) -> str:
+        t = self.start.get("time")
+        return iso_time(t) if t is not None else "-"
+
+    @property
+    def duration_s(self) -> float:
+        t = self.ch["t"]
+        return float(t[-1] - t[0]) if t.size else 0.0
+
+    @property
+    def dropped(self) -> int:
+        seq = self.ch["seq"].astype(np.int64)
+        return int(np.sum(np.clip(np.diff(seq) - 1, 0, None))) if seq.size > 1 else 0
+
+    @property
+    def trips(self) -> list[dict]:
+        """Safety events (not the bookkeeping ones)."""
+        return [e for e in self.events if e.get("name") not in ("segment", "enabled")]
+
+
+def load(path, index: int = 1) -> ReportSession:
+    return ReportSession(Path(path), *load_session(path), index=index)
