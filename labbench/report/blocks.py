@@ -12,7 +12,6 @@ import io
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
