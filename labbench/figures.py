@@ -118,7 +118,7 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
     return fig
 
 
-def effective_figure(curves: list[Curve], size=(7.2, 2.3)) -> Figure:
+def effective_figure(curves: list[Curve], size=(7.2, 2.15)) -> Figure:
     """ES, ED and EM side by side (paper Figures 5-8 without the Bode panels), for a
     summary page: lines for theory, points for measurements, ES where Im Z < 0 and EM
     where Im Z > 0 as in ``paper_figure``. Overlay several runs by giving their curves

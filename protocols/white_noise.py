@@ -176,7 +176,8 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
     import math
 
     from labbench.figures import Curve, paper_figure
-    from labbench.report.blocks import Figure, Markup, ReportSections, Table, fmt, percent
+    from labbench.report.blocks import (Figure, Flag, Markup, ReportSections, Table, fmt, percent,
+                                        plus_minus)
     from labbench.report.content import analysis_flags, nyquist_band, overlay_color
 
     plant = session.plant or protocol.plant()
@@ -231,8 +232,36 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
               note="Closed forms: sqrt(K/m) (paper eq. 5) and w0 (sec. 3.2). The sampled theory "
                    "is read off its own curves with the rules applied to the measurement."),
     ]
+    flags = analysis_flags(session.tag, e.get("flags") or [], "ETFE: ")
+    delay, fit_rows = None, []
+    try:
+        fit = _loop_fit(protocol, session, plant)
+    except UserError as exc:
+        flags.append(Flag(session.tag, f"no loop-delay fit: {exc}",
+                          "record longer or with more force to measure the delay"))
+    else:
+        lo, hi = fit.ci95["td_s"]
+        delay = (f"{1e3 * (fit.td_meta_s + fit.td_s):.3f} ms ± {0.5e3 * (hi - lo):.2g} ms, "
+                 f"fitted to Z (VE's own {1e3 * fit.td_meta_s:g} ms included)")
+        fit_rows = [[name, plus_minus(scale * getattr(fit, key), *(scale * v for v in fit.ci95[key])),
+                     unit] for name, key, unit, scale in (("m", "m", "kg", 1.0),
+                                                          ("b", "b", "N s/m", 1.0),
+                                                          ("extra delay td", "td_s", "ms", 1e3))]
+        details.append(Table("Closed-loop fit of the measured Z (exact sampled model; "
+                             "labbench analyze etfe --fit)", ["", "value ± 95 %", "unit"], fit_rows,
+                             note=f"{fit.n_freq} coherent frequencies, "
+                                  f"{fmt(fit.band_rad_s[0])}-{fmt(fit.band_rad_s[1])} rad/s; "
+                                  f"residual rms {percent(fit.residual_rms)} of |Z|."))
     return ReportSections(verdict_title="Rendered impedance against the exact sampled theory",
-                          verdict=verdict, curves=curves,
-                          flags=analysis_flags(session.tag, e.get("flags") or [], "ETFE: "),
-                          details=details)
+                          verdict=verdict, curves=curves, flags=flags, details=details,
+                          delay=delay)
+
+
+def _loop_fit(protocol: WhiteNoiseEtfe, session, plant: Plant):
+    """``labbench analyze etfe FILE --fit`` on the session: m, b and the extra loop delay."""
+    from labbench.analysis.dataio import load_recording
+    from labbench.session_api import etfe_recording
+
+    return etfe_recording(load_recording(session.path), protocol.config.estimator,
+                          protocol.config.window, m=plant.m, b=plant.b, fit=True).fit
 

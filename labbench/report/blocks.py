@@ -94,7 +94,8 @@ class ReportSections:
     measured as points, theory as lines). ``flags``: problems with what to do.
     ``details``: blocks for the session's part of the details. ``margin``: whether the
     summary adds the run's stability margin and loop delay to the verdict (a protocol
-    whose verdict is the stability boundary itself says no).
+    whose verdict is the stability boundary itself says no). ``delay``: the loop delay
+    as measured by the protocol's analysis (text), None when it measured none.
     """
 
     verdict_title: str = ""
@@ -103,6 +104,7 @@ class ReportSections:
     flags: list = field(default_factory=list)
     details: list = field(default_factory=list)
     margin: bool = True
+    delay: str | None = None
 
 
 def interval(lo, hi, digits: int = 4) -> str:

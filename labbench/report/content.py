@@ -98,7 +98,7 @@ def _sections(s: ReportSession) -> ReportSections:
 def _summary(sessions: list[ReportSession], parts: list[ReportSections]) -> list:
     blocks = [_what_ran(sessions)]
     # each verdict ends with the run's stability margin and loop delay (when it had a VE)
-    verdicts = [(s, p.verdict_title, p.verdict + (_loop_rows(s) if p.margin else []))
+    verdicts = [(s, p.verdict_title, p.verdict + (_loop_rows(s, p.delay) if p.margin else []))
                 for s, p in zip(sessions, parts) if p.verdict]
     for title in dict.fromkeys(t for _, t, _ in verdicts):
         blocks.append(_column_table(title, [(s, rows) for s, t, rows in verdicts if t == title]))
@@ -131,12 +131,12 @@ def _column_table(title: str, members) -> Table:
                                  for label in labels])
 
 
-def _loop_rows(s: ReportSession) -> list:
-    """Stability margin of the run's VE(s) from its precheck (exact sampled model) and the
-    loop delay: measured when the run measured it, else the nominal one."""
+def _loop_rows(s: ReportSession, measured_delay: str | None) -> list:
+    """Stability margin of the run's VE from its precheck (exact sampled model) and the
+    loop delay: as the protocol measured it, else the nominal one."""
     checks = (s.start.get("precheck") or {}).get("checks") or []
     rows = []
-    for c in checks:
+    for c in checks[:1]:  # the starting VE; every checked VE is listed in the appendix
         ve = c.get("ve") or {}
         K, km = ve.get("K") or 0.0, c.get("k_max")
         if ve.get("kind") in (None, "none"):
@@ -144,14 +144,11 @@ def _loop_rows(s: ReportSession) -> list:
         margin = f" = {km / K:.3g} × K" if km and K > 0 else ""
         rows.append((Markup("K<sub>max</sub> (exact sampled)"),
                      f"{fmt(km)} N/m{margin}" if km else "no stable K"))
-        break  # the starting VE; every probed VE is listed in the appendix
     if not rows:
         return rows
-    fitted = (s.results.get("fit") or {}).get("td_s")
     ve = s.ve
     nominal = f"{1e3 * ve.td:g} ms" if ve is not None else "-"
-    rows.append(("loop delay td", f"{1e3 * fitted:.3g} ms (measured)" if fitted is not None
-                 else f"{nominal} nominal (not measured)"))
+    rows.append(("loop delay td", measured_delay or f"{nominal} nominal (not measured)"))
     return rows
 
 
