@@ -313,7 +313,7 @@ def predicted_wb_star(ve: VirtualEnvironment) -> float | None:
 
 
 def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sampled",
-                         n: int = 4000) -> dict:
+                         latency: float = 0.0, n: int = 4000) -> dict:
     """``{"ws_star", "wb_star"}`` [rad/s] read off the model's own ES and ED curves with the
     rules used on measurements (``labbench.effective.measured_ws_star`` /
     ``measured_wb_star``), on a log grid of ``n`` points from 1e-3 of the slowest rate
@@ -323,13 +323,16 @@ def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sam
     falls well before w0 (on the paper's demo, K = 50, B = 1, w0 = 125 rad/s at 1 kHz,
     wb* = 72.6 rad/s), where ``predicted_wb_star`` (w0, paper sec. 3.2) and
     ``predicted_ws_star`` (eq. 5) are the continuous model's closed forms.
+    ``latency``: the rig's extra loop delay [s] (as in ``z_sampled``; added to td in eq. 2).
     """
     from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 
     rates = [r for r in (predicted_ws_star(plant, ve), ve.w0 if math.isfinite(ve.w0) else None,
                          (plant.b + ve.B) / plant.m) if r]
     w = np.geomspace(1e-3 * min(rates + [1.0 / ve.T]), 0.999 * math.pi / ve.T, n)
-    eff = effective_impedances(w, theory_curve(plant, ve, w, model))
+    Z = (z_sampled(plant, ve, w, latency) if model == "sampled"
+         else z_paper(plant, ve.with_(td=ve.td + latency), w))
+    eff = effective_impedances(w, Z)
     return {"ws_star": measured_ws_star(w, eff.ES), "wb_star": measured_wb_star(w, eff.ED, plant.b)}
 
 

@@ -131,7 +131,8 @@ class WhiteNoiseEtfe(ProtocolBase):
         ve = self.ve
         w = np.asarray(est.w)
         Z = np.asarray(est.Z)
-        curves = compare.theory_curves(plant, ve, w, compare.measured_td(meta))  # rig's measured delay
+        latency = compare.measured_td(meta)  # the rig's measured extra delay
+        curves = compare.theory_curves(plant, ve, w, latency)
         z_s, z_p = curves["sampled"], curves["paper"]
         band = (w >= DEVIATION_BAND_RAD_S[0]) & (w <= DEVIATION_BAND_RAD_S[1])
         rel = np.abs(Z[band] - z_s[band]) / np.abs(z_s[band])
@@ -140,7 +141,7 @@ class WhiteNoiseEtfe(ProtocolBase):
             loop_fit = fit_loop(est, ve, plant).as_dict()
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
-        predicted = theory.predicted_bandwidths(plant, ve, "sampled")
+        predicted = theory.predicted_bandwidths(plant, ve, "sampled", latency)
         return {
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
