@@ -234,35 +234,24 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
                    "is read off its own curves with the rules applied to the measurement."),
     ]
     flags = analysis_flags(session.tag, e.get("flags") or [], "ETFE: ")
-    delay, fit_rows = None, []
-    try:
-        fit = _loop_fit(protocol, session, plant)
-    except UserError as exc:
-        flags.append(Flag(session.tag, f"no loop-delay fit: {exc}",
-                          "record longer or with more force to measure the delay"))
-    else:
-        lo, hi = fit.ci95["td_s"]
-        delay = (f"{1e3 * (fit.td_meta_s + fit.td_s):.3f} ms ± {0.5e3 * (hi - lo):.2g} ms, "
-                 f"fitted to Z (VE's own {1e3 * fit.td_meta_s:g} ms included)")
-        fit_rows = [[name, plus_minus(scale * getattr(fit, key), *(scale * v for v in fit.ci95[key])),
-                     unit] for name, key, unit, scale in (("m", "m", "kg", 1.0),
-                                                          ("b", "b", "N s/m", 1.0),
-                                                          ("extra delay td", "td_s", "ms", 1e3))]
+    fit, delay = full.get("loop_fit") or {}, None
+    if "td_s" in fit:
+        ci = fit["ci95"]
+        lo, hi = ci["td_s"]
+        delay = (f"{1e3 * fit['loop_delay_s']:.3f} ms ± {0.5e3 * (hi - lo):.2g} ms, "
+                 f"fitted to Z (VE's own {1e3 * fit['td_meta_s']:g} ms included)")
+        rows = [[name, plus_minus(scale * fit[key], *(scale * v for v in ci[key])), unit]
+                for name, key, unit, scale in (("m", "m", "kg", 1.0), ("b", "b", "N s/m", 1.0),
+                                               ("extra delay td", "td_s", "ms", 1e3))]
         details.append(Table("Closed-loop fit of the measured Z (exact sampled model; "
-                             "labbench analyze etfe --fit)", ["", "value ± 95 %", "unit"], fit_rows,
-                             note=f"{fit.n_freq} coherent frequencies, "
-                                  f"{fmt(fit.band_rad_s[0])}-{fmt(fit.band_rad_s[1])} rad/s; "
-                                  f"residual rms {percent(fit.residual_rms)} of |Z|."))
+                             "labbench analyze etfe --fit)", ["", "value ± 95 %", "unit"], rows,
+                             note=f"{fit['n_freq']} coherent frequencies, "
+                                  f"{fmt(fit['band_rad_s'][0])}-{fmt(fit['band_rad_s'][1])} rad/s; "
+                                  f"residual rms {percent(fit['residual_rms'])} of |Z|."))
+    else:
+        flags.append(Flag(session.tag, f"no loop-delay fit: {fit.get('error', 'not run')}",
+                          "record longer or with more force to measure the delay"))
     return ReportSections(verdict_title="Rendered impedance against the exact sampled theory",
                           verdict=verdict, curves=curves, flags=flags, details=details,
                           delay=delay)
-
-
-def _loop_fit(protocol: WhiteNoiseEtfe, session, plant: Plant):
-    """``labbench analyze etfe FILE --fit`` on the session: m, b and the extra loop delay."""
-    from labbench.analysis.dataio import load_recording
-    from labbench.session_api import etfe_recording
-
-    return etfe_recording(load_recording(session.path), protocol.config.estimator,
-                          protocol.config.window, m=plant.m, b=plant.b, fit=True).fit
 
