@@ -168,12 +168,18 @@ class CanopenDrive:
         self._start_receiver()
         return self
 
-    def survey(self) -> Assessment:
-        """Read-only: what the drive has (and its file says), and the assessment."""
+    def survey(self, wake: bool = False) -> Assessment:
+        """Read-only: what the drive has (and its file says), and the assessment.
+
+        ``wake`` (bring-up only): a node that does not answer may be STOPPED,
+        which answers no SDO: NMT pre-operational and one more try.
+        """
         try:
             d = survey(self._sdo, self._file)
         except DeviceConnectionError:
-            self._nmt(NMT_PRE_OPERATIONAL)  # a STOPPED node answers no SDO: one more try
+            if not wake:
+                raise
+            self._nmt(NMT_PRE_OPERATIONAL)
             d = survey(self._sdo, self._file)
         self.dictionary = d
         self.assessment = assess(d, self.config, self.rig)
@@ -209,8 +215,7 @@ class CanopenDrive:
                 "serial": d.value(0x1018, 4), "supported_modes": d.value(0x6502)}
 
     def _bring_up(self, timeout: float) -> None:
-        cfg = self.config
-        a = self.survey()
+        a = self.survey(wake=True)
         a.refuse()  # every obstacle in one message, before any write
         self._identity = self._ident()
         self._mode = None

@@ -458,7 +458,7 @@ class SimCanopenDrive:
         elif cid in self._rpdos and self.nmt_state == 5:
             self._on_rpdo(self._rpdos[cid], msg.data, now)
         elif cid == 0x600 + self.node_id:
-            if not self.muted:
+            if not self.muted and self.nmt_state != 4:  # no SDO in STOPPED (CiA 301)
                 self.node.sdo.on_request(cid, msg.data, msg.timestamp)
         elif cid == 0:
             self._on_nmt(msg.data)

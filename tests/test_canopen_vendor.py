@@ -519,3 +519,23 @@ def test_devices_shows_the_error_history_of_a_faulted_drive(node_on_channel, tmp
     assert "FAULT; NMT" in out and "error code 0x603F = 0x4310" in out
     assert "error history 0x1003: 0x00004310" in out
     assert "TPDO4 COB-ID 0x485 (planned, 1 slot(s))" in out  # slots probed on the drive
+
+
+def test_a_stopped_node_is_woken_by_open_but_not_by_the_probe(tmp_path):
+    """STOPPED answers no SDO: open sends NMT pre-operational once; the probe does not."""
+    import can
+
+    from labbench.drivers.canopen_drive import CanopenDrive, probe_drive
+
+    rig, config, peer, bus = variant(tmp_path, "ONE_SLOT")
+    with peer.lock:
+        peer._on_nmt(bytes([0x02, peer.node_id]))  # another master stopped it
+    other = can.Bus(interface="virtual", channel=peer.bus.channel_id)
+    probed = probe_drive(CanopenDrive(rig, config, bus=other))
+    assert "no answer to SDO read of 0x1000:00" in probed["no_answer"]
+    assert peer.nmt_state == 4 and peer.node.writes == []  # the probe changed nothing
+    d = connect_driver(rig, config, peer, bus)
+    try:
+        assert peer.nmt_state == 5 and len(d.assessment.plan.rpdos) == 2
+    finally:
+        d.close()
