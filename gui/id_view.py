@@ -101,7 +101,7 @@ class IdView(QtWidgets.QWidget):
                                        for f in res.get("flags") or []))
         first = next(iter(results.values()))
         sel = first.get("selection") or {}
-        why = sel.get("criterion", "")
+        why = sel.get("reason") or sel.get("criterion", "")
         terms = "f = m x'' + b x'"
         if first.get("coulomb") is not None:
             terms += " + Fc sign(x')"
