@@ -811,14 +811,19 @@ def probe_canopen(rig, fault_reset: bool = False) -> dict:
 
 
 def probe_drive(drive: CanopenDrive, fault_reset: bool = False) -> dict:
-    """``probe()`` or ``reset_fault()`` on a driver not yet connected; closes it."""
-    try:
-        with drive:
+    """``probe()`` or ``reset_fault()`` on a driver not yet connected; closes it.
+
+    A node that answers no SDO but sends a heartbeat (e.g. STOPPED) is named so.
+    """
+    with drive:
+        try:
             drive.connect()
             if not fault_reset:
                 return drive.probe()
             before = drive.drive_state()
-            return {"node_id": drive.config.node_id, "reset": (before.value,
-                                                               drive.reset_fault().value)}
-    except DeviceConnectionError as exc:
-        return {"no_answer": str(exc)}
+            return {"node_id": drive.config.node_id,
+                    "reset": (before.value, drive.reset_fault().value)}
+        except DeviceConnectionError as exc:
+            nmt = drive._observe_nmt(0.3) if drive._network is not None else None
+            heard = f"; its heartbeat shows {NMT_NAMES.get(nmt, nmt)}" if nmt is not None else ""
+            return {"no_answer": f"{exc}{heard}"}

@@ -530,9 +530,11 @@ def test_a_stopped_node_is_woken_by_open_but_not_by_the_probe(tmp_path):
     rig, config, peer, bus = variant(tmp_path, "ONE_SLOT")
     with peer.lock:
         peer._on_nmt(bytes([0x02, peer.node_id]))  # another master stopped it
+        peer._params[(0x1017, 0)], peer._hb_next = 50, 0.0  # with its heartbeat on
     other = can.Bus(interface="virtual", channel=peer.bus.channel_id)
     probed = probe_drive(CanopenDrive(rig, config, bus=other))
-    assert "no answer to SDO read of 0x1000:00" in probed["no_answer"]
+    assert probed["no_answer"].startswith("node 1: no answer to SDO read of 0x1000:00")
+    assert probed["no_answer"].endswith("; its heartbeat shows STOPPED")
     assert peer.nmt_state == 4 and peer.node.writes == []  # the probe changed nothing
     d = connect_driver(rig, config, peer, bus)
     try:
