@@ -30,6 +30,18 @@ CHANNELS = {
     "flags": "1",  # safety / device bits (labbench.loop documents them)
 }
 
+# What each channel is, in words (exports carry it beside the unit).
+DESCRIPTIONS = {
+    "t": "device time of the sample",
+    "seq": "device sequence number (a gap is a dropped sample)",
+    "position": "sampled position x[k]",
+    "velocity": "filtered velocity estimate v[k] of the VE",
+    "ve_force": "virtual-environment force computed at step k, before the delay",
+    "excitation": "exogenous force applied during step k",
+    "command": "force commanded for step k, after the safety envelope and the delay",
+    "flags": "safety and device bits (labbench.loop)",
+}
+
 Consumer = Callable[[dict], None]
 
 

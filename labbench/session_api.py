@@ -207,6 +207,14 @@ class FrequencyResponse:
             title = f"{self.source}: {ve['kind']} K = {ve['K']:g}, B = {ve['B']:g}, td = {ve['td']:g} s"
         return paper_figure(curves, path, title=title, marks=marks, inputs=inputs, force=force)
 
+    def to_csv(self, path, force: bool = False):
+        """Write the response as CSV (w in rad/s and Hz, Z, its 95 % radius, coherence, ES,
+        ED, EM, the theory's Z; ``labbench.export.export_frequency_response``); returns the
+        path. An existing file is replaced only with ``force``; never the record itself."""
+        from labbench.export import export_frequency_response
+
+        return export_frequency_response(self, path, [self.source], force)
+
     def __repr__(self) -> str:
         return (f"FrequencyResponse(estimator={self.result.estimator!r}, {len(self.w)} frequencies "
                 f"{self.w[0]:.3g}-{self.w[-1]:.4g} rad/s)")

@@ -82,3 +82,80 @@ def test_export_errors_are_one_line(tmp_path, session, capsys):
     assert main(["export", str(path), "--hdf5", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "directory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_hdf5_time_is_the_axis_of_every_channel(tmp_path, session):
+    """Time is the dimension scale of each channel; units, descriptions, compression and an
+    ISO 8601 start time are attributes a reader sees without knowing labbench."""
+    from datetime import datetime
+
+    path, stream = session
+    out = tmp_path / "run.h5"
+    assert main(["export", str(path), "--hdf5", str(out)]) == 0
+    joined = records.concat_pages(stream)
+    with h5py.File(out, "r") as f:
+        t = f["channels/t"]
+        assert t.is_scale and t.attrs["NAME"] == b"time"
+        for name in records.CHANNELS:
+            ds = f["channels"][name]
+            assert ds.compression == "gzip" and ds.shuffle
+            assert ds.attrs["description"] == records.DESCRIPTIONS[name]
+            if name != "t":
+                assert ds.dims[0].label == "time" and len(ds.dims[0]) == 1
+                np.testing.assert_array_equal(ds.dims[0][0][()], joined["t"])
+        started = datetime.fromisoformat(f.attrs["start_time"])
+        assert started.utcoffset() is not None
+        assert started.timestamp() == pytest.approx(stream[0]["time"], abs=1.0)
+        assert "time" not in f.attrs  # no bare epoch float
+    # gzip + shuffle: smaller than the raw arrays (the synthetic data are smooth)
+    raw = sum(np.asarray(v).nbytes for v in joined.values())
+    assert out.stat().st_size < raw
+
+
+def test_frequency_response_csv(tmp_path, session, capsys):
+    import labbench
+
+    path, _ = session
+    out = tmp_path / "fr.csv"
+    assert main(["analyze", "etfe", str(path), "--csv", str(out), "--m", "0.094", "--b", "0.1"]) == 0
+    capsys.readouterr()
+    lines = out.read_text().splitlines()
+    meta = dict(line[2:].split("=", 1) for line in lines if line.startswith("# "))
+    header = lines[len(meta)].split(",")
+    assert header[:2] == ["w_rad_s", "f_hz"] and "Z_theory_re" in header
+    table = np.loadtxt(out, delimiter=",", skiprows=len(meta) + 1)
+    fr = labbench.load(path).etfe(m=0.094, b=0.1)
+    col = {name: table[:, i] for i, name in enumerate(header)}
+    np.testing.assert_array_equal(col["w_rad_s"], fr.w)
+    np.testing.assert_allclose(col["f_hz"], fr.w / (2 * np.pi), rtol=1e-15)
+    np.testing.assert_array_equal(col["ES"], fr.ES)
+    np.testing.assert_array_equal(col["Z_theory_im"], fr.Z_theory.imag)
+    assert meta["theory_model"] == "sampled" and float(meta["wb_star_rad_s"]) == fr.wb_star
+    assert main(["analyze", "etfe", str(path), "--csv", str(out)]) == 2  # exists: --force
+    assert "--force" in capsys.readouterr().err
+    assert fr.to_csv(out, force=True) == out
+
+
+def test_display_units_change_only_what_is_printed(tmp_path, session, capsys):
+    from labbench.errors import UserError
+    from labbench.units import DisplayUnits
+
+    u = DisplayUnits.parse("mm,Hz,deg")
+    assert (u.length_of(0.0123), u.frequency_of(2 * np.pi), u.angle_of(np.pi)) == \
+        pytest.approx((12.3, 1.0, 180.0))
+    with pytest.raises(UserError, match="two frequency units"):
+        DisplayUnits.parse("Hz,rad/s")
+    with pytest.raises(UserError, match="unknown display unit"):
+        DisplayUnits.parse("furlong")
+    path, _ = session
+    assert main(["analyze", "etfe", str(path)]) == 0
+    si = capsys.readouterr().out
+    assert main(["--units", "Hz", "analyze", "etfe", str(path)]) == 0
+    hz = capsys.readouterr().out
+    rad_row = si.splitlines()[si.splitlines().index(next(x for x in si.splitlines() if "w rad/s" in x)) + 1]
+    hz_row = hz.splitlines()[hz.splitlines().index(next(x for x in hz.splitlines() if "f Hz" in x)) + 1]
+    assert float(hz_row.split()[0]) == pytest.approx(float(rad_row.split()[0]) / (2 * np.pi), rel=1e-3)
+    assert hz_row.split()[1:] == rad_row.split()[1:]  # Z, ES, ED, EM stay SI
+    with pytest.raises(SystemExit) as bad:  # a usage error: argparse's one line, exit 2
+        main(["--units", "furlong", "analyze", "etfe", str(path)])
+    assert bad.value.code == 2 and "unknown display unit 'furlong'" in capsys.readouterr().err

@@ -53,6 +53,8 @@ def register(subparsers) -> None:
                    help="with --fit: also fit the rendered K and B")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--plot", metavar="FILE", help="paper-style figure (.png, .svg, .pdf)")
+    e.add_argument("--csv", metavar="FILE", help="the frequency response as CSV: w in rad/s and "
+                   "Hz, Z, its 95 %% radius, coherence, ES, ED, EM (and the theory's Z)")
     e.add_argument("--force", action="store_true", help="replace an existing output file (never one of the inputs)")
     e.set_defaults(func=run_etfe)
 
@@ -89,35 +91,43 @@ def run_etfe(args) -> int:
     from labbench.safe_write import output_path
     from labbench.session_api import etfe_recording
 
-    if args.plot:
-        output_path(args.plot, [args.file], args.force)  # before the work
+    for out in (args.plot, args.csv):
+        if out:
+            output_path(out, [args.file], args.force)  # before the work
     fr = etfe_recording(load_recording(args.file), args.estimator, args.window, m=args.m, b=args.b,
                         fit=args.fit, fit_ve=args.fit_ve)
     d = fr.as_dict()
     if args.plot:
         fr.plot(args.plot, inputs=[args.file], force=args.force)
+    if args.csv:
+        fr.to_csv(args.csv, force=args.force)
     if args.json:
         print(json.dumps(json_safe(d)))
     else:
-        _print_table(args.file, d, fr.comparison)
-    if args.plot:
-        print(f"wrote {args.plot}")
+        _print_table(args.file, d, fr.comparison, args.units)
+    for out in (args.plot, args.csv):
+        if out:
+            print(f"wrote {out}")
     return 0
 
 
-def _print_table(path, d, cmp) -> None:
-    w = np.asarray(d["w"])
+def _print_table(path, d, cmp, units) -> None:
+    """The table in SI, frequencies in the display unit (``--units Hz``: Hz)."""
+    f, fu = units.frequency_of, units.frequency
+    w = f(np.asarray(d["w"]))
     print(f"{path}: estimator {d['estimator']}, {len(w)} frequencies "
-          f"{w[0]:.3g}-{w[-1]:.4g} rad/s; ws* = {fmt(d['ws_star'])} rad/s, wb* = {fmt(d['wb_star'])} rad/s")
+          f"{w[0]:.3g}-{w[-1]:.4g} {fu}; ws* = {fmt(f(d['ws_star']))} {fu}, "
+          f"wb* = {fmt(f(d['wb_star']))} {fu}")
     if cmp is not None:
         print(f"theory ({cmp['model']} model, m = {cmp['plant']['m']:.4g} kg, b = {cmp['plant']['b']:.4g} "
               f"N s/m {cmp['plant_source']}): deviation median {_pct(cmp['deviation_median'])}, "
-              f"max {_pct(cmp['deviation_max'])} over {cmp['band_rad_s'][0]:g}-{cmp['band_rad_s'][1]:g} rad/s")
+              f"max {_pct(cmp['deviation_max'])} over {f(cmp['band_rad_s'][0]):.4g}-"
+              f"{f(cmp['band_rad_s'][1]):.4g} {fu}")
     if "fit" in d:
         _print_fit(d["fit"])
     for f in d["flags"]:
         print(f"flag: {f}")
-    print(f"{'w rad/s':>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
+    print(f"{('w ' if fu == 'rad/s' else 'f ') + fu:>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
           f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}")
     step = max(1, len(w) // 40)
     for i in range(0, len(w), step):

@@ -23,6 +23,7 @@ import threading
 from labbench import __version__
 from labbench.errors import DeviceError, LabbenchError, UserError, missing_extra
 from labbench.interrupts import raising
+from labbench.units import SI, DisplayUnits
 
 # Order is the order shown in --help.
 COMMANDS = ("theory", "analyze", "run", "replay", "export", "report", "devices", "gui")
@@ -47,6 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output: -v info (canopen's SDO/NMT too), -vv debug")
     parser.add_argument("-q", "--quiet", action="count", default=0, help="errors only")
+    parser.add_argument("--units", type=_display_units, default=SI, metavar="LIST",
+                        help="display units for printed tables, e.g. mm,deg,Hz (files stay SI)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name in COMMANDS:
         try:
@@ -121,6 +124,13 @@ def setup_logging(verbosity: int) -> None:
     root.setLevel(level)
     for name in LIBRARY_LOGGERS:
         logging.getLogger(name).setLevel(level if verbosity > 0 else logging.CRITICAL + 1)
+
+
+def _display_units(text: str):
+    try:
+        return DisplayUnits.parse(text)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def float_list(text: str) -> list[float]:

@@ -123,7 +123,7 @@ def _words(text: str) -> tuple:
 
 
 _COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from",
-           "can_log", "rt", "rt_priority", "port", "verbose", "quiet")
+           "can_log", "rt", "rt_priority", "port", "verbose", "quiet", "units")
 
 
 def _options(args) -> dict:
