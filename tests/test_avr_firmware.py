@@ -188,3 +188,44 @@ def test_samples_the_board_cannot_send_are_flagged_not_hidden():
     assert len(gaps) > 50
     assert all(samples[i].flags & ss.FLAG_BOARD_MISSED_TICK for i in gaps)
     assert all(s.flags & ss.FLAG_BOARD_LATE for s in samples[1:])
+
+
+def test_the_board_renders_a_spring_damper_itself_at_5_khz_and_keeps_it_when_the_host_stalls():
+    from labbench.ve import VirtualEnvironment
+
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=RIG.sample_time_s)
+    drv, board = connect_avr_sim(RIG, trace=True)
+    samples, push = [], 0.5  # N of excitation: the spring gives way by push / K
+    try:
+        drv.render_on_board(ve)
+        drv.enable()
+        for k in range(1100):
+            samples.append(drv.read(2.0))
+            if k < 400:
+                drv.command(push)
+            else:  # the host stalls: frames without a command (lock-step goes on)
+                drv.port.write(b"\x00")
+    finally:
+        drv.close()
+    trace = board.trace()
+    flags = np.array([s.flags for s in samples])
+    x = np.array([s.position_m for s in samples])
+    rendering = flags & ss.FLAG_BOARD_RENDERING != 0
+    assert rendering[5:].all()
+    # Force resolution 1/40 N: the handle rests within half a duty step of push / K.
+    dead_band = 0.5 / 40.0 / ve.K + MPC
+    assert abs(np.median(x[300:400]) - push / ve.K) <= dead_band
+    # The host is silent: the excitation goes (watchdog), the spring stays and
+    # brings the handle back.
+    assert (flags[410:] & ss.FLAG_BOARD_WATCHDOG).all()
+    assert abs(np.median(x[1000:])) <= dead_band
+    # 5 render ticks per sample while rendering; the force changes at them, also
+    # between samples (while the handle moves).
+    vec = np.array(trace.vec)
+    t0, t1 = trace.sample_ticks()[[10, 300], 0]
+    ticks = vec[(vec[:, 0] >= t0) & (vec[:, 0] < t1), 0]
+    assert len(ticks) / (t1 - t0) >= 5000 * 0.999
+    changes = np.array([at for at, _ in trace.force if t0 <= at < t1])
+    assert np.all((changes - t0) % 200e-6 < 10e-6)  # each right after a render tick
+    between = ((changes - t0) % 1e-3) > 100e-6
+    assert between.sum() > 50
