@@ -34,8 +34,9 @@
 #define PWM_PER_NEWTON 40.0f      // duty counts (of 255) per newton at the handle: calibrate
 #endif
 #ifndef LATE_US
-#define LATE_US 40                // a frame queued later than this after its tick is flagged
+#define LATE_US 100               // a frame queued later than this after its tick is flagged
 #endif
+#define RENDER_US 120              // tick time the render force may take before a sample
 #ifndef RENDER_DIV
 #define RENDER_DIV 5              // render ticks per sample: the on-board VE runs at 5 kHz
 #endif
@@ -200,7 +201,7 @@ void uart_begin() {
   UCSR0B = _BV(RXEN0) | _BV(TXEN0) | _BV(RXCIE0);
 }
 
-bool uart_tx_idle() { return tx_head == tx_tail && (UCSR0A & _BV(UDRE0)); }
+bool uart_tx_idle() { return tx_head == tx_tail; }  // nothing queued before this frame
 
 // Queues n bytes (the ring never holds more than one frame and the banner).
 void uart_write(const uint8_t *p, uint8_t n) {
@@ -220,8 +221,8 @@ void uart_print(const char *text) { uart_write((const uint8_t *)text, strlen(tex
 //   v[j] = a v[j-1] + (1 - a) (x[j] - x[j-1])      velocity [counts per tick], a = exp(-w0 T_r)
 //   u[j] = e - (K' x[j] + B' v[j]),  K' = K mpc PWM_PER_NEWTON,  B' = B mpc PWM_PER_NEWTON / T_r
 // clamped to the force limit and driven from tick j+1 (td = T_r): labbench's sampled
-// model at the board's own period. The tick latches x[j]; the loop computes u[j]
-// (float, ~60 us) before anything else, well within the 200 us to tick j+1. e is the host's excitation (its 'F' value), taken
+// model at the board's own period. The tick latches x[j] and, with interrupts on
+// again, computes u[j] (float, ~80 us) well within the 200 us to tick j+1. e is the host's excitation (its 'F' value), taken
 // at each sample tick and zero when the host is silent: a stalled host never touches
 // the rendering.
 struct Render {
@@ -231,9 +232,6 @@ struct Render {
 };
 Render render;
 volatile bool render_on = false;
-volatile bool render_due = false;  // a render tick waits for the loop
-volatile int32_t render_x;         // its count
-volatile float render_e;           // its excitation [duty]
 
 int16_t render_step(int32_t x, float e) {
   render.v += render.c * ((float)(int16_t)(x - render.x_prev) - render.v);
@@ -309,7 +307,14 @@ ISR(TIMER2_COMPA_vect, ISR_NAKED) {
         [dir] "i"(&drive_dir), [ocr] "i"(&drive_ocr));
 }
 
+volatile bool in_tick = false;  // the rest of a tick still runs (rendering took too long)
+
 void tick_after_latch(void) {
+  if (in_tick) {  // the previous tick's rendering is not done: its force is held
+    tick_status |= STATUS_RENDER_LATE;
+    return;
+  }
+  in_tick = true;
   uint16_t now = tick_lo | (uint16_t)tick_hi << 8;
   enc_count += (int16_t)(now - enc_seen);
   enc_seen = now;
@@ -346,12 +351,8 @@ void tick_after_latch(void) {
       tick_status |= STATUS_ENCODER;
     }
   }
-  if (render_on) {  // the loop computes the force for the next tick (no float here)
-    if (render_due) tick_status |= STATUS_RENDER_LATE;
-    render_x = count;
-    render_e = excitation;
-    render_due = true;
-  }
+  if (render_on) prepare_duty(render_step(count, excitation));  // ~80 us, interrupts on
+  in_tick = false;
 }
 
 
@@ -501,7 +502,9 @@ void send_sample() {
   loop_status = 0;
   uint8_t ticks = (sub == 0 ? tps - 1 : sub - 1) + flag;  // whole ticks since the sample's
   uint16_t since = ticks * (uint16_t)(top + 1) + counts;
-  if (since * US_PER_COUNT > LATE_US || !uart_tx_idle())
+  // While rendering, the render force goes first: allow for it.
+  uint16_t late_us = tps > 1 ? LATE_US + RENDER_US : LATE_US;
+  if (since * US_PER_COUNT > late_us || !uart_tx_idle())
     status |= STATUS_LATE;
 #if LABBENCH_ASCII
   char line[24];
@@ -562,18 +565,10 @@ void setup() {
 }
 
 void loop() {
-  // The render force first (due by the next tick), then the sample, then one command
-  // byte, so a tick waits at most one decode.
-  if (render_due) {
-    noInterrupts();
-    int32_t x = render_x;
-    float e = render_e;
-    render_due = false;
-    interrupts();
-    int16_t duty = render_step(x, e);
-    if (render_on) prepare_duty(duty);
-  } else if (sample_ready) send_sample();
-  else if (rx_tail != rx_head) {
+  // The sample first; then one command byte, so a tick waits at most one decode.
+  if (sample_ready) {
+    send_sample();
+  } else if (rx_tail != rx_head) {
     uint8_t b = rx_buf[rx_tail];
     rx_tail = (rx_tail + 1) & (RX_SIZE - 1);
     take_byte(b);
