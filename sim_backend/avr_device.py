@@ -14,8 +14,10 @@ about real time here), or ``realtime=True`` (emulated time kept to wall time,
 as a real board; this machine's emulator may not keep up).
 
 Plant: ``m`` and ``b`` of ``[sim]`` (default the rig's nominal model), ``x0_m``,
-``v0_m_s``; the amplifier gives ``FULL_SCALE_N`` at 100 % duty, matched to the
-sketch's ``PWM_PER_NEWTON``.
+``v0_m_s``; the amplifier gives 255 / ``PWM_PER_NEWTON`` N at 100 % duty, matched
+to the sketch's constant. The board adds one sample of delay to everything the
+host commands (docs/serial-protocol.md, "Emulated board"); with
+``SerialStream.render_on_board`` it renders the VE itself at T / ``RENDER_DIV``.
 """
 
 from __future__ import annotations

@@ -1,22 +1,25 @@
 // labbench reference sketch: quadrature encoder stream + force output for an
-// Arduino Uno/Nano (ATmega328P, 16 MHz). Built and run on the simavr emulator by
-// the test suite (labbench.sim_backend.avr_build / avr_device, --device avr-sim).
+// Arduino Uno/Nano (ATmega328P, 16 MHz), optionally rendering the VE on board.
+// Built and run on the simavr emulator by the test suite (labbench.sim_backend
+// avr_build / avr_device, --device avr-sim). Pins: encoder A/B on 2/3, PWM 9, DIR 8.
 //
 // Protocol v2: docs/serial-protocol.md. Summary:
 //   board -> host, every PERIOD_US:   COBS( 'S' | seq u16 | t_us u32 | count i32 | status u8 | crc16 ) 0x00
 //                   or, with LABBENCH_ASCII 1:   "<t_us>,<count>\r\n"
 //   host -> board, one per sample:   COBS( 'F' | seq u16 | force f32 | crc16 ) 0x00
+//   host -> board, on-board VE:      COBS( 'P' | on u8 | K, B, w0, limit, mpc f32 | crc16 ) 0x00
 // All fields little-endian; crc16 = CRC-16/CCITT-FALSE over the bytes before it.
 //
-// Timing: a hardware timer (Timer2, compare match A) ticks every PERIOD_US; its
-// interrupt latches the encoder count, stamps it with the tick's time (t_us =
-// tick index * PERIOD_US, crystal time) and applies the newest force command.
-// The host's answer to sample k therefore acts from tick k+1: one sample of extra
-// delay (td = T). The main loop sends the latched sample first and decodes at most
-// one command byte between checks, so a burst of commands cannot delay a sample.
-// Watchdog: no valid command for 3 periods -> output zero, status bit 0.
-// A sample the loop could not send before the next tick is lost (seq gap) and the
-// next one carries status bit 2; a frame queued late carries bit 3.
+// Timing: a hardware timer (Timer2, compare match A) ticks every PERIOD_US (every
+// PERIOD_US / RENDER_DIV while rendering); the tick latches the encoder count,
+// stamps it with the tick's time (t_us = tick index * PERIOD_US, crystal time) and
+// drives the force prepared for it. The host's answer to sample k therefore acts
+// from tick k+1: one sample of extra delay (td = T). The loop sends the latched
+// sample first and decodes at most one command byte between checks, so a burst of
+// commands cannot delay a sample. Watchdog: no valid command for 3 periods ->
+// output (or, when rendering, the excitation) zero, status bit 0. A sample the loop
+// could not send before the next tick is lost (seq gap) and the next one carries
+// status bit 2; a frame queued late carries bit 3; a skipped encoder state bit 4.
 
 #include <Arduino.h>
 
