@@ -180,9 +180,9 @@ def stability_and_damping():
 
 
 def main():
-    missing = avr_build.missing_tools()
-    if missing:
-        print(f"bench_avr: skipped, {', '.join(missing)} missing (make avr-deps)")
+    problem = avr_build.problem()
+    if problem:
+        print(f"bench_avr: skipped: {problem}")
         return
     emulator_speed()
     encoder_rates()

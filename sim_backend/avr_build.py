@@ -60,6 +60,18 @@ def missing_tools() -> list[str]:
     return missing
 
 
+def problem() -> str | None:
+    """Why the firmware cannot be built and run here (one line), or None."""
+    missing = missing_tools()
+    if missing:
+        return f"{', '.join(missing)} missing: make avr-deps"
+    try:
+        simavr_include_dir()
+    except AvrToolchainMissing as exc:
+        return str(exc)
+    return None
+
+
 def _require_tools() -> None:
     missing = missing_tools()
     if missing:

@@ -23,10 +23,8 @@ from labbench.rig import Rig
 from labbench.sim_backend import avr_build
 from labbench.ve import Plant, VirtualEnvironment
 
-missing = avr_build.missing_tools()
-pytestmark = pytest.mark.skipif(
-    bool(missing), reason=f"AVR toolchain/simavr missing ({', '.join(missing)}): make avr-deps"
-)
+PROBLEM = avr_build.problem()
+pytestmark = pytest.mark.skipif(PROBLEM is not None, reason=f"AVR firmware tests: {PROBLEM}")
 
 RIG = Rig()
 PLANT = Plant(RIG.nominal_mass_kg, RIG.nominal_damping_ns_m)

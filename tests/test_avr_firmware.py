@@ -21,10 +21,8 @@ from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend import avr_build
 from labbench.sim_backend.avr_device import connect_avr_sim
 
-missing = avr_build.missing_tools()
-pytestmark = pytest.mark.skipif(
-    bool(missing), reason=f"AVR toolchain/simavr missing ({', '.join(missing)}): make avr-deps"
-)
+PROBLEM = avr_build.problem()
+pytestmark = pytest.mark.skipif(PROBLEM is not None, reason=f"AVR firmware tests: {PROBLEM}")
 
 RIG = Rig()
 MPC = RIG.metres_per_count

@@ -28,9 +28,9 @@ def test_every_builtin_backend_is_covered_here():
 @pytest.mark.parametrize("name", SIMULATED)
 def test_simulated_backend_keeps_the_contract(name):
     if name == "avr-sim":
-        from labbench.sim_backend.avr_build import missing_tools
-        if missing_tools():
-            pytest.skip(f"avr-sim needs {', '.join(missing_tools())}: make avr-deps")
+        from labbench.sim_backend.avr_build import problem
+        if problem():
+            pytest.skip(f"avr-sim: {problem()}")
     with open_device(name, Rig()) as dev:
         assert isinstance(dev, Device)
         desc = dev.describe()
