@@ -27,6 +27,8 @@ class Plant:
             raise UserError(f"mass m must be positive, got {self.m} kg")
         if self.b < 0:
             raise UserError(f"damping b must be >= 0, got {self.b} N s/m")
+        _within("mass m", self.m, RANGES["m"])
+        _within("damping b", self.b, RANGES["b"])
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,13 @@ class VirtualEnvironment:
             raise UserError(f"delay td must be >= 0, got {self.td} s")
         if self.K < 0 or self.B < 0:
             raise UserError("virtual gains K and B must be >= 0")
+        for name in ("K", "B", "T", "td"):
+            _within(name, getattr(self, name), RANGES[name])
+        if math.isfinite(self.w0):
+            _within("w0", self.w0, RANGES["w0"])
+        if round(self.td / self.T, 6) > MAX_DELAY_SAMPLES:
+            raise UserError(f"td = {self.td:g} s is {self.td / self.T:.3g} samples of T = {self.T:g} s;"
+                            f" at most {MAX_DELAY_SAMPLES} (the sampled model grows with the delay)")
         if self.kind in ("damper", "none"):
             object.__setattr__(self, "K", 0.0)
         if self.kind in ("spring", "none"):
@@ -99,6 +108,22 @@ class VirtualEnvironment:
         if d.get("w0") is None:
             d["w0"] = math.inf
         return cls(**d)
+
+
+# Physical range of each parameter (lowest, highest, unit): beyond them no haptic device or
+# VE exists, and the matrices of the theory overflow or become singular (1e308, 1e-320).
+RANGES = {
+    "m": (1e-6, 1e3, "kg"), "b": (0.0, 1e4, "N s/m"),
+    "K": (0.0, 1e7, "N/m"), "B": (0.0, 1e5, "N s/m"), "w0": (1e-3, 1e7, "rad/s"),
+    "T": (1e-9, 1.0, "s"), "td": (0.0, 1.0, "s"),
+}
+MAX_DELAY_SAMPLES = 250  # td / T: the exact sampled model has one state per delay sample
+
+
+def _within(name: str, value: float, bounds: tuple) -> None:
+    lo, hi, unit = bounds
+    if not lo <= value <= hi:
+        raise UserError(f"{name} must be within [{lo:g}, {hi:g}] {unit}, got {value:g}")
 
 
 def _finite(name: str, value: float) -> None:
