@@ -1,6 +1,7 @@
 """Replay a recorded session as the live stream it was, and condense a stream."""
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -11,29 +12,39 @@ from labbench.errors import UserError
 from labbench.session_format import SessionReader, read_session
 
 
+# A recorded pause longer than this (or a wild time stamp) is replayed as this long.
+MAX_GAP_S = 5.0
+SPEED_RANGE = (1e-3, 1e6)
+
+
 def replay(path, consumers, speed: float | None = None, stop: threading.Event | None = None,
            clock=time.monotonic, sleep=time.sleep) -> SessionReader:
     """Feed a session's stream to ``consumers`` (``records.fan_out``), as recorded.
 
     ``speed`` None: as fast as possible; otherwise a page is delivered when its last
-    sample falls due at ``speed`` times real time (an event at its ``t``). Setting
-    ``stop`` ends the replay early. Returns the reader (its ``problem`` tells of a
-    damaged tail).
+    sample falls due at ``speed`` times real time (an event at its ``t``); a step
+    back in time counts as none, a step forward as at most ``MAX_GAP_S``, so no
+    time stamp in the file can stall the replay. Setting ``stop`` ends the replay
+    early. Returns the reader (its ``problem`` tells of a damaged tail).
     """
-    if speed is not None and not speed > 0:
-        raise UserError(f"replay speed must be positive, got {speed}")
+    lo, hi = SPEED_RANGE
+    if speed is not None and not lo <= speed <= hi:
+        raise UserError(f"replay speed must be within [{lo:g}, {hi:g}] x real time, got {speed}")
     reader = read_session(path)
 
     def paced():
-        t_first, wall0 = None, None
+        t_prev, wall0, elapsed = None, None, 0.0
         for rec in reader:
             if stop is not None and stop.is_set():
                 break
             t = _stream_time(rec)
-            if speed is not None and t is not None:
-                if t_first is None:
-                    t_first, wall0 = t, clock()
-                delay = wall0 + (t - t_first) / speed - clock()
+            if speed is not None and t is not None and math.isfinite(t):
+                if t_prev is None:
+                    wall0 = clock()
+                else:
+                    elapsed += min(max(t - t_prev, 0.0), MAX_GAP_S)
+                t_prev = t
+                delay = wall0 + elapsed / speed - clock()
                 if delay > 0 and stop is None:
                     sleep(delay)
                 elif delay > 0 and stop.wait(delay):

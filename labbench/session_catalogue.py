@@ -1,11 +1,12 @@
 """The session catalogue: what sessions a folder holds, from their headers alone."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 from labbench import records
-from labbench.errors import UserError
+from labbench.errors import LabbenchError, UserError
 from labbench.session_format import SessionReader, looks_like_session
 
 
@@ -48,10 +49,26 @@ def summarize(path) -> SessionSummary:
     )
 
 
-def list_sessions(directory) -> list[SessionSummary]:
-    """Every session file directly in ``directory``, oldest first."""
+def list_sessions(directory, on_skip=None) -> list[SessionSummary]:
+    """Every session file directly in ``directory``, oldest first.
+
+    A file that cannot be read (no permission, hostile content that is not a
+    session's) is skipped: ``on_skip(path, reason)`` is called, by default a
+    ``warnings.warn``, so one bad file never stops the scan.
+    """
     d = Path(directory)
     if not d.is_dir():
         raise UserError(f"not a directory: {d}")
-    found = [summarize(p) for p in sorted(d.iterdir()) if p.is_file() and looks_like_session(p)]
+    found = []
+    for p in sorted(d.iterdir()):
+        try:
+            if not (p.is_file() and looks_like_session(p)):
+                continue
+            found.append(summarize(p))
+        except (LabbenchError, OSError, ValueError, RecursionError, MemoryError) as exc:
+            reason = str(exc) or type(exc).__name__
+            if on_skip is None:
+                warnings.warn(f"skipped {p}: {reason}", stacklevel=2)
+            else:
+                on_skip(p, reason)
     return sorted(found, key=lambda s: (s.time or 0.0, str(s.path)))

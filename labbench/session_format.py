@@ -23,6 +23,7 @@ stops at the first short, corrupt or out-of-sequence chunk and says so in
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import struct
@@ -41,7 +42,7 @@ MAGIC = b"LBSESSION 1\n"
 SUFFIX = ".lbsession"
 _HEADER = struct.Struct("<4sIIQI")
 _MARKER = b"REC:"
-_MAX_JSON = 64 << 20  # a longer JSON part means a corrupt header
+_MAX_JSON = 16 << 20  # a longer JSON part means a corrupt header
 _NUMERIC_KINDS = "biuf"
 
 
@@ -79,23 +80,120 @@ def encode_record(record: dict, seq: int) -> bytes:
     return prefix + struct.pack("<I", crc) + body + data
 
 
+def _page_layout(head: dict, data_len: int) -> list[tuple[str, np.dtype, int]]:
+    """(name, dtype, length) of each array of a page, checked against the record contract:
+    1-D arrays of numeric dtypes, every channel of ``records.CHANNELS``, equal lengths,
+    sizes adding up to the data part exactly."""
+    specs = head.pop("arrays", None)
+    if not isinstance(specs, list):
+        raise ValueError("page without an array list")
+    layout, total = [], 0
+    for spec in specs:
+        if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
+            raise ValueError("array without a name")
+        name, shape = spec["name"], spec.get("shape")
+        dtype = np.dtype(spec.get("dtype")) if isinstance(spec.get("dtype"), str) else None
+        if dtype is None or dtype.kind not in _NUMERIC_KINDS or dtype.fields is not None:
+            raise ValueError(f"channel {name!r}: not a numeric dtype")
+        if (not isinstance(shape, list) or len(shape) != 1 or not _is_int(shape[0])
+                or not 0 <= shape[0] <= data_len):
+            raise ValueError(f"channel {name!r}: shape {shape!r} is not one length")
+        total += shape[0] * dtype.itemsize
+        layout.append((name, dtype, shape[0]))
+    names = [n for n, _, _ in layout]
+    missing = [c for c in records.CHANNELS if c not in names]
+    if missing or len(set(names)) != len(names):
+        raise ValueError(f"page lacks channel(s) {missing}" if missing else "page repeats a channel")
+    if len({n for _, _, n in layout}) > 1:
+        raise ValueError("page channels of different lengths")
+    if total != data_len:
+        raise ValueError(f"array data {'shorter' if total > data_len else 'longer'} than declared")
+    return layout
+
+
 def _decode_page(head: dict, data: bytes) -> dict:
     out, offset = {}, 0
     buf = memoryview(bytearray(data))  # writable arrays, one copy
-    for spec in head.pop("arrays"):
-        dtype = np.dtype(spec["dtype"])
-        if dtype.kind not in _NUMERIC_KINDS:
-            raise ValueError(f"non-numeric dtype {dtype}")
-        n = int(np.prod(spec["shape"], dtype=np.int64))
+    for name, dtype, n in _page_layout(head, len(data)):
         nbytes = n * dtype.itemsize
-        if offset + nbytes > len(buf):
-            raise ValueError("array data shorter than declared")
-        out[spec["name"]] = np.frombuffer(buf[offset:offset + nbytes], dtype=dtype).reshape(
-            spec["shape"])
+        out[name] = np.frombuffer(buf[offset:offset + nbytes], dtype=dtype)
         offset += nbytes
-    if offset != len(buf):
-        raise ValueError("array data longer than declared")
     head["data"] = out
+    return head
+
+
+# Type of each known field of a record (when present): what readers rely on. A session
+# whose checksums are valid but whose content is not (a hostile or buggy writer) stops
+# being read at that record, like a damaged tail.
+_NUMBER, _INT, _NONE = "number", "int", type(None)
+_FIELDS = {
+    records.START: {"uid": (str,), "time": (_NUMBER,), "software": (str,), "rig": (dict,),
+                    "protocol": (dict, str), "seed": (_INT, _NONE), "device": (dict,),
+                    "plant": (dict,), "safety": (dict,)},
+    records.DESCRIPTOR: {"sample_time_s": (_NUMBER,), "channels": (dict,)},
+    records.PAGE: {"index": (_INT,)},
+    records.EVENT: {"t": (_NUMBER, _NONE), "name": (str,), "reason": (str,)},
+    records.STOP: {"status": (str,), "reason": (str,), "time": (_NUMBER,), "n_samples": (_INT,),
+                   "results": (dict,), "timing": (dict, _NONE)},
+}
+_RANGES = {"time": (0.0, 1e11), "sample_time_s": (1e-9, 1.0), "t": (-1e11, 1e11),
+           "n_samples": (0, 1 << 48), "seed": (0, 1 << 64), "index": (0, 1 << 48)}
+MAX_DEPTH = 32  # nesting of a record's JSON: results tables are a few levels deep
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _fits(value, kinds) -> bool:
+    for k in kinds:
+        if k is _NUMBER and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return math.isfinite(value)
+        if k is _INT and _is_int(value):
+            return True
+        if isinstance(k, type) and isinstance(value, k):
+            return True
+    return False
+
+
+def _check_fields(head: dict) -> None:
+    kind = head.get("kind")
+    if kind not in records.KINDS:
+        raise ValueError(f"unknown record kind {str(kind)[:40]!r}")
+    for name, kinds in _FIELDS[kind].items():
+        if name in head:
+            v = head[name]
+            if not _fits(v, kinds):
+                raise ValueError(f"{kind} field {name!r} has a wrong type or value")
+            lo_hi = _RANGES.get(name)
+            if lo_hi is not None and v is not None and not lo_hi[0] <= v <= lo_hi[1]:
+                raise ValueError(f"{kind} field {name!r} = {v!r} out of range")
+
+
+def _depth_ok(obj, limit: int) -> bool:
+    stack = [(obj, 1)]
+    while stack:
+        o, d = stack.pop()
+        if d > limit:
+            return False
+        if isinstance(o, dict):
+            stack.extend((v, d + 1) for v in o.values())
+        elif isinstance(o, list):
+            stack.extend((v, d + 1) for v in o)
+    return True
+
+
+def decode_json(body: bytes) -> dict:
+    """A record's JSON object, nested at most ``MAX_DEPTH`` deep, known fields type-checked."""
+    try:
+        head = json.loads(body)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+    if not isinstance(head, dict):
+        raise TypeError("record is not an object")
+    if not _depth_ok(head, MAX_DEPTH):
+        raise ValueError(f"JSON nested deeper than {MAX_DEPTH}")
+    _check_fields(head)
     return head
 
 
@@ -179,14 +277,14 @@ class SessionReader:
         if seq != self.n_records:
             return self._stop(f"chunk sequence {seq} where {self.n_records} was due")
         try:
-            head = json.loads(body)
-            if not isinstance(head, dict):
-                raise TypeError("record is not an object")
+            head = decode_json(body)
             if head.get("kind") == records.PAGE:
                 if self._decode:
                     head = _decode_page(head, data)
                 else:
-                    head["data"] = {a["name"]: tuple(a["shape"]) for a in head.pop("arrays")}
+                    head["data"] = {name: (n,) for name, _, n in _page_layout(head, data_len)}
+            elif data_len:
+                raise ValueError(f"{head['kind']} record with a data part")
         except (ValueError, TypeError, KeyError) as exc:
             return self._stop(f"undecodable record ({exc})")
         return head

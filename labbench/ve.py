@@ -128,7 +128,7 @@ def _within(name: str, value: float, bounds: tuple) -> None:
 
 def _finite(name: str, value: float) -> None:
     try:
-        ok = math.isfinite(float(value))
+        ok = not isinstance(value, bool) and math.isfinite(float(value))
     except (TypeError, ValueError):
         ok = False
     if not ok:

@@ -7,19 +7,27 @@ order, other columns ignored. Sampling must be uniform.
 from __future__ import annotations
 
 import csv
+import io
+import itertools
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from labbench.errors import UserError
+from labbench.input_files import open_regular
 
 REQUIRED = ("t", "force", "position")
 MIN_SAMPLES = 64
 # Relative tolerance on the sample interval: CSV time stamps are usually
 # printed with a few digits, so rounding must not count as jitter.
 UNIFORM_RTOL = 1e-3
+CHUNK_ROWS = 1 << 18  # CSV rows parsed at a time
+MAX_CSV_BYTES = 4 << 30  # 4 GiB: ~100 million rows
+MAX_LINE_CHARS = 1 << 16  # of a comment or header line
+MAX_META_LINES = 10_000
 
 
 @dataclass
@@ -64,7 +72,12 @@ def recording_from_arrays(t, force, position, meta=None, source: str = "<arrays>
         if bad.size:
             raise UserError(f"{source}: non-finite {name} at sample {bad[0]} (row {bad[0] + 1})")
     _check_uniform(arrays["t"], source)
-    return Recording(arrays["t"], arrays["force"], arrays["position"], dict(meta or {}), source)
+    rec = Recording(arrays["t"], arrays["force"], arrays["position"], dict(meta or {}), source)
+    fs = rec.meta.get("fs")
+    if fs is not None and not (isinstance(fs, float) and abs(fs - rec.fs) <= UNIFORM_RTOL * rec.fs):
+        raise UserError(f"{source}: metadata fs={fs} contradicts the time column "
+                        f"({rec.fs:.6g} Hz); correct or remove it")
+    return rec
 
 
 def _check_uniform(t: np.ndarray, source: str) -> None:
@@ -97,35 +110,73 @@ def load_recording(path) -> Recording:
 
 
 def _load_csv(path: Path) -> Recording:
+    """Metadata and header line by line, then the numbers in chunks of ``CHUNK_ROWS`` rows
+    (numpy's parser): memory stays near twice the three arrays, whatever the file's length."""
     src = str(path)
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            lines = fh.read().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{src}: cannot read as a CSV text file ({exc.__class__.__name__})") from None
-    meta: dict = {}
-    i = 0
-    while i < len(lines) and (lines[i].startswith("#") or not lines[i].strip()):
-        text = lines[i].lstrip("#").strip()
-        if "=" in text:
-            key, value = (s.strip() for s in text.split("=", 1))
-            meta[key] = _meta_value(value)
-        i += 1
-    if i >= len(lines):
-        raise UserError(f"{src}: no header row (expected columns {', '.join(REQUIRED)})")
-    rows = list(csv.reader(lines[i:]))
-    header = [h.strip().lower() for h in rows[0]]
-    missing = [c for c in REQUIRED if c not in header]
-    if missing:
-        raise UserError(f"{src}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
-    cols = [header.index(c) for c in REQUIRED]
-    data = np.empty((len(rows) - 1, 3))
-    for r, row in enumerate(rows[1:]):
+    with open_regular(path, "CSV file", MAX_CSV_BYTES) as raw:
+        text = io.TextIOWrapper(raw, encoding="utf-8", newline="")
         try:
-            data[r] = [float(row[c]) for c in cols]
-        except (ValueError, IndexError):
-            raise UserError(f"{src}: line {i + r + 2} is not a row of numbers: {','.join(row)[:80]!r}") from None
+            meta, header, line_no = _csv_head(text, src)
+            cols = [header.index(c) for c in REQUIRED]
+            parts = []
+            while True:
+                lines = list(itertools.islice(text, CHUNK_ROWS))
+                if not lines:
+                    break
+                parts.append(_parse_rows(lines, cols, line_no, src))
+                line_no += len(lines)
+        except UnicodeDecodeError as exc:
+            raise UserError(f"{src}: not UTF-8 text (byte {exc.start} of a block)") from None
+        except OSError as exc:
+            raise UserError(f"{src}: cannot read ({exc.strerror or exc})") from None
+    data = np.concatenate(parts) if parts else np.empty((0, 3))
+    del parts
     return recording_from_arrays(data[:, 0], data[:, 1], data[:, 2], meta, src)
+
+
+def _csv_head(text, src: str) -> tuple[dict, list[str], int]:
+    """(metadata, lower-case header, number of lines read) of a CSV stream."""
+    meta: dict = {}
+    for line_no in itertools.count(1):
+        line = text.readline(MAX_LINE_CHARS + 1)
+        if len(line) > MAX_LINE_CHARS:
+            raise UserError(f"{src}: line {line_no} is longer than {MAX_LINE_CHARS} characters")
+        if not line:
+            raise UserError(f"{src}: no header row (expected columns {', '.join(REQUIRED)})")
+        if line.startswith("#") or not line.strip():
+            if line_no > MAX_META_LINES:
+                raise UserError(f"{src}: more than {MAX_META_LINES} comment lines before the header")
+            body = line.lstrip("#").strip()
+            if "=" in body:
+                key, value = (x.strip() for x in body.split("=", 1))
+                meta[key] = _meta_value(value)
+            continue
+        header = [h.strip().lower() for h in next(csv.reader([line]))]
+        missing = [c for c in REQUIRED if c not in header]
+        if missing:
+            raise UserError(f"{src}: missing column(s) {', '.join(missing)} "
+                            f"(header: {','.join(header)[:200]})")
+        return meta, header, line_no
+    raise AssertionError("unreachable")
+
+
+def _parse_rows(lines: list[str], cols: list[int], before: int, src: str) -> np.ndarray:
+    """The ``cols`` of a chunk of data lines (line ``before + 1`` is the first) as floats."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # numpy warns (not raises) on an empty chunk
+            return np.loadtxt(lines, delimiter=",", usecols=cols, dtype=float, ndmin=2,
+                              comments=None, quotechar='"')
+    except (ValueError, UserWarning):
+        pass
+    for k, line in enumerate(lines):  # the slow path only finds the line to name
+        row = line.rstrip("\r\n").split(",")
+        try:
+            [float(row[c]) for c in cols]
+        except (ValueError, IndexError):
+            raise UserError(f"{src}: line {before + k + 1} is not a row of numbers: "
+                            f"{line.strip()[:80]!r}") from None
+    raise UserError(f"{src}: rows {before + 1}-{before + len(lines)} are not rows of numbers")
 
 
 def _meta_value(text: str):

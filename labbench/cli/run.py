@@ -20,6 +20,7 @@ from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
 from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
+from labbench.ve import Plant
 
 # Config fields the CLI sets itself (from the rig).
 _HIDDEN = ("sample_time_s",)
@@ -138,15 +139,22 @@ def last_identified(directory, rig) -> dict | None:
 
     if not Path(directory).is_dir():
         return None
-    for s in reversed(list_sessions(directory)):
+
+    def skipped(path, reason):
+        print(f"labbench run: warning: skipped {path}: {reason}", file=sys.stderr)
+
+    for s in reversed(list_sessions(directory, on_skip=skipped)):
         if s.protocol != "chirp-id" or s.status != "success" or s.rig_name != rig.name:
             continue
         with SessionReader(s.path, decode_pages=False) as reader:
             stop = next((r for r in reader if r.get("kind") == records.STOP), {})
         res = stop.get("results") or {}
         m, b = res.get("m"), res.get("b")
-        if isinstance(m, (int, float)) and isinstance(b, (int, float)) and m > 0 and b >= 0:
-            return {"m": float(m), "b": float(b), "session": str(s.path)}
+        try:
+            plant = Plant(m, b)  # a number within the physical range, or not used
+        except (UserError, TypeError):
+            continue
+        return {"m": plant.m, "b": plant.b, "session": str(s.path)}
     return None
 
 
