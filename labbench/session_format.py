@@ -191,7 +191,7 @@ def decode_json(body: bytes) -> dict:
         raise ValueError("JSON nested too deeply") from None
     if not isinstance(head, dict):
         raise TypeError("record is not an object")
-    if not _depth_ok(head, MAX_DEPTH):
+    if body.count(b"[") + body.count(b"{") > MAX_DEPTH and not _depth_ok(head, MAX_DEPTH):
         raise ValueError(f"JSON nested deeper than {MAX_DEPTH}")
     _check_fields(head)
     return head
@@ -236,6 +236,7 @@ class SessionReader:
         except OSError as exc:
             raise UserError(f"cannot read session {self.path}: {exc.strerror}") from None
         self._f.seek(len(MAGIC))
+        self._size = 0  # file size last seen
 
     def __iter__(self) -> Iterator[dict]:
         return self
@@ -251,7 +252,7 @@ class SessionReader:
             self.close()
             raise StopIteration
         self.n_records += 1
-        self.good_bytes = self._f.tell()
+        self.good_bytes += self._chunk_len
         return rec
 
     def _stop(self, why: str) -> None:
@@ -266,8 +267,11 @@ class SessionReader:
         marker, json_len, data_len, seq, crc = _HEADER.unpack(raw)
         if marker != _MARKER or json_len > _MAX_JSON:
             return self._stop("corrupt chunk header")
-        if self._f.tell() + json_len + data_len > os.fstat(self._f.fileno()).st_size:
-            return self._stop("torn chunk")  # checked before reading: a lying length allocates nothing
+        end = self.good_bytes + _HEADER.size + json_len + data_len
+        if end > self._size:  # checked before reading: a lying length allocates nothing
+            self._size = os.fstat(self._f.fileno()).st_size  # a live session grows
+            if end > self._size:
+                return self._stop("torn chunk")
         body = self._f.read(json_len)
         data = self._f.read(data_len)
         if len(body) < json_len or len(data) < data_len:
@@ -287,6 +291,7 @@ class SessionReader:
                 raise ValueError(f"{head['kind']} record with a data part")
         except (ValueError, TypeError, KeyError) as exc:
             return self._stop(f"undecodable record ({exc})")
+        self._chunk_len = _HEADER.size + json_len + data_len
         return head
 
     def close(self) -> None:

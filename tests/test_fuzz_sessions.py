@@ -1,0 +1,240 @@
+"""Fuzz: session files whose checksums are valid but whose content is hostile.
+
+Each corruption below turns a good session into one a buggy or hostile writer
+could produce (wrong-typed header fields, nested JSON, 2-D or mismatched pages,
+missing channels, shapes of 2^70, huge or non-finite time stamps, floods of
+events, unknown kinds); every entry point that reads sessions (replay, paced
+replay, analyze id/etfe, export CSV/HDF5, report) must give a result or one
+error line (tests/fuzzing.py). The report, the slowest entry point, sees every
+corruption under ``-m slow`` and a fixed sample otherwise.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from fuzzing import Tally, items_of, run_cli, run_cli_isolated, write_chunks
+from session_recorder import synthetic_stream
+
+START, DESC, PAGE0, STOP = 0, 1, 2, -1
+
+
+def _set(i, key, value):
+    def f(items):
+        items[i][0][key] = value
+        return items
+    return f
+
+
+def _array(field, value, channel=0, page=PAGE0):
+    def f(items):
+        items[page][0]["arrays"][channel][field] = value
+        return items
+    return f
+
+
+def _nest(depth):
+    def f(items):
+        items[START][0]["protocol"]["deep"] = json_nest(depth)
+        return items
+    return f
+
+
+def json_nest(depth):
+    v = 0
+    for _ in range(depth):
+        v = [v]
+    return v
+
+
+def _raw_json(i, body: bytes):
+    def f(items):
+        items[i][0] = body
+        return items
+    return f
+
+
+def _drop_channel(items):
+    head, data = items[PAGE0]
+    spec = head["arrays"].pop()
+    n = spec["shape"][0] * np.dtype(spec["dtype"]).itemsize
+    items[PAGE0][1] = data[:-n]
+    return items
+
+
+def _mismatched_lengths(items):
+    head, data = items[PAGE0]
+    spec = head["arrays"][-1]
+    itemsize = np.dtype(spec["dtype"]).itemsize
+    spec["shape"] = [spec["shape"][0] - 1]
+    items[PAGE0][1] = data[:-itemsize]
+    return items
+
+
+def _times(values):
+    """Overwrite the t channel of the first page (same bytes length)."""
+    def f(items):
+        head, data = items[PAGE0]
+        n = head["arrays"][0]["shape"][0]
+        assert head["arrays"][0]["name"] == "t"
+        t = np.resize(np.asarray(values, "<f8"), n)
+        items[PAGE0][1] = t.tobytes() + data[8 * n:]
+        return items
+    return f
+
+
+def _flood(n):
+    def f(items):
+        ev = {"kind": "event", "t": 0.5, "name": "force_limit", "reason": "x" * 40}
+        return items[:3] + [[dict(ev, t=0.001 * k), b""] for k in range(n)] + items[3:]
+    return f
+
+
+def _swap_kind(i, kind):
+    return _set(i, "kind", kind)
+
+
+def _data_on(i):
+    def f(items):
+        items[i][1] = b"\x00" * 16
+        return items
+    return f
+
+
+def _only(*indices):
+    def f(items):
+        return [items[i] for i in indices]
+    return f
+
+
+CORRUPTIONS = {
+    "start uid number": _set(START, "uid", 5),
+    "start time text": _set(START, "time", "yesterday"),
+    "start time 1e308": _set(START, "time", 1e308),
+    "start time negative": _set(START, "time", -1e20),
+    "start rig list": _set(START, "rig", [1, 2]),
+    "start rig text": _set(START, "rig", "rig"),
+    "start protocol number": _set(START, "protocol", 7),
+    "start protocol ve bogus": lambda it: (it[START][0]["protocol"].update(ve={"kind": 5}), it)[1],
+    "start protocol K 1e308": lambda it: (it[START][0]["protocol"]["ve"].update(K=1e308), it)[1],
+    "start seed negative": _set(START, "seed", -1),
+    "start seed float": _set(START, "seed", 1.5),
+    "start nested 40": _nest(40),
+    "start nested 100000": _raw_json(START, b'{"kind":"start","x":' + b"[" * 100000 + b"]" * 100000 + b"}"),
+    "start not an object": _raw_json(START, b"[1, 2, 3]"),
+    "start invalid utf8": _raw_json(START, b'{"kind":"start","uid":"\xff\xfe"}'),
+    "start NaN time": _raw_json(START, b'{"kind":"start","time":NaN}'),
+    "descriptor T zero": _set(DESC, "sample_time_s", 0),
+    "descriptor T 1e-320": _set(DESC, "sample_time_s", 1e-320),
+    "descriptor T 1e308": _set(DESC, "sample_time_s", 1e308),
+    "descriptor T text": _set(DESC, "sample_time_s", "fast"),
+    "descriptor channels list": _set(DESC, "channels", ["t"]),
+    "page 2-D": _array("shape", [50, 2]),
+    "page shape 2^70": _array("shape", [2**70]),
+    "page shape negative": _array("shape", [-1]),
+    "page shape text": _array("shape", "100"),
+    "page dtype unicode": _array("dtype", "<U8"),
+    "page dtype object": _array("dtype", "|O"),
+    "page dtype void": _array("dtype", "|V8"),
+    "page dtype bogus": _array("dtype", "float99"),
+    "page dtype big-endian": _array("dtype", ">f8"),
+    "page name number": _array("name", 3),
+    "page arrays missing": lambda it: (it[PAGE0][0].pop("arrays"), it)[1],
+    "page lacks a channel": _drop_channel,
+    "page lengths differ": _mismatched_lengths,
+    "page index text": _set(PAGE0, "index", "zero"),
+    "page t huge": _times([1e300, 2e300]),
+    "page t NaN": _times([np.nan]),
+    "page t decreasing": _times(np.arange(100.0, 0.0, -0.001)),
+    "event t 1e300": lambda it: it[:3] + [[{"kind": "event", "t": 1e300, "name": "x", "reason": ""}, b""]] + it[3:],
+    "event name dict": lambda it: it[:3] + [[{"kind": "event", "t": 0.1, "name": {}, "reason": 5}, b""]] + it[3:],
+    "events 20000": _flood(20_000),
+    "stop status number": _set(STOP, "status", 3),
+    "stop results list": _set(STOP, "results", [1]),
+    "stop results m 1e308": _set(STOP, "results", {"m": 1e308, "b": -1e308}),
+    "stop timing text": _set(STOP, "timing", "fast"),
+    "stop n_samples 2^70": _set(STOP, "n_samples", 2**70),
+    "unknown kind": _swap_kind(PAGE0, "bogus"),
+    "kind missing": lambda it: (it[DESC][0].pop("kind"), it)[1],
+    "data on an event": _data_on(DESC),
+    "no pages": _only(START, DESC, STOP),
+    "start only": _only(START),
+    "pages without start": lambda it: it[1:],
+}
+
+READERS = {
+    "replay": lambda p, d: ["replay", p],
+    "replay --speed 1000": lambda p, d: ["replay", p, "--speed", "1000"],
+    "analyze id": lambda p, d: ["analyze", "id", p],
+    "analyze etfe": lambda p, d: ["analyze", "etfe", p],
+    "export --csv": lambda p, d: ["export", p, "--csv", d / "out.csv"],
+    "export --hdf5": lambda p, d: ["export", p, "--hdf5", d / "out.h5"],
+}
+REPORT_SAMPLE = ("start protocol K 1e308", "events 20000", "stop results m 1e308")
+
+
+@pytest.fixture(scope="module")
+def good_items():
+    return items_of(synthetic_stream(3000, page_size=500, status="success"))
+
+
+def _session(tmp_path, name, good_items):
+    items = CORRUPTIONS[name](copy.deepcopy(good_items))
+    path = tmp_path / (name.replace(" ", "_").replace("/", "") + ".lbsession")
+    return write_chunks(path, items)
+
+
+def _fuzz(tmp_path, good_items, names, readers):
+    tally = Tally()
+    for name in names:
+        path = _session(tmp_path, name, good_items)
+        for entry, argv in readers.items():
+            out = tmp_path / "out"
+            out.mkdir(exist_ok=True)
+            tally.add(entry, run_cli(argv(path, out)))
+            for f in out.iterdir():
+                if f.is_file():
+                    f.unlink()
+    print("\n" + tally.report())
+    assert tally.failures == []
+
+
+def test_hostile_sessions_every_reader(tmp_path, good_items):
+    _fuzz(tmp_path, good_items, CORRUPTIONS, READERS)
+
+
+def test_hostile_sessions_report_sample(tmp_path, good_items):
+    _fuzz(tmp_path, good_items, REPORT_SAMPLE,
+          {"report": lambda p, d: ["report", p, "-o", d / "r", "--force"]})
+
+
+@pytest.mark.slow
+def test_hostile_sessions_report_all(tmp_path, good_items):
+    _fuzz(tmp_path, good_items, CORRUPTIONS,
+          {"report": lambda p, d: ["report", p, "-o", d / "r", "--force"]})
+
+
+@pytest.mark.slow
+def test_a_flood_of_300000_events(tmp_path, good_items):
+    """The issue's case: a report (and a replay, an export) of a session with 300 000 events,
+    each in a child process under RLIMIT_AS (tracemalloc would slow the parsing tenfold)."""
+    items = _flood(300_000)(copy.deepcopy(good_items))
+    path = write_chunks(tmp_path / "flood.lbsession", items)
+    tally = Tally()
+    for entry, argv in {"replay": ["replay", path],
+                        "report": ["report", path, "-o", tmp_path / "r"],
+                        "export --csv": ["export", path, "--csv", tmp_path / "f.csv"]}.items():
+        tally.add(entry, run_cli_isolated(argv, tmp_path))
+    print("\n" + tally.report())
+    assert tally.failures == []
+    assert (tmp_path / "r" / "flood.pdf").stat().st_size > 0
+
+
+def test_the_good_session_gives_results(tmp_path, good_items):
+    """The base of the corruptions is itself accepted everywhere (the fuzzing starts from a
+    session every reader takes)."""
+    path = write_chunks(tmp_path / "good.lbsession", good_items)
+    for entry, argv in READERS.items():
+        o = run_cli(argv(path, tmp_path))
+        assert o.code == 0 and o.crash is None, (entry, o.err, o.crash)
