@@ -49,6 +49,9 @@ FLAG_ACTIONS = {
 # Colours of the overlaid sessions (matplotlib's default cycle, by session order).
 COLORS = [f"C{i}" for i in range(10)]
 
+MAX_EVENT_ROWS = 100  # events listed and marked per session (a flood is counted)
+MAX_TRIP_FLAGS = 10  # safety events named one by one among the flags
+
 
 @dataclass
 class Report:
@@ -179,9 +182,13 @@ def _run_flags(s: ReportSession) -> list[Flag]:
     if s.dropped:
         out.append(Flag(s.tag, f"{s.dropped} samples dropped by the device link",
                         "check the bus load and the host's real-time set-up (docs/loop.md)"))
-    for e in s.trips:
+    trips = s.trips
+    for e in trips[:MAX_TRIP_FLAGS]:
         out.append(Flag(s.tag, f"safety event {e.get('name')} at t = {fmt(e.get('t'))} s: "
                                f"{e.get('reason')}", "lower the gains or the excitation"))
+    if len(trips) > MAX_TRIP_FLAGS:
+        out.append(Flag(s.tag, f"{len(trips) - MAX_TRIP_FLAGS} more safety events",
+                        "see the events table and the session file"))
     return out
 
 
@@ -209,8 +216,11 @@ def _details(s: ReportSession, part: ReportSections) -> list:
     overview = _channels_figure(s)
     if overview:
         blocks.append(overview)
-    rows = [[fmt(e.get("t")), str(e.get("name")), str(e.get("reason") or "")] for e in s.events]
-    blocks.append(Table(f"Events ({len(rows)})", ["t (s)", "event", "reason"], rows)
+    rows = [[fmt(e.get("t")), str(e.get("name")), str(e.get("reason") or "")]
+            for e in s.events[:MAX_EVENT_ROWS]]
+    if len(s.events) > MAX_EVENT_ROWS:  # a flood is counted, not typeset
+        rows.append(["...", f"{len(s.events) - MAX_EVENT_ROWS} more", "in the session file"])
+    blocks.append(Table(f"Events ({len(s.events)})", ["t (s)", "event", "reason"], rows)
                   if rows else Paragraph("No events recorded."))
     blocks.append(_timing_table(s))
     return blocks
@@ -240,9 +250,10 @@ def _channels_figure(s: ReportSession) -> Figure | None:
     for ax in axes:
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-        for e in s.trips:
-            if e.get("t") is not None:
-                ax.axvline(e["t"], color="r", lw=0.8, alpha=0.6)
+        marks = [e["t"] for e in s.trips[:MAX_EVENT_ROWS] if e.get("t") is not None]
+        if marks:  # one collection, not a line per event
+            ax.vlines(marks, 0, 1, transform=ax.get_xaxis_transform(), color="r", lw=0.8,
+                      alpha=0.6)
     return Figure("Recorded channels" + (" (red lines: safety events)" if s.trips else ""), fig)
 
 
