@@ -13,7 +13,9 @@ Each arm is a fresh process, started as a user would start it:
 with 0 and 2 CPU hogs (``while True: pass`` processes at normal priority, one per core
 of this 2-core machine). Printed per arm: periods > 1.5 T, max period and when, p99,
 and the ratio of overruns to the floor's in the same conditions. Arms are interleaved
-and repeated so the machine's other load falls on all; the load average is printed.
+and repeated so the machine's other load falls on all; the load average and the CPU
+time the hypervisor stole from this VM meanwhile (``steal`` in /proc/stat: no guest
+scheduling policy can get that back) are printed.
 
     .venv/bin/python bench/bench_realtime.py [--seconds 120] [--arms floor,sim,...]
         [--hogs 0,2] [--repeats 1]
@@ -69,12 +71,23 @@ def arm_command(arm: str, seconds: float, out: str, rig: str) -> list[str]:
     return cmd
 
 
+def steal_s() -> float:
+    """CPU time the hypervisor took from this virtual machine, all CPUs (/proc/stat)."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
 def run_arm(arm, seconds, out, rig) -> dict:
-    load0 = os.getloadavg()[0]
+    load0, steal0 = os.getloadavg()[0], steal_s()
     t0 = time.monotonic()
     proc = subprocess.run(arm_command(arm, seconds, out, rig), capture_output=True, text=True,
                           timeout=seconds * 3 + 120)
-    res = {"arm": arm, "wall": time.monotonic() - t0, "load": (load0 + os.getloadavg()[0]) / 2}
+    res = {"arm": arm, "wall": time.monotonic() - t0, "load": (load0 + os.getloadavg()[0]) / 2,
+           "steal": steal_s() - steal0}
     try:
         res.update(json.loads(proc.stdout.strip().splitlines()[-1]))
     except (ValueError, IndexError):
@@ -103,7 +116,7 @@ def line(r: dict) -> str:
     at = f"{w['t_s']:.1f}" if isinstance(w.get("t_s"), (int, float)) else "-"
     return (f"{r['arm']:9s} {r.get('status', '?'):8s} periods {t.get('periods', 0):7d}  overruns "
             f"{t['overruns']:5d}  max {t['max_s'] * 1e3:6.2f} ms at {at:>6s} s  p99 "
-            f"{t['p99_s'] * 1e3:5.3f} ms  [{sched}]  load {r['load']:.1f}"
+            f"{t['p99_s'] * 1e3:5.3f} ms  [{sched}]  load {r['load']:.1f}  steal {r['steal']:.2f} s"
             + ("" if r.get("status") == "success" else f"  ({r.get('reason', '')})"))
 
 

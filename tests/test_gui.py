@@ -120,13 +120,24 @@ def test_live_estimate_updates_during_a_realtime_run(qtbot, make_window):
     win = make_window(realtime=True)
     start(win, "etfe", duration_s=5.0, seed=2)
     qtbot.waitUntil(lambda: win.mode == "running", timeout=10_000)
-    seen = []
-    qtbot.waitUntil(lambda: seen.append((win.impedance.updates, win.mode)) or win.mode == "idle",
-                    timeout=RUN_TIMEOUT_MS)
+    seen, stalls = [], []
+
+    def watch():
+        seen.append((win.impedance.updates, win.mode))
+        stalls.append(win.status["worst stall"].text())
+        return win.mode == "idle"
+
+    qtbot.waitUntil(watch, timeout=RUN_TIMEOUT_MS)
     during = max(u for u, mode in seen if mode == "running")
     # 5 s of data, estimates from 2 s on, every 0.5 s: several while the run goes on
     assert during >= 2, seen[-5:]
     assert win.traces.frames >= 20
+    # the loop's timing reached the status bar while the run went on, then its total
+    assert any(t.startswith("worst stall: ") and t.endswith("(live)") for t in stalls)
+    timing = win.last_run.timing
+    assert stalls[-1].startswith(f"worst stall: {timing['max_s'] * 1e3:.2f} ms")
+    assert win.status["overruns"].text() == f"overruns: {timing['overruns']}"
+    assert timing["realtime"]["requested"] and sum(timing["histogram"]["counts"]) > 4000
 
 
 def test_chirp_id_fills_identification_view(qtbot, make_window):

@@ -4,6 +4,8 @@ from __future__ import annotations
 import gc
 import json
 import os
+import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -76,7 +78,9 @@ def test_settings_from_the_rig_and_the_flags():
 
 
 @linux
-@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to become an unprivileged user")
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None
+                    or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] != 0,
+                    reason="needs root, setpriv and an rtprio limit of 0 for other users")
 def test_refused_gives_one_line_and_the_run_goes_on():
     """As an unprivileged user (no CAP_SYS_NICE, rtprio limit 0) a paced run still records."""
     with tempfile.TemporaryDirectory() as out_dir:  # in /tmp: pytest's tmp_path is root-only
