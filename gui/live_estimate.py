@@ -27,7 +27,7 @@ from labbench.ve import Plant, VirtualEnvironment
 log = logging.getLogger(__name__)
 
 MIN_SAMPLES = 2048  # the live estimate's shortest segment; fewer bins are not worth showing
-LIVE_BUDGET = 2**15  # samples of segments transformed per live update (<= ~1.5 ms)
+LIVE_BUDGET = 2**15  # samples transformed per live update: one 33 s segment transform at most
 # Live identification uses the newest ID_SAMPLES only and is redone when the data have
 # doubled: l2 with intervals costs ~0.5 s on 120 000 samples, the plant does not change.
 ID_SAMPLES = 20_000

@@ -53,15 +53,22 @@ class _Level:
         self._F, self._X, self._c = (np.empty(n // 2 + 1, complex) for _ in range(3))
         self._r = np.empty(n // 2 + 1)
         self.next = 0  # first sample of the next segment
+        self._half = False  # its force transformed, the position not yet
         self.count = 0
         self.sff = np.zeros(n // 2 + 1)
         self.sxx = np.zeros(n // 2 + 1)
         self.sfx = np.zeros(n // 2 + 1, complex)
 
     def step(self, f: np.ndarray, x: np.ndarray) -> None:
-        """Add the segment ``f``, ``x`` (n samples each) to the sums."""
+        """Half of the work on the segment ``f``, ``x`` (n samples each): the force's
+        transform, then (next call) the position's and the sums. Half steps keep the
+        dearest update at one transform."""
         F, X, c, r = self._F, self._X, self._c, self._r
-        np.fft.rfft(self._tapered(f), out=F)
+        if not self._half:
+            np.fft.rfft(self._tapered(f), out=F)
+            self._half = True
+            return
+        self._half = False
         np.fft.rfft(self._tapered(x), out=X)
         for spectrum, total in ((F, self.sff), (X, self.sxx)):
             np.multiply(spectrum.real, spectrum.real, out=r)
@@ -88,10 +95,10 @@ class _Level:
 class LiveEtfe:
     """Accumulates force and position block by block; ``estimate()`` at any time.
 
-    ``add(..., budget=n)`` transforms at most about n samples' worth of segments in
-    that call (the oldest first; at least one segment when one is due), leaving the
-    rest to later calls: segments of all lengths fall due together every longest
-    hop, and one call should not pay for all of them. ``budget=None`` (default)
+    ``add(..., budget=n)`` makes at most about n samples' worth of transforms in that
+    call (the oldest segment first; at least one transform when one is due), leaving
+    the rest to later calls: segments of all lengths fall due together every
+    longest hop, and one call should not pay for all of them. ``budget=None`` (default)
     brings every sum up to date.
     """
 
