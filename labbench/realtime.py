@@ -13,7 +13,7 @@ process). For its duration it asks, each step on its own:
   CPU livelocks any BLAS call the loop's thread makes (it spin-waits for its
   workers, which then never run - measured: a scipy ``expm`` never returned);
 * CPU affinity: all these threads on one CPU (the last one allowed) when there
-  are two or more, so the GUI and everything else get the others;
+  are two or more, so the GUI and everything else have the others to themselves;
 * ``mlockall`` (current and future pages, locked as they fault in): no page of
   the loop is swapped out or reclaimed under memory pressure;
 * the cyclic GC collected once, frozen and disabled: a collection of the
