@@ -41,12 +41,14 @@ def demo_finished(win: MainWindow) -> bool:
 
 
 def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None,
-            timeout_s: float = 180.0, demo_settings: dict | None = None, realtime: bool = True) -> int:
-    """Open the window (and with ``demo`` start the demo); returns the exit code."""
+            timeout_s: float = 180.0, demo_settings: dict | None = None, realtime: bool = True,
+            settings=None) -> int:
+    """Open the window (and with ``demo`` start the demo); returns the exit code.
+    ``settings``: the QSettings the window restores and saves its state with (None: none)."""
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("labbench")
     tune_interpreter()
-    win = MainWindow(rig, session_dir, realtime=realtime)
+    win = MainWindow(rig, session_dir, realtime=realtime, settings=settings)
     previous_hook = sys.excepthook
 
     def hook(kind, exc, tb):  # a last resort: report in the window, keep running

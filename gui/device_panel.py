@@ -94,12 +94,18 @@ class EStopButton(QtWidgets.QPushButton):
         self.set_latched(False)
 
     def set_latched(self, latched: bool) -> None:
+        """Latched: two shorter lines in a smaller face, the button as tall as they need (the
+        one-line 18 pt text was cut off at both ends in a 360-460 px panel)."""
         self.latched = latched
         if latched:
-            self.setText(f"E-STOP LATCHED: force zeroed ({self.key_hint})\nreconnect the device to clear")
-            colour = "#7a0010"
+            self.setText("E-STOP LATCHED: force zeroed\nreconnect the device to clear")
+            colour, size = "#7a0010", 13
         else:
             self.setText(f"E-STOP  ({self.key_hint})")
-            colour = "#d00020"
-        self.setStyleSheet(f"QPushButton {{ background: {colour}; color: white; font-size: 18pt;"
-                           " font-weight: bold; border-radius: 8px; }")
+            colour, size = "#d00020", 18
+        self.setStyleSheet(f"QPushButton {{ background: {colour}; color: white; font-size: {size}pt;"
+                           " font-weight: bold; border-radius: 8px; padding: 6px 10px; }")
+        self.ensurePolished()
+        self.setMinimumHeight(max(64, self.sizeHint().height()))
+        self.setMinimumWidth(self.sizeHint().width())
+

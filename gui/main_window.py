@@ -23,7 +23,7 @@ from labbench.gui.acquisition import Acquisition
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.event_log import EventLog
-from labbench.gui.id_view import IdView, model_force
+from labbench.gui.id_view import IdView
 # While a run streams, the estimate is updated with the new samples only (constant cost,
 # labbench.analysis.etfe_live); once it has ended, the run's own estimator on all data.
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
@@ -88,8 +88,12 @@ def _collect_garbage_in_gui_thread() -> None:
 
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, rig, session_dir, backend: str | None = None, redraw_hz: float = 30.0,
-                 estimate_period_s: float = 0.5, realtime: bool = True):
+                 estimate_period_s: float = 0.5, realtime: bool = True, settings=None):
+        """``settings``: a QSettings (``labbench.gui.settings.open_settings``) the window
+        restores its state from and saves it to on close; None: it remembers nothing."""
         super().__init__()
+        self.settings = settings
+        self._protocol_shown: str | None = None  # whose settings the tree holds
         _collect_garbage_in_gui_thread()
         self.rig = rig
         self.session_dir = Path(session_dir)
@@ -117,7 +121,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
-        self._build(backend or default_backend(rig))
+        remembered = settings.value("device/backend", "", type=str) if settings else ""
+        self._build(backend or remembered or default_backend(rig))
+        self._restore_state()
 
         self.redraw_timer = QtCore.QTimer(self)
         self.redraw_timer.setInterval(max(int(1000 / min(redraw_hz, 30.0)), 33))  # <= 30 Hz
@@ -182,6 +188,7 @@ class MainWindow(QtWidgets.QMainWindow):
         split.addWidget(self.traces)
         split.addWidget(self.impedance)
         split.setSizes([500, 700])
+        self.splitters = {"live": split, "identification": self.id_view.splitter}
         lv.addWidget(split, 1)
 
         self.tabs = QtWidgets.QTabWidget()
@@ -192,11 +199,13 @@ class MainWindow(QtWidgets.QMainWindow):
         right.addWidget(self.tabs)
         right.addWidget(self.log)
         right.setSizes([820, 150])
+        self.splitters["log"] = right
 
         body = QtWidgets.QSplitter()
         body.addWidget(left)
         body.addWidget(right)
         body.setStretchFactor(1, 1)
+        self.splitters["body"] = body
         central = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(central)
         cl.setContentsMargins(4, 4, 4, 4)
@@ -310,8 +319,63 @@ class MainWindow(QtWidgets.QMainWindow):
     def select_protocol(self, name: str):
         from labbench.registry import make_protocol
 
+        self._remember_protocol()
         self.protocol_panel.set_config(make_protocol(name).config.as_dict())
+        self._protocol_shown = name
+        if self.settings is not None:
+            from labbench.gui.settings import load_protocol
+
+            self.protocol_panel.apply_values(load_protocol(self.settings, name))
         self.update_precheck()
+
+    def _remember_protocol(self) -> None:
+        """Keep the settings of the protocol shown (before another replaces it, and on close)."""
+        if self.settings is None or self._protocol_shown is None:
+            return
+        from labbench.gui.settings import save_protocol
+
+        try:
+            values = self.protocol_panel.values()
+        except UserError:
+            return  # a half-typed number: keep what was remembered before
+        save_protocol(self.settings, self._protocol_shown, values)
+
+    # ----- remembered state -----------------------------------------------------------------
+    def _restore_state(self) -> None:
+        s = self.settings
+        if s is None:
+            return
+        for key, restore in (("window/geometry", self.restoreGeometry),
+                             ("window/state", self.restoreState)):
+            value = s.value(key)
+            if isinstance(value, QtCore.QByteArray):
+                restore(value)
+        for name, splitter in self.splitters.items():
+            value = s.value(f"splitters/{name}")
+            if isinstance(value, QtCore.QByteArray):
+                splitter.restoreState(value)
+        self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
+        protocol = s.value("protocol/current", "", type=str)
+        if protocol and self.protocol_panel.choice.findText(protocol) >= 0:
+            self.protocol_panel.choice.setCurrentText(protocol)  # its settings follow
+
+    def save_state(self) -> None:
+        """Write what the window remembers (also done on close)."""
+        s = self.settings
+        if s is None:
+            return
+        s.setValue("window/geometry", self.saveGeometry())
+        s.setValue("window/state", self.saveState())
+        for name, splitter in self.splitters.items():
+            s.setValue(f"splitters/{name}", splitter.saveState())
+        s.setValue("window/tab", self.tabs.currentIndex())
+        s.setValue("device/backend", self.device_panel.backend.currentText())
+        s.setValue("protocol/current", self.protocol_panel.choice.currentText())
+        self._remember_protocol()
+        if self.rig.source and Path(str(self.rig.source)).is_file():
+            s.setValue("rig/file", str(Path(str(self.rig.source)).resolve()))
+        s.setValue("sessions/folder", str(Path(self.sessions.directory).resolve()))
+        s.sync()
 
     def make_protocol(self):
         from labbench.registry import make_protocol
@@ -409,7 +473,11 @@ class MainWindow(QtWidgets.QMainWindow):
             self.buffer(payload)
             if payload.get("kind") == EVENT:
                 self.log.add("event", f"{payload.get('name')}: {payload.get('reason')}")
+                if payload.get("name") == "segment" and self.mode == "running":
+                    self.device_panel.set_enabled(True)  # the loop enables the device for it
             elif payload.get("kind") == STOP:
+                if self.mode == "running":
+                    self.device_panel.set_enabled(False)  # and disables it at the run's end
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
             frac, text = payload
@@ -595,9 +663,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _show_id(self, ident: dict, data: dict):
         """``ident``: method -> IdResult dict, fitted on ``data`` (command force, position)."""
-        fit = ident.get("l2") or next(iter(ident.values()))
-        curves = model_force(data["t"], data["command"], data["position"], fit)
-        self.id_view.show_results(ident, *curves)
+        self.id_view.show_results(ident, data)
 
     # ----- sessions -------------------------------------------------------------------------
     @guarded
@@ -642,6 +708,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
+        self.save_state()
         self.stop_event.set()
         for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
             t.stop()

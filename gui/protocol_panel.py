@@ -61,7 +61,9 @@ def params_from_config(config: dict, choice_lists: dict | None = None) -> list[d
         elif isinstance(value, bool):
             item.update(type="bool", value=value)
         elif isinstance(value, int):
-            item.update(type="int", value=value, limits=(low if low is not None else -2**31, 2**31))
+            # 64-bit limits: a 32-bit limit showed a seed drawn above 2^31 as 2147483648
+            item.update(type="int", value=value, limits=(int(low) if low is not None else -2**63,
+                                                         2**63 - 1))
         elif isinstance(value, float):
             item.update(type="float", value=value, dec=True, step=1.0, minStep=1e-9,
                         limits=(low if low is not None else -math.inf, math.inf))
@@ -167,6 +169,27 @@ class ProtocolPanel(QtWidgets.QGroupBox):
 
     def set_value(self, path: tuple[str, ...], value) -> None:
         self.params.child(*path).setValue(value)
+
+    def apply_values(self, values: dict, parent: Parameter | None = None) -> None:
+        """Put remembered ``values`` (as ``values()`` gave them) back into the tree; names
+        the protocol no longer has, and values a field refuses, are left out."""
+        parent = self.params if parent is None else parent
+        for child in parent.children():
+            if child.name() not in values:
+                continue
+            value = values[child.name()]
+            if child.type() == "group":
+                if isinstance(value, dict):
+                    self.apply_values(value, child)
+                continue
+            if child.opts.get("list_of_numbers") and isinstance(value, list):
+                value = ", ".join(f"{v:g}" for v in value)
+            elif child.opts.get("optional_choice") or child.opts.get("optional_number"):
+                value = "" if value is None else (value if isinstance(value, str) else f"{value:g}")
+            try:
+                child.setValue(value)
+            except (TypeError, ValueError):
+                continue  # a value of another type than the field now has
 
     def set_precheck(self, text: str, ok: bool | None) -> None:
         colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]

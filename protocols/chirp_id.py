@@ -202,7 +202,7 @@ def _report_sections(protocol: ChirpId, session):
     details = [Table("Identification f = m x'' + b x' [+ Fc sign(x')] [+ f0], every fit",
                      ["fit", "model", "m (kg)", "m 95 %", "b (N s/m)", "b 95 %", "Fc (N)",
                       "rms residual (N)", "explained", "samples"], rows,
-                     note=f"Model selection: {sel.get('criterion', 'as configured')}.")]
+                     note=f"Model selection: {sel.get('reason') or sel.get('criterion') or 'as configured'}.")]
     figure = _open_loop_figure(protocol, session, ident)
     if figure is not None:
         details.append(Figure("Open-loop impedance during the chirp (points) against the "

@@ -150,15 +150,23 @@ def test_chirp_id_fills_identification_view(qtbot, make_window):
     for method in ("l2", "l1"):
         assert view.results[method]["m"] == pytest.approx(TRUTH.m, rel=0.01)
     rows = [view.table.verticalHeaderItem(i).text() for i in range(view.table.rowCount())]
-    assert "m 95% interval" in rows and "b 95% interval" in rows
+    assert rows[:4] == ["mass m (kg)", "m, 95 % interval (kg)", "damping b (N s/m)",
+                        "b, 95 % interval (N s/m)"]
+    assert "rms force residual (N)" in rows and "derivative cut-off (Hz)" in rows
+    assert not any("_" in r for r in rows)  # labels, not internal keys
     assert "model chosen: mb" in view.chosen.text()
-    t, f_meas = view.measured.getData()
-    _, f_model = view.model.getData()
-    # the plotted samples are the ones fitted, and the model explains an exact plant's force
-    # (1e-4 relative seen; the fit itself reaches ~4e-6 after matching the force's band)
-    rms = np.sqrt(np.mean((f_meas - f_model) ** 2))
+    # the open-loop impedance of the chirp against the identified Z = b + j w m
+    w, z_meas = view.z_measured.getOriginalDataset()  # SI, not the log axes' values
+    _, z_model = view.z_model.getOriginalDataset()
+    assert len(w) > 10 and w.max() <= np.pi * 1000 * 0.3
+    assert np.median(np.abs(z_meas - z_model) / z_model) < 0.01  # exact plant: ETFE bias only
+    exact = np.abs(TRUTH.b + 1j * w * TRUTH.m)  # continuous Z; the ZOH model adds < 1e-3 here
+    np.testing.assert_allclose(z_model, exact, rtol=0.02)
+    # residual of the fitted samples: the model explains an exact plant's force
+    t, resid = view.residual.getData()
     assert len(t) == view.results["l2"]["n_used"]
-    assert rms < 1e-3 * np.sqrt(np.mean(f_meas**2))
+    force = win.buffer.snapshot()["command"]
+    assert np.sqrt(np.mean(resid**2)) < 1e-3 * np.sqrt(np.mean(force**2))
 
 
 def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
@@ -347,3 +355,93 @@ def test_acquisition_process_stops_the_run_when_the_gui_process_dies(qtbot, tmp_
     _start, _desc, ch, _events, stop, problem = load_session(path)
     assert problem is None and stop is not None and stop["status"] in ("aborted", "failed")
     assert len(ch["t"]) < 60_000
+
+
+def test_window_remembers_its_state_after_a_restart(qtbot, tmp_path):
+    """Geometry, splitters, tab, backend, protocol and its settings, rig file and sessions
+    folder come back in a new window (a temporary settings file)."""
+    from labbench.gui.settings import open_settings, remembered_paths
+    from labbench.rig import load_rig
+
+    ini = tmp_path / "settings.ini"
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text('[rig]\nname = "remembered rig"\n')
+    folder = tmp_path / "my sessions"
+    folder.mkdir()
+    win = MainWindow(load_rig(str(rig_file)), folder, settings=open_settings(ini))
+    qtbot.addWidget(win)
+    win.show()
+    win.resize(1234, 720)  # the offscreen screen is 800 x 800: restores clamp to it
+    win.splitters["live"].setSizes([300, 900])
+    win.tabs.setCurrentIndex(2)
+    win.device_panel.backend.setCurrentText("sim-serial")
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("K",), 77.0)
+    win.protocol_panel.set_value(("duration_s",), 33.0)
+    win.protocol_panel.choice.setCurrentText("chirp-id")  # etfe's settings are kept
+    win.protocol_panel.set_value(("f1_hz",), 12.5)
+    live_sizes = win.splitters["live"].sizes()
+    win.close()
+
+    settings = open_settings(ini)
+    assert remembered_paths(settings, None, None, "sessions") == (str(rig_file.resolve()),
+                                                                  str(folder.resolve()))
+    assert remembered_paths(settings, "other.toml", "here", "sessions") == ("other.toml", "here")
+    again = MainWindow(load_rig(str(rig_file)), folder, settings=settings)
+    qtbot.addWidget(again)
+    again.show()
+    assert again.height() == 720  # a fresh window would be 1000 tall, clamped to the screen
+    sizes = again.splitters["live"].sizes()  # a narrower window: the same split
+    assert sizes[0] / sum(sizes) == pytest.approx(live_sizes[0] / sum(live_sizes), abs=0.01)
+    assert live_sizes[0] / sum(live_sizes) == pytest.approx(0.25, abs=0.01)  # not the default
+    assert again.tabs.currentIndex() == 2
+    assert again.device_panel.backend.currentText() == "sim-serial"
+    assert again.protocol_panel.choice.currentText() == "chirp-id"
+    assert again.protocol_panel.values()["f1_hz"] == 12.5
+    again.protocol_panel.choice.setCurrentText("etfe")
+    assert again.protocol_panel.values()["K"] == 77.0
+    assert again.protocol_panel.values()["duration_s"] == 33.0
+    again.close()
+    rig_file.unlink()  # a rig file that is gone is not offered again
+    assert remembered_paths(open_settings(ini), None, None, "sessions")[0] is None
+
+
+def test_window_without_settings_remembers_nothing(qtbot, make_window):
+    win = make_window()
+    win.protocol_panel.choice.setCurrentText("chirp-id")
+    win.close()
+    assert make_window().protocol_panel.choice.currentText() == win.protocol_panel.choice.itemText(0)
+
+
+def test_estop_label_fits_and_enable_button_follows_the_device(qtbot, make_window):
+    from PySide6 import QtGui
+
+    win = make_window()
+    button = win.estop
+    for latched in (False, True):
+        button.set_latched(latched)
+        qtbot.waitUntil(lambda: button.height() >= button.minimumHeight(), timeout=2_000)
+        box = QtGui.QFontMetrics(button.font()).boundingRect(
+            button.contentsRect(), int(QtCore.Qt.AlignmentFlag.AlignCenter), button.text())
+        assert button.contentsRect().contains(box), (latched, box, button.contentsRect())
+    button.set_latched(False)
+    panel, shown = win.device_panel, []
+    set_enabled = panel.set_enabled
+
+    def spy(on):  # what the button said each time the window learnt the device's state
+        set_enabled(on)
+        shown.append((win.mode, panel.enable_button.text()))
+
+    panel.set_enabled = spy
+    start(win, "chirp-id", f0_hz=0.5, duration_s=4.0)
+    wait_run_done(qtbot, win)
+    # the run enabled the device: the button offered to disable it; at the end, to enable
+    assert ("running", "Disable") in shown and shown[-1][1] == "Enable"
+
+
+def test_a_large_seed_is_shown_as_it_is(qtbot, make_window):
+    win = make_window()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("seed",), 3_000_000_017)  # above 2^31: was clamped
+    assert win.protocol_panel.values()["seed"] == 3_000_000_017
+    assert win.make_protocol().seed == 3_000_000_017

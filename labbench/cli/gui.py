@@ -13,9 +13,12 @@ DEFAULT_SESSIONS = "sessions"
 def register(subparsers) -> None:
     p = subparsers.add_parser("gui", help="open the desktop application (simulated rig by default)")
     p.add_argument("--rig", metavar="FILE", help="rig file (TOML); a [canopen] or [serial] table "
-                   "selects that driver, default: the simulated rig")
-    p.add_argument("--sessions", metavar="DIR", default=DEFAULT_SESSIONS,
-                   help=f"folder for recorded sessions (default: ./{DEFAULT_SESSIONS})")
+                   "selects that driver, default: the last one used, else the simulated rig")
+    p.add_argument("--sessions", metavar="DIR", default=None,
+                   help=f"folder for recorded sessions (default: the last one used, else "
+                        f"./{DEFAULT_SESSIONS})")
+    p.add_argument("--settings", metavar="FILE.ini",
+                   help="where the window keeps its state (default: the user's labbench settings)")
     p.add_argument("--demo", action="store_true", help="run a short simulated ETFE at once")
     p.add_argument("--screenshot", metavar="FILE.png",
                    help="save a screenshot once the result is visible, then exit "
@@ -32,8 +35,15 @@ def run(args) -> int:
         if importlib.util.find_spec(package) is None:
             raise missing_extra(package, "gui", "labbench gui")
 
-    rig = load_rig(args.rig)
+    from labbench.gui.settings import open_settings, remembered_paths
+
     shot = Path(args.screenshot) if args.screenshot else None
+    # a screenshot run shows the default layout (reproducible docs), and remembers nothing
+    settings = open_settings(args.settings) if shot is None or args.settings else None
+    rig_path, sessions_dir = ((args.rig, args.sessions or DEFAULT_SESSIONS) if settings is None
+                              else remembered_paths(settings, args.rig, args.sessions,
+                                                    DEFAULT_SESSIONS))
+    rig = load_rig(rig_path)
     if shot is not None and shot.suffix.lower() != ".png":
         raise UserError(f"--screenshot must name a .png file, got {shot}")
     headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
@@ -42,7 +52,7 @@ def run(args) -> int:
         raise UserError("no display found (DISPLAY unset); run under a desktop, or use --screenshot")
     if headless:
         os.environ["QT_QPA_PLATFORM"] = "offscreen"  # renders without a display
-    sessions = Path(args.sessions)
+    sessions = Path(sessions_dir)
     try:
         sessions.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -50,4 +60,5 @@ def run(args) -> int:
 
     from labbench.gui.app import run_app
 
-    return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout)
+    return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout,
+                   settings=settings)
