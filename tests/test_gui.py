@@ -169,6 +169,32 @@ def test_chirp_id_fills_identification_view(qtbot, make_window):
     assert np.sqrt(np.mean(resid**2)) < 1e-3 * np.sqrt(np.mean(force**2))
 
 
+def test_estop_label_fits_and_enable_button_follows_the_device(qtbot, make_window):
+    from PySide6 import QtGui
+
+    win = make_window()
+    button = win.estop
+    for latched in (False, True):
+        button.set_latched(latched)
+        qtbot.waitUntil(lambda: button.height() >= button.minimumHeight(), timeout=2_000)
+        box = QtGui.QFontMetrics(button.font()).boundingRect(
+            button.contentsRect(), int(QtCore.Qt.AlignmentFlag.AlignCenter), button.text())
+        assert button.contentsRect().contains(box), (latched, box, button.contentsRect())
+    button.set_latched(False)
+    panel, shown = win.device_panel, []
+    set_enabled = panel.set_enabled
+
+    def spy(on):  # what the button said each time the window learnt the device's state
+        set_enabled(on)
+        shown.append((win.mode, panel.enable_button.text()))
+
+    panel.set_enabled = spy
+    start(win, "chirp-id", f0_hz=0.5, duration_s=4.0)
+    wait_run_done(qtbot, win)
+    # the run enabled the device: the button offered to disable it; at the end, to enable
+    assert ("running", "Disable") in shown and shown[-1][1] == "Enable"
+
+
 def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
     win = make_window(realtime=True)
     start(win, "etfe", duration_s=60.0, seed=1)
@@ -411,32 +437,6 @@ def test_window_without_settings_remembers_nothing(qtbot, make_window):
     win.protocol_panel.choice.setCurrentText("chirp-id")
     win.close()
     assert make_window().protocol_panel.choice.currentText() == win.protocol_panel.choice.itemText(0)
-
-
-def test_estop_label_fits_and_enable_button_follows_the_device(qtbot, make_window):
-    from PySide6 import QtGui
-
-    win = make_window()
-    button = win.estop
-    for latched in (False, True):
-        button.set_latched(latched)
-        qtbot.waitUntil(lambda: button.height() >= button.minimumHeight(), timeout=2_000)
-        box = QtGui.QFontMetrics(button.font()).boundingRect(
-            button.contentsRect(), int(QtCore.Qt.AlignmentFlag.AlignCenter), button.text())
-        assert button.contentsRect().contains(box), (latched, box, button.contentsRect())
-    button.set_latched(False)
-    panel, shown = win.device_panel, []
-    set_enabled = panel.set_enabled
-
-    def spy(on):  # what the button said each time the window learnt the device's state
-        set_enabled(on)
-        shown.append((win.mode, panel.enable_button.text()))
-
-    panel.set_enabled = spy
-    start(win, "chirp-id", f0_hz=0.5, duration_s=4.0)
-    wait_run_done(qtbot, win)
-    # the run enabled the device: the button offered to disable it; at the end, to enable
-    assert ("running", "Disable") in shown and shown[-1][1] == "Enable"
 
 
 def test_a_large_seed_is_shown_as_it_is(qtbot, make_window):
