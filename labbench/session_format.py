@@ -37,6 +37,7 @@ import numpy as np
 
 from labbench import records
 from labbench.errors import UserError
+from labbench.input_files import open_regular
 
 MAGIC = b"LBSESSION 1\n"
 SUFFIX = ".lbsession"
@@ -199,21 +200,22 @@ def decode_json(body: bytes) -> dict:
 
 def _check_session_file(path) -> Path:
     p = Path(path)
-    if not p.exists():
-        raise UserError(f"session file not found: {p}")
-    if p.is_dir():
-        raise UserError(f"{p} is a directory, not a session file")
-    if not looks_like_session(p):
+    with open_regular(p, "session file") as f:  # a FIFO or device is refused, not read
+        try:
+            magic = f.read(len(MAGIC))
+        except OSError as exc:
+            raise UserError(f"cannot read session file {p}: {exc.strerror}") from None
+    if magic != MAGIC:
         raise UserError(f"{p} is not a labbench session (no {MAGIC[:-1].decode()!r} header)")
     return p
 
 
 def looks_like_session(path) -> bool:
-    """True when the file starts with the session magic line."""
+    """True when ``path`` is a regular file starting with the session magic line."""
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "session file") as f:
             return f.read(len(MAGIC)) == MAGIC
-    except OSError:
+    except (UserError, OSError):
         return False
 
 
@@ -231,10 +233,7 @@ class SessionReader:
         self.n_records = 0
         self.good_bytes = len(MAGIC)
         self._decode = decode_pages
-        try:
-            self._f = open(self.path, "rb")  # noqa: SIM115 - kept open while iterating; close()
-        except OSError as exc:
-            raise UserError(f"cannot read session {self.path}: {exc.strerror}") from None
+        self._f = open_regular(self.path, "session file")  # kept open while iterating; close()
         self._f.seek(len(MAGIC))
         self._size = 0  # file size last seen
 

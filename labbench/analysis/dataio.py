@@ -24,6 +24,8 @@ MIN_SAMPLES = 64
 # Relative tolerance on the sample interval: CSV time stamps are usually
 # printed with a few digits, so rounding must not count as jitter.
 UNIFORM_RTOL = 1e-3
+# Largest magnitude of each column: beyond any bench (and squares of 1e308 overflow).
+MAX_ABS = {"t": (1e9, "s"), "force": (1e6, "N"), "position": (1e3, "m")}
 CHUNK_ROWS = 1 << 18  # CSV rows parsed at a time
 MAX_CSV_BYTES = 4 << 30  # 4 GiB: ~100 million rows
 MAX_LINE_CHARS = 1 << 16  # of a comment or header line
@@ -71,6 +73,11 @@ def recording_from_arrays(t, force, position, meta=None, source: str = "<arrays>
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
             raise UserError(f"{source}: non-finite {name} at sample {bad[0]} (row {bad[0] + 1})")
+        limit, unit = MAX_ABS[name]
+        bad = np.flatnonzero(np.abs(a) > limit)
+        if bad.size:
+            raise UserError(f"{source}: {name} = {a[bad[0]]:g} {unit} at sample {bad[0]} is beyond "
+                            f"+-{limit:g} {unit}, no bench's range")
     _check_uniform(arrays["t"], source)
     rec = Recording(arrays["t"], arrays["force"], arrays["position"], dict(meta or {}), source)
     fs = rec.meta.get("fs")
