@@ -31,7 +31,7 @@ from typing import NamedTuple
 from labbench.drivers import framing
 from labbench.drivers.unwrap import Unwrapper
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
-from labbench.errors import DeviceConnectionError, UserError
+from labbench.errors import DeviceConnectionError, UserError, unknown_name
 
 # Sample.flags bits of this device (0 = healthy).
 FLAG_LOST = 1  # samples were lost right before this one (seq / time gap)
@@ -79,12 +79,10 @@ class SerialConfig:
     @classmethod
     def from_rig(cls, rig, **overrides) -> SerialConfig:
         table = {**rig.section("serial"), **overrides}
-        unknown = set(table) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise UserError(
-                f"{rig.source}: unknown field(s) in [serial]: {', '.join(sorted(unknown))}"
-                f" (known: {', '.join(cls.__dataclass_fields__)})"
-            )
+        for name in table:
+            if name not in cls.__dataclass_fields__:
+                raise UserError(f"{rig.source}: [serial] "
+                                f"{unknown_name('field', name, cls.__dataclass_fields__)}")
         checks = {
             "port": (lambda v: isinstance(v, str), "a string (device path or pyserial URL)"),
             "baudrate": (lambda v: _is_int(v) and v > 0, "a positive integer"),

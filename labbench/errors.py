@@ -42,11 +42,15 @@ def missing_extra(package: str, extra: str, feature: str) -> MissingExtraError:
     return MissingExtraError(f"{feature} needs {package}: pip install 'haptic-labbench[{extra}]'")
 
 
-def unknown_name(what: str, name, known) -> UserError:
-    """``unknown <what> 'nmae'; did you mean 'name'?`` (difflib), else the list of known names."""
+def nearest_hint(name, known) -> str:
+    """``did you mean 'name'?`` for the closest of ``known`` (difflib), else the list."""
     import difflib
 
     known = sorted(str(k) for k in known)
     close = difflib.get_close_matches(str(name), known, n=1, cutoff=0.6)
-    hint = f"did you mean {close[0]!r}?" if close else f"known: {', '.join(known)}"
-    return UserError(f"unknown {what} {str(name)!r}; {hint}")
+    return f"did you mean {close[0]!r}?" if close else f"known: {', '.join(known)}"
+
+
+def unknown_name(what: str, name, known) -> UserError:
+    """``unknown <what> 'nmae'; did you mean 'name'?``, else the list of known names."""
+    return UserError(f"unknown {what} {str(name)!r}; {nearest_hint(name, known)}")

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
-from labbench.errors import UserError
+from labbench.errors import UserError, nearest_hint
 from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import reversing_step
@@ -57,7 +57,7 @@ def sim_options(rig, **options) -> dict:
     for origin, table in ((f"{rig.source}: [sim]", rig.section("sim")), ("sim option", options)):
         for name, value in table.items():
             if name not in _OPTIONS:
-                raise UserError(f"{origin} {name}: unknown (known: {', '.join(_OPTIONS)})")
+                raise UserError(f"{origin} {name}: unknown ({nearest_hint(name, _OPTIONS)})")
             if not _OPTIONS[name][1](value):
                 raise UserError(f"{origin} {name} must be {_OPTIONS[name][2]}, got {value!r}")
             settings[name] = value

@@ -136,9 +136,12 @@ def _load_csv(path: Path) -> Recording:
             raise UserError(f"{src}: not UTF-8 text (byte {exc.start} of a block)") from None
         except OSError as exc:
             raise UserError(f"{src}: cannot read ({exc.strerror or exc})") from None
-    data = np.concatenate(parts) if parts else np.empty((0, 3))
+    # one contiguous array per column, joined from the chunks (columns of a 2-D array would be
+    # strided views, copied again by the validation: a third copy)
+    t, force, position = (np.concatenate([c[:, j] for c in parts]) if parts else np.empty(0)
+                          for j in range(3))
     del parts
-    return recording_from_arrays(data[:, 0], data[:, 1], data[:, 2], meta, src)
+    return recording_from_arrays(t, force, position, meta, src)
 
 
 def _csv_head(text, src: str) -> tuple[dict, list[str], int]:

@@ -20,6 +20,7 @@ from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
 from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
+from labbench.safe_write import output_path
 from labbench.ve import Plant
 
 # Config fields the CLI sets itself (from the rig).
@@ -180,8 +181,10 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
             raise UserError("--can-log records CAN frames: use it with --device canopen or "
                             "sim-canopen")
         log = Path(args.can_log)  # demo: one file per run
-        dev_opts["can_log"] = str(log if args.protocol != "demo"
-                                  else log.with_name(f"{log.stem}-{name}{log.suffix}"))
+        log = log if args.protocol != "demo" else log.with_name(f"{log.stem}-{name}{log.suffix}")
+        # streamed as frames arrive (no temporary file), but never over an existing file
+        output_path(log, [args.rig] if args.rig else [])
+        dev_opts["can_log"] = str(log)
     if args.port:
         if args.device != "serial":
             raise UserError(f"--port is for --device serial, not --device {args.device}")
