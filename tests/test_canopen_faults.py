@@ -30,7 +30,10 @@ def run_with_fault(drive, inject, n=N, at=FAULT_AT):
             inject(drive.peer)
 
     exc = 0.3 * np.random.default_rng(3).standard_normal(n)
-    outcome = run_loop(drive, HapticLoop(ve, SafetyConfig.from_rig(rig)), exc, records.append,
+    # The loop's sample watchdog above the stalls of a loaded machine (tens of ms): these
+    # tests are about the faults injected at sample ``at``, not about a late answer before it.
+    safety = SafetyConfig.from_rig(rig, watchdog_s=0.3)
+    outcome = run_loop(drive, HapticLoop(ve, safety), exc, records.append,
                        progress=progress)
     events = [r for r in records if r["kind"] == "event"]
     return outcome, events
