@@ -31,6 +31,7 @@ from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.protocol_panel import ProtocolPanel
 from labbench.gui.sessions_view import SessionsView
+from labbench.gui.exports import export_in_child
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
@@ -704,7 +705,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def export(self, path: str, fmt: str):
         out_dir = self.session_dir / "exports"
         out_dir.mkdir(parents=True, exist_ok=True)
-        run_in_background(self.mailbox, "export", export_session, path, fmt, out_dir)
+        run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
 
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
@@ -772,23 +773,3 @@ def identify_all(data: dict, meta: dict) -> dict:
     for method in ("l2", "l1"):
         out[method] = identify(rec, model="auto", method=method).as_dict()
     return out
-
-
-def export_session(path: str, fmt: str, out_dir: Path) -> list[Path]:
-    """Export into ``out_dir`` under a name not taken yet (nothing is replaced)."""
-    from labbench.safe_write import free_name
-
-    stem = Path(path).stem
-    if fmt == "hdf5":
-        from labbench.export import export_hdf5
-
-        return [export_hdf5(path, free_name(out_dir / f"{stem}.h5"))]
-    if fmt == "csv":
-        from labbench.export import export_csv
-
-        return [export_csv(path, free_name(out_dir / f"{stem}.csv"))]
-    if fmt == "report":
-        from labbench.report import write_report
-
-        return list(write_report(path, free_name(out_dir / stem)))
-    raise UserError(f"unknown export format {fmt!r}")

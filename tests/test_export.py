@@ -8,6 +8,7 @@ from session_recorder import VE, synthetic_stream
 
 from labbench import records
 from labbench.cli import main
+from labbench.analysis import dataio
 from labbench.export import CSV_COLUMNS
 from labbench.session_format import SessionWriter
 
@@ -61,7 +62,6 @@ def test_csv_round_trip(tmp_path, session):
 
 
 def test_csv_reads_with_the_analysis_loader(tmp_path, session):
-    dataio = pytest.importorskip("labbench.analysis.dataio")
     path, stream = session
     out = tmp_path / "run.csv"
     main(["export", str(path), "--csv", str(out)])

@@ -4,15 +4,13 @@ import os
 os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
 import functools  # noqa: E402
-import importlib.util  # noqa: E402
 import json  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 
+import h5py  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-
-pytest.importorskip("pytestqt")
 
 from PySide6 import QtCore  # noqa: E402
 
@@ -26,10 +24,6 @@ from labbench.ve import Plant  # noqa: E402
 
 TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (labbench.sim_backend.sim_device)
 RUN_TIMEOUT_MS = 60_000
-
-
-needs_etfe = pytest.mark.skipif(not importlib.util.find_spec("labbench.analysis.etfe"),
-                                reason="labbench.analysis.etfe not on main yet")
 
 
 @pytest.fixture
@@ -61,7 +55,6 @@ def wait_final_estimate(qtbot, win, timeout=RUN_TIMEOUT_MS):
                     and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=timeout)
 
 
-@needs_etfe
 def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_window):
     win = make_window()
     start(win, "etfe", duration_s=6.0, seed=5)
@@ -115,7 +108,6 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     assert est.ws_measured == pytest.approx(ws_true, rel=0.05)
 
 
-@needs_etfe
 def test_live_estimate_updates_during_a_realtime_run(qtbot, make_window):
     win = make_window(realtime=True)
     start(win, "etfe", duration_s=5.0, seed=2)
@@ -248,7 +240,6 @@ def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
     assert win.buffer.n < 5000
 
 
-@needs_etfe
 def test_replay_session_through_the_live_view(qtbot, make_window):
     win = make_window()
     start(win, "etfe", duration_s=4.0, seed=3)
@@ -267,7 +258,6 @@ def test_replay_session_through_the_live_view(qtbot, make_window):
 
 
 def test_export_session_data_and_report(qtbot, make_window):
-    h5py = pytest.importorskip("h5py")
     win = make_window()
     start(win, "chirp-id", f0_hz=0.5, duration_s=3.0, model="mb")
     wait_run_done(qtbot, win)
@@ -279,7 +269,6 @@ def test_export_session_data_and_report(qtbot, make_window):
                     timeout=20_000)  # both jobs finished, not just their files created
     with h5py.File(next(out.glob("*.h5")), "r") as f:
         np.testing.assert_array_equal(f["channels/position"][()], win.buffer.channel("position"))
-    pytest.importorskip("labbench.report")
     win.sessions.buttons["Export report"].click()
     qtbot.waitUntil(lambda: any("exported" in t and ".pdf" in t for t in win.log.texts("info")),
                     timeout=RUN_TIMEOUT_MS)
@@ -296,7 +285,6 @@ def test_bad_session_file_gives_a_message(qtbot, make_window, tmp_path):
     assert win.mode == "idle"
 
 
-@needs_etfe
 def test_demo_screenshot_in_process(qtbot, tmp_path):
     shot = tmp_path / "shot.png"
     code = run_app(Rig(), tmp_path / "s", demo=True, screenshot=shot, timeout_s=60,
@@ -327,7 +315,6 @@ def test_cli_refuses_headless_window_without_screenshot(monkeypatch, capsys, tmp
 
 
 @pytest.mark.slow
-@needs_etfe
 def test_cli_demo_screenshot(tmp_path):
     shot = tmp_path / "demo.png"
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
