@@ -30,6 +30,8 @@ from labbench.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import reversing_step
 from labbench.theory import latency_inputs, zoh_matrices
 
+_NOISE_STREAM = 0x4E01  # key of the force-noise stream (labbench.protocols draw from the seed alone)
+
 # name -> (default, check, what the check demands)
 _OPTIONS = {
     "m": (DEFAULT_PLANT.m, lambda v: _num(v) and v > 0, "a positive number [kg]"),
@@ -92,7 +94,9 @@ class SimDevice:
         self._q = rig.metres_per_count if o["quantize"] else 0.0
         self._fc = o["coulomb_n"]
         self._noise_std = o["force_noise_n"]
-        self._rng = np.random.default_rng(seed)
+        # A stream of its own: a run passes one seed to the device and to the protocol, and
+        # force noise equal to (a multiple of) the excitation would bias Z at coherence 1.
+        self._rng = np.random.default_rng(None if seed is None else [int(seed), _NOISE_STREAM])
         self._noise: list[float] = []
         self._noise_i = 0
         self._delay = [0.0] * o["extra_delay_samples"]

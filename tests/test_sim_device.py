@@ -9,6 +9,7 @@ from scipy.integrate import solve_ivp
 from labbench.device import DeviceFault, Sample
 from labbench.registry import open_device
 from labbench.errors import UserError
+from labbench.protocols.excitation import white_noise
 from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend.sim_device import ESTOP_LATCHED, open_sim
 
@@ -132,6 +133,10 @@ def test_force_noise_has_the_set_std_and_is_reproducible():
     assert np.std(a - 0.1) == pytest.approx(0.2, rel=0.03)  # std error of a std ~0.5 %
     assert np.mean(a - 0.1) == pytest.approx(0.0, abs=5 * 0.2 / math.sqrt(20000))
     assert not np.array_equal(a, applied(4))
+    # The run's seed also seeds the protocol's white noise: the two must be independent
+    # (correlation of 20 000 independent samples: std 0.007; a shared stream gives 1).
+    exc = white_noise(20000, 0.001, 0.5, seed=3)
+    assert abs(np.corrcoef(a - 0.1, exc)[0, 1]) < 0.05
 
 
 def test_extra_delay_shifts_the_response_by_whole_samples():
