@@ -16,6 +16,10 @@ from labbench.gui.live_estimate import Estimate
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
 W_SHOWN_OF_NYQUIST = 1 / 3
+# The y ranges follow the estimate only where it is trustworthy: its 95 % radius within
+# this fraction of |Z|. Early in a run the wide-band points (6 s into white noise: ES of
+# +-400 000 N/m) would otherwise set the range and flatten the curve into a line.
+TRUSTED_REL_ERR = 0.25
 
 COLOURS = {"position": "#1f77b4", "velocity": "#2ca02c", "command": "#d62728",
            "excitation": "#7f7f7f", "measured": "#1f5fa8", "theory": "#d95f02", "band": (31, 95, 168, 60)}
@@ -256,7 +260,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 else:
                     self.curves[key + "_theory"].setData([], [])
             self._theory_shown = (th or {}).get("key")
-        self._fit_ranges(lw, shown, bands)
+        trusted = (np.abs(est.Z_err) <= TRUSTED_REL_ERR * np.abs(est.Z))[ok]
+        self._fit_ranges(lw, shown, bands, trusted)
         for key, value, theory, sym in (("ws", est.ws_measured, est.ws_theory, "w_s*"),
                                         ("wb", est.wb_measured, est.wb_theory, "w_b*")):
             line = self.marks[key]
@@ -279,9 +284,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.updates += 1
         self._draw_bode()
 
-    def _fit_ranges(self, lw, shown, bands) -> None:
-        """x over the measured and theory frequencies; y over measured, band, theory and
-        the zero line, as autoRange would give, but computed once per estimate."""
+    def _fit_ranges(self, lw, shown, bands, trusted) -> None:
+        """x over the measured and theory frequencies; y over the trusted measured points
+        and their band, the theory and the zero line (as autoRange would give over those,
+        but computed once per estimate); the untrusted points are drawn, not ranged."""
         lw_theory = []
         if self._theory_shown is not None:
             wt, _ = self.curves["ES_theory"].getOriginalDataset()
@@ -290,10 +296,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory))
         for key, y in shown.items():
             _, yt = self.curves[key + "_theory"].getOriginalDataset()
-            keep = np.isfinite(y)
+            keep = np.isfinite(y) & trusted
             vb = self.plots[key].getViewBox()
             _fit(vb.setYRange, vb.viewRange()[1],
-                 *_finite_span(y, bands[key][0][keep], bands[key][1][keep], [] if yt is None else yt, [0.0]))
+                 *_finite_span(y[keep], bands[key][0][keep], bands[key][1][keep],
+                               [] if yt is None else yt, [0.0]))
 
     def _draw_bode(self) -> None:
         est = self.last

@@ -432,3 +432,31 @@ def test_a_large_seed_is_shown_as_it_is(qtbot, make_window):
     win.protocol_panel.set_value(("seed",), 3_000_000_017)  # above 2^31: was clamped
     assert win.protocol_panel.values()["seed"] == 3_000_000_017
     assert win.make_protocol().seed == 3_000_000_017
+
+
+def test_live_axes_follow_the_trusted_estimate(qtbot):
+    """Points whose 95 % radius exceeds a quarter of |Z| are drawn but do not set the range
+    (early in a white-noise run they spanned +-400 000 N/m and flattened the curve)."""
+    from labbench import theory
+    from labbench.effective import effective_impedances
+    from labbench.gui.live_estimate import Estimate
+    from labbench.gui.live_plots import ImpedancePlots
+    from labbench.ve import VirtualEnvironment
+
+    plots = ImpedancePlots()
+    qtbot.addWidget(plots)
+    ve = VirtualEnvironment("spring-damper", 50.0, 1.0, 125.0, 0.001, 0.0)
+    w = np.geomspace(1.0, 1000.0, 200)
+    Z = theory.z_sampled(TRUTH, ve, w)
+    Z_err = 0.01 * np.abs(Z)
+    wild = w < 3.0  # few averages down there yet: wild values, wide bands
+    Z = np.where(wild, Z * (1 - 2e5j), Z)
+    Z_err = np.where(wild, 3e4 * np.abs(Z), Z_err)
+    eff = effective_impedances(w, Z)
+    plots.show_estimate(Estimate(6000, w, Z, Z_err, eff.ES, eff.ED, eff.EM, None, None, TRUTH,
+                                 "given", w_nyquist=np.pi * 1000))
+    lo, hi = plots.plots["ES"].getViewBox().viewRange()[1]
+    trusted_es = eff.ES[~wild & (Z.imag < 0)]
+    assert np.abs(eff.ES[wild]).max() > 1e5  # the wild points are there ...
+    assert hi < 1.2 * trusted_es.max() and lo > -0.2 * trusted_es.max()  # ... and ignored
+    assert hi >= trusted_es.max()  # the trusted estimate fills the axis
