@@ -18,7 +18,7 @@ time the hypervisor stole from this VM meanwhile (``steal`` in /proc/stat: no gu
 scheduling policy can get that back) are printed.
 
     .venv/bin/python bench/bench_realtime.py [--seconds 120] [--arms floor,sim,...]
-        [--hogs 0,2] [--repeats 1]
+        [--hogs 0,2] [--repeats 1] [--watchdog-s 1.0]
 """
 from __future__ import annotations
 
@@ -66,8 +66,9 @@ def arm_command(arm: str, seconds: float, out: str, rig: str) -> list[str]:
            "--duration-s", str(seconds), "--plant-from", "nominal"]
     if arm == "sim-nort":
         cmd.append("--no-rt")
+    cmd += ["--rig", rig]
     if arm == "canopen":
-        cmd += ["--device", "sim-canopen", "--rig", rig]
+        cmd += ["--device", "sim-canopen"]
     return cmd
 
 
@@ -126,12 +127,16 @@ def main() -> int:
     ap.add_argument("--arms", default="floor,sim,sim-nort,canopen")
     ap.add_argument("--hogs", default="0,2")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--watchdog-s", type=float, default=None,
+                    help="the rig's loop watchdog (default 0.05 s): longer to count the "
+                         "overruns of a whole run through stalls that would trip it")
     args = ap.parse_args()
     arms = args.arms.split(",")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         rig = Path(tmp) / "rig.toml"
-        rig.write_text(RIG)
+        rig.write_text(RIG + ("" if args.watchdog_s is None
+                              else f"[safety]\nwatchdog_s = {args.watchdog_s}\n"))
         for rep in range(args.repeats):
             for n_hogs in (int(h) for h in args.hogs.split(",")):
                 print(f"-- {n_hogs} CPU hogs, {args.seconds:g} s per arm, repeat {rep + 1}",
