@@ -133,8 +133,8 @@ _FIELDS = {
                     "plant": (dict,), "safety": (dict,)},
     records.DESCRIPTOR: {"sample_time_s": (_NUMBER,), "channels": (dict,)},
     records.PAGE: {"index": (_INT,)},
-    records.EVENT: {"t": (_NUMBER, _NONE), "name": (str,), "reason": (str,)},
-    records.STOP: {"status": (str,), "reason": (str,), "time": (_NUMBER,), "n_samples": (_INT,),
+    records.EVENT: {"t": (_NUMBER, _NONE), "name": (str,), "reason": (str, _NONE)},
+    records.STOP: {"status": (str,), "reason": (str, _NONE), "time": (_NUMBER,), "n_samples": (_INT,),
                    "results": (dict,), "timing": (dict, _NONE)},
 }
 _RANGES = {"time": (0.0, 1e11), "sample_time_s": (1e-9, 1.0), "t": (-1e11, 1e11),

@@ -67,6 +67,7 @@ def sim_options(rig, **options) -> dict:
         settings[name] = float(settings[name])
     if settings["extra_delay_fraction"] and settings["coulomb_n"]:
         raise UserError("sim extra_delay_fraction needs coulomb_n = 0 (the friction step holds one force)")
+    Plant(settings["m"], settings["b"])  # within the physical range (1e308 overflows the plant)
     return settings
 
 

@@ -94,7 +94,8 @@ def _mutate(rng: random.Random, base, numeric, paths, hostile_paths):
         elif what < 0.8 and paths:
             flag, value = rng.choice(paths), rng.choice(hostile_paths)
             if flag == "FILE":
-                argv[2 if argv[0] == "analyze" else 1] = value
+                i = 2 if argv[0] == "analyze" else 1
+                argv[i:i + 1] = [value]  # (a token may have been deleted before)
             elif flag in argv:
                 argv[argv.index(flag) + 1] = value
             else:

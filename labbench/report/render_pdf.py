@@ -118,6 +118,9 @@ def _table(t: Table, st: dict, width: float) -> list:
     numeric = t.numeric()
     n = len(numeric)
     rows = ([t.columns] if t.columns else []) + [list(r) + [""] * (n - len(r)) for r in t.rows]
+    if not rows or not n:  # nothing known (e.g. a session whose start record was unreadable)
+        return [RLParagraph(_rl(t.title), st["caption"]), RLParagraph("-", st["note"]),
+                Spacer(1, 7)]
     header = bool(t.columns)
     cells = []
     for k, row in enumerate(rows):
