@@ -81,25 +81,29 @@ def _entries(f):
     }
 
 
+def _set_value(argv: list, flag: str, value: str) -> None:
+    """The value after ``flag`` becomes ``value`` (the flag is added when absent)."""
+    if flag in argv:
+        j = argv.index(flag) + 1
+        argv[j:j + 1] = [value]  # the flag may be last (its value deleted before)
+    else:
+        argv += [flag, value]
+
+
 def _mutate(rng: random.Random, base, numeric, paths, hostile_paths):
     argv = list(base)
     for _ in range(rng.choice((1, 1, 2))):
         what = rng.random()
         if what < 0.55 and numeric:
             flag, value = rng.choice(numeric), rng.choice(HOSTILE_NUMBERS)
-            if flag in argv:
-                argv[argv.index(flag) + 1] = value
-            else:
-                argv += [flag, value]
+            _set_value(argv, flag, value)
         elif what < 0.8 and paths:
             flag, value = rng.choice(paths), rng.choice(hostile_paths)
             if flag == "FILE":
                 i = 2 if argv[0] == "analyze" else 1
                 argv[i:i + 1] = [value]  # (a token may have been deleted before)
-            elif flag in argv:
-                argv[argv.index(flag) + 1] = value
             else:
-                argv += [flag, value]
+                _set_value(argv, flag, value)
         elif what < 0.9 and len(argv) > 1:
             del argv[rng.randrange(1, len(argv))]
         else:
