@@ -63,6 +63,8 @@ def output_path(path, inputs: Iterable = (), force: bool = False) -> Path:
 
 def output_folder(path) -> Path:
     """The named output folder, created if missing (its parent must exist)."""
+    if not str(path).strip():
+        raise UserError("empty output folder name")
     d = Path(path)
     if d.exists() and not d.is_dir():
         raise UserError(f"output {d} is a file, not a folder")

@@ -329,6 +329,8 @@ class SessionWriter:
     """
 
     def __init__(self, directory, name: str | None = None, fsync_interval_s: float = 0.5):
+        if not str(directory).strip():
+            raise UserError("empty session folder name")
         self.directory = Path(directory)
         if self.directory.exists() and not self.directory.is_dir():
             raise UserError(f"session directory {self.directory} is a file")

@@ -30,6 +30,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 from labbench.cli import main
 from labbench.session_format import MAGIC
 
@@ -67,7 +69,9 @@ def _address_space() -> int:
 
 def run_cli(argv: list[str], time_limit_s: float = TIME_LIMIT_S,
             memory: int = MEMORY_LIMIT) -> Outcome:
-    """``labbench <argv>`` in this process, stdout/stderr captured, time and memory bounded."""
+    """``labbench <argv>`` in this process, stdout/stderr captured, time and memory bounded.
+    The tests run it from a scratch working directory (the ``scratch_cwd`` fixture), so a
+    relative or empty output name never lands in the source tree."""
     argv = [str(a) for a in argv]
     out, err = io.StringIO(), io.StringIO()
     code, crash = None, None
@@ -183,3 +187,9 @@ def items_of(stream) -> list[list]:
         json_len = struct.unpack("<I", raw[4:8])[0]
         out.append([json.loads(raw[24:24 + json_len]), raw[24 + json_len:]])
     return out
+
+
+@pytest.fixture(autouse=True)
+def scratch_cwd(tmp_path, monkeypatch):
+    """Each fuzz test runs in its own empty working directory (import it into the module)."""
+    monkeypatch.chdir(tmp_path)

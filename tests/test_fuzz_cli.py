@@ -15,6 +15,7 @@ import random
 
 import pytest
 from fuzzing import HOSTILE_NUMBERS, Tally, run_cli
+from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.registry import protocol_class
@@ -42,7 +43,7 @@ def files(tmp_path_factory):
 
 def _paths(f):
     d = f["dir"]
-    return [str(f["fifo"]), "/dev/zero", str(d / "folder"), str(d / "missing"), "", "/",
+    return [str(f["fifo"]), "/dev/zero", str(d / "folder"), str(d / "missing"), "", "/proc",
             str(f["session"]), str(f["csv"]), "/proc/self/mem", str(d / "no" / "such" / "x")]
 
 

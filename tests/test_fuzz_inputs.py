@@ -17,6 +17,7 @@ import tracemalloc
 import numpy as np
 import pytest
 from fuzzing import HOSTILE_NUMBERS, Tally, run_cli
+from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.analysis import dataio

@@ -15,6 +15,7 @@ import copy
 import numpy as np
 import pytest
 from fuzzing import Tally, items_of, run_cli, run_cli_isolated, write_chunks
+from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 START, DESC, PAGE0, STOP = 0, 1, 2, -1
