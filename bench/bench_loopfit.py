@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from truthdata import PAPER_B, PAPER_M, closed_loop_recording  # noqa: E402
+from bench_analysis import best_time  # noqa: E402
 
 from labbench.analysis import compare  # noqa: E402
 from labbench.analysis.dataio import recording_from_arrays  # noqa: E402
@@ -48,15 +49,6 @@ NOISES = {
     "position 1e-5 m": {"position_noise": 1e-5},
     "quantised 3e-5 m": {"quantum": 3e-5},
 }
-
-
-def best_time(fn, repeat):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def record(n, delay, process_noise=0.0, position_noise=0.0, quantum=0.0):

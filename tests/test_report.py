@@ -21,29 +21,15 @@ from labbench.report.blocks import Figure, PageBreak, Table
 from labbench.report.content import build
 from labbench.session_format import SessionWriter
 from labbench.ve import Plant, VirtualEnvironment
-
-TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig
-
-
-def _record(directory, name, **options):
-    from labbench.registry import make_protocol
-    from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.sim_backend.sim_device import open_sim
-
-    rig = Rig()
-    with SessionWriter(directory) as w:
-        result = run(open_sim(rig, seed=1), make_protocol(name, **options), [w], rig=rig)
-    assert result.status == "success", result.reason
-    return w.path, result
+from sim_sessions import TRUTH, record_session
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("sessions")
-    out = {"chirp-id": _record(d, "chirp-id", duration_s=5.0, f0_hz=0.5),
-           "stability": _record(d, "stability", max_step_s=2.0),
-           "etfe": _record(d, "etfe", duration_s=10.0, seed=4, plant_m_kg=TRUTH["m"],
+    out = {"chirp-id": record_session(d, "chirp-id", duration_s=5.0, f0_hz=0.5),
+           "stability": record_session(d, "stability", max_step_s=2.0),
+           "etfe": record_session(d, "etfe", duration_s=10.0, seed=4, plant_m_kg=TRUTH["m"],
                            plant_b=TRUTH["b"])}
     return out
 
@@ -120,7 +106,7 @@ def _summary(report) -> list:
 def test_sessions_are_overlaid_in_one_figure(tmp_path):
     """Three delays on one ES/ED/EM figure, one colour per session (the paper's Figure 8)."""
     delays = (0.0, 0.002, 0.005)
-    paths = [_record(tmp_path, "etfe", duration_s=5.0, seed=3, td_s=td, plant_m_kg=TRUTH["m"],
+    paths = [record_session(tmp_path, "etfe", duration_s=5.0, seed=3, td_s=td, plant_m_kg=TRUTH["m"],
                      plant_b=TRUTH["b"])[0] for td in delays]
     summary = _summary(build(paths))
     overlays = [b for b in summary if isinstance(b, Figure)]

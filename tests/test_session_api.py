@@ -12,29 +12,14 @@ import labbench
 from labbench.cli import main
 from labbench.errors import MissingExtraError, UserError
 from labbench.export import export_csv
-
-TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig
-
-
-def _record(directory, name, **options):
-    from labbench.registry import make_protocol
-    from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
-    from labbench.sim_backend.sim_device import open_sim
-
-    rig = Rig()
-    with SessionWriter(directory) as w:
-        result = run(open_sim(rig, seed=1), make_protocol(name, **options), [w], rig=rig)
-    assert result.status == "success", result.reason
-    return w.path
+from sim_sessions import TRUTH, record_session
 
 
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
     d = tmp_path_factory.mktemp("api")
-    return {"chirp": _record(d, "chirp-id", duration_s=8.0, f0_hz=0.5),
-            "etfe": _record(d, "etfe", duration_s=15.0, seed=2)}
+    return {"chirp": record_session(d, "chirp-id", duration_s=8.0, f0_hz=0.5)[0],
+            "etfe": record_session(d, "etfe", duration_s=15.0, seed=2)[0]}
 
 
 def _cli_json(capsys, *argv) -> dict:
