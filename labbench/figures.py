@@ -69,10 +69,7 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
     em = fig.add_subplot(grid[4:6, 1], sharex=mag)
 
     for i, c in enumerate(curves):
-        w = np.asarray(c.w, float)
-        Z = np.asarray(c.Z, complex)
-        eff = effective_impedances(w, Z)
-        stiff = Z.imag < 0
+        w, Z, eff, stiff = _arrays(c)
         fmt = dict(color=c.color or f"C{i}", label=literal_mpl(c.label))
         fmt.update(dict(lw=1.5) if c.style == "line" else dict(ls="none", marker=".", ms=3))
         mag.semilogx(w, 20 * np.log10(np.abs(Z)), **fmt)
@@ -127,10 +124,7 @@ def effective_figure(curves: list[Curve], size=(7.2, 2.15)) -> Figure:
     FigureCanvasAgg(fig)
     es, ed, em = fig.subplots(1, 3, sharex=True)
     for i, c in enumerate(curves):
-        w = np.asarray(c.w, float)
-        Z = np.asarray(c.Z, complex)
-        eff = effective_impedances(w, Z)
-        stiff = Z.imag < 0
+        w, Z, eff, stiff = _arrays(c)
         style = dict(color=c.color or f"C{i}", label=literal_mpl(c.label))
         # theory thin and under, measured points on top: both stay visible in one colour
         style.update(dict(lw=1.0, alpha=0.75, zorder=2) if c.style == "line"
@@ -146,3 +140,10 @@ def effective_figure(curves: list[Curve], size=(7.2, 2.15)) -> Figure:
     handles, labels = es.get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=7)
     return fig
+
+
+def _arrays(c) -> tuple:
+    """(w, Z, effective impedances, where the curve is stiffness-like) of one curve."""
+    w = np.asarray(c.w, float)
+    Z = np.asarray(c.Z, complex)
+    return w, Z, effective_impedances(w, Z), Z.imag < 0

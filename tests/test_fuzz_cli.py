@@ -19,6 +19,7 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.registry import protocol_class
+from labbench import records
 from labbench.session_format import SessionWriter
 
 CI_CASES = 12  # per entry point
@@ -29,8 +30,7 @@ SLOW_CASES = 150
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("fuzzcli")
     with SessionWriter(d, name="good") as w:
-        for rec in synthetic_stream(3000, page_size=500, status="success"):
-            w(rec)
+        records.fan_out(synthetic_stream(3000, page_size=500, status="success"), [w])
     csv = d / "good.csv"
     from labbench.cli import main
 

@@ -21,6 +21,7 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.analysis import dataio
+from labbench import records
 from labbench.session_format import SessionWriter
 
 RIG = """[rig]
@@ -96,8 +97,7 @@ def csv_text(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("fuzzcsv")
     with SessionWriter(d, name="s") as w:
-        for rec in synthetic_stream(3000, page_size=500, status="success"):
-            w(rec)
+        records.fan_out(synthetic_stream(3000, page_size=500, status="success"), [w])
     assert main(["export", str(w.path), "--csv", str(d / "good.csv")]) == 0
     return (d / "good.csv").read_text()
 

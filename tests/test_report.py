@@ -13,7 +13,7 @@ from matplotlib import image
 from pypdf import PdfReader
 from session_recorder import synthetic_stream
 
-from labbench import theory
+from labbench import records, theory
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
@@ -130,8 +130,7 @@ def test_sessions_are_overlaid_in_one_figure(tmp_path):
 
 def test_report_of_unfinished_and_damaged_sessions(tmp_path):
     with SessionWriter(tmp_path) as w:
-        for rec in synthetic_stream(800, status=None):
-            w(rec)
+        records.fan_out(synthetic_stream(800, status=None), [w])
     raw = w.path.read_bytes()
     w.path.write_bytes(raw[:-40])  # tear the last page
     html_path, pdf_path = write_report(w.path, tmp_path / "rep")
