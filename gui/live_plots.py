@@ -12,6 +12,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.live_estimate import Estimate
+from labbench.gui.path_curve import PathCurve, reduce_to_columns
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
@@ -45,12 +46,20 @@ def _fit(set_range, current, lo: float, hi: float) -> None:
 
 
 def _cache_static_items(layout: pg.GraphicsLayoutWidget) -> None:
-    """Keep axes, labels and legends as pixmaps: their text is the dearest part of a paint
-    and, with ranges that rarely move, they are redrawn only when they change."""
+    """Keep axes, text and legend samples as pixmaps: text is the dearest part of a paint
+    and, with ranges that rarely move, they are redrawn only when they change. (A cached
+    item's children are not in its pixmap: the text of labels, axis titles and legends
+    is a child QGraphicsTextItem, cached by itself.)"""
     cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
     for item in layout.scene().items():
-        if isinstance(item, (pg.AxisItem, pg.LabelItem, pg.LegendItem)):
+        if isinstance(item, (pg.AxisItem, QtWidgets.QGraphicsTextItem, pg.ItemSample)):
             item.setCacheMode(cache)
+
+
+def _plot_options_off(p: pg.PlotItem) -> None:
+    """No "Plot options" menu (its data transforms act on pyqtgraph's own curve items,
+    not on ``PathCurve``s or the bands); the view's menu (ranges) stays."""
+    p.setMenuEnabled(False, enableViewBoxMenu=True)
 
 
 def _finite_span(*arrays) -> tuple[float, float]:
@@ -66,13 +75,17 @@ class TimeTraces(pg.GraphicsLayoutWidget):
     Time runs relative to the newest sample on a fixed x range, the y ranges
     move only when the data leave them or use less than half of them, and there
     is no grid: then the axes are not re-rendered every frame (measured: a
-    scrolling absolute time axis with grid doubled the frame time). Nothing is
-    drawn while the traces are hidden (another tab): they catch up when shown.
+    scrolling absolute time axis with grid doubled the frame time). The curves are
+    ``PathCurve``s of the data reduced to groups of samples of at most one device
+    pixel column (``reduce_to_columns``: exact at screen resolution), redone when the plots are
+    resized. Nothing is drawn while the traces are hidden (another tab): they catch
+    up when shown.
     """
 
     def __init__(self, window: int = 5000, parent=None):
         super().__init__(parent)
         self.window = window
+        self._buffer: StreamBuffer | None = None  # the one drawn (or to draw when shown)
         rows = [("position", "position", "m"), ("velocity", "velocity estimate", "m/s"),
                 ("force", "force", "N")]
         self.plots = {}
@@ -80,57 +93,67 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
             p.enableAutoRange(x=False, y=False)
-            # ~2 points per pixel column: Qt draws a path holding the GIL, so fewer points
-            # mean shorter stalls of the acquisition thread (peak mode keeps the extremes)
-            p.setDownsampling(auto=True, mode="peak")
-            p.setClipToView(True)
+            _plot_options_off(p)
             if i:
                 p.setXLink(self.plots["position"])
+            p.getViewBox().sigResized.connect(self._redraw)
             self.plots[key] = p
         self.plots["force"].setLabel("bottom", "time before the newest sample", units="s")
         self._span = None
-        self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
-        self.curves = {
-            "position": self.plots["position"].plot(pen=_pen("position")),
-            "velocity": self.plots["velocity"].plot(pen=_pen("velocity")),
-            "excitation": self.plots["force"].plot(pen=_pen("excitation"), name="excitation"),
-            "command": self.plots["force"].plot(pen=_pen("command"), name="command"),
-        }
+        legend = self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
+        self.curves = {}
+        for name, key in (("position", "position"), ("velocity", "velocity"),
+                          ("excitation", "force"), ("command", "force")):
+            self.curves[name] = PathCurve(_pen(name))
+            self.plots[key].addItem(self.curves[name])
+        for name in ("excitation", "command"):
+            legend.addItem(self.curves[name], name)
         _cache_static_items(self)
         self.frames = 0
-        self._hidden_buffer: StreamBuffer | None = None
 
     def clear_data(self) -> None:
-        self._hidden_buffer = None
+        self._buffer = None
+        self._empty()
+
+    def _empty(self) -> None:
         for c in self.curves.values():
             c.setData([], [])
 
     def showEvent(self, ev) -> None:  # noqa: N802 - Qt override
         super().showEvent(ev)
-        if self._hidden_buffer is not None:
-            self.update_from(self._hidden_buffer)
+        self._redraw()
 
     def update_from(self, buf: StreamBuffer) -> None:
-        if not self.isVisible():
-            self._hidden_buffer = buf
-            return
-        self._hidden_buffer = None
+        self._buffer = buf
+        if self.isVisible():
+            self._draw(buf)
+            self.frames += 1
+
+    def _redraw(self, *_) -> None:
+        if self._buffer is not None and self.isVisible():
+            self._draw(self._buffer)
+
+    def _draw(self, buf: StreamBuffer) -> None:
         t = buf.channel("t", self.window)
-        x = t - t[-1] if t.size else t
         span = self.window * (buf.sample_time_s or 1e-3)
         if span != self._span:
             self.plots["position"].setXRange(-span, 0, padding=0)
             self._span = span
-        ys = {name: buf.channel(name, self.window) for name in self.curves}
-        for name, curve in self.curves.items():
-            curve.setData(x, ys[name], skipFiniteCheck=True)
-        if t.size:
-            for key, names in (("position", ["position"]), ("velocity", ["velocity"]),
-                               ("force", ["excitation", "command"])):
-                vb = self.plots[key].getViewBox()
-                _fit(vb.setYRange, vb.viewRange()[1], min(ys[n].min() for n in names),
-                     max(ys[n].max() for n in names))
-        self.frames += 1
+        if not t.size:
+            return self._empty()
+        # the x range holds `window` samples: groups of at most one device pixel column
+        pixels = max(p.getViewBox().width() for p in self.plots.values()) * self.devicePixelRatioF()
+        group = int(self.window // pixels) if pixels >= 1 else 1
+        xs, ys = reduce_to_columns(t - t[-1], np.stack([buf.channel(n, self.window) for n in self.curves]),
+                             group, first=buf.n - t.size)
+        y = dict(zip(self.curves, ys))
+        for (name, curve), x in zip(self.curves.items(), xs):
+            curve.setData(x, y[name])
+        for key, names in (("position", ["position"]), ("velocity", ["velocity"]),
+                           ("force", ["excitation", "command"])):
+            vb = self.plots[key].getViewBox()
+            _fit(vb.setYRange, vb.viewRange()[1], min(y[n].min() for n in names),
+                 max(y[n].max() for n in names))
 
 
 class DecadeAxis(pg.AxisItem):
@@ -173,8 +196,6 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self._setup(p, title, unit)
             p.disableAutoRange()  # set from each estimate (_fit_ranges)
             p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
-            if key == "ES":
-                p.addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
             if i > 1:
                 p.setXLink(self.plots["ES"])
             band = QtWidgets.QGraphicsPathItem()
@@ -182,13 +203,14 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             band.setPen(pg.mkPen(None))
             p.addItem(band)
             self.bands[key] = band
-            named = key == "ES"  # one legend (on ES) serves all three rows
             # measured wide, theory thin and dashed on top: both show where they agree
-            self.curves[key] = p.plot(pen=pg.mkPen(COLOURS["measured"], width=3),
-                                      name="measured (ETFE), 95 % band" if named else None)
-            self.curves[key + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine),
-                                                  name="theory" if named else None)
+            self.curves[key] = _add_curve(p, pg.mkPen(COLOURS["measured"], width=3), (True, False))
+            self.curves[key + "_theory"] = _add_curve(p, _pen("theory", QtCore.Qt.PenStyle.DashLine),
+                                                      (True, False))
             self.plots[key] = p
+        legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
+        legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")  # one legend serves all rows
+        legend.addItem(self.curves["ES_theory"], "theory")
         self.plots["EM"].setLabel("bottom", "frequency w", units="rad/s")
         for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.85)):
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
@@ -202,8 +224,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
         self.bode_plots["phase"].setLabel("bottom", "frequency w", units="rad/s")
         for k, p in self.bode_plots.items():
-            self.curves["bode_" + k] = p.plot(pen=pg.mkPen(COLOURS["measured"], width=3))
-            self.curves["bode_" + k + "_theory"] = p.plot(pen=_pen("theory", QtCore.Qt.PenStyle.DashLine))
+            log = (True, k == "mag")
+            self.curves["bode_" + k] = _add_curve(p, pg.mkPen(COLOURS["measured"], width=3), log)
+            self.curves["bode_" + k + "_theory"] = _add_curve(
+                p, _pen("theory", QtCore.Qt.PenStyle.DashLine), log)
         _cache_static_items(self.effective)
         _cache_static_items(self.bode)
         self.last: Estimate | None = None
@@ -215,7 +239,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
     @staticmethod
     def _setup(p, title, unit, logy=False):
         p.setLabel("left", title, units=unit)
-        p.setLogMode(x=True, y=logy)
+        p.setLogMode(x=True, y=logy)  # the axes; the curves map their own data (PathCurve.log)
+        _plot_options_off(p)
         for decade in range(-1, 5):  # light decade lines instead of a full grid
             p.addItem(pg.InfiniteLine(pos=decade, angle=90, pen=pg.mkPen("#dddddd", width=1)),
                       ignoreBounds=True)
@@ -245,7 +270,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                  "EM": np.where(est.Z.imag[ok] > 0, est.EM[ok], np.nan)}
         bands = {}
         for key, y in shown.items():
-            self.curves[key].setData(w, y, connect="finite", skipFiniteCheck=True)
+            self.curves[key].setData(w, y, connect="finite")
             lo, hi = est.band(key)
             bands[key] = (lo[ok], hi[ok])
             self.bands[key].setPath(_band_path(lw, lo[ok], hi[ok], np.isfinite(y)))
@@ -256,7 +281,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                     keep = {"ES": th["Z"].imag < 0, "EM": th["Z"].imag > 0}.get(key, True)
                     keep = keep & (th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
                     self.curves[key + "_theory"].setData(th["w"], np.where(keep, th[key], np.nan),
-                                                         connect="finite", skipFiniteCheck=True)
+                                                         connect="finite")
                 else:
                     self.curves[key + "_theory"].setData([], [])
             self._theory_shown = (th or {}).get("key")
@@ -307,18 +332,26 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         if est is None or self.currentWidget() is not self.bode or est is self._bode_shown:
             return
         ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
-        self.curves["bode_mag"].setData(est.w[ok], np.abs(est.Z[ok]))
-        self.curves["bode_phase"].setData(est.w[ok], np.degrees(np.unwrap(np.angle(est.Z[ok]))))
+        self.curves["bode_mag"].setData(est.w[ok], np.abs(est.Z[ok]), connect="finite")
+        self.curves["bode_phase"].setData(est.w[ok], np.degrees(np.unwrap(np.angle(est.Z[ok]))),
+                                          connect="finite")
         th = est.theory
         if th:
             shown = th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist
             wt, Zt = th["w"][shown], th["Z"][shown]
-            self.curves["bode_mag_theory"].setData(wt, np.abs(Zt))
-            self.curves["bode_phase_theory"].setData(wt, np.degrees(np.unwrap(np.angle(Zt))))
+            self.curves["bode_mag_theory"].setData(wt, np.abs(Zt), connect="finite")
+            self.curves["bode_phase_theory"].setData(wt, np.degrees(np.unwrap(np.angle(Zt))),
+                                                     connect="finite")
         else:
             self.curves["bode_mag_theory"].setData([], [])
             self.curves["bode_phase_theory"].setData([], [])
         self._bode_shown = est
+
+
+def _add_curve(p: pg.PlotItem, pen, log) -> PathCurve:
+    curve = PathCurve(pen, log)
+    p.addItem(curve)
+    return curve
 
 
 def _band_path(x, lo, hi, keep) -> QtGui.QPainterPath:

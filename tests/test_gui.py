@@ -63,10 +63,18 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     assert win.last_run.status == "success", win.last_run.reason
     assert win.buffer.n == 6000
 
-    # time traces: the last 5000 samples of the stream, per channel
+    # time traces: the last 5000 samples of the stream per channel, as the first, lowest,
+    # highest and last sample of each group of samples within one pixel column
+    columns = win.traces.plots["position"].getViewBox().width() * win.traces.devicePixelRatioF()
+    t = win.buffer.channel("t")[-5000:]
     for name in ("position", "velocity", "command", "excitation"):
-        _, y = win.traces.curves[name].getOriginalDataset()
-        np.testing.assert_array_equal(y, win.buffer.channel(name)[-5000:])
+        x, y = win.traces.curves[name].getOriginalDataset()
+        raw = win.buffer.channel(name)[-5000:]
+        assert columns <= x.size / 4 < 5000 / 4  # 4 points a group, groups <= 1 column
+        assert y.max() == raw.max() and y.min() == raw.min()
+        k = np.searchsorted(t - t[-1], x)  # each point is a sample: its time and value
+        np.testing.assert_array_equal(raw[k], y)
+        assert np.all(np.diff(x) >= 0) and x[0] == t[0] - t[-1] and x[-1] == 0
 
     # the session on disk holds the same stream, plus the ParameterTree state
     summaries = list_sessions(win.session_dir)
