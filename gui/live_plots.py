@@ -45,15 +45,17 @@ def _fit(set_range, current, lo: float, hi: float) -> None:
     set_range(lo, hi, padding=0.05)
 
 
-def _cache_static_items(layout: pg.GraphicsLayoutWidget) -> None:
+def _cheap_repaint(layout: pg.GraphicsLayoutWidget) -> None:
     """Keep axes, text and legend samples as pixmaps: text is the dearest part of a paint
     and, with ranges that rarely move, they are redrawn only when they change. (A cached
     item's children are not in its pixmap: the text of labels, axis titles and legends
-    is a child QGraphicsTextItem, cached by itself.)"""
+    is a child QGraphicsTextItem, cached by itself.) The view fills its background
+    itself, so Qt need not paint the widgets beneath it first."""
     cache = QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
     for item in layout.scene().items():
         if isinstance(item, (pg.AxisItem, QtWidgets.QGraphicsTextItem, pg.ItemSample)):
             item.setCacheMode(cache)
+    layout.viewport().setAttribute(QtCore.Qt.WidgetAttribute.WA_OpaquePaintEvent)
 
 
 def _plot_options_off(p: pg.PlotItem) -> None:
@@ -108,7 +110,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             self.plots[key].addItem(self.curves[name])
         for name in ("excitation", "command"):
             legend.addItem(self.curves[name], name)
-        _cache_static_items(self)
+        _cheap_repaint(self)
         self.frames = 0
 
     def clear_data(self) -> None:
@@ -193,9 +195,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         rows = [("ES", "stiffness ES", "N/m"), ("ED", "damping ED", "N s/m"), ("EM", "mass EM", "kg")]
         for i, (key, title, unit) in enumerate(rows, start=1):
             p = _log_plot(self.effective, i)
-            self._setup(p, title, unit)
+            self._setup(p, title, unit, zero_line=True)
             p.disableAutoRange()  # set from each estimate (_fit_ranges)
-            p.addItem(pg.InfiniteLine(pos=0, angle=0, pen=pg.mkPen("#999999", width=1)))
             if i > 1:
                 p.setXLink(self.plots["ES"])
             band = QtWidgets.QGraphicsPathItem()
@@ -228,8 +229,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_" + k] = _add_curve(p, pg.mkPen(COLOURS["measured"], width=3), log)
             self.curves["bode_" + k + "_theory"] = _add_curve(
                 p, _pen("theory", QtCore.Qt.PenStyle.DashLine), log)
-        _cache_static_items(self.effective)
-        _cache_static_items(self.bode)
+        _cheap_repaint(self.effective)
+        _cheap_repaint(self.bode)
         self.last: Estimate | None = None
         self._theory_shown = None
         self._bode_shown = None
@@ -237,13 +238,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.currentChanged.connect(lambda *_: self._draw_bode())
 
     @staticmethod
-    def _setup(p, title, unit, logy=False):
+    def _setup(p, title, unit, logy=False, zero_line=False):
         p.setLabel("left", title, units=unit)
         p.setLogMode(x=True, y=logy)  # the axes; the curves map their own data (PathCurve.log)
         _plot_options_off(p)
-        for decade in range(-1, 5):  # light decade lines instead of a full grid
-            p.addItem(pg.InfiniteLine(pos=decade, angle=90, pen=pg.mkPen("#dddddd", width=1)),
-                      ignoreBounds=True)
+        _add_rules(p, zero_line)
         p.getAxis("left").enableAutoSIPrefix(False)
         p.getAxis("bottom").enableAutoSIPrefix(False)
 
@@ -292,7 +291,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             line = self.marks[key]
             if value:
                 line.setVisible(True)  # first: a hidden label ignores new text
-                line.setValue(np.log10(value))  # view coordinates are log10 on a log axis
+                if line.value() != np.log10(value):  # moving it re-lays out its label
+                    line.setValue(np.log10(value))  # view coordinates are log10 on a log axis
                 text = f"{sym} = {value:.0f} rad/s"
                 if theory:
                     text += f" (theory {theory:.0f})"
@@ -346,6 +346,35 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_mag_theory"].setData([], [])
             self.curves["bode_phase_theory"].setData([], [])
         self._bode_shown = est
+
+
+def _add_rules(p: pg.PlotItem, zero_line: bool) -> None:
+    """Light lines at the decades of the log x axis (no pyqtgraph grid: on log axes it
+    cost ~3 ms per axis and frame) and, with ``zero_line``, a line at y = 0. Two path
+    items that Qt draws by itself, re-made when the view's range moves; as pyqtgraph
+    InfiniteLines they were seven Python paints and bounds queries per plot and frame."""
+    vb = p.getViewBox()
+    decades, zero = QtWidgets.QGraphicsPathItem(), QtWidgets.QGraphicsPathItem()
+    decades.setPen(pg.mkPen("#dddddd", width=0))  # width 0: the same 1-pixel line as width 1
+    zero.setPen(pg.mkPen("#999999", width=0))
+    for item in (decades, zero) if zero_line else (decades,):
+        p.addItem(item, ignoreBounds=True)
+
+    def remake(*_):  # each line reaches a view's height (width) beyond the view: clipped
+        (x0, x1), (y0, y1) = vb.viewRange()
+        lines = QtGui.QPainterPath()
+        for decade in range(-1, 5):
+            lines.moveTo(decade, 2 * y0 - y1)
+            lines.lineTo(decade, 2 * y1 - y0)
+        decades.setPath(lines)
+        if zero_line:
+            line = QtGui.QPainterPath()
+            line.moveTo(2 * x0 - x1, 0.0)
+            line.lineTo(2 * x1 - x0, 0.0)
+            zero.setPath(line)
+
+    vb.sigRangeChanged.connect(remake)
+    remake()
 
 
 def _add_curve(p: pg.PlotItem, pen, log) -> PathCurve:

@@ -54,6 +54,19 @@ class PathCurve(QtWidgets.QGraphicsPathItem):
         """The (x, y) last given to ``setData`` (before log mapping and reduction)."""
         return self._data
 
+    def dataBounds(self, ax: int, frac: float = 1.0, orthoRange=None):  # noqa: N802 - pyqtgraph's name
+        """(min, max) of the plotted values along axis ``ax`` (view coordinates), for a
+        ViewBox's automatic range (Qt's own bounds of a wide pen's path are the stroked
+        outline in data units, far too wide); ``frac`` and ``orthoRange`` are not used."""
+        rect = self.path().controlPointRect()
+        if rect.isNull():
+            return None, None
+        return (rect.left(), rect.right()) if ax == 0 else (rect.top(), rect.bottom())
+
+    def pixelPadding(self) -> float:  # noqa: N802 - pyqtgraph's name
+        """Pixels the automatic range leaves around the data: half the line's width."""
+        return 0.5 * self.opts["pen"].widthF()
+
 
 def _segment_path(x, y) -> QtGui.QPainterPath:
     """Each segment between two consecutive finite points as a subpath of its own."""

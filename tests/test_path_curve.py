@@ -62,3 +62,16 @@ def test_path_curve_maps_log_axes_and_breaks_at_gaps(qtbot):
     assert wide.path().elementCount() == 4 and wide.pen().widthF() == 3
     wide.setData([], [])
     assert wide.path().isEmpty()
+
+
+def test_a_view_fits_its_range_to_a_wide_curves_data(qtbot):
+    """Auto range uses the data's bounds, not the stroked outline (3 data units wide)."""
+    plot = pg.PlotWidget()
+    qtbot.addWidget(plot)
+    c = PathCurve(pg.mkPen("k", width=3), log=(True, True))
+    plot.addItem(c)
+    c.setData([10.0, 100.0, 1000.0], [1.0, 10.0, 3.0])
+    assert c.dataBounds(0) == (1.0, 3.0) and c.dataBounds(1) == (0.0, 1.0)
+    plot.getViewBox().autoRange(padding=0)
+    (x0, x1), (y0, y1) = plot.getViewBox().viewRange()
+    assert 0.9 < x0 <= 1.0 and 3.0 <= x1 < 3.1 and -0.1 < y0 <= 0.0 and 1.0 <= y1 < 1.1
