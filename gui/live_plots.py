@@ -12,7 +12,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.live_estimate import Estimate
-from labbench.gui.path_curve import PathCurve, reduce_to_columns
+from labbench.gui.path_curve import PathCurve, column_spans
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
@@ -78,8 +78,8 @@ class TimeTraces(pg.GraphicsLayoutWidget):
     move only when the data leave them or use less than half of them, and there
     is no grid: then the axes are not re-rendered every frame (measured: a
     scrolling absolute time axis with grid doubled the frame time). The curves are
-    ``PathCurve``s of the data reduced to groups of samples of at most one device
-    pixel column (``reduce_to_columns``: exact at screen resolution), redone when the plots are
+    ``PathCurve``s of what the line covers in each device pixel column
+    (``column_spans``: the same pixels, each drawn once), redone when the plots are
     resized. Nothing is drawn while the traces are hidden (another tab): they catch
     up when shown.
     """
@@ -143,19 +143,29 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             self._span = span
         if not t.size:
             return self._empty()
-        # the x range holds `window` samples: groups of at most one device pixel column
-        pixels = max(p.getViewBox().width() for p in self.plots.values()) * self.devicePixelRatioF()
-        group = int(self.window // pixels) if pixels >= 1 else 1
-        xs, ys = reduce_to_columns(t - t[-1], np.stack([buf.channel(n, self.window) for n in self.curves]),
-                             group, first=buf.n - t.size)
-        y = dict(zip(self.curves, ys))
-        for (name, curve), x in zip(self.curves.items(), xs):
-            curve.setData(x, y[name])
+        x = t - t[-1]
         for key, names in (("position", ["position"]), ("velocity", ["velocity"]),
                            ("force", ["excitation", "command"])):
             vb = self.plots[key].getViewBox()
-            _fit(vb.setYRange, vb.viewRange()[1], min(y[n].min() for n in names),
-                 max(y[n].max() for n in names))
+            ys = np.stack([buf.channel(n, self.window) for n in names])
+            columns = self._device_columns(vb, span)
+            if columns is not None and x.size > 1 and (x[1] - x[0]) * columns[1] < 0.5:
+                xs, ys = column_spans(x, ys, -span, columns[0], columns[1])
+                connect = "pairs"
+            else:  # fewer than 2 samples a pixel column: the line itself
+                xs, connect = x, "all"
+            for n, y in zip(names, ys):
+                self.curves[n].setData(xs, y, connect=connect)
+            _fit(vb.setYRange, vb.viewRange()[1], ys.min(), ys.max())
+
+    def _device_columns(self, vb: pg.ViewBox, span: float):
+        """(device pixel coordinate of x = -span, pixels per second) of ``vb``, or None
+        before it is laid out."""
+        a, b = vb.mapViewToDevice(QtCore.QPointF(-span, 0)), vb.mapViewToDevice(QtCore.QPointF(0, 0))
+        if a is None or b is None or b.x() - a.x() < 1:
+            return None
+        dpr = self.devicePixelRatioF()
+        return a.x() * dpr, (b.x() - a.x()) * dpr / span
 
 
 class DecadeAxis(pg.AxisItem):

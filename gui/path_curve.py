@@ -36,8 +36,8 @@ class PathCurve(QtWidgets.QGraphicsPathItem):
         self._data = (np.empty(0), np.empty(0))
 
     def setData(self, x, y, connect: str = "all") -> None:  # noqa: N802 - pyqtgraph's name
-        """Show ``y`` against ``x`` (SI values; ``connect``: "all", or "finite" to break
-        the line at NaN)."""
+        """Show ``y`` against ``x`` (SI values). ``connect``: "all", "finite" (the line
+        breaks at NaN) or "pairs" (separate segments: points 0-1, 2-3, ...)."""
         x, y = np.asarray(x, float), np.asarray(y, float)
         self._data = (x, y)
         with np.errstate(divide="ignore", invalid="ignore"):  # log of <= 0: a gap (NaN)
@@ -51,7 +51,7 @@ class PathCurve(QtWidgets.QGraphicsPathItem):
             self.setPath(QtGui.QPainterPath())
 
     def getOriginalDataset(self) -> tuple[np.ndarray, np.ndarray]:  # noqa: N802 - pyqtgraph's name
-        """The (x, y) last given to ``setData`` (before log mapping and reduction)."""
+        """The (x, y) last given to ``setData`` (before the log mapping)."""
         return self._data
 
     def dataBounds(self, ax: int, frac: float = 1.0, orthoRange=None):  # noqa: N802 - pyqtgraph's name
@@ -79,26 +79,36 @@ def _segment_path(x, y) -> QtGui.QPainterPath:
     return pg.arrayToQPath(px, py, connect="pairs")
 
 
-def reduce_to_columns(x: np.ndarray, ys: np.ndarray, group: int, first: int):
-    """(xs, ys) reduced to the first, lowest, highest and last sample of each group of
-    ``group`` samples, in time order (the "M4" reduction of line charts).
+def column_spans(x: np.ndarray, ys: np.ndarray, x0: float, d0: float, px_per_unit: float):
+    """What a line through (x, ys) covers in each device pixel column, as one vertical
+    span per column: (xs, spans), xs (2m,) and spans (channels, 2m), low then high.
 
-    ``ys`` is (channels, n) against ``x`` (n,); returns (channels, m) arrays for both.
-    Groups are aligned to the absolute sample index (``first`` is the index of sample 0),
-    so that a sample stays in its group as the window scrolls and the picture does not
-    flicker. The kept points are samples of the curve, and every dropped one lies inside
-    its group's vertical span less than a group's width away: with groups of at most one
-    pixel column the line drawn covers the same pixels as the full data, to a pixel.
+    ``ys`` is (channels, n) against increasing ``x`` (n,); x = x0 is at device pixel
+    coordinate d0 and ``px_per_unit`` pixels make one unit of x. A continuous line
+    covers a contiguous run of pixels in each column: from the lowest to the highest of
+    its samples there and of the line where it crosses the column's edges (interpolated
+    between the samples either side). So the spans, drawn at the columns' centres as
+    separate segments, cover the pixels the full line covers (to a pixel), and each
+    pixel is drawn once: a dense line (noise) costs a third of its polyline. A jump over
+    empty columns (a gap in x) is drawn as the line across it.
     """
-    if group <= 1 or x.size < 2 * group:
-        return np.broadcast_to(x, ys.shape), ys
-    head = first % group
-    tail = -(head + x.size) % group
-    xp = np.pad(x, (head, tail), mode="edge").reshape(-1, group)
-    yp = np.pad(ys, ((0, 0), (head, tail)), mode="edge").reshape(ys.shape[0], -1, group)
-    pick = np.zeros(yp.shape[:2] + (4,), dtype=np.intp)
-    pick[..., 1], pick[..., 2], pick[..., 3] = yp.argmin(axis=2), yp.argmax(axis=2), group - 1
-    pick.sort(axis=2)
-    shape = (ys.shape[0], -1)
-    return (np.take_along_axis(xp[None], pick, axis=2).reshape(shape),
-            np.take_along_axis(yp, pick, axis=2).reshape(shape))
+    col = np.floor(d0 + (x - x0) * px_per_unit).astype(np.intp)
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(col)) + 1))
+    lo = np.minimum.reduceat(ys, starts, axis=1)
+    hi = np.maximum.reduceat(ys, starts, axis=1)
+    i = starts[1:]  # the first sample of each column but the first
+    edge = x0 + (col[i] - d0) / px_per_unit  # where the line enters that column
+    at_edge = ys[:, i - 1] + (edge - x[i - 1]) / (x[i] - x[i - 1]) * (ys[:, i] - ys[:, i - 1])
+    for part in (slice(1, None), slice(None, -1)):  # the edge bounds both columns
+        lo[:, part] = np.minimum(lo[:, part], at_edge)
+        hi[:, part] = np.maximum(hi[:, part], at_edge)
+    centre = x0 + (col[starts] + 0.5 - d0) / px_per_unit
+    xs, spans = np.repeat(centre, 2), np.empty((ys.shape[0], 2 * starts.size))
+    spans[:, 0::2], spans[:, 1::2] = lo, hi
+    gap = np.flatnonzero(np.diff(col[starts]) > 1)  # columns without samples between
+    if gap.size:
+        across = np.empty((ys.shape[0], 2 * gap.size))
+        across[:, 0::2], across[:, 1::2] = ys[:, starts[gap + 1] - 1], ys[:, starts[gap + 1]]
+        xs = np.concatenate((xs, np.ravel(np.column_stack((x[starts[gap + 1] - 1], x[starts[gap + 1]])))))
+        spans = np.concatenate((spans, across), axis=1)
+    return xs, spans
