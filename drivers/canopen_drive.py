@@ -54,6 +54,7 @@ from labbench.drivers.canopen_pdo import SYNC_ID
 from labbench.drivers.canopen_sdo import Sdo, hexval, where
 from labbench.drivers.cia402 import Command, State
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
+from labbench.realtime import sleep_until
 
 # canopen logs SDO timeouts as errors; the driver turns them into one-line
 # messages, so without logging configured they must not also reach stderr.
@@ -638,7 +639,7 @@ class CanopenDrive:
         now = time.perf_counter()
         if self.realtime:
             if now < self._next_tick:
-                time.sleep(self._next_tick - now)
+                sleep_until(self._next_tick)  # a plain sleep wakes up to ~100 us late
                 now = time.perf_counter()
             elif now > self._next_tick + self.T:
                 self.counters["late_ticks"] += 1

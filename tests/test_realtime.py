@@ -6,6 +6,7 @@ import json
 import os
 import resource
 import shutil
+import struct
 import subprocess
 import sys
 import tempfile
@@ -15,7 +16,7 @@ import time
 import pytest
 
 from labbench.errors import UserError
-from labbench.realtime import RealtimeConfig, acquire, sleep_until
+from labbench.realtime import CPU_LATENCY_FILE, RealtimeConfig, acquire, sleep_until
 from labbench.rig import Rig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -61,6 +62,26 @@ def test_a_blas_call_under_realtime_scheduling_returns():
     assert out.returncode == 0 and "done" in out.stdout, out.stderr
 
 
+def _cpu_latency_limit_us() -> int:
+    """The kernel's current CPU wake-up latency limit (reading the QoS file gives it)."""
+    with open(CPU_LATENCY_FILE, "rb") as f:
+        return struct.unpack("=i", f.read(4))[0]
+
+
+@linux
+@pytest.mark.skipif(not os.access(CPU_LATENCY_FILE, os.R_OK | os.W_OK),
+                    reason=f"needs access to {CPU_LATENCY_FILE}")
+def test_the_cpu_latency_limit_is_held_only_while_the_loop_runs():
+    before = _cpu_latency_limit_us()
+    if before <= 5:
+        pytest.skip("another process holds a CPU latency limit: nothing to observe")
+    with acquire(RealtimeConfig(priority=10, cpu_latency_us=5), warn=lambda line: None) as g:
+        assert _cpu_latency_limit_us() == 5 and g.record["cpu_latency_us"] == 5
+    assert _cpu_latency_limit_us() == before
+    with acquire(RealtimeConfig(priority=10, cpu_latency_us=-1), warn=lambda line: None) as g:
+        assert _cpu_latency_limit_us() == before and g.record["cpu_latency_us"] is None
+
+
 def test_sleep_until_never_returns_early():
     for k in range(50):
         deadline = time.perf_counter() + (k % 5) * 2e-4
@@ -72,7 +93,10 @@ def test_settings_from_the_rig_and_the_flags():
     rig = Rig(sections={"realtime": {"priority": 60, "cpu": 0}})
     assert RealtimeConfig.from_rig(rig) == RealtimeConfig(priority=60, cpu=0)
     assert RealtimeConfig.from_rig(rig, enabled=False, priority=None).enabled is False
-    for bad in ({"priority": 99}, {"priority": "high"}, {"colour": 1}, {"enabled": 1}):
+    assert RealtimeConfig.from_rig(Rig(sections={"realtime": {"cpu_latency_us": -1}})
+                                   ).cpu_latency_us == -1
+    for bad in ({"priority": 99}, {"priority": "high"}, {"colour": 1}, {"enabled": 1},
+                {"cpu_latency_us": -2}, {"cpu_latency_us": 0.5}):
         with pytest.raises(UserError):
             RealtimeConfig.from_rig(Rig(sections={"realtime": bad}))
 
@@ -94,3 +118,4 @@ def test_refused_gives_one_line_and_the_run_goes_on():
     assert len(warnings) == 1 and "limits.conf" in warnings[0] and "CAP_SYS_NICE" in warnings[0]
     rt = json.loads(out.stdout)["timing"]["realtime"]
     assert rt["policy"] == "SCHED_OTHER" and any("SCHED_FIFO" in r for r in rt["refused"])
+    assert rt["cpu_latency_us"] is None and any(CPU_LATENCY_FILE in r for r in rt["refused"])
