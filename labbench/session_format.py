@@ -348,7 +348,12 @@ class SessionWriter:
         self._lock = threading.Lock()
         self._interval = fsync_interval_s
         self._stop_flush = threading.Event()
-        self._flusher: threading.Thread | None = None
+        # started now, not with the file: a thread started inside the loop's real-time
+        # grant would inherit the loop's own priority (labbench.realtime raises the
+        # threads that exist when it is entered just below it)
+        self._flusher = threading.Thread(target=self._flush_loop, name="session-fsync",
+                                         daemon=True)
+        self._flusher.start()
 
     def _file_name(self, start: dict) -> str:
         if self.name:
@@ -369,9 +374,6 @@ class SessionWriter:
             raise UserError(f"cannot create session file {path}: {exc.strerror}") from None
         self.path = path
         self._write(MAGIC)
-        self._flusher = threading.Thread(target=self._flush_loop, name="session-fsync",
-                                         daemon=True)
-        self._flusher.start()
 
     def _write(self, buf: bytes) -> None:
         view = memoryview(buf)
@@ -402,9 +404,8 @@ class SessionWriter:
             if self._closed:
                 return
             self._closed = True
-        if self._flusher is not None:
-            self._stop_flush.set()
-            self._flusher.join(timeout=5.0)
+        self._stop_flush.set()
+        self._flusher.join(timeout=5.0)
         if self._fd is not None:
             try:
                 os.fsync(self._fd)

@@ -119,3 +119,31 @@ def test_refused_gives_one_line_and_the_run_goes_on():
     rt = json.loads(out.stdout)["timing"]["realtime"]
     assert rt["policy"] == "SCHED_OTHER" and any("SCHED_FIFO" in r for r in rt["refused"])
     assert rt["cpu_latency_us"] is None and any(CPU_LATENCY_FILE in r for r in rt["refused"])
+
+
+@linux
+def test_threads_of_a_recorded_run_sit_just_below_the_loop(tmp_path):
+    """The session's fsync thread and the simulated drive's thread run at the loop's
+    priority - 1 on its CPU: a thread started inside the grant would inherit the loop's
+    own priority, and one left at normal priority could hold the GIL while preempted."""
+    from labbench.registry import make_protocol, open_device
+    from labbench.runner import run_recorded
+
+    seen: dict[str, tuple[int, int]] = {}
+
+    def look(_snapshot):
+        for t in threading.enumerate():
+            seen[t.name] = (os.sched_getscheduler(t.native_id),
+                            os.sched_getparam(t.native_id).sched_priority)
+
+    rig = Rig()
+    device = open_device("sim-canopen", rig, realtime=True)
+    result, path = run_recorded(device, make_protocol("etfe", duration_s=1.0, seed=1), tmp_path,
+                                rig=rig, simulated=True, live_timing=look,
+                                realtime=RealtimeConfig(priority=20), warn=lambda line: None)
+    assert path is not None and result.timing["realtime"]["threads"] >= 2
+    if result.timing["realtime"]["policy"] != "SCHED_FIFO":
+        pytest.skip("SCHED_FIFO refused here: " + "; ".join(result.timing["realtime"]["refused"]))
+    main = threading.current_thread().name
+    assert seen[main] == (os.SCHED_FIFO, 20)
+    assert seen["session-fsync"] == seen["sim-canopen-drive"] == (os.SCHED_FIFO, 19)
