@@ -6,6 +6,8 @@ Each arm is a fresh process, started as a user would start it:
   same real-time settings, no loop work): what this machine and its scheduler allow;
 * ``sim``: ``labbench run etfe --realtime`` (simulator, real-time scheduling asked for);
 * ``sim-nort``: the same with ``--no-rt`` (what the program did before);
+* ``floor-idle``, ``sim-idle``: ``floor`` and ``sim`` with ``[realtime] cpu_latency_us = -1``
+  (idle CPUs may sleep: what the CPU latency limit is worth);
 * ``canopen``: ``labbench run etfe --device sim-canopen --realtime`` with the driver's
   real monitor limits (stale TPDO after 3 periods, heartbeat 100 ms, RPDO 50 ms), not
   the simulation's relaxed defaults.
@@ -38,7 +40,7 @@ from labbench.realtime import RealtimeConfig, acquire, sleep_until
 from labbench.timing import period_stats
 n, T = int(float(sys.argv[1]) / 1e-3), 1e-3
 per = [0.0] * n
-with acquire(RealtimeConfig()) as g:
+with acquire(RealtimeConfig(cpu_latency_us=int(sys.argv[2]))) as g:
     t0 = prev = time.perf_counter()
     for k in range(n):
         sleep_until(t0 + (k + 1) * T)
@@ -60,13 +62,14 @@ rpdo_timeout_ms = 50
 
 
 def arm_command(arm: str, seconds: float, out: str, rig: str) -> list[str]:
-    if arm == "floor":
-        return [PY, "-c", FLOOR, str(seconds)]
+    idle = arm.endswith("-idle")
+    if arm.startswith("floor"):
+        return [PY, "-c", FLOOR, str(seconds), "-1" if idle else "0"]
     cmd = [PY, "-m", "labbench", "run", "etfe", "--realtime", "--json", "--out", out,
            "--duration-s", str(seconds), "--plant-from", "nominal"]
     if arm == "sim-nort":
         cmd.append("--no-rt")
-    cmd += ["--rig", rig]
+    cmd += ["--rig", rig.replace(".toml", "-idle.toml") if idle else rig]
     if arm == "canopen":
         cmd += ["--device", "sim-canopen"]
     return cmd
@@ -124,7 +127,7 @@ def line(r: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="per arm (issue goal: 600)")
-    ap.add_argument("--arms", default="floor,sim,sim-nort,canopen")
+    ap.add_argument("--arms", default="floor,floor-idle,sim,sim-idle,sim-nort,canopen")
     ap.add_argument("--hogs", default="0,2")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--watchdog-s", type=float, default=None,
@@ -137,6 +140,8 @@ def main() -> int:
         rig = Path(tmp) / "rig.toml"
         rig.write_text(RIG + ("" if args.watchdog_s is None
                               else f"[safety]\nwatchdog_s = {args.watchdog_s}\n"))
+        (Path(tmp) / "rig-idle.toml").write_text(rig.read_text()
+                                                 + "[realtime]\ncpu_latency_us = -1\n")
         for rep in range(args.repeats):
             for n_hogs in (int(h) for h in args.hogs.split(",")):
                 print(f"-- {n_hogs} CPU hogs, {args.seconds:g} s per arm, repeat {rep + 1}",

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from labbench.errors import UserError, unknown_name
 from labbench.input_files import read_text
+from labbench.realtime import RealtimeConfig
 from labbench.safety import SafetyConfig
 from labbench.ve import DEFAULT_PLANT, Plant
 
@@ -93,19 +94,20 @@ MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a ri
 
 
 def _tables() -> tuple[str, ...]:
-    """Tables a rig file may hold: [rig], [safety], and one per device backend (its name)."""
+    """Tables a rig file may hold: [rig], [safety], [realtime], and one per device backend
+    (its name)."""
     from labbench.registry import device_names  # names only: no backend is imported
 
-    return ("rig", "safety", *device_names())
+    return ("rig", "safety", "realtime", *device_names())
 
 
 def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     """Validate a parsed rig table (``{"rig": {...}, "sim": {...}, ...}``).
 
     Unknown tables and fields are errors naming the nearest valid one; numbers
-    must lie within ``_BOUNDS``; [safety] is validated here too
-    (``labbench.safety.SafetyConfig``), so a bad limit stops before any device
-    is opened.
+    must lie within ``_BOUNDS``; [safety] and [realtime] are validated here too
+    (``labbench.safety.SafetyConfig``, ``labbench.realtime.RealtimeConfig``), so a
+    bad limit stops before any device is opened.
     """
     tables = _tables()
     for k, v in d.items():
@@ -144,6 +146,7 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     sections = {k: v for k, v in d.items() if k != "rig"}
     rig = Rig(**common, sections=sections, source=source)
     SafetyConfig.from_rig(rig)  # raises for a bad [safety] table
+    RealtimeConfig.from_rig(rig)  # and for a bad [realtime] one
     return rig
 
 

@@ -17,7 +17,7 @@ import pytest
 
 from labbench.errors import UserError
 from labbench.realtime import CPU_LATENCY_FILE, RealtimeConfig, acquire, sleep_until
-from labbench.rig import Rig
+from labbench.rig import Rig, load_rig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux scheduling")
@@ -99,6 +99,17 @@ def test_settings_from_the_rig_and_the_flags():
                 {"cpu_latency_us": -2}, {"cpu_latency_us": 0.5}):
         with pytest.raises(UserError):
             RealtimeConfig.from_rig(Rig(sections={"realtime": bad}))
+
+
+def test_a_rig_file_carries_the_realtime_table_and_a_bad_one_stops_at_load(tmp_path):
+    good = tmp_path / "good.toml"
+    good.write_text("[rig]\nname = 'x'\n[realtime]\npriority = 70\ncpu_latency_us = -1\n")
+    assert RealtimeConfig.from_rig(load_rig(good)) == RealtimeConfig(priority=70,
+                                                                     cpu_latency_us=-1)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[realtime]\npriority = 99\n")
+    with pytest.raises(UserError, match="priority must be 1..98"):
+        load_rig(bad)
 
 
 @linux
