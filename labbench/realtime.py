@@ -22,10 +22,11 @@ process). For its duration it asks, each step on its own:
 * a CPU wake-up latency limit (the kernel's PM QoS, ``/dev/cpu_dma_latency``,
   held while the file stays open; Documentation/power/pm_qos_interface.rst): at
   ``cpu_latency_us = 0`` an idle CPU polls instead of entering a sleep state, so
-  the loop's wake-up is not delayed by the exit from one (measured on this VM,
-  whose idle state is a halt the hypervisor takes the CPU away on: 21-103 periods
-  > 1.5 T in 20 s of the bare pacer at no load without it, 4-7 with it). The cost
-  is an idle CPU that keeps running (power, and on a VM the host's CPU time).
+  the loop's wake-up is not delayed by the exit from one (measured on a VM whose
+  idle state is a halt the hypervisor takes the CPU away on, at no load: periods
+  > 1.5 T per 100 000, 280 without it and 89 with it for a paced simulated run,
+  184 and 118 for the bare pacer; docs/loop.md). The cost is an idle CPU that
+  keeps running (power, and on a VM the host's CPU time).
 
 Where the OS refuses (no CAP_SYS_NICE, a zero rtprio limit), one warning line
 per process says how to grant it and the run goes on. ``Grant.record`` is what
