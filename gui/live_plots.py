@@ -364,11 +364,16 @@ def _add_rules(p: pg.PlotItem, zero_line: bool) -> None:
     items that Qt draws by itself, re-made when the view's range moves; as pyqtgraph
     InfiniteLines they were seven Python paints and bounds queries per plot and frame."""
     vb = p.getViewBox()
-    decades, zero = QtWidgets.QGraphicsPathItem(), QtWidgets.QGraphicsPathItem()
+    # every item goes into the scene at once: a Python-owned QGraphicsItem freed after
+    # the QApplication (at the interpreter's exit) crashes it
+    decades = QtWidgets.QGraphicsPathItem()
     decades.setPen(pg.mkPen("#dddddd", width=0))  # width 0: the same 1-pixel line as width 1
-    zero.setPen(pg.mkPen("#999999", width=0))
-    for item in (decades, zero) if zero_line else (decades,):
-        p.addItem(item, ignoreBounds=True)
+    p.addItem(decades, ignoreBounds=True)
+    zero = None
+    if zero_line:
+        zero = QtWidgets.QGraphicsPathItem()
+        zero.setPen(pg.mkPen("#999999", width=0))
+        p.addItem(zero, ignoreBounds=True)
 
     def remake(*_):  # each line reaches a view's height (width) beyond the view: clipped
         (x0, x1), (y0, y1) = vb.viewRange()
@@ -377,7 +382,7 @@ def _add_rules(p: pg.PlotItem, zero_line: bool) -> None:
             lines.moveTo(decade, 2 * y0 - y1)
             lines.lineTo(decade, 2 * y1 - y0)
         decades.setPath(lines)
-        if zero_line:
+        if zero is not None:
             line = QtGui.QPainterPath()
             line.moveTo(2 * x0 - x1, 0.0)
             line.lineTo(2 * x1 - x0, 0.0)

@@ -86,7 +86,10 @@ def test_column_spans_draw_a_gap_in_time_as_the_line_across():
 
 
 def test_path_curve_maps_log_axes_and_breaks_at_gaps(qtbot):
+    plot = pg.PlotWidget()  # the curves live in its scene: none outlives the QApplication
+    qtbot.addWidget(plot)
     c = PathCurve(pg.mkPen("k", width=1), log=(True, False))
+    plot.addItem(c)
     w = np.array([1.0, 10.0, 100.0, 1000.0])
     y = np.array([1.0, np.nan, 3.0, 4.0])
     c.setData(w, y, connect="finite")
@@ -97,6 +100,7 @@ def test_path_curve_maps_log_axes_and_breaks_at_gaps(qtbot):
     drawn = [((a.x, a.y), (b.x, b.y)) for a, b in lines if (a.x, a.y) != (b.x, b.y)]
     assert drawn == [((2.0, 3.0), (3.0, 4.0))]  # log10 of w; no line into or out of the NaN
     wide = PathCurve(pg.mkPen("k", width=3))
+    plot.addItem(wide)
     wide.setData([0.0, 1.0, 2.0], [0.0, 1.0, 0.0])
     # wide pens: one subpath per segment (as pyqtgraph draws them), width kept
     assert wide.path().elementCount() == 4 and wide.pen().widthF() == 3
