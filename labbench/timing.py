@@ -97,7 +97,8 @@ def summary(timing: dict) -> str:
 
 
 def scheduling(rt: dict) -> str:
-    """What the loop's thread ran with, e.g. 'SCHED_FIFO 80 on CPU 1, memory locked, GC frozen'."""
+    """What the loop's thread ran with, e.g. 'SCHED_FIFO 80 on CPU 1, memory locked, GC frozen,
+    CPU wake-up latency <= 0 us'."""
     if not rt.get("requested"):
         return "real-time scheduling off"
     parts = [rt.get("policy", "?") + (f" {rt['priority']}" if rt.get("priority") else "")]
@@ -106,6 +107,8 @@ def scheduling(rt: dict) -> str:
         parts[0] += f" on CPU {','.join(map(str, cpus))}"
     parts.append("memory locked" if rt.get("memory_locked") else "memory not locked")
     parts.append(f"GC {rt.get('gc', '?')}")
+    if isinstance(rt.get("cpu_latency_us"), int):  # absent in sessions recorded before it
+        parts.append(f"CPU wake-up latency <= {rt['cpu_latency_us']} us")
     return ", ".join(parts)
 
 

@@ -80,8 +80,11 @@ def test_stream_records_timing_and_what_the_scheduler_granted():
               [recs.append], rig=Rig(), live_timing=live.append)
     start, stop = recs[0], recs[-1]
     rt = start["realtime"]
-    assert rt["requested"] and set(rt) >= {"policy", "priority", "affinity", "memory_locked", "gc"}
+    assert rt["requested"] and set(rt) >= {"policy", "priority", "affinity", "memory_locked", "gc",
+                                           "cpu_latency_us"}
     assert stop["timing"]["realtime"] == rt and res.timing["realtime"] == rt
+    if rt["cpu_latency_us"] is not None:  # granted: the one line of the report and CLI says so
+        assert "CPU wake-up latency <= 0 us" in timing.summary(stop["timing"])
     assert rt["gc"] == "frozen, disabled"
     if rt["policy"] == "SCHED_FIFO":  # granted (root, CAP_SYS_NICE or an rtprio limit)
         assert not any(r.startswith("SCHED_FIFO") for r in rt["refused"])
