@@ -119,3 +119,33 @@ def test_a_view_fits_its_range_to_a_wide_curves_data(qtbot):
     plot.getViewBox().autoRange(padding=0)
     (x0, x1), (y0, y1) = plot.getViewBox().viewRange()
     assert 0.9 < x0 <= 1.0 and 3.0 <= x1 < 3.1 and -0.1 < y0 <= 0.0 and 1.0 <= y1 < 1.1
+
+
+def test_time_traces_redraw_their_columns_when_resized(qtbot):
+    """The traces are reduced to the plot's pixel columns: a wider window, more spans."""
+    from labbench.gui.buffers import StreamBuffer
+    from labbench.gui.live_plots import TimeTraces
+    from labbench.records import CHANNELS, DESCRIPTOR, PAGE
+
+    rng = np.random.default_rng(4)
+    buf = StreamBuffer()
+    buf({"kind": DESCRIPTOR, "sample_time_s": 1e-3})
+    data = {name: rng.standard_normal(6000) for name in CHANNELS}
+    data["t"] = np.arange(6000) * 1e-3
+    buf({"kind": PAGE, "data": data})
+    traces = TimeTraces()
+    qtbot.addWidget(traces)
+    traces.resize(500, 600)
+    traces.show()
+    qtbot.waitExposed(traces)
+    traces.update_from(buf)
+    spans = {}
+    for width in (500, 900):
+        traces.resize(width, 600)
+        qtbot.wait(50)  # the layout, then the views' resize events
+        vb = traces.plots["position"].getViewBox()
+        x, y = traces.curves["position"].getOriginalDataset()
+        spans[width] = x.size / 2
+        assert abs(spans[width] - vb.width() * traces.devicePixelRatioF()) <= 2
+        assert y.max() == data["position"][-5000:].max()
+    assert spans[900] > spans[500] + 300
