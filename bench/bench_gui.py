@@ -51,17 +51,19 @@ from labbench.session_format import SessionWriter  # noqa: E402
 from labbench.registry import make_protocol  # noqa: E402
 
 
-def recorded_run(seconds: float, realtime: bool, session_dir=None) -> tuple[list[dict], dict]:
+def recorded_run(seconds: float, realtime: bool, session_dir=None,
+                 rig: Rig | None = None) -> tuple[list[dict], dict]:
     """Records and timing of an ETFE run on the simulator, without any GUI (recorded to a
     session file like ``labbench run`` when ``session_dir`` is given)."""
+    rig = rig or Rig()
     recs: list[dict] = []
     consumers = [recs.append]
     writer = SessionWriter(session_dir) if session_dir else None
     if writer:
         consumers.append(writer)
-    dev = open_device("sim", Rig(), realtime=realtime)
+    dev = open_device("sim", rig, realtime=realtime)
     try:
-        res = run(dev, make_protocol("etfe", duration_s=seconds, seed=3), consumers, rig=Rig())
+        res = run(dev, make_protocol("etfe", duration_s=seconds, seed=3), consumers, rig=rig)
     finally:
         if writer:
             writer.close()
@@ -186,11 +188,16 @@ def main() -> int:
     ap.add_argument("--hogs", type=int, default=0, help="CPU hogs during the loop runs")
     ap.add_argument("--skip-frames", action="store_true", help="loop runs only")
     ap.add_argument("--frames-only", action="store_true", help="frame times only")
+    ap.add_argument("--watchdog-s", type=float, default=None,
+                    help="the loop's watchdog (default 0.05 s): longer to count the overruns "
+                         "of a whole run through stalls that would trip it")
     args = ap.parse_args()
+    rig = Rig(sections={} if args.watchdog_s is None
+              else {"safety": {"watchdog_s": args.watchdog_s}})
     tune_interpreter()
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
     tmp = tempfile.mkdtemp(prefix="bench_gui_")
-    win = MainWindow(Rig(), tmp, realtime=True)
+    win = MainWindow(rig, tmp, realtime=True)
     win.resize(1600, 1000)
     win.show()
     app.processEvents()
@@ -205,7 +212,7 @@ def main() -> int:
     try:
         headless, in_gui = [], []
         for i in range(args.repeats):
-            headless.append(recorded_run(args.seconds, realtime=True, session_dir=tmp)[1])
+            headless.append(recorded_run(args.seconds, realtime=True, session_dir=tmp, rig=rig)[1])
             in_gui.append(gui_run(app, win, args.seconds))
     finally:
         for h in hogs:
