@@ -28,8 +28,8 @@ RUN_TIMEOUT_MS = 60_000
 
 @pytest.fixture
 def make_window(qtbot, tmp_path):
-    def make(realtime=False):
-        win = MainWindow(Rig(), tmp_path / "sessions", realtime=realtime)
+    def make(realtime=False, rig=None):
+        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=realtime)
         qtbot.addWidget(win)
         win.show()
         return win
@@ -118,7 +118,9 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
 
 
 def test_live_estimate_updates_during_a_realtime_run(qtbot, make_window):
-    win = make_window(realtime=True)
+    # a 1 s watchdog: on a loaded machine one stall over the default 50 ms trips the loop
+    # (as it should on hardware) and ends the run before the live view has been watched
+    win = make_window(realtime=True, rig=Rig(sections={"safety": {"watchdog_s": 1.0}}))
     start(win, "etfe", duration_s=5.0, seed=2)
     qtbot.waitUntil(lambda: win.mode == "running", timeout=10_000)
     seen, stalls = [], []
