@@ -9,9 +9,12 @@ process). For its duration it asks, each step on its own:
   thread, the acquisition process's message feeder) at ``priority - 1``. They
   share the GIL with the loop: left at normal priority, one of them preempted
   by another process while it holds the GIL stalls the loop for a whole time
-  slice. Only Python threads: a BLAS worker pool moved below the loop on its
-  CPU livelocks any BLAS call the loop's thread makes (it spin-waits for its
-  workers, which then never run - measured: a scipy ``expm`` never returned);
+  slice. Only the threads alive at entry: one started later by the loop's thread
+  inherits the loop's own priority and CPU, so start helpers (the session's fsync
+  thread) before entering. Only Python threads: a BLAS worker pool moved below
+  the loop on its CPU livelocks any BLAS call the loop's thread makes (it
+  spin-waits for its workers, which then never run - measured: a scipy ``expm``
+  never returned);
 * CPU affinity: all these threads on one CPU (the last one allowed) when there
   are two or more, so the GUI and everything else have the others to themselves;
 * ``mlockall`` (current and future pages, locked as they fault in): no page of
