@@ -42,7 +42,6 @@ import time
 
 import can
 import canopen
-from canopen.sdo import SdoClient
 
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.drivers import cia402, emcy
@@ -51,7 +50,7 @@ from labbench.drivers.canopen_check import Assessment, assess
 from labbench.drivers.canopen_config import CanopenConfig
 from labbench.drivers.canopen_objects import object_name, read_eds, survey
 from labbench.drivers.canopen_pdo import SYNC_ID
-from labbench.drivers.canopen_sdo import Sdo, hexval, where
+from labbench.drivers.canopen_sdo import MatchingSdoClient, Sdo, hexval, where
 from labbench.drivers.cia402 import Command, State
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 from labbench.realtime import sleep_until
@@ -159,7 +158,8 @@ class CanopenDrive:
         if self.can_log:
             self._bus = TracedBus(self._bus, self.can_log)
         self._network = canopen.Network(self._bus)
-        client = SdoClient(0x600 + cfg.node_id, 0x580 + cfg.node_id, canopen.ObjectDictionary())
+        client = MatchingSdoClient(0x600 + cfg.node_id, 0x580 + cfg.node_id,
+                                   canopen.ObjectDictionary())
         client.RESPONSE_TIMEOUT = cfg.sdo_timeout_s
         client.network = self._network
         self._sdo = Sdo(client, cfg.node_id, self._check_receiver, object_name)

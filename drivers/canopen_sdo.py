@@ -7,9 +7,13 @@ their meanings: CiA 301, "SDO abort codes".
 """
 from __future__ import annotations
 
+import queue
 import struct
+import time
 
 from canopen.sdo import SdoAbortedError, SdoClient, SdoCommunicationError
+from canopen.sdo.constants import (REQUEST_DOWNLOAD, REQUEST_UPLOAD, RESPONSE_ABORTED,
+                                   RESPONSE_DOWNLOAD, RESPONSE_UPLOAD)
 
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
@@ -39,6 +43,38 @@ def where(index: int, sub: int) -> str:
 
 def abort_text(code: int) -> str:
     return f"SDO abort 0x{code:08X} ({ABORT_TEXT.get(code, 'see CiA 301')})"
+
+
+class MatchingSdoClient(SdoClient):
+    """canopen's ``SdoClient`` that skips an answer naming another object than the request's.
+
+    After a timed-out request the node's late answer (its value, or an abort such as
+    "object does not exist") arrives during the next request, and canopen takes the first
+    frame for the answer: an object then reads as absent, or as another's value. Initiate
+    answers and aborts carry the object's index and subindex (CiA 301), so a mismatch is
+    dropped and the wait goes on; segment answers carry none and pass.
+    """
+
+    _want: bytes | None = None  # index (LE) and subindex of the transfer under way
+
+    def request_response(self, sdo_request):
+        if sdo_request[0] & 0xE0 in (REQUEST_UPLOAD, REQUEST_DOWNLOAD):  # an initiate
+            self._want = bytes(sdo_request[1:4])
+        return super().request_response(sdo_request)
+
+    def read_response(self):
+        deadline = time.monotonic() + self.RESPONSE_TIMEOUT
+        while True:
+            try:
+                response = self.responses.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise SdoCommunicationError("No SDO response received") from None
+            if (response[0] & 0xE0 in (RESPONSE_UPLOAD, RESPONSE_DOWNLOAD, RESPONSE_ABORTED)
+                    and self._want is not None and response[1:4] != self._want):
+                continue  # the late answer to an earlier request
+            if response[0] & 0xE0 == RESPONSE_ABORTED:
+                raise SdoAbortedError(struct.unpack_from("<L", response, 4)[0])
+            return response
 
 
 class Sdo:

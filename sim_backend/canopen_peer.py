@@ -546,7 +546,8 @@ def plant_for(rig, seed=None, **options) -> SimDevice:
 # that survive such stalls. A rig's [canopen] table still overrides them.
 SIM_MONITOR_DEFAULTS = {"heartbeat_consumer_ms": 1000, "rpdo_timeout_ms": 500,
                         "life_time_factor": 50,  # 1 s at the default 20 ms guard time
-                        "stale_periods": 20}  # paced (--realtime) runs only
+                        "stale_periods": 20,  # paced (--realtime) runs only
+                        "sdo_timeout_s": 2.0}  # the peer answers at once unless descheduled
 
 
 def sim_config(rig) -> CanopenConfig:
