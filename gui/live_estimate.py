@@ -72,7 +72,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     incremental ``live`` and its estimate is used; else the batch ETFE of the whole
     record. Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
     """
-    from labbench.analysis.compare import measured_td
+    from labbench.device_delay import from_meta
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
 
@@ -115,7 +115,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     if plant is not None and ve is not None:
         from labbench.theory import predicted_wb_star, predicted_ws_star
 
-        out.theory = _theory(plant, ve, w, measured_td(meta))
+        out.theory = _theory(plant, ve, w, from_meta(meta))
         out.ws_theory = predicted_ws_star(plant, ve)
         out.wb_theory = predicted_wb_star(ve)
     return out

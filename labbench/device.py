@@ -40,6 +40,11 @@ class DeviceDescription:
     # How the recorded force reached the plant (docs/analysis.md): "zoh", a commanded force
     # held over each sample interval; "sample", a force measured at the sample instants.
     force_hold: str = "zoh"
+    # The device's own delay on the whole command [s] when the backend knows it (e.g. a
+    # drive that applies a synchronous RPDO's torque at the next SYNC) and why:
+    # labbench.device_delay (a rig file's measured value takes precedence).
+    device_delay_s: float = 0.0
+    device_delay_why: str = ""
 
 
 @dataclass(frozen=True)

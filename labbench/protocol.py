@@ -212,32 +212,23 @@ class ProtocolBase:
         return ReportSections(details=[key_values("Results", items)] if items else [])
 
 
-def measured_td(rig=None) -> dict:
-    """The rig's extra loop delay beyond the VE's td and where it came from:
-    ``{"td_s": s, "source": text}`` (0 s when the rig file has no ``measured_td_s``)."""
-    if rig is None or rig.measured_td_s is None:
-        return {"td_s": 0.0, "source": "none measured: the VE's td only (labbench analyze etfe --fit "
-                                      "measures it; store it as [rig] measured_td_s)"}
-    origin = f" ({rig.measured_td_from})" if rig.measured_td_from else ""
-    return {"td_s": float(rig.measured_td_s), "source": f"{rig.source}: [rig] measured_td_s{origin}"}
-
-
-def precheck(protocol: ProtocolBase, plant: Plant, rig=None) -> dict:
+def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict:
     """Check the protocol's VE(s) against the exact sampled stability boundary.
 
     Uses ``labbench.theory.stability`` (spectral radius of the exact sampled loop)
-    and ``k_max`` / ``k_max_approx`` for the numbers shown, with the rig's
-    measured extra loop delay (``measured_td``) as the loop's actuator latency,
-    so K_max is the one the rig has. Raises UserError for an unstable VE unless
-    the protocol's ``allow_unstable`` is set (the runner allows that on a
-    simulator only). Returns the numbers for the start record (``measured_td``
-    says which delay was used and where it came from).
+    and ``k_max`` / ``k_max_approx`` for the numbers shown, with the device's own
+    delay (``delay``, a ``labbench.device_delay.DeviceDelay``; None: the rig's, by
+    ``device_delay.resolve(rig)``) as the loop's actuator latency, so K_max is the
+    one the rig has. Raises UserError for an unstable VE unless the protocol's
+    ``allow_unstable`` is set (the runner allows that on a simulator only). Returns
+    the numbers for the start record (``device_delay`` says which delay was used and
+    where it came from).
     """
-    from labbench import theory
+    from labbench import device_delay, theory
 
-    extra = measured_td(rig)
-    latency = extra["td_s"]
-    report = {"plant": {"m": plant.m, "b": plant.b}, "measured_td": extra, "checks": []}
+    extra = delay if delay is not None else device_delay.resolve(rig)
+    latency = extra.s
+    report = {"plant": {"m": plant.m, "b": plant.b}, "device_delay": extra.as_dict(), "checks": []}
     for ve in protocol.vetted_ves(plant):
         st = theory.stability(plant, ve, latency)
         km = theory.k_max(plant, ve, latency=latency)
@@ -250,7 +241,7 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None) -> dict:
             approx = f", paper approx. {ka:.4g} N/m" if ka is not None else ""
             raise UserError(
                 f"refusing unstable {ve.kind} VE K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
-                f"td = {ve.td * 1e3:g} ms (+ {latency * 1e3:g} ms measured rig delay) "
+                f"td = {ve.td * 1e3:g} ms (+ {latency * 1e3:g} ms device delay) "
                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m: "
                 f"spectral radius {st.spectral_radius:.6f} >= 1; {bound}{approx}")
     report["stable"] = all(c["stable"] for c in report["checks"])

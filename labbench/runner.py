@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from labbench import records, timing as loop_timing
+from labbench import device_delay, records, timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 from labbench.realtime import RealtimeConfig, acquire
@@ -120,12 +120,13 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant = protocol.plant(rig)
-        check = precheck(protocol, plant, rig)
+        delay = device_delay.resolve(rig, desc)
+        check = precheck(protocol, plant, rig, delay)
         safety = SafetyConfig.from_rig(rig)
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
             rt = replace(rt, enabled=False)
-        meta = _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop,
+        meta = _segments(device, protocol, rig, plant, check, delay, safety, desc, run_state, stop,
                          progress, live_timing, lambda: acquire(rt, warn))
         if run_state.finished is not None:  # aborted or failed in a segment
             return run_state.finished
@@ -157,7 +158,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         _stop_device(device, close=close)
 
 
-def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop, progress,
+def _segments(device, protocol, rig, plant, check, delay, safety, desc, run_state, stop, progress,
               live_timing, realtime) -> dict:
     """Start record, descriptor, then the protocol's segments through the loop; returns the
     analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``).
@@ -171,7 +172,7 @@ def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop
     try:
         start = records.start_record(
             rig.as_dict(), protocol.describe(), protocol.seed,
-            device=asdict(desc), plant={"m": plant.m, "b": plant.b},
+            device=asdict(desc), plant={"m": plant.m, "b": plant.b}, device_delay=delay.as_dict(),
             precheck=json_safe(check), safety=safety.as_dict(), realtime=run_state.realtime)
         run_state.uid = start["uid"]
         run_state.emit(start)
@@ -181,7 +182,7 @@ def _segments(device, protocol, rig, plant, check, safety, desc, run_state, stop
         meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
                 "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
                 "protocol": protocol.describe(), "force_hold": desc.force_hold,
-                "td_measured": check["measured_td"]["td_s"], "segments": run_state.segments}
+                device_delay.META_KEY: delay.s, "segments": run_state.segments}
         total = max(int(protocol.n_samples), 1)
         gen = protocol.segments(plant)
         segment = next(gen)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench import records
+from labbench import device_delay, records
 from labbench.analysis.dataio import Recording, load_recording
 from labbench.analysis.etfe import EtfeResult
 from labbench.analysis.identify import IdResult
@@ -105,9 +105,9 @@ def identify_recording(rec: Recording, model: str = "auto", method: str = "l2",
     res = identify(plant_rec, model=model, method=method, cutoff_hz=cutoff_hz, solver=solver,
                    hold=force_hold)
     source = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
-    latency = compare.measured_td(rec.meta)
+    latency = device_delay.from_meta(rec.meta)
     if latency:
-        source += f", as held after the rig's measured extra delay of {1e3 * latency:.4g} ms"
+        source += f", as held after the device delay of {1e3 * latency:.4g} ms"
     return Identification(res, source)
 
 
@@ -243,7 +243,7 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
         raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
     cmp, wb_star, loop_fit = None, None, None
     if ve is not None:
-        source, latency = "given", compare.measured_td(rec.meta)
+        source, latency = "given", device_delay.from_meta(rec.meta)
         if m is None:
             ident = compare.identify_closed_loop(rec, ve, latency=latency)
             m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from labbench import records
+from labbench import device_delay, records
 from labbench.errors import UserError
 from labbench.session_format import read_session
 from labbench.ve import VirtualEnvironment
@@ -45,8 +45,8 @@ def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], d
 
 def analysis_meta(start: dict, desc: dict) -> dict:
     """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td,
-    force_hold (the device's, when the session records it), td_measured (the rig's measured
-    extra loop delay the run's pre-check used, when not 0), protocol."""
+    force_hold (the device's, when the session records it), device_delay_s (the device's
+    own delay the run used, ``labbench.device_delay``, when not 0), protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     device = start.get("device") if isinstance(start.get("device"), dict) else {}
     T = desc.get("sample_time_s") or rig.get("sample_time_s")
@@ -65,9 +65,9 @@ def analysis_meta(start: dict, desc: dict) -> dict:
         meta["rig"] = rig["name"]
     if device.get("force_hold"):
         meta["force_hold"] = device["force_hold"]
-    measured = (start.get("precheck") or {}).get("measured_td") if isinstance(start.get("precheck"), dict) else None
-    if isinstance(measured, dict) and measured.get("td_s"):
-        meta["td_measured"] = float(measured["td_s"])
+    delay = device_delay.from_start(start)
+    if delay.s:
+        meta[device_delay.META_KEY] = delay.s
     return meta
 
 

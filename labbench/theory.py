@@ -53,15 +53,26 @@ def _ve_paper(ve: VirtualEnvironment, s: np.ndarray) -> np.ndarray:
     return ve.K + ve.B * s * lowpass
 
 
-def z_paper(plant: Plant, ve: VirtualEnvironment, w) -> np.ndarray:
+def z_paper(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> np.ndarray:
     """Closed-loop impedance Z(jw) = F/V of the paper's eq. 2.
 
     ``Z(s) = (m s^2 + b s + VE(s) e^{-s(T/2 + td)}) / s``; for ``ve.kind ==
     "none"`` this is the open-loop device ``m s + b``.
+
+    ``latency`` [s]: the device's own delay on the whole command (module doc). The
+    excitation is commanded through the device too, so what an ETFE of the recorded
+    command converges to is ``e^{s latency} (m s + b) + VE(s) e^{-s(T/2 + td)} / s``:
+    ``e^{s latency}`` times eq. 2 with td + latency, the impedance a force applied at
+    the handle itself (a hand) feels. Both have the same poles: stability and K_max
+    are those of eq. 2 with td + latency. The exact sampled model has the same
+    structure (``z_sampled``).
     """
     s = 1j * np.asarray(w, dtype=float)
     d = np.exp(-s * ve.delay)  # eq. 8
-    return (plant.m * s**2 + plant.b * s + _ve_paper(ve, s) * d) / s
+    plant_term = plant.m * s + plant.b
+    if latency:
+        plant_term = plant_term * np.exp(s * latency)
+    return plant_term + _ve_paper(ve, s) * d / s
 
 
 # ----------------------------------------------------------------------------- sampled model
@@ -153,12 +164,14 @@ def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> 
     return Z
 
 
-def theory_curve(plant: Plant, ve: VirtualEnvironment, w, model: str = "paper") -> np.ndarray:
-    """Z(jw) of the chosen model ("paper" or "sampled")."""
+def theory_curve(plant: Plant, ve: VirtualEnvironment, w, model: str = "paper",
+                 latency: float = 0.0) -> np.ndarray:
+    """Z(jw) of the chosen model ("paper" or "sampled"), with the device's own delay
+    ``latency`` [s] on the whole command."""
     if model == "paper":
-        return z_paper(plant, ve, w)
+        return z_paper(plant, ve, w, latency)
     if model == "sampled":
-        return z_sampled(plant, ve, w)
+        return z_sampled(plant, ve, w, latency)
     raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
 
 
@@ -323,26 +336,26 @@ def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sam
     falls well before w0 (on the paper's demo, K = 50, B = 1, w0 = 125 rad/s at 1 kHz,
     wb* = 72.6 rad/s), where ``predicted_wb_star`` (w0, paper sec. 3.2) and
     ``predicted_ws_star`` (eq. 5) are the continuous model's closed forms.
-    ``latency``: the rig's extra loop delay [s] (as in ``z_sampled``; added to td in eq. 2).
+    ``latency``: the device's own delay [s] on the whole command (``theory_curve``).
     """
     from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 
     rates = [r for r in (predicted_ws_star(plant, ve), ve.w0 if math.isfinite(ve.w0) else None,
                          (plant.b + ve.B) / plant.m) if r]
     w = np.geomspace(1e-3 * min(rates + [1.0 / ve.T]), 0.999 * math.pi / ve.T, n)
-    Z = (z_sampled(plant, ve, w, latency) if model == "sampled"
-         else z_paper(plant, ve.with_(td=ve.td + latency), w))
+    Z = theory_curve(plant, ve, w, model, latency)
     eff = effective_impedances(w, Z)
     return {"ws_star": measured_ws_star(w, eff.ES), "wb_star": measured_wb_star(w, eff.ED, plant.b)}
 
 
-def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str) -> tuple[float, float]:
+def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str,
+                   latency: float = 0.0) -> tuple[float, float]:
     """(ED, EM) in the limit w -> 0, by Richardson extrapolation in w^2.
 
     Re Z and Im Z / w are even in w, so ``(4 f(w) - f(2w)) / 3`` removes the
     w^2 term; w is 1e-3 of the loop's fastest relevant rate.
     """
-    rates = [1.0 / ve.delay]
+    rates = [1.0 / (ve.delay + latency)]
     if ve.K > 0:
         rates.append(math.sqrt(ve.K / plant.m))
     if math.isfinite(ve.w0):
@@ -350,12 +363,12 @@ def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str) -> tuple[fl
     if plant.b + ve.B > 0:
         rates.append((plant.b + ve.B) / plant.m)
     w = 1e-3 * min(rates) * np.array([1.0, 2.0])
-    Z = theory_curve(plant, ve, w, model)
+    Z = theory_curve(plant, ve, w, model, latency)
     ED, EM = Z.real, Z.imag / w
     return float((4 * ED[0] - ED[1]) / 3), float((4 * EM[0] - EM[1]) / 3)
 
 
-def delay_effects(plant: Plant, ve: VirtualEnvironment) -> dict:
+def delay_effects(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> dict:
     """Low-frequency effect of delay, as numbers, for both models.
 
     Spring, spring-damper: ``ED_low`` (w -> 0) and its drop below b + B,
@@ -368,21 +381,28 @@ def delay_effects(plant: Plant, ve: VirtualEnvironment) -> dict:
     In the sampled model the exogenous force passes through the same hold as
     the VE force, so ``Z_sampled ~ e^{jwT/2} Z_paper`` and its ED drop is close
     to K td rather than K (T/2 + td).
+
+    ``latency`` (the device's own delay, ``theory_curve``) is in both models'
+    curves. It leaves the measured low-frequency ED drop unchanged to first order (the
+    excitation is delayed with the VE force: ``e^{s latency}`` on the plant's term),
+    though a hand at the handle feels K (T/2 + td + latency): ``K_tau_felt``.
     """
     out: dict = {"tau": ve.delay}
     whole = whole_samples(ve)
     if ve.K > 0:
         base = plant.b + ve.B
         out.update(K_tau=ve.K * ve.delay, K_td=ve.K * ve.td)
+        if latency:
+            out["K_tau_felt"] = ve.K * (ve.delay + latency)
         for model in MODELS:
-            ed = _low_frequency(plant, ve, model)[0] if model == "paper" or whole else None
+            ed = _low_frequency(plant, ve, model, latency)[0] if model == "paper" or whole else None
             out[f"ED_low_{model}"] = ed
             out[f"ED_drop_{model}"] = None if ed is None else base - ed
     elif ve.B > 0:
         base = plant.m - (0.0 if math.isinf(ve.w0) else ve.B / ve.w0)
         out.update(EM_nodelay=base, B_tau=ve.B * ve.delay, B_td=ve.B * ve.td)
         for model in MODELS:
-            em = _low_frequency(plant, ve, model)[1] if model == "paper" or whole else None
+            em = _low_frequency(plant, ve, model, latency)[1] if model == "paper" or whole else None
             out[f"EM_low_{model}"] = em
             out[f"EM_drop_{model}"] = None if em is None else base - em
     return out

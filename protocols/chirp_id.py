@@ -141,12 +141,19 @@ class ChirpId(ProtocolBase):
     def analyze(self, data: dict, meta: dict) -> dict:
         """l2 and l1 fits of f = m x'' + b x' (labbench.analysis.identify) on the force
         actually applied (the ``command`` channel: the VE is off, so it is the chirp
-        after the safety envelope)."""
+        after the safety envelope), as the plant felt it after the device's own delay
+        (``labbench.device_delay``: ``compare.plant_force`` shifts the held command)."""
+        from labbench import device_delay
+        from labbench.analysis.compare import plant_force
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.identify import identify
 
         rec = recording_from_arrays(data["t"], data["command"], data["position"],
                                     {**meta, "protocol": self.name})
+        latency = device_delay.from_meta(meta)
+        if latency:
+            rec = recording_from_arrays(rec.t, plant_force(rec, None, latency), rec.position,
+                                        rec.meta, rec.source)
         fits = {method: identify(rec, model=self.config.model, method=method).as_dict()
                 for method in self.config.methods}
         best = fits.get("l2") or fits[self.config.methods[0]]

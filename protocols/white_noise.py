@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labbench import device_delay
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
@@ -131,7 +132,7 @@ class WhiteNoiseEtfe(ProtocolBase):
         ve = self.ve
         w = np.asarray(est.w)
         Z = np.asarray(est.Z)
-        latency = compare.measured_td(meta)  # the rig's measured extra delay
+        latency = device_delay.from_meta(meta)
         curves = compare.theory_curves(plant, ve, w, latency)
         z_s, z_p = curves["sampled"], curves["paper"]
         band = (w >= DEVIATION_BAND_RAD_S[0]) & (w <= DEVIATION_BAND_RAD_S[1])

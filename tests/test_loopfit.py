@@ -118,12 +118,13 @@ def test_measured_td_in_the_rig_file_sets_the_precheck_boundary(tmp_path):
     assert k_rig < 0.7 * k_nominal
     proto = make_protocol("etfe", ve="spring", K=0.5 * (k_rig + k_nominal), B=0.0, td_s=0.001)
     rep = precheck(proto, plant)
-    assert rep["stable"] and rep["measured_td"]["td_s"] == 0.0
-    with pytest.raises(UserError, match="1.5 ms measured rig delay"):
+    assert rep["stable"] and rep["device_delay"]["s"] == 0.0 and rep["device_delay"]["origin"] == "none"
+    with pytest.raises(UserError, match="1.5 ms device delay"):
         precheck(proto, plant, rig)
     ok = precheck(make_protocol("etfe", ve="spring", K=0.9 * k_rig, B=0.0, td_s=0.001), plant, rig)
     assert ok["checks"][0]["k_max"] == pytest.approx(k_rig, rel=1e-3)
-    assert ok["measured_td"] == {"td_s": 0.0015, "source": f"{p}: [rig] measured_td_s (analyze etfe --fit of s1)"}
+    assert ok["device_delay"] == {"s": 0.0015, "origin": "rig",
+                                  "source": f"{p}: [rig] measured_td_s (analyze etfe --fit of s1)"}
 
 
 def test_bad_measured_td_is_one_error(tmp_path):

@@ -15,7 +15,7 @@ import math
 import numpy as np
 from scipy import signal
 
-from labbench import theory
+from labbench import device_delay, theory
 from labbench.analysis.dataio import Recording, recording_from_arrays
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult, identify
@@ -78,12 +78,12 @@ def plant_force(rec: Recording, ve: VirtualEnvironment | None, latency: float = 
 
 def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | None]:
     """The record with the force the plant felt (``plant_force``, with the metadata's VE and
-    measured extra delay td_measured): unchanged in open loop without a measured delay.
+    device delay, ``labbench.device_delay``): unchanged in open loop without a device delay.
     Returns (recording, ve or None)."""
     ve = ve_from_meta(rec.meta, rec.fs)
     if ve is not None and ve.kind == "none":
         ve = None
-    latency = measured_td(rec.meta)
+    latency = device_delay.from_meta(rec.meta)
     if ve is None and not latency:
         return rec, None
     return recording_from_arrays(rec.t, plant_force(rec, ve, latency), rec.position, rec.meta,
@@ -98,19 +98,14 @@ def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "
                     model="mb", method=method)
 
 
-def measured_td(meta: dict) -> float:
-    """The rig's measured extra loop delay [s] of the metadata (``td_measured``; 0 when absent)."""
-    return meta_number(meta, "td_measured", 0.0)
-
-
 def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> dict:
     """The theory overlay at w: ``sampled``, the exact sampled model (None when td is not
-    whole samples), and ``paper``, eq. 2, both with the rig's extra loop delay ``latency``
-    [s] (``labbench.theory`` module doc; in eq. 2 it simply adds to td); ``model`` and
+    whole samples), and ``paper``, eq. 2, both with the device's own delay ``latency``
+    [s] (``labbench.device_delay``, ``labbench.theory.z_paper``); ``model`` and
     ``Z``: the one to compare with, the sampled model when it exists."""
     w = np.asarray(w, float)
     sampled = theory.z_sampled(plant, ve, w, latency) if theory.whole_samples(ve) else None
-    paper = theory.z_paper(plant, ve.with_(td=ve.td + latency), w)
+    paper = theory.z_paper(plant, ve, w, latency)
     model = "sampled" if sampled is not None else "paper"
     return {"model": model, "Z": sampled if sampled is not None else paper, "sampled": sampled, "paper": paper}
 

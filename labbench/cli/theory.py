@@ -35,6 +35,10 @@ def register(subparsers) -> None:
                    help="sample time (default 0.001)")
     p.add_argument("--td", type=float_list, default=[0.0], metavar="S[,S...]",
                    help="external delay; a list overlays one curve per value with --plot")
+    p.add_argument("--device-delay-s", type=float, default=0.0, metavar="S",
+                   help="the device's own delay on the whole command (a drive that applies "
+                        "the torque at the next SYNC: one sample time), beyond td; "
+                        "fractions of a sample allowed (default 0)")
     p.add_argument("--model", choices=theory.MODELS, default="paper",
                    help="paper: eq. 2 with delay T/2 + td; sampled: exact sampled-data loop")
     p.add_argument("--w", type=float_list, metavar="W1,W2,...", help="frequencies (rad/s)")
@@ -49,7 +53,10 @@ def run(args) -> int:
 
     if args.plot:
         output_path(args.plot, force=args.force)  # before the work
+    from labbench import device_delay
+
     plant = Plant(args.m, args.b)
+    latency = device_delay.checked(args.device_delay_s, "--device-delay-s")
     ves = [_ve(args, td) for td in args.td]
     if len(ves) > 1 and (args.json or not args.plot):
         raise UserError("several --td values need --plot (and no --json); give one value otherwise")
@@ -63,10 +70,10 @@ def run(args) -> int:
         w = np.asarray(args.w, float)
     else:
         w = default_grid(plant, ves[0], grid_points)
-    summaries = [summary(plant, ve, w, args.model) for ve in ves]
+    summaries = [summary(plant, ve, w, args.model, latency) for ve in ves]
 
     if args.plot:
-        _plot(args, plant, ves, w)
+        _plot(args, plant, ves, w, latency)
     if args.json:
         out = summaries[0]
         out["w"] = list(args.w) if args.w is not None else out["w"]
@@ -104,18 +111,21 @@ def default_grid(plant: Plant, ve: VirtualEnvironment, n: int) -> np.ndarray:
     return np.logspace(math.log10(lo), math.log10(hi), n)
 
 
-def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str) -> dict:
-    """Everything the CLI reports for one VE: the contract keys plus context."""
-    Z = theory.theory_curve(plant, ve, w, model)
+def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
+            latency: float = 0.0) -> dict:
+    """Everything the CLI reports for one VE: the contract keys plus context. ``latency``:
+    the device's own delay [s] on the whole command (``labbench.device_delay``)."""
+    Z = theory.theory_curve(plant, ve, w, model, latency)
     eff = effective_impedances(w, Z)
     whole = theory.whole_samples(ve)
-    st = theory.stability(plant, ve) if whole else None
-    kmax = theory.k_max(plant, ve) if whole else None
-    kapp = theory.k_max_approx(plant, ve)
+    st = theory.stability(plant, ve, latency) if whole else None
+    kmax = theory.k_max(plant, ve, latency=latency) if whole else None
+    kapp = theory.k_max_approx(plant, ve, latency)
     return {
         "model": model,
         "ve": ve.as_dict(),
         "plant": {"m": plant.m, "b": plant.b},
+        "device_delay_s": latency,
         "w": w,
         "Z_re": Z.real,
         "Z_im": Z.imag,
@@ -130,7 +140,7 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str) -> 
         "K_max_margin": (kmax / kapp - 1) if kmax is not None and kapp else None,
         "ws_star": theory.predicted_ws_star(plant, ve),
         "wb_star": theory.predicted_wb_star(ve),
-        "delay_effects": theory.delay_effects(plant, ve),
+        "delay_effects": theory.delay_effects(plant, ve, latency),
     }
 
 
@@ -180,11 +190,13 @@ def table(s: dict) -> str:
     return "\n".join(head + rows)
 
 
-def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray) -> None:
+def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray,
+          latency: float = 0.0) -> None:
     from labbench.figures import Curve, paper_figure
 
-    curves = [Curve(label=f"td = {1e3 * ve.td:g} ms (T/2 + td = {1e3 * ve.delay:g} ms)",
-                    w=w, Z=theory.theory_curve(plant, ve, w, args.model)) for ve in ves]
+    dev = f" + device {1e3 * latency:g} ms" if latency else ""
+    curves = [Curve(label=f"td = {1e3 * ve.td:g} ms (T/2 + td{dev} = {1e3 * (ve.delay + latency):g} ms)",
+                    w=w, Z=theory.theory_curve(plant, ve, w, args.model, latency)) for ve in ves]
     ve = ves[0]
     marks = {"ws*": theory.predicted_ws_star(plant, ve), "wb*": theory.predicted_wb_star(ve)}
     gains = ", ".join(f"{n} = {getattr(ve, n):g}" for n in ("K", "B") if n in USES[ve.kind])
