@@ -9,12 +9,15 @@ time of two real FFTs of the same data (the floor, measured in the same run).
 
 Identification: solver (l2, fast l1, cvxpy l1) x record length x force
 outliers x unmodelled Coulomb friction on exact simulated chirps; worst
-relative error of m and b and solver time. Goal: fast l1 >= 20x faster than
-cvxpy's default solver on 60 000 samples with the objective within 1e-6.
+relative error of m and b and the identification's time. Goal: fast l1 >= 20x
+faster than cvxpy's default solver on 60 000 samples with the objective within 1e-6.
 
 Also Table 1 of the paper on simulated chirps (m = 94 g, b = 0.10, five runs).
-Writes docs/analysis-bench.md (tables) and docs/analysis-bench.png (error vs
-time, one point per method and setting). Times are best of --repeat.
+The three tables are the sweeps docs/examples/speed-vs-accuracy.toml,
+identification.toml and paper-table1.toml (``labbench sweep``, analysis kind),
+run here in this process. Writes docs/analysis-bench.md (tables) and
+docs/analysis-bench.png (error vs time, one point per method and setting).
+ETFE times are best of --repeat; identification times one run each.
 
     .venv/bin/python bench/bench_analysis.py [--repeat 5] [--quick]
 """
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -29,27 +33,18 @@ import numpy as np
 from scipy import fft
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+EXAMPLES = ROOT / "docs" / "examples"
 
-from truthdata import PAPER_B, PAPER_M, chirp_recording, closed_loop_recording, with_noise, z_truth
-
-from labbench.analysis import l1
-from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS, etfe
-from labbench.analysis.identify import _prepare, identify
 from labbench.effective import effective_impedances
+from labbench.sweep.engine import run_sweep
+from labbench.sweep.exact import closed_loop_recording
+from labbench.sweep.spec import load_spec, spec_from_dict
+from labbench.sweep.table import read_table
 from labbench.ve import VirtualEnvironment
 
-VES = {
-    "spring-damper": VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0),
-    "damper": VirtualEnvironment("damper", B=1.0, w0=125.0),
-}
-NOISES = {
-    "clean": {},
-    "quantised 3e-5 m": {"quantum": 3e-5},
-    "position noise 1e-5 m": {"position_noise": 1e-5},
-    "force noise 5 %": {"force_noise": 0.05},
-}
+NOISES = ("clean", "quantised 3e-5 m", "position noise 1e-5 m", "force noise 5 %")
+SOLVERS = ("l2", "l1 fast", "l1 cvxpy")
 
 
 def best_time(fn, repeat):
@@ -61,36 +56,40 @@ def best_time(fn, repeat):
     return best, out
 
 
-def noisy_loop(rec, rng, quantum=0.0, position_noise=0.0, force_noise=0.0):
-    x = rec.position + position_noise * rng.standard_normal(len(rec.t))
-    if quantum:
-        x = np.round(x / quantum) * quantum
-    f = rec.force + force_noise * np.std(rec.force) * rng.standard_normal(len(rec.t))
-    return recording_from_arrays(rec.t, f, x, rec.meta)
-
-
-def bench_etfe(repeat, lengths):
-    rows = []
-    for ve_name, ve in VES.items():
-        base = closed_loop_recording(ve, n=max(lengths), seed=1)
-        for n in lengths:
-            cut = recording_from_arrays(base.t[:n], base.force[:n], base.position[:n], base.meta)
-            for noise_name, kw in NOISES.items():
-                rec = noisy_loop(cut, np.random.default_rng(2), **kw)
-                for est in ESTIMATORS:
-                    t, res = best_time(lambda rec=rec, est=est: etfe(rec, est), repeat)
-                    sel = (res.w >= 2) & (res.w <= 100)
-                    Zt = z_truth(ve, res.w[sel])
-                    err = np.abs(res.Z[sel] - Zt) / np.abs(Zt)
-                    rows.append({"ve": ve_name, "n": n, "noise": noise_name, "estimator": est,
-                                 "time_s": t, "median": float(np.median(err)), "max": float(err.max()),
-                                 "flags": sorted({f.split(":")[0] for f in res.flags})})
+def sweep(name: str, quick_n: list[int] | None = None, repeat: int | None = None) -> list[dict]:
+    """Rows of the example spec ``name`` (docs/examples), run on one worker in this process
+    (the times are the analysis' own, not shared with a second worker)."""
+    spec = load_spec(EXAMPLES / name)
+    if quick_n or repeat:
+        d = spec.as_dict()
+        if quick_n:
+            d["grid"]["n"] = quick_n
+        if repeat:
+            d["sweep"]["repeat"] = repeat
+        spec = spec_from_dict(d, source=f"{name} (adjusted)")
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = run_sweep(spec, Path(tmp) / "t.sweep", workers=0)
+        rows = read_table(summary.table).to_pylist()
+    bad = [r for r in rows if r["status"] != "ok"]
+    if bad:
+        raise RuntimeError(f"{name}: {bad[0]['error']}")
     return rows
+
+
+def bench_etfe(repeat, quick):
+    rows = sweep("speed-vs-accuracy.toml", [30_000] if quick else None, repeat)
+    rows.sort(key=lambda r: (r["environment"] != "spring-damper", r["n"],
+                             NOISES.index(r["noise"]), ESTIMATORS.index(r["estimator"])))
+    return [{"ve": r["environment"], "n": int(r["n"]), "noise": r["noise"],
+             "estimator": r["estimator"], "time_s": r["analysis_s"],
+             "median": r["truth.median_rel"], "max": r["truth.max_rel"],
+             "flags": r["res.flags"].split("; ") if r["res.flags"] else []} for r in rows]
 
 
 def bench_etfe_speed(repeat):
     """Floor and candidate measured alternately (a shared machine drifts in load), best of each."""
-    rec = closed_loop_recording(VES["spring-damper"], n=120_000, seed=3)
+    rec = closed_loop_recording(VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0),
+                                n=120_000, seed=3)
     f, x = rec.force, rec.position
 
     def full():
@@ -104,40 +103,28 @@ def bench_etfe_speed(repeat):
     return {"floor_s": floor, "etfe_s": t, "ratio": t / floor}
 
 
-def bench_identify(repeat, lengths):
-    rows = []
-    cases = {"clean": {}, "outliers 1 %": {"outlier_fraction": 0.01, "outlier_size": 5.0}}
-    for n in lengths:
-        for friction in (0.0, 0.05):
-            base = chirp_recording(n=n, coulomb=friction)
-            for case_name, kw in cases.items():
-                rec = with_noise(base, np.random.default_rng(5), force_noise=0.01, **kw)
-                data = _prepare(rec, None, "zoh")
-                X, y = data.design("mb"), data.y
-                solvers = {"l2": lambda X=X, y=y: np.linalg.lstsq(X, y, rcond=None)[0],
-                           "l1 fast": lambda X=X, y=y: l1.lad(X, y),
-                           "l1 cvxpy": lambda X=X, y=y: l1.lad_cvxpy(X, y)}
-                objs = {}
-                for name, fn in solvers.items():
-                    t, theta = best_time(fn, 1 if name == "l1 cvxpy" else repeat)
-                    objs[name] = l1.objective(X, y, theta)
-                    err = max(abs(theta[0] / PAPER_M - 1), abs(theta[1] / PAPER_B - 1))
-                    rows.append({"n": n, "friction": friction, "case": case_name, "solver": name,
-                                 "time_s": t, "m": theta[0], "b": theta[1], "err": err})
-                rel = (objs["l1 fast"] - objs["l1 cvxpy"]) / objs["l1 cvxpy"]
-                for r in rows[-3:]:
-                    r["obj_rel_vs_cvxpy"] = rel if r["solver"].startswith("l1") else None
-    return rows
+def bench_identify(quick):
+    """Solver x length x outliers x Coulomb (docs/examples/identification.toml); time of the
+    whole identification (fit, jackknife intervals, flags), one run each."""
+    rows = sweep("identification.toml", [15_000] if quick else None)
+    rows.sort(key=lambda r: (r["n"], r["coulomb_n"], r["case"] != "clean",
+                             SOLVERS.index(r["fit"])))
+    out = [{"n": int(r["n"]), "friction": r["coulomb_n"], "case": r["case"], "solver": r["fit"],
+            "time_s": r["analysis_s"], "m": r["res.m"], "b": r["res.b"],
+            "err": r["truth.worst_rel"], "obj": r["res.l1_objective"]} for r in rows]
+    cvx = {(r["n"], r["friction"], r["case"]): r["obj"] for r in out if r["solver"] == "l1 cvxpy"}
+    for r in out:
+        r["obj_rel_vs_cvxpy"] = ((r["obj"] - cvx[key]) / cvx[key]
+                                 if r["solver"].startswith("l1") and (key := (r["n"], r["friction"], r["case"])) in cvx
+                                 else None)
+    return out
 
 
-def table1(runs=5):
+def table1():
     out = {"l2": [], "l1": []}
-    for seed in range(runs):
-        rec = with_noise(chirp_recording(n=30000), np.random.default_rng(100 + seed),
-                         force_noise=0.02, quantum=1e-5)
-        for method, runs_of_method in out.items():
-            r = identify(rec, model="mb", method=method)
-            runs_of_method.append((r.m, r.b, r.ci95["m"], r.ci95["b"]))
+    for r in sweep("paper-table1.toml"):
+        out[r["method"]].append((r["res.m"], r["res.b"], (r["res.ci95.m.0"], r["res.ci95.m.1"]),
+                                 (r["res.ci95.b.0"], r["res.ci95.b.1"])))
     return out
 
 
@@ -154,7 +141,8 @@ def write_docs(etfe_rows, speed, id_rows, t1, path_md, path_png):
                      f"| {100 * r['max']:.2f} | {1e3 * r['time_s']:.1f} | {', '.join(r['flags'])} |")
     lines += ["", "## Identification (model mb): worst relative error of m, b", "",
               ("Chirp 0.1-20 Hz, 1 N, force noise 0.01 N; Coulomb friction, when present, is not in the "
-               "fitted model (what a user fitting mb to a rubbing device gets)."), "",
+               "fitted model (what a user fitting mb to a rubbing device gets). Time: the whole "
+               "identification (the fit, its ten jackknife refits for the intervals, the flags)."), "",
               ("| samples | Coulomb N | case | solver | m g | b N s/m | worst error % | time ms | "
                "l1 objective vs cvxpy |"), "|---|---|---|---|---|---|---|---|---|"]
     for r in id_rows:
@@ -206,7 +194,7 @@ def _chart(etfe_rows, id_rows, path):
             pts = [r for r in id_rows if r["solver"] == s and r["case"] == case and r["friction"] == fr]
             ax2.loglog([1e3 * r["time_s"] for r in pts], [max(100 * r["err"], 1e-4) for r in pts], mk,
                        color=f"C{i}", mfc="none", label=s if (case, fr) == ("clean", 0.0) else None)
-    ax2.set(xlabel="solver time (ms)", ylabel="worst relative error of m, b (%)",
+    ax2.set(xlabel="identification time (ms)", ylabel="worst relative error of m, b (%)",
             title="identification (o clean, s outliers, ^ Coulomb, D both)")
     ax2.legend(title="solver")
     for ax in (ax1, ax2):
@@ -220,17 +208,15 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="shorter records (a smoke run)")
     ap.add_argument("--out", default=str(ROOT / "docs"), help="directory for the table and chart")
     args = ap.parse_args()
-    lengths_etfe = [30_000, 120_000] if not args.quick else [30_000]
-    lengths_id = [15_000, 60_000] if not args.quick else [15_000]
     t0 = time.perf_counter()
     speed = bench_etfe_speed(args.repeat)
     print(f"ETFE+effective impedances, 120k samples: {1e3 * speed['etfe_s']:.2f} ms; two real FFTs "
           f"{1e3 * speed['floor_s']:.2f} ms; ratio {speed['ratio']:.2f}x (goal <= 3x)")
-    etfe_rows = bench_etfe(args.repeat, lengths_etfe)
+    etfe_rows = bench_etfe(args.repeat, args.quick)
     for r in etfe_rows:
         print(f"etfe {r['ve']:13s} n={r['n']:6d} {r['noise']:22s} {r['estimator']:9s} "
               f"median {100 * r['median']:7.3f} % max {100 * r['max']:8.2f} % {1e3 * r['time_s']:7.1f} ms")
-    id_rows = bench_identify(args.repeat, lengths_id)
+    id_rows = bench_identify(args.quick)
     for r in id_rows:
         print(f"id n={r['n']:6d} Fc={r['friction']:.2f} {r['case']:13s} {r['solver']:8s} "
               f"err {100 * r['err']:8.3f} % {1e3 * r['time_s']:8.1f} ms obj {r['obj_rel_vs_cvxpy']}")

@@ -1,19 +1,22 @@
 """Stability map K x td on the simulator: measured (stability probe) vs exact vs the paper.
 
-For the paper's Phantom-like device (m = 0.094 kg, b = 0.10 N s/m, T = 1 ms) and
-two VEs - a spring, and the paper's spring-damper (B = 1 N s/m, w0 = 125 rad/s)
-- the stability probe (protocols/stability_probe.py) runs on the simulator at
-each external delay td and measures the largest stable K from growth rates.
-It is compared with the exact sampled boundary (labbench.theory.k_max) and the
-paper's approximation (labbench.theory.k_max_approx). Writes
-docs/stability-map.png and docs/stability-map.md and prints the table.
+The sweep docs/examples/stability-map.toml (``labbench sweep``): for the paper's
+Phantom-like device (m = 0.094 kg, b = 0.10 N s/m, T = 1 ms) and two VEs - a
+spring, and the paper's spring-damper (B = 1 N s/m, w0 = 125 rad/s) - the
+stability probe (protocols/stability_probe.py) runs on the simulator at each
+external delay td and measures the largest stable K from growth rates; on the
+exact simulator and on a rough one. It is compared with the exact sampled
+boundary (labbench.theory.k_max) and the paper's approximation
+(labbench.theory.k_max_approx). Writes docs/stability-map.png and
+docs/stability-map.md from the sweep's table and prints the table.
 
-    .venv/bin/python bench/bench_stability_map.py [--quick]
+    .venv/bin/python bench/bench_stability_map.py [--quick] [--workers N]
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,32 +27,46 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+SPEC = ROOT / "docs" / "examples" / "stability-map.toml"
 
 from labbench import theory
-from labbench.rig import Rig, rig_from_dict
-from labbench.runner import run
+from labbench.rig import Rig
+from labbench.sweep.engine import run_sweep
+from labbench.sweep.spec import load_spec, spec_from_dict
+from labbench.sweep.table import read_table
 from labbench.ve import VirtualEnvironment
-from labbench.registry import make_protocol
-from labbench.sim_backend.sim_device import open_sim
 
 T = 0.001
-CASES = {
-    "spring": {"ve": "spring", "B": 0.0, "w0_rad_s": None},
-    "spring-damper B=1, w0=125": {"ve": "spring-damper", "B": 1.0, "w0_rad_s": 125.0},
-}
+QUICK_TD_S = [0.0, 0.002, 0.005]
 
 
-# A rougher simulator: encoder quantisation (rig.metres_per_count) and 2 mN force noise.
-ROUGH = {"sim": {"quantize": True, "force_noise_n": 0.002}}
-
-
-def probe(case: dict, td_s: float, rig: Rig, k_exact: float) -> dict:
-    """Run the probe from 70 % of the exact boundary in 5 % steps; its results."""
-    p = make_protocol("stability", K=0.7 * k_exact, ratio=1.05, td_s=td_s, **case)
-    res = run(open_sim(rig, seed=1), p, [], rig=rig)
-    if res.status != "success":
-        raise RuntimeError(f"probe failed: {res.reason}")
-    return res.results
+def sweep_rows(quick: bool, workers: int | None) -> tuple[dict, float]:
+    """The spec's rows by case: {case: [{td_ms, exact, approx, measured, steps, rough}]}."""
+    spec = load_spec(SPEC)
+    if quick:
+        d = spec.as_dict()
+        d["grid"]["td_s"] = QUICK_TD_S
+        spec = spec_from_dict(d, source=f"{SPEC} (quick)")
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = run_sweep(spec, Path(tmp) / "stability-map.sweep", workers=workers)
+        rows = read_table(summary.table).to_pylist()
+    bad = [r for r in rows if r["status"] != "ok"]
+    if bad:
+        raise RuntimeError(f"probe failed: {bad[0]['error']}")
+    by = {}
+    for r in rows:
+        by[(r["case"], r["td_s"], r["sim"])] = r
+    cases = {}
+    for (case, td, sim), r in sorted(by.items(), key=lambda kv: (kv[1]["index"])):
+        if sim != "exact":
+            continue
+        rough = by[(case, td, "rough")]
+        cases.setdefault(case, []).append({
+            "td_ms": round(td * 1e3, 6), "exact": r["truth.k_max"], "approx": r["truth.k_max_approx"],
+            "measured": r["res.measured_boundary"], "steps": r["res.steps.n"],
+            "rough": rough["res.measured_boundary"], "ve": r["ve"], "B": r.get("B") or 0.0,
+            "w0_rad_s": r.get("w0_rad_s")})
+    return cases, summary.wall_s
 
 
 def region(plant, case: dict, K: np.ndarray, td_ms: np.ndarray) -> np.ndarray:
@@ -67,29 +84,15 @@ def region(plant, case: dict, K: np.ndarray, td_ms: np.ndarray) -> np.ndarray:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer delays (a smoke run)")
+    ap.add_argument("--workers", type=int, default=None, help="Dask workers (default: one per CPU)")
     ap.add_argument("--out", default=str(ROOT / "docs"), help="directory for the png and md")
     args = ap.parse_args(argv)
-    rig, rough = Rig(), rig_from_dict(ROUGH, source="<rough sim>")
+    rig = Rig()
     plant = rig.nominal_plant
-    tds = [0, 2, 5] if args.quick else [0, 1, 2, 3, 5, 7, 10, 15, 20]
-    t0 = time.perf_counter()
-    rows = {name: [] for name in CASES}
-    for name, case in CASES.items():
-        for td in tds:
-            ve = VirtualEnvironment(case["ve"], 1.0, case["B"],
-                                    np.inf if case["w0_rad_s"] is None else case["w0_rad_s"],
-                                    T, td * 1e-3)
-            exact = theory.k_max(plant, ve)
-            approx = theory.k_max_approx(plant, ve)
-            t1 = time.perf_counter()
-            r = probe(case, td * 1e-3, rig, exact)
-            r2 = probe(case, td * 1e-3, rough, exact)
-            rows[name].append({"td_ms": td, "exact": exact, "approx": approx,
-                               "measured": r["measured_boundary"], "steps": len(r["steps"]),
-                               "rough": r2["measured_boundary"],
-                               "wall_s": time.perf_counter() - t1})
-    wall = time.perf_counter() - t0
-
+    rows, wall = sweep_rows(args.quick, args.workers)
+    tds = [r["td_ms"] for r in next(iter(rows.values()))]
+    cases = {name: {"ve": rs[0]["ve"], "B": rs[0]["B"], "w0_rad_s": rs[0]["w0_rad_s"]}
+             for name, rs in rows.items()}
     lines = ["# Stability map: measured vs exact vs the paper's approximation", "",
              (f"Simulated Phantom-like device m = {plant.m} kg, b = {plant.b} N s/m, T = 1 ms; "
              "measured = zero crossing of the growth rate found by the stability probe "
@@ -97,8 +100,9 @@ def main(argv=None) -> int:
              "(spectral radius of the exact sampled loop); paper = `labbench.theory.k_max_approx` "
              "(b = K (T/2 + td), and (b + B) = K (T/2 + td) for the spring-damper). "
              "'rough sim' = the same probe on a simulator with a quantised encoder "
-             f"({rough.metres_per_count * 1e6:.1f} um/count) and 2 mN force noise. "
-             "Generated by `bench/bench_stability_map.py`."), ""]
+             f"({rig.metres_per_count * 1e6:.1f} um/count) and 2 mN force noise. "
+             "Generated by `bench/bench_stability_map.py` from the sweep "
+             "`docs/examples/stability-map.toml` (`labbench sweep`)."), ""]
     for name, rs in rows.items():
         lines += [f"## {name}", "",
                   ("| td (ms) | measured K_max (N/m) | exact (N/m) | paper approx. (N/m) "
@@ -119,15 +123,15 @@ def main(argv=None) -> int:
     worst_approx = max(abs(r["approx"] / r["exact"] - 1) for rs in rows.values() for r in rs)
     lines += [(f"Largest |measured / exact - 1|: {100 * worst_meas:.3f} % (rough sim "
                f"{100 * worst_rough:.2f} %); largest |approx. / exact - 1|: "
-               f"{100 * worst_approx:.1f} %. Bench wall time {wall:.1f} s on this machine."), ""]
+               f"{100 * worst_approx:.1f} %. Sweep wall time {wall:.1f} s on this machine."), ""]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "stability-map.md").write_text("\n".join(lines))
     print("\n".join(lines))
 
-    fig, axes = plt.subplots(1, len(CASES) + 1, figsize=(16, 4.8), constrained_layout=True)
+    fig, axes = plt.subplots(1, len(cases) + 1, figsize=(16, 4.8), constrained_layout=True)
     td_grid = np.arange(0, max(tds) + 1)
-    for ax, (name, case) in zip(axes, CASES.items()):
+    for ax, (name, case) in zip(axes, cases.items()):
         rs = rows[name]
         kmax_top = 1.6 * max(max(r["exact"], r["approx"]) for r in rs)
         K = np.geomspace(0.4 * min(r["exact"] for r in rs), kmax_top, 120)

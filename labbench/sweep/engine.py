@@ -1,0 +1,246 @@
+"""Run a sweep: the points not yet in the table, on Dask workers (or in this process), rows
+streamed to the table as they come.
+
+Workers: a ``distributed.LocalCluster`` of ``workers`` processes with one thread
+each (default: one per CPU; BLAS and OpenMP held to one thread, so N workers use
+N cores), or an existing cluster at ``scheduler`` (its workers need labbench
+installed); ``workers=0`` computes in this process (no Dask at all). Each task
+is ``labbench.sweep.point.compute_row(spec, point)``: pure, so a point's row
+does not depend on which worker ran it, on how many there are, or on what ran
+before it there (every random stream comes from the point's own seeds).
+
+Memory stays bounded whatever the number of points: at most ``window`` tasks are
+out at once, each finished row goes to the table's buffer
+(``labbench.sweep.table.TableWriter``) and is written within ``flush_rows`` rows
+or ``flush_s`` seconds, and no session is kept unless asked (``keep_sessions``).
+
+Stopping: ``stop`` (a ``labbench.interrupts.StopRequest``: the CLI sets it on
+SIGINT, SIGTERM or SIGHUP) is looked at twice a second; the tasks still out are
+cancelled, the rows finished so far written, and the workers shut down. A rerun
+skips the points already in the table (by key, ``labbench.sweep.spec``).
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from labbench.errors import UserError
+from labbench.sweep import table as tables
+from labbench.sweep.point import compute_row
+from labbench.sweep.spec import Point, Spec
+
+# One thread per worker for the numeric libraries (a worker is one core's share).
+WORKER_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                     "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")}
+POLL_S = 0.5  # how often a running sweep looks at its stop request
+
+
+@dataclass
+class Progress:
+    """What a progress callback hears after each row."""
+
+    done: int  # rows in the table for this spec's points
+    total: int  # points in the spec
+    failed: int  # rows of this run whose status is not "ok"
+    computed: int  # rows computed by this run
+    elapsed_s: float
+
+    @property
+    def eta_s(self) -> float | None:
+        """Time left at this run's rate so far (None before its first row)."""
+        if not self.computed:
+            return None
+        return self.elapsed_s / self.computed * (self.total - self.done)
+
+
+@dataclass
+class Summary:
+    table: Path
+    total: int
+    before: int  # rows already there
+    computed: int
+    failed: int
+    wall_s: float
+    stopped: bool
+    workers: int
+
+
+def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None = None,
+              keep_sessions=None, progress: Callable[[Progress], None] | None = None,
+              stop=None, flush_rows: int = 64, flush_s: float = 10.0,
+              window: int | None = None) -> Summary:
+    """Compute the points of ``spec`` missing from the table ``out`` (module doc)."""
+    t0 = time.perf_counter()
+    out = tables.open_table(out)
+    points = spec.points()
+    keys = [p.key(spec) for p in points]
+    done = tables.done_keys(out) & set(keys)
+    todo = [(p, k) for p, k in zip(points, keys) if k not in done]
+    check_names(spec, points)
+    keep = None
+    if keep_sessions is not None:
+        from labbench.safe_write import output_folder
+
+        keep = str(output_folder(keep_sessions))
+    tables.write_spec(out, spec.as_dict())
+    state = Progress(len(done), len(points), 0, 0, 0.0)
+    writer = tables.TableWriter(out, flush_rows, flush_s)
+    stopped = False
+    n_workers = 0
+    try:
+        if not todo:
+            rows = iter(())
+        elif workers == 0 and scheduler is None:
+            rows = _inline(spec.as_dict(), todo, keep, stop)
+        else:
+            client, n_workers = _client(workers, scheduler)
+            rows = _on_dask(client, spec.as_dict(), todo, keep, stop, window or 4 * n_workers)
+        with contextlib.closing(rows) if hasattr(rows, "close") else contextlib.nullcontext():
+            for row in rows:
+                writer.append(row)
+                state.done += 1
+                state.computed += 1
+                state.failed += row["status"] != "ok"
+                state.elapsed_s = time.perf_counter() - t0
+                if progress is not None:
+                    progress(state)
+        stopped = state.done < state.total
+    finally:
+        writer.close()
+    if not stopped:
+        tables.compact(out)
+    return Summary(out, len(points), len(done), state.computed, state.failed,
+                   time.perf_counter() - t0, stopped, n_workers)
+
+
+def _inline(spec_d: dict, todo: list[tuple[Point, str]], keep, stop):
+    for p, _key in todo:
+        if stop is not None and stop.is_set():
+            return
+        yield compute_row(spec_d, _task(p), keep)
+
+
+def _task(p: Point) -> dict:
+    return {"index": p.index, "params": p.params, "tags": p.tags}
+
+
+def _client(workers: int | None, scheduler: str | None):
+    """A Dask client: of the cluster at ``scheduler``, or of a new LocalCluster of processes
+    (closed with the client). Returns (client, number of worker threads)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - a dependency of the package
+        raise UserError(f"labbench sweep needs dask[distributed]: {exc}") from None
+    _quiet_dask()
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise UserError(f"no Dask scheduler answers at {scheduler}: {exc}") from None
+        n = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
+        if n == 0:
+            client.close()
+            raise UserError(f"the Dask cluster at {scheduler} has no workers")
+        return client, n
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    if n < 1:
+        raise UserError(f"--workers must be at least 1 (0: in this process), got {n}")
+    os.environ.update(WORKER_ENV)  # inherited by the worker processes the nannies start
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.ERROR,
+                           env=dict(WORKER_ENV))
+    client = Client(cluster)
+    client._labbench_cluster = cluster  # closed with the client (_close)
+    return client, n
+
+
+def _quiet_dask() -> None:
+    """Dask's own loggers inherit the level of "distributed" (the CLI's -v sets it, as for
+    the other libraries): its configuration gives each an INFO level of its own."""
+    for name in list(logging.root.manager.loggerDict):
+        if name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.NOTSET)
+
+
+def _close(client) -> None:
+    cluster = getattr(client, "_labbench_cluster", None)
+    with contextlib.suppress(Exception):
+        client.close(timeout=10)
+    if cluster is not None:
+        with contextlib.suppress(Exception):
+            cluster.close(timeout=10)
+
+
+def _on_dask(client, spec_d: dict, todo: list[tuple[Point, str]], keep, stop, window: int):
+    """Rows of ``todo`` as the workers finish them, at most ``window`` tasks out at once.
+    A task whose worker died (or that raised past compute_row) is a row with its error."""
+    from distributed import wait
+
+    from labbench.sweep.point import typed_row
+
+    try:
+        spec_f = client.scatter(spec_d, broadcast=True)
+        pending = iter(todo)
+        running = {}
+
+        def submit():
+            for p, key in pending:
+                f = client.submit(compute_row, spec_f, _task(p), keep, key=f"labbench-sweep-{key}")
+                running[f] = (p, key)
+                if len(running) >= window:
+                    return
+
+        submit()
+        while running:
+            if stop is not None and stop.is_set():
+                return
+            try:
+                finished, _ = wait(list(running), timeout=POLL_S, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                continue
+            for f in sorted(finished, key=lambda f: running[f][0].index):
+                p, key = running.pop(f)
+                try:
+                    row = f.result()
+                except Exception as exc:  # noqa: BLE001 - the worker, not the point, failed
+                    row = typed_row({"key": key, "index": p.index, **p.tags,
+                                  **p.params, "status": "error",
+                                  "error": f"worker: {type(exc).__name__}: {exc}"})
+                f.release()
+                yield row
+            submit()
+    finally:
+        with contextlib.suppress(Exception):
+            client.cancel(list(running))
+        _close(client)
+
+
+def check_names(spec: Spec, points: list[Point]) -> None:
+    """Refuse a spec whose parameter names the targets do not know, before any point runs
+    (a typo is one line, not ten thousand error rows): one point of every distinct set of
+    names is built, and for kind run its device opened and closed. Errors of a value are
+    the point's own (its row says so)."""
+    from labbench.sweep.point import analysis_params, build_run
+
+    seen = set()
+    for p in points:
+        names = frozenset(p.params)
+        if names in seen:
+            continue
+        seen.add(names)
+        try:
+            if spec.kind == "analysis":
+                analysis_params(spec.analysis, p.params)
+                continue
+            rig, _protocol, dev_opts, _truth = build_run(spec, p.params)
+            from labbench.registry import open_device
+
+            open_device(spec.device, rig, **dev_opts).close()
+        except UserError as exc:
+            if "unknown" in str(exc):
+                raise UserError(f"{spec.source}: {exc}") from None
