@@ -222,6 +222,7 @@ def main() -> int:
               f"err {100 * r['err']:8.3f} % {1e3 * r['time_s']:8.1f} ms obj {r['obj_rel_vs_cvxpy']}")
     t1 = table1()
     out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     write_docs(etfe_rows, speed, id_rows, t1, out / "analysis-bench.md", out / "analysis-bench.png")
     print(f"wrote {out / 'analysis-bench.md'} and {out / 'analysis-bench.png'} "
           f"in {time.perf_counter() - t0:.0f} s")
