@@ -160,8 +160,9 @@ def _modes(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
         else:
             a.modes.append(m)
     if supported is None:
+        state = "listed without a value" if d.has(0x6502, 0) else "absent"
         _missing(a, 0x6502, 0, False)
-        a.warnings.append("0x6502:00 absent (supported drive modes): the modes are tried in "
+        a.warnings.append(f"0x6502:00 {state} (supported drive modes): the modes are tried in "
                           "order and confirmed by the drive")
     if a.modes:
         a.capabilities["torque mode"] = " then ".join(m.text for m in a.modes)
@@ -243,7 +244,11 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
     a = Assessment(config.node_id, d.source, warnings=list(d.warnings))
     # Capabilities.
     device_type = d.value(0x1000)
-    if device_type is None:
+    if device_type is None and d.has(0x1000, 0):
+        a.capabilities["CiA 402"] = "unknown (listed without a value)"
+        a.warnings.append("0x1000:00 (device type) listed without a value: whether it is a "
+                          "CiA 402 drive is the drive's answer")
+    elif device_type is None:
         a.capabilities["CiA 402"] = "unknown"
         a.obstacles.append("device type 0x1000 absent: not known to be a CiA 402 drive")
     elif device_type & 0xFFFF != 402:

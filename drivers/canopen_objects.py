@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.eds import import_eds
 
+from labbench.drivers import eds_values
+from labbench.drivers.canopen_sdo import where
 from labbench.errors import UserError
 
 # CiA 301 data type codes -> struct code (integers only: nothing else is mapped or compared).
@@ -147,15 +149,14 @@ def _canonical(section: str) -> str:
 
 
 def _number(text: str) -> bool:
-    t = re.sub(r"\+?\$NODEID\+?", "", text.replace(" ", ""), flags=re.IGNORECASE)
     try:
-        int(t or "0", 0)
+        eds_values.parse(text, U32, 0)
         return True
     except ValueError:
         return False
 
 
-def _clean(text: str, name: str) -> tuple[str, list[str]]:
+def _clean(text: str, name: str, node_id: int) -> tuple[str, list[str]]:
     """INI text a strict parser accepts, and a warning for each defect repaired."""
     warnings: list[str] = []
     sections: dict[str, dict[str, str]] = {}
@@ -209,10 +210,7 @@ def _clean(text: str, name: str) -> tuple[str, list[str]]:
                             "not understood: taken as ro")
             access = "ro"
         keys["AccessType"] = access
-        for key in _NUMERIC_KEYS:
-            if key in keys and int(keys["DataType"], 0) in TYPE_FMT and not _number(keys[key]):
-                warnings.append(f"{name}: [{sec}] {key}={keys[key]} is not a number: ignored")
-                del keys[key]
+        warnings += _values(keys, name, sec, node_id)
     if "DeviceInfo" not in sections:
         warnings.append(f"{name}: no [DeviceInfo] section (mandatory): taken as empty")
         sections["DeviceInfo"] = {}
@@ -222,6 +220,25 @@ def _clean(text: str, name: str) -> tuple[str, list[str]]:
     return out.getvalue(), warnings
 
 
+def _values(keys: dict, name: str, sec: str, node_id: int) -> list[str]:
+    """Rewrite the values of one variable section as plain numbers read by its data type
+    (``eds_values``); a warning for each value that means nothing, which is dropped."""
+    dtype = eds_values.parse(keys["DataType"], U16)
+    warnings = []
+    for key in _NUMERIC_KEYS:
+        if key not in keys or not eds_values.known(dtype):
+            continue
+        if keys[key] == "":
+            del keys[key]  # "DefaultValue=": no value
+            continue
+        try:
+            keys[key] = eds_values.canonical(eds_values.parse(keys[key], dtype, node_id))
+        except ValueError as exc:
+            warnings.append(f"{name}: [{sec}] {key}={keys[key]} ({exc}): ignored")
+            del keys[key]
+    return warnings
+
+
 def read_eds(path: str, node_id: int) -> Dictionary:
     """The EDS/DCF at ``path`` for node ``node_id`` ($NODEID resolved)."""
     try:
@@ -229,12 +246,13 @@ def read_eds(path: str, node_id: int) -> Dictionary:
             text = f.read()
     except OSError as exc:
         raise UserError(f"cannot read EDS {path}: {exc}") from None
-    clean, warnings = _clean(text, str(path))
+    clean, warnings = _clean(text, str(path), node_id)
     try:
         od = import_eds(io.StringIO(clean), node_id)
     except Exception as exc:  # the parser raises many types on what the cleaner lets through
         raise UserError(f"cannot read EDS {path}: {exc}") from None
     d = Dictionary(source=str(path), warnings=warnings, od=od, from_file=True)
+    unset = []
     for obj in od.values():
         members = [obj] if isinstance(obj, ODVariable) else list(obj.values())
         for v in members:
@@ -245,6 +263,12 @@ def read_eds(path: str, node_id: int) -> Dictionary:
                 v.index, v.subindex, v.data_type, v.access_type, bool(v.pdo_mappable),
                 v.min, v.max, value if isinstance(value, int) else None,
                 from_dcf=v.value is not None)
+            if value is None:
+                unset.append(where(v.index, v.subindex))
+    if unset:
+        d.warnings.append(f"{path}: {len(unset)} object(s) listed without a value "
+                          f"({eds_values.listing(unset)}): the drive's own values apply; "
+                          "a rehearsal (sim-canopen) holds a neutral value there")
     return d
 
 
@@ -288,6 +312,9 @@ def survey(sdo, d: Dictionary | None = None) -> Dictionary:
             continue
         if index in gone_mapping:
             continue
+        if known is not None and known.access == "wo":
+            out.entries[(index, sub)] = Entry(**{**known.__dict__, "value": None})
+            continue  # write-only: known to exist, never read
         raw = sdo.upload(index, sub)
         if raw is None:
             if known is not None:

@@ -49,7 +49,7 @@ from can.interfaces.virtual import VirtualBus
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
-from labbench.drivers import cia402, emcy
+from labbench.drivers import cia402, eds_values, emcy
 from labbench.drivers.canopen_config import STANDARD_MODES, CanopenConfig
 from labbench.drivers.canopen_drive import CanopenDrive, probe_drive
 from labbench.drivers.canopen_objects import (RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP, TYPE_FMT,
@@ -58,6 +58,7 @@ from labbench.drivers.cia402 import State
 from labbench.sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
+SIM_DEVICE_TYPE = 0x00020192  # CiA 402 (0x192), servo drive (0x02 in bits 16-23)
 ABORT_RANGE, ABORT_HIGH, ABORT_LOW = 0x06090030, 0x06090031, 0x06090032
 ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH = 0x06040041, 0x06040042
 ABORT_PARAMETER, ABORT_STATE, ABORT_NO_OBJECT = 0x06040043, 0x08000022, 0x06020000
@@ -144,6 +145,7 @@ class SimCanopenDrive:
         self.config = config or CanopenConfig()
         self.dictionary = read_eds(str(eds), node_id)
         self.od = self.dictionary.od
+        self._stand_in_values()
         self.bus = VirtualBus(channel=channel)
         self.network = canopen.Network(self.bus)
         self.node = _DriveNode(node_id, self.od)
@@ -176,6 +178,21 @@ class SimCanopenDrive:
         self._pending: list = []  # synchronous RPDO values, applied at the next SYNC
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sim-canopen-drive", daemon=True)
+
+    def _stand_in_values(self) -> None:
+        """A value wherever the file lists an object without one (a real drive has its
+        own there): the neutral value of its type, except what this drive is, a CiA 402
+        servo drive (0x1000) with the torque modes it simulates (0x6502)."""
+        own = {0x1000: SIM_DEVICE_TYPE, 0x6502: self._supported_modes()}
+        for obj in self.od.values():
+            for v in [obj] if isinstance(obj, ODVariable) else obj.values():
+                if v.value is None and v.default is None:
+                    v.default = own.get(v.index, eds_values.neutral(v.data_type))
+
+    def _supported_modes(self) -> int:
+        bits = [b for _, b, _ in STANDARD_MODES.values()] + [
+            m["bit"] for m in self.config.modes.values() if m["bit"] is not None]
+        return sum(1 << b for b in set(bits))
 
     # ---------------------------------------------------------------- OD access
     def has(self, index: int, sub: int = 0) -> bool:

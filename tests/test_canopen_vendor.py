@@ -541,3 +541,97 @@ def test_a_stopped_node_is_woken_by_open_but_not_by_the_probe(tmp_path):
         assert peer.nmt_state == 5 and len(d.assessment.plan.rpdos) == 2
     finally:
         d.close()
+
+
+# ------------------------------------------- rehearsal from any file (the vendors' traits)
+@pytest.mark.parametrize("name", list(F.FAMILY))
+def test_the_check_and_the_rehearsal_agree_on_every_family_file(tmp_path, name):
+    """The file-alone check and the driver surveying a simulated drive built from the
+    same file refuse with the same obstacles, or both go on; a file that goes on runs
+    the exact plant's trajectory and ends disabled."""
+    spec, canopen, refusal = F.FAMILY[name]
+    path = F.write(tmp_path / f"{name.lower()}.eds", **spec)
+    rig = rig_for(path, **canopen)
+    config = sim_config(rig)
+    try:
+        check_eds(str(path), config, rig)
+        offline = None
+    except UserError as exc:
+        offline = str(exc).split(": cannot be used")[1]
+    peer, bus = start_sim_drive(rig, config)
+    try:
+        d = connect_driver(rig, config, peer, bus)
+    except UserError as exc:
+        assert str(exc).split(": cannot be used")[1] == offline
+        assert refusal is not None and refusal in offline, offline
+        assert peer.node.writes == []
+        return
+    try:
+        assert offline is None and refusal is None
+        rated = d.assessment.rated_mnm
+        assert run_forces(d, FORCES[:100]) == oracle_counts(d.rig, FORCES[:100], rated)
+        d.disable()
+        assert peer.state is State.SWITCH_ON_DISABLED and peer.torque_permille == 0
+    finally:
+        d.close()
+
+
+def test_objects_without_a_value_get_one_warning_naming_them_not_blaming_the_drive(tmp_path):
+    path = F.write(tmp_path / "nodefaults.eds", **F.NO_DEFAULTS)
+    a = check_eds(str(path))
+    (line,) = [w for w in a.warnings if "listed without a value" in w and w.startswith(str(path))]
+    for key in ("0x1000:00", "0x6502:00", "0x1018:04", "0x605A:00", "0x6075:00", "0x1400:01",
+                "0x1600:01", "0x1017:00"):
+        assert key in line, (key, line)
+    assert "8 object(s)" in line and "the drive's own values apply" in line
+    assert a.capabilities["CiA 402"] == "unknown (listed without a value)"
+    rig = rig_for(path)
+    config = sim_config(rig)
+    d = connect_driver(rig, config, *start_sim_drive(rig, config))
+    try:
+        assert d.peer._get(0x605A) == 0 and d.peer._get(0x6075) == 0  # neutral values
+        assert d.peer._get(0x1000) == 0x00020192 and d.peer._get(0x6502) == 0x208
+        assert line in d.assessment.warnings
+    finally:
+        d.close()
+
+
+def test_dcf_parameter_values_win_over_defaults_and_are_read_by_type(tmp_path):
+    dcf = tmp_path / "drive.dcf"
+    dcf.write_text(F.eds_text(dcf_values={(0x6076, 0): "250", (0x607D, 1): "0xFFFF0000",
+                                          (0x6072, 0): "0x7D0"}))
+    d = check_eds(str(dcf))
+    from labbench.drivers.canopen_objects import read_eds
+
+    od = read_eds(str(dcf), 1)
+    assert od.value(0x6076) == 250 and od.get(0x6076).from_dcf
+    assert od.value(0x607D, 1) == -65536 and od.value(0x6072) == 2000
+    assert od.value(0x607D, 2) == 2147483647  # no ParameterValue: the default
+    assert d.rated_mnm == 250.0
+
+
+def test_unreadable_values_are_named_and_dropped(tmp_path):
+    path = F.write(tmp_path / "bad.eds", default={0x6072: "0x1FFFF", 0x605A: "-0x8001",
+                                                  0x6075: "-1", 0x6007: "3 apples"})
+    a = check_eds(str(path))
+    w = "\n".join(a.warnings)
+    assert "[6072] DefaultValue=0x1FFFF (outside the range of its type [0, 65535])" in w
+    assert "[605A] DefaultValue=-0x8001 (outside the range of its type [-32768, 32767])" in w
+    assert "[6075] DefaultValue=-1 (outside the range of its type" in w
+    assert "[6007] DefaultValue=3 apples (not a number)" in w
+    (unset,) = [x for x in a.warnings if "listed without a value" in x]
+    assert all(k in unset for k in ("0x6072:00", "0x605A:00", "0x6075:00", "0x6007:00"))
+
+
+def test_write_only_mode_object_is_known_to_exist_and_never_read(tmp_path):
+    path = F.write(tmp_path / "wo.eds", **F.WRITE_ONLY_MODE)
+    rig = rig_for(path)
+    config = sim_config(rig)
+    d = connect_driver(rig, config, *start_sim_drive(rig, config))
+    try:
+        e = d.assessment  # the survey kept 0x6060 without reading it
+        assert e.modes and d.peer.mode == 10
+        with pytest.raises(DeviceError, match="0x06010001"):
+            d._sdo.read(0x6060, 0, "<b")  # the drive does refuse a read
+    finally:
+        d.close()
