@@ -22,6 +22,7 @@ import numpy as np
 
 from labbench.analysis.etfe_live import NAME as LIVE, LiveEtfe
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.predictions import Bandwidths, bandwidths
 from labbench.ve import Plant, VirtualEnvironment
 
 log = logging.getLogger(__name__)
@@ -49,8 +50,7 @@ class Estimate:
     plant: Plant | None
     plant_source: str  # "given", "identified (l2)" or "none"
     theory: dict = field(default_factory=dict)  # w, Z, ES, ED, EM; empty when unavailable
-    ws_theory: float | None = None
-    wb_theory: float | None = None
+    predicted: Bandwidths | None = None  # labbench.predictions: the one theory of the numbers shown
     w_nyquist: float = np.inf  # pi / T [rad/s]
     identified_now: bool = False  # this estimate ran the identification
     estimator: str = ""  # the ETFE estimator used
@@ -113,11 +113,9 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         identified_now=identified_now, estimator=res.estimator,
     )
     if plant is not None and ve is not None:
-        from labbench.theory import predicted_wb_star, predicted_ws_star
-
-        out.theory = _theory(plant, ve, w, from_meta(meta))
-        out.ws_theory = predicted_ws_star(plant, ve)
-        out.wb_theory = predicted_wb_star(ve)
+        latency = from_meta(meta)
+        out.theory = _theory(plant, ve, w, latency)
+        out.predicted = bandwidths(plant, ve, latency)
     return out
 
 

@@ -10,9 +10,12 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from labbench import predictions
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.live_estimate import Estimate
 from labbench.gui.path_curve import PathCurve, column_spans
+from labbench.numfmt import fmt
+from labbench.units import SI
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
@@ -242,6 +245,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         _cheap_repaint(self.effective)
         _cheap_repaint(self.bode)
         self.last: Estimate | None = None
+        self.units = SI  # of the numbers in labels (the axes stay SI)
         self._theory_shown = None
         self._bode_shown = None
         self.updates = 0
@@ -296,21 +300,20 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self._theory_shown = (th or {}).get("key")
         trusted = (np.abs(est.Z_err) <= TRUSTED_REL_ERR * np.abs(est.Z))[ok]
         self._fit_ranges(lw, shown, bands, trusted)
-        for key, value, theory, sym in (("ws", est.ws_measured, est.ws_theory, "w_s*"),
-                                        ("wb", est.wb_measured, est.wb_theory, "w_b*")):
+        for key, value in (("ws", est.ws_measured), ("wb", est.wb_measured)):
             line = self.marks[key]
             if value:
                 line.setVisible(True)  # first: a hidden label ignores new text
                 if line.value() != np.log10(value):  # moving it re-lays out its label
                     line.setValue(np.log10(value))  # view coordinates are log10 on a log axis
-                text = f"{sym} = {value:.0f} rad/s"
-                if theory:
-                    text += f" (theory {theory:.0f})"
+                # measured, then the one prediction (labbench.predictions: exact sampled
+                # model with the device delay, the paper's closed form labelled beside it)
+                text = predictions.label(key, value, est.predicted, self.units)
                 if text != line.label.format:  # new text: a re-layout of the label on the next paint
                     line.label.setFormat(text)
             else:
                 line.setVisible(False)
-        plant = (f"m = {est.plant.m * 1e3:.1f} g, b = {est.plant.b:.3f} N s/m ({est.plant_source})"
+        plant = (f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m ({est.plant_source})"
                  if est.plant else "plant unknown: no theory overlay")
         title = f"effective impedances from {est.n_samples} samples; {plant}"
         if title != self.title.text:  # a new text re-lays out the whole plot column
@@ -318,6 +321,12 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.last = est
         self.updates += 1
         self._draw_bode()
+
+    def set_units(self, units) -> None:
+        """Display units of the labels (``labbench.units.DisplayUnits``); redrawn at once."""
+        self.units = units
+        if self.last is not None:
+            self.show_estimate(self.last)
 
     def _fit_ranges(self, lw, shown, bands, trusted) -> None:
         """x over the measured and theory frequencies; y over the trusted measured points

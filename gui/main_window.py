@@ -35,6 +35,7 @@ from labbench.gui.exports import export_in_child
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
+from labbench.predictions import recorded_plant
 from labbench.safety import OVERRUN, SEQ_GAP
 from labbench.analysis.compare import ve_from_meta
 from labbench.ve import Plant
@@ -42,6 +43,9 @@ from labbench.ve import Plant
 log = logging.getLogger(__name__)
 
 ESTOP_KEYS = ("Esc", "Space")
+# the theory overlay's plant: the session's (as its analysis and report), or identified live
+PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
+RUN_PLANT, IDENTIFIED = range(2)
 SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial")
 
 
@@ -155,8 +159,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.traces = TimeTraces()
         self.impedance = ImpedancePlots()
         self.theory_plant = QtWidgets.QComboBox()
-        self.theory_plant.addItems(["identified (l2)", "rig nominal / protocol"])
-        self.theory_plant.setToolTip("plant m, b used for the theory overlay")
+        self.theory_plant.addItems(PLANT_CHOICES)
+        self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
+                                     "its analysis and report use), or l2 identified on its data")
         self.id_view = IdView()
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
         self.log = EventLog()
@@ -617,11 +622,9 @@ class MainWindow(QtWidgets.QMainWindow):
         meta = analysis_meta(buf.start, buf.descriptor or {})
         ve = ve_from_meta(meta)
         plant = None
-        if self.theory_plant.currentIndex() == 1:
-            proto = buf.start.get("protocol") if isinstance(buf.start.get("protocol"), dict) else {}
-            m, b = proto.get("plant_m_kg"), proto.get("plant_b")
-            nominal = self.rig.nominal_plant
-            plant = Plant(m if m is not None else nominal.m, b if b is not None else nominal.b)
+        if self.theory_plant.currentIndex() == RUN_PLANT:
+            plant = recorded_plant(buf.start, (buf.stop or {}).get("results"))
+            plant = plant or self.rig.nominal_plant
         return ve, plant, meta
 
     # ----- results -------------------------------------------------------------------------
@@ -695,11 +698,9 @@ class MainWindow(QtWidgets.QMainWindow):
     @guarded
     def reanalyse(self, path: str, estimator: str):
         self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
-        plant = None
-        if self.theory_plant.currentIndex() == 1:
-            plant = self.rig.nominal_plant
+        fallback = self.rig.nominal_plant if self.theory_plant.currentIndex() == RUN_PLANT else None
         run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
-                          None if estimator == "default" else estimator, plant)
+                          None if estimator == "default" else estimator, fallback)
 
     @guarded
     def export(self, path: str, fmt: str):
@@ -748,17 +749,20 @@ def precheck_text(rep: dict) -> str:
     return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
 
 
-def reanalyse_session(path: str, estimator: str | None, plant: Plant | None):
-    """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker."""
-    from labbench.session_content import load_analysis_arrays
+def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None):
+    """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker.
+    ``run_plant`` given: the theory uses the session's own plant (``recorded_plant``), this
+    one when it names none; None: the plant identified on the session's data."""
+    from labbench.session_content import load_analysis_arrays, load_session
 
     arrays = load_analysis_arrays(path)
-    from labbench.session_content import load_session
-
-    _start, _desc, ch, _ev, _stop, _problem = load_session(path)
+    start, _desc, ch, _ev, stop, _problem = load_session(path)
     meta = arrays["meta"]
     data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
             "command": ch["command"]}
+    plant = None
+    if run_plant is not None:
+        plant = recorded_plant(start, (stop or {}).get("results")) or run_plant
     est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator)
     return est, identify_all(data, meta), data
 

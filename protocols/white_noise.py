@@ -119,7 +119,7 @@ class WhiteNoiseEtfe(ProtocolBase):
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
         impedances (labbench.effective), the deviation from the exact sampled theory, and the
         closed-loop fit of m, b and the rig's extra delay (labbench.analysis.loopfit)."""
-        from labbench import theory
+        from labbench import predictions
         from labbench.analysis import compare
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
@@ -142,7 +142,7 @@ class WhiteNoiseEtfe(ProtocolBase):
             loop_fit = fit_loop(est, ve, plant).as_dict()
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
-        predicted = theory.predicted_bandwidths(plant, ve, "sampled", latency)
+        predicted = predictions.bandwidths(plant, ve, latency)
         return {
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
@@ -159,11 +159,11 @@ class WhiteNoiseEtfe(ProtocolBase):
             # the continuous model's closed forms (eq. 5, w0) are kept beside them
             "bandwidths": {
                 "ws_star_measured": measured_ws_star(w, eff.ES),
-                "ws_star_predicted": predicted["ws_star"],
-                "ws_star_eq5": theory.predicted_ws_star(plant, ve),
+                "ws_star_predicted": predicted.ws_star,
+                "ws_star_eq5": predicted.ws_star_eq5,
                 "wb_star_measured": measured_wb_star(w, eff.ED, plant.b),
-                "wb_star_predicted": predicted["wb_star"],
-                "wb_star_w0": theory.predicted_wb_star(ve),
+                "wb_star_predicted": predicted.wb_star,
+                "wb_star_w0": predicted.wb_star_w0,
             },
         }
 

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from labbench import theory
+from labbench import predictions, theory
 from labbench.cli import main
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -53,8 +53,11 @@ def test_json_keys_and_values(model, capsys):
     assert d["spectral_radius"] == pytest.approx(st.spectral_radius, rel=1e-12)
     assert d["K_max"] == pytest.approx(theory.k_max(plant, ve), rel=1e-12)
     assert d["K_max_approx"] == pytest.approx(1.1 / 0.0025)
-    assert d["ws_star"] == pytest.approx(math.sqrt(500))
-    assert d["wb_star"] == 125
+    # one truth (labbench.predictions): read off the exact sampled model, closed forms beside
+    bw = predictions.bandwidths(plant, ve)
+    assert (d["ws_star"], d["wb_star"], d["bandwidths_model"]) == (bw.ws_star, bw.wb_star, "sampled")
+    assert d["ws_star_eq5"] == pytest.approx(math.sqrt(500)) and d["wb_star_w0"] == 125
+    assert d["wb_star"] < 0.8 * 125  # the sampled loop loses damping well before w0
 
 
 def test_json_damper_has_null_k_max_and_default_grid(capsys):
@@ -63,7 +66,9 @@ def test_json_damper_has_null_k_max_and_default_grid(capsys):
     assert code == 0
     d = strict_json(out)
     assert d["K_max"] is None and d["K_max_approx"] is None and d["ws_star"] is None
-    assert d["wb_star"] is None  # no filter
+    assert d["wb_star_w0"] is None  # no filter: no closed form; the sampled curve's own reading
+    bw = theory.predicted_bandwidths(Plant(0.1, 0.1), VirtualEnvironment("damper", B=1))
+    assert d["wb_star"] == bw["wb_star"]
     assert len(d["w"]) == len(d["ED"]) > 10 and d["w"] == sorted(d["w"])
     assert d["stable"] is True
 

@@ -16,7 +16,7 @@ from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.app import run_app  # noqa: E402
 from labbench.gui.live_estimate import estimate  # noqa: E402
-from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
+from labbench.gui.main_window import IDENTIFIED, LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.session_catalogue import list_sessions  # noqa: E402
 from labbench.session_content import analysis_meta, load_session  # noqa: E402
@@ -57,6 +57,7 @@ def wait_final_estimate(qtbot, win, timeout=RUN_TIMEOUT_MS):
 
 def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_window):
     win = make_window()
+    win.theory_plant.setCurrentIndex(IDENTIFIED)
     start(win, "etfe", duration_s=6.0, seed=5)
     wait_run_done(qtbot, win)
     wait_final_estimate(qtbot, win)

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from labbench import theory
+from labbench import predictions, theory
 from labbench.cli.main import float_list
 from labbench.numfmt import fmt
 from labbench.jsonutil import json_safe
@@ -121,6 +121,7 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
     st = theory.stability(plant, ve, latency) if whole else None
     kmax = theory.k_max(plant, ve, latency=latency) if whole else None
     kapp = theory.k_max_approx(plant, ve, latency)
+    bw = predictions.bandwidths(plant, ve, latency)
     return {
         "model": model,
         "ve": ve.as_dict(),
@@ -138,8 +139,13 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
         "K_max": kmax,
         "K_max_approx": kapp,
         "K_max_margin": (kmax / kapp - 1) if kmax is not None and kapp else None,
-        "ws_star": theory.predicted_ws_star(plant, ve),
-        "wb_star": theory.predicted_wb_star(ve),
+        # read off the exact sampled model with the device delay (labbench.predictions),
+        # the paper's closed forms beside them
+        "ws_star": bw.ws_star,
+        "wb_star": bw.wb_star,
+        "ws_star_eq5": bw.ws_star_eq5,
+        "wb_star_w0": bw.wb_star_w0,
+        "bandwidths_model": bw.model,
         "delay_effects": theory.delay_effects(plant, ve, latency),
     }
 
@@ -168,13 +174,15 @@ def _headline(s: dict) -> str:
 
 def table(s: dict) -> str:
     ve, pl = s["ve"], s["plant"]
+    bw = predictions.bandwidths(Plant(pl["m"], pl["b"]), VirtualEnvironment.from_dict(ve),
+                                s["device_delay_s"])
     head = [
         f"{ve['kind']} VE, {s['model']} model: m = {pl['m']:g} kg, b = {pl['b']:g} N s/m, "
         + "".join(f"{name} = {fmt(ve[name], 6)} {unit}, " for name, unit in
                   (("K", "N/m"), ("B", "N s/m"), ("w0", "rad/s")) if name in USES[ve["kind"]])
         + f"T = {ve['T']:g} s",
         _headline(s),
-        f"ws* = {fmt(s['ws_star'])} rad/s, wb* = {fmt(s['wb_star'])} rad/s",
+        "; ".join(f"{predictions.SYMBOLS[k]}: {predictions.predicted_text(k, bw)}" for k in ("ws", "wb")),
         "",
         f"{'w rad/s':>10} {'|Z| dB':>8} {'phase':>8} {'Re Z':>10} {'Im Z':>10} "
         f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}",

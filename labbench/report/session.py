@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from labbench.predictions import recorded_plant
 from labbench.records import iso_time, protocol_name
 from labbench.session_content import load_session, session_ve
 from labbench.ve import Plant, VirtualEnvironment
@@ -54,11 +55,7 @@ class ReportSession:
     @property
     def plant(self) -> Plant | None:
         """The device model the run assumed (results first: what analysis used)."""
-        for p in (self.results.get("plant"), (self.start.get("precheck") or {}).get("plant"),
-                  self.start.get("plant")):
-            if isinstance(p, dict) and "m" in p and "b" in p:
-                return Plant(float(p["m"]), float(p["b"]))
-        return None
+        return recorded_plant(self.start, self.results)
 
     @property
     def ve(self) -> VirtualEnvironment | None:

@@ -1,0 +1,97 @@
+"""The theory numbers a person reads: one place for the live labels, the overlays, the
+Identification tab, the report and the CLI.
+
+The prediction is the exact sampled model (``labbench.theory.z_sampled``) with the
+rig's device delay (``labbench.device_delay``), its bandwidths read off its own ES and
+ED curves with the rules applied to measurements (``labbench.theory.predicted_bandwidths``).
+The paper's continuous closed forms, sqrt(K/m) (eq. 5) and w0 (sec. 3.2), are kept
+beside it and always labelled as such: on the paper's demo (K = 50 N/m, B = 1 N s/m,
+w0 = 125 rad/s, 1 kHz) the sampled model's w_b* is 72.6 rad/s where w0 says 125, and a
+window that showed w0 as "theory" read as a far-off measurement.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import asdict, dataclass
+
+from labbench.numfmt import fmt
+from labbench.units import SI
+from labbench.ve import Plant, VirtualEnvironment
+
+SYMBOLS = {"ws": "w_s*", "wb": "w_b*"}
+CLOSED_FORM = {"ws": "paper eq. 5", "wb": "paper w0"}
+
+
+@dataclass(frozen=True)
+class Bandwidths:
+    """Predicted bandwidths [rad/s] of one VE on one plant (None: the curve never crosses,
+    or the VE has no spring / no virtual damping).
+
+    ``ws_star`` / ``wb_star``: from ``model`` ("sampled"; "paper" when td is not whole
+    samples and no sampled model exists) with ``latency_s``; ``ws_star_eq5`` /
+    ``wb_star_w0``: the paper's continuous closed forms.
+    """
+
+    ws_star: float | None
+    wb_star: float | None
+    ws_star_eq5: float | None
+    wb_star_w0: float | None
+    model: str
+    latency_s: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def predicted(self, which: str) -> float | None:
+        return self.ws_star if which == "ws" else self.wb_star
+
+    def closed_form(self, which: str) -> float | None:
+        return self.ws_star_eq5 if which == "ws" else self.wb_star_w0
+
+
+def recorded_plant(start: dict, results: dict | None = None) -> Plant | None:
+    """The device model a session's theory uses: its analysis' (``results["plant"]``)
+    first, then the one its pre-check and start record name; None when it names none."""
+    start = start if isinstance(start, dict) else {}
+    for p in ((results or {}).get("plant"), (start.get("precheck") or {}).get("plant"),
+              start.get("plant")):
+        if isinstance(p, dict) and "m" in p and "b" in p:
+            return Plant(float(p["m"]), float(p["b"]))
+    return None
+
+
+@functools.lru_cache(maxsize=64)
+def bandwidths(plant: Plant, ve: VirtualEnvironment, latency_s: float = 0.0) -> Bandwidths:
+    """The predicted bandwidths of ``ve`` on ``plant`` with the device delay ``latency_s``
+    [s]; cached (the window asks for them at every estimate)."""
+    from labbench import theory
+
+    model = "sampled" if theory.whole_samples(ve) else "paper"
+    read = theory.predicted_bandwidths(plant, ve, model, latency_s)
+    return Bandwidths(read["ws_star"], read["wb_star"], theory.predicted_ws_star(plant, ve),
+                      theory.predicted_wb_star(ve), model, float(latency_s))
+
+
+def predicted_text(which: str, bw: Bandwidths, unit=None, digits: int = 4) -> str:
+    """``sampled theory 72.57 rad/s; paper w0: 125``: the prediction, the closed form
+    labelled beside it. ``unit``: ``labbench.units.DisplayUnits`` (None: SI, rad/s)."""
+    unit = unit if unit is not None else SI
+    text = f"{bw.model} theory {_shown(bw.predicted(which), unit, digits)} {unit.frequency}"
+    closed = bw.closed_form(which)
+    if closed is not None and math.isfinite(closed):
+        text += f"; {CLOSED_FORM[which]}: {_shown(closed, unit, digits)}"
+    return text
+
+
+def label(which: str, measured: float | None, bw: Bandwidths | None, unit=None,
+          digits: int = 4) -> str:
+    """One line for a measured bandwidth and its prediction: ``w_s* = 24.07 rad/s
+    (sampled theory 24.07 rad/s; paper eq. 5: 23.06)``; ``bw`` None: measured only."""
+    unit = unit if unit is not None else SI
+    text = f"{SYMBOLS[which]} = {_shown(measured, unit, digits)} {unit.frequency}"
+    return text if bw is None else f"{text} ({predicted_text(which, bw, unit, digits)})"
+
+
+def _shown(v, unit, digits: int) -> str:
+    return fmt(unit.frequency_of(v), digits)

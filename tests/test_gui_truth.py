@@ -1,0 +1,60 @@
+"""One truth: every number the window shows for a session equals the report's for it."""
+import os
+
+os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
+
+import re  # noqa: E402
+
+import pytest  # noqa: E402
+
+from labbench.gui.main_window import LIVE_ESTIMATOR, RUN_PLANT, MainWindow  # noqa: E402
+from labbench.numfmt import fmt  # noqa: E402
+from labbench.report.content import build  # noqa: E402
+from labbench.report.render_html import render_html  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+
+RUN_TIMEOUT_MS = 60_000
+
+
+def _report_html(path) -> str:
+    report = build([path])
+    return render_html(report.title, report.subtitle, report.blocks)
+
+
+def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path):
+    win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
+    qtbot.addWidget(win)
+    win.show()
+    assert win.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value(("duration_s",), 8.0)
+    win.protocol_panel.set_value(("seed",), 2)
+    win.start_protocol()
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
+    assert win.last_run.status == "success", win.last_run.reason
+    qtbot.waitUntil(lambda: win.impedance.last is not None and win.impedance.last.n_samples == 8000
+                    and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_TIMEOUT_MS)
+    html = _report_html(win.session_path)
+    bw = win.last_run.results["bandwidths"]
+    plant = win.last_run.results["plant"]
+
+    # the marks: measured, the sampled theory, the paper's closed form, as the report's table
+    ws, wb = (win.impedance.marks[k].label.format for k in ("ws", "wb"))
+    numbers = {k: fmt(bw[k]) for k in bw}
+    assert ws == (f"w_s* = {numbers['ws_star_measured']} rad/s (sampled theory "
+                  f"{numbers['ws_star_predicted']} rad/s; paper eq. 5: {numbers['ws_star_eq5']})")
+    assert wb == (f"w_b* = {numbers['wb_star_measured']} rad/s (sampled theory "
+                  f"{numbers['wb_star_predicted']} rad/s; paper w0: {numbers['wb_star_w0']})")
+    for sym in ("ws", "wb"):
+        measured, predicted = numbers[f"{sym}_star_measured"], numbers[f"{sym}_star_predicted"]
+        assert f"{measured} / {predicted}" in html  # page 1: measured / sampled theory
+    # the wb* the sampled model predicts is far from w0: the window must not call w0 "theory"
+    assert bw["wb_star_predicted"] < 0.7 * bw["wb_star_w0"]
+    assert "(theory " not in ws + wb
+
+    # the plant of the overlay is the report's "device model of the theory"
+    title = win.impedance.title.text
+    m, b = fmt(plant["m"]), fmt(plant["b"])
+    assert f"m = {m} kg, b = {b} N s/m" in title
+    assert re.search(rf"m = {re.escape(m)} kg, b = {re.escape(b)} N s/m", html)
+    win.close()
