@@ -204,7 +204,7 @@ class _Child:
     def do_disable(self, timeout):
         self._dev().disable(timeout)
 
-    def do_run(self, protocol_name, settings, rig, session_dir, start_extra):
+    def do_run(self, protocol_name, settings, rig, session_dir, start_extra, simulated):
         from labbench.realtime import RealtimeConfig
         from labbench.registry import make_protocol
         from labbench.runner import run_recorded
@@ -222,7 +222,8 @@ class _Child:
             return run_recorded(
                 device, protocol, session_dir, [lambda rec: self.post("record", rec)],
                 start_extra=start_extra, on_session=lambda path: self.post("session", path),
-                stop=self.run_stop, rig=rig, close=False, realtime=RealtimeConfig.from_rig(rig),
+                stop=self.run_stop, rig=rig, close=False, simulated=simulated,
+                realtime=RealtimeConfig.from_rig(rig),
                 progress=lambda frac, text: self.post("progress", (frac, text)),
                 live_timing=self.post_timing,
                 warn=lambda line: self.post("warning", line))[0]
@@ -300,10 +301,13 @@ class Acquisition:
         self.estop.clear()  # a fresh device: the latch belongs to the one closed
         self.send("connect", opener, rig, options)
 
-    def run(self, protocol_name: str, settings: dict, rig, session_dir, start_extra: dict | None):
+    def run(self, protocol_name: str, settings: dict, rig, session_dir, start_extra: dict | None,
+            simulated: bool):
+        """``simulated``: the device is a simulator (``labbench.runner.run``: its watchdog
+        records a host stall and the run goes on)."""
         self.stop.clear()
         self.send("run", protocol_name, settings, rig,
-                  None if session_dir is None else str(session_dir), start_extra)
+                  None if session_dir is None else str(session_dir), start_extra, simulated)
 
     def request_stop(self) -> None:
         self.stop.set()

@@ -46,7 +46,7 @@ ESTOP_KEYS = ("Esc", "Space")
 # the theory overlay's plant: the session's (as its analysis and report), or identified live
 PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
 RUN_PLANT, IDENTIFIED = range(2)
-SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial")
+SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
 
 
 def guarded(slot):
@@ -122,6 +122,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._run_started = time.monotonic()
         self._replay: threading.Thread | None = None
         self._device_used = False  # a run has used the connected device
+        self._backend_connected = ""  # the backend name of the device connected
         self._progress_shown = 0.0  # monotonic time of the last progress shown
 
         self.setWindowTitle(f"labbench: {rig.name}")
@@ -269,6 +270,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         options = {"realtime": self.realtime} if backend == "sim" else {}
         self.log.add("info", f"connecting to {backend} ...")
+        self._backend_connected = backend
         self.estop.set_latched(False)
         self.estop_confirmed = False
         self.health = {}
@@ -437,7 +439,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
         self.acquisition.run(self.protocol_panel.choice.currentText(), self.protocol_panel.values(),
                              self.rig, self.session_dir,
-                             start_extra={"gui_settings": self.protocol_panel.state()})
+                             start_extra={"gui_settings": self.protocol_panel.state()},
+                             simulated=self._backend_connected in SIM_BACKENDS)
 
     @guarded
     def stop_run(self):

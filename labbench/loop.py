@@ -56,6 +56,7 @@ from labbench.safety import (
     SEQ_GAP,
     TRIPPED,
     SafetyConfig,
+    WatchdogPolicy,
 )
 from labbench.ve import VirtualEnvironment
 
@@ -227,7 +228,8 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
              stop: threading.Event | None = None,
              progress: Callable[[int, int], None] | None = None,
              page_size: int = 100, first_page: int = 0,
-             live: Callable[[dict], None] | None = None) -> LoopOutcome:
+             live: Callable[[dict], None] | None = None,
+             watchdog: WatchdogPolicy | None = None) -> LoopOutcome:
     """Run ``len(excitation)`` samples of ``loop`` on ``device``; emit pages and events.
 
     The device is enabled here, at the sample where the enable gate opens, and
@@ -240,6 +242,8 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     ``read_raw(timeout) -> (seq, t_s, position_m, flags)`` as a fast form of
     ``read``. ``live(snapshot)``, if given, is called after each page with the
     timing so far: ``n`` samples, ``overruns``, ``max_s`` and ``worst_t_s``.
+    ``watchdog``: ``labbench.safety.WatchdogPolicy`` (default: the hardware's, from
+    ``loop.safety.watchdog_s``; a simulator's records a late period and goes on).
 
     Steady state allocates nothing that outlives a page: the periods go to a
     list made before the loop, a page's rows are freed when it is emitted.
@@ -255,8 +259,10 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     stop = stop or threading.Event()
     paced = bool(desc.details.get("paced", True))
     wd = loop.safety.watchdog_s
+    policy = watchdog or WatchdogPolicy.for_device(loop.safety, simulated=False)
+    read_timeout = policy.sample_timeout_s
     late = 1.5 * T if paced else float("inf")
-    too_late = wd if paced else float("inf")
+    too_late = policy.period_limit_s if paced else float("inf")
 
     if isinstance(device, RawReading):
         raw = device.read_raw
@@ -332,10 +338,10 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                 last_event(t_s, "stop", reason)
                 break
             try:
-                seq, t_s, x, dflags = raw(wd)
+                seq, t_s, x, dflags = raw(read_timeout)
             except TimeoutError:
                 command(0.0)
-                status, reason = "tripped", f"watchdog: no sample within {wd:g} s"
+                status, reason = "tripped", f"watchdog: no sample within {read_timeout:g} s"
                 loop.trip("watchdog", reason)
                 last_event(t_s, "watchdog", reason)
                 break
@@ -349,6 +355,10 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                 if d > too_late:
                     loop.trip("watchdog", f"watchdog: loop period {d * 1e3:.3g} ms"
                                           f" > {wd * 1e3:g} ms")
+                elif d > wd and t_s - last_event_t.get("stall", -1e300) >= 1.0:
+                    last_event_t["stall"] = t_s  # a simulator's: said, at most once a second
+                    event(t_s, "stall", f"host stall: loop period {d * 1e3:.3g} ms > watchdog "
+                                        f"{wd * 1e3:g} ms; simulator: recorded, run goes on")
             if d > worst[0] and i:
                 worst[:] = d, i, t_s, now - start
             row = advance(seq, t_s, x, exc[i])

@@ -94,7 +94,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     with ``close`` (default), closed on the way out. Raises UserError (before
     anything is enabled or recorded) when the protocol's VE is unstable or its
     plan does not fit the rig. ``simulated`` says whether the device is a
-    simulator (the only place ``allow_unstable`` is accepted); None: its
+    simulator (the only place ``allow_unstable`` is accepted, and its watchdog records a
+    host stall instead of tripping: ``labbench.safety.WatchdogPolicy``); None: its
     description's kind starts with "sim" (a real driver talking to a simulated
     peer reports the driver's kind, so the caller who opened it must say).
     ``realtime``: what the loop's thread asks the OS for on a paced device
@@ -104,6 +105,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     max_s, worst_t_s, n), e.g. for a status bar.
     """
     from labbench.loop import SafetyConfig
+    from labbench.safety import WatchdogPolicy
 
     rig = rig or Rig()
     stop = stop or threading.Event()
@@ -126,8 +128,9 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
             rt = replace(rt, enabled=False)
-        meta = _segments(device, protocol, rig, plant, check, delay, safety, desc, run_state, stop,
-                         progress, live_timing, lambda: acquire(rt, warn))
+        watchdog = WatchdogPolicy.for_device(safety, simulated)
+        meta = _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc,
+                         run_state, stop, progress, live_timing, lambda: acquire(rt, warn))
         if run_state.finished is not None:  # aborted or failed in a segment
             return run_state.finished
         _stop_device(device, close=False)
@@ -158,8 +161,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         _stop_device(device, close=close)
 
 
-def _segments(device, protocol, rig, plant, check, delay, safety, desc, run_state, stop, progress,
-              live_timing, realtime) -> dict:
+def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc, run_state, stop,
+              progress, live_timing, realtime) -> dict:
     """Start record, descriptor, then the protocol's segments through the loop; returns the
     analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``).
     Each ``run_loop`` runs under ``realtime()`` (the protocol's work between segments does
@@ -173,7 +176,8 @@ def _segments(device, protocol, rig, plant, check, delay, safety, desc, run_stat
         start = records.start_record(
             rig.as_dict(), protocol.describe(), protocol.seed,
             device=asdict(desc), plant={"m": plant.m, "b": plant.b}, device_delay=delay.as_dict(),
-            precheck=json_safe(check), safety=safety.as_dict(), realtime=run_state.realtime)
+            precheck=json_safe(check), safety=safety.as_dict(), watchdog=watchdog.as_dict(),
+            realtime=run_state.realtime)
         run_state.uid = start["uid"]
         run_state.emit(start)
         run_state.emit(records.descriptor_record(T))
@@ -210,7 +214,8 @@ def _segments(device, protocol, rig, plant, check, delay, safety, desc, run_stat
                 outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
                                    run_state.emit, stop=stop, progress=on_progress,
                                    first_page=len(run_state.pages),
-                                   live=on_live if live_timing is not None else None)
+                                   live=on_live if live_timing is not None else None,
+                                   watchdog=watchdog)
             finally:
                 grant.__exit__(None, None, None)
                 grant = None

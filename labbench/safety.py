@@ -111,6 +111,43 @@ class SafetyConfig:
         return d
 
 
+# A simulator whose host stalls still gets its samples, late: it is declared dead only
+# after this long without one (its plant advances per sample, not per wall second).
+SIM_SAMPLE_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True)
+class WatchdogPolicy:
+    """What the loop's watchdog does, and for which kind of device (start record ``watchdog``).
+
+    ``applies``: "hardware" or "simulator". ``period_limit_s``: a paced loop period longer
+    than it zeroes the force and trips (inf: never; a late period is still counted as an
+    overrun in the timing and flagged ``OVERRUN`` on its sample). ``sample_timeout_s``: no
+    sample within it trips.
+
+    On hardware a stalled host leaves a real handle under a stale force: the watchdog trips
+    at ``watchdog_s``. On a simulator the plant advances per sample, so a host stall (seen
+    here: 82 ms on a busy 2-core machine) harms nothing but would cost the run: it is
+    recorded and the run goes on.
+    """
+
+    applies: str
+    period_limit_s: float
+    sample_timeout_s: float
+
+    @classmethod
+    def for_device(cls, safety: SafetyConfig, simulated: bool) -> WatchdogPolicy:
+        if simulated:
+            return cls("simulator", math.inf, max(safety.watchdog_s, SIM_SAMPLE_TIMEOUT_S))
+        return cls("hardware", safety.watchdog_s, safety.watchdog_s)
+
+    def as_dict(self) -> dict:
+        inf = math.isinf(self.period_limit_s)
+        return {"applies": self.applies, "period_limit_s": None if inf else self.period_limit_s,
+                "sample_timeout_s": self.sample_timeout_s,
+                "late_period": "recorded, run goes on" if inf else "trips"}
+
+
 _NON_NEGATIVE = {"nominal_damping_ns_m", "enable_force_threshold_n"}
 # Physical upper bound of each limit (no haptic bench is beyond them; 1e308 is a typo).
 _MAX = {

@@ -1,5 +1,7 @@
 """A device with a fault injected mid-run, for the GUI tests; Qt-free, because the GUI
 opens it in its acquisition process (``labbench.gui.acquisition``), which must not import Qt."""
+import time
+
 from labbench.device import DeviceFault
 from labbench.registry import open_device
 
@@ -31,3 +33,24 @@ class FaultyDevice:
 def open_faulty(rig, n_ok: int, **_options) -> FaultyDevice:
     """An opener for ``MainWindow.connect_device``: module-level, so it pickles."""
     return FaultyDevice(rig, n_ok)
+
+
+class StallingDevice(FaultyDevice):
+    """The simulator, paced, whose host stalls once: a sleep of ``stall_s`` before sample
+    ``at`` (as a busy machine deschedules the acquisition process)."""
+
+    def __init__(self, rig, at: int, stall_s: float):
+        self.inner = open_device("sim", rig, realtime=True)
+        self.at, self.stall_s = at, stall_s
+        self.stalls = 0
+
+    def _tick(self):
+        self.at -= 1
+        if self.at == 0:
+            time.sleep(self.stall_s)
+            self.stalls += 1
+
+
+def open_stalling(rig, at: int, stall_s: float, **_options) -> StallingDevice:
+    """An opener for ``MainWindow.connect_device`` (module-level: it pickles)."""
+    return StallingDevice(rig, at, stall_s)

@@ -252,6 +252,25 @@ def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
     assert win.buffer.n < 5000
 
 
+def test_a_host_stall_does_not_end_a_simulated_run(qtbot, make_window):
+    """A sleep of 0.3 s in the acquisition process (six times the watchdog) mid-run: the
+    simulator's run goes on, the stall is in the log, the timing and the session."""
+    from gui_faulty_device import open_stalling
+
+    win = make_window(realtime=True)
+    win.connect_device("sim", opener=functools.partial(open_stalling, at=1000, stall_s=0.3))
+    qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
+    start(win, "etfe", duration_s=2.5, seed=1)
+    wait_run_done(qtbot, win)
+    assert win.last_run.status == "success", win.last_run.reason
+    assert win.buffer.n == 2500 and not win.banner.isVisible()
+    assert any("host stall" in t and "run goes on" in t for t in win.log.texts("event"))
+    assert win.last_run.timing["max_s"] >= 0.3
+    assert "worst stall: 3" in win.status["worst stall"].text()  # 300-odd ms
+    start_rec = load_session(win.session_path)[0]
+    assert start_rec["watchdog"]["applies"] == "simulator"
+
+
 def test_replay_session_through_the_live_view(qtbot, make_window):
     win = make_window()
     start(win, "etfe", duration_s=4.0, seed=3)
@@ -347,7 +366,7 @@ import functools
 mailbox = Mailbox()
 acq = Acquisition(mailbox)
 acq.connect(functools.partial(open_device, "sim"), Rig(), {"realtime": True})
-acq.run("etfe", {"duration_s": 60.0, "seed": 1}, Rig(), sys.argv[1], None)
+acq.run("etfe", {"duration_s": 60.0, "seed": 1}, Rig(), sys.argv[1], None, simulated=True)
 deadline = time.monotonic() + 60
 records = 0
 while records < 5 and time.monotonic() < deadline:  # the run is streaming
