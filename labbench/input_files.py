@@ -4,7 +4,7 @@ A FIFO given as a rig file would block ``open`` for ever, ``/dev/zero`` never
 ends, and a directory or a multi-gigabyte file is a mistake to say so about,
 not to read. ``O_NONBLOCK`` makes the open itself return at once for a FIFO;
 ``fstat`` on the open descriptor (not the name, which may change meanwhile)
-then decides.
+then decides. Windows has neither flag (nor FIFOs that block an open): 0 there.
 """
 from __future__ import annotations
 
@@ -14,12 +14,15 @@ from pathlib import Path
 
 from labbench.errors import UserError
 
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
+_FLAGS = os.O_RDONLY | _NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+
 
 def open_regular(path, what: str, max_bytes: int | None = None):
     """``path`` opened for binary reading, or one UserError naming ``what`` and the problem."""
     p = Path(path)
     try:
-        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        fd = os.open(p, _FLAGS)
     except FileNotFoundError:
         raise UserError(f"{what} not found: {p}") from None
     except (OSError, ValueError) as exc:
@@ -32,7 +35,8 @@ def open_regular(path, what: str, max_bytes: int | None = None):
             raise UserError(f"{what} {p} is not a regular file (a pipe or device is not read)")
         if max_bytes is not None and st.st_size > max_bytes:
             raise UserError(f"{what} {p} is {st.st_size} bytes; at most {max_bytes} are read")
-        os.set_blocking(fd, True)
+        if _NONBLOCK:
+            os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)

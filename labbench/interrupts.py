@@ -1,10 +1,12 @@
-"""SIGINT, SIGTERM and SIGHUP end a command cleanly, whatever disposition was inherited.
+"""SIGINT, SIGTERM and SIGHUP (SIGBREAK on Windows) end a command cleanly, whatever
+disposition was inherited.
 
 A process started with SIGINT ignored (``nohup``, a background job, some
 launchers) would not stop on Ctrl-C, and the default action of SIGTERM (``kill``,
 a service manager) and SIGHUP (a closed terminal) ends the process on the spot:
 no force zero, no stop record. So the CLI and the GUI's acquisition process
-install their own handlers for all three:
+install their own handlers for all three (the ones the platform has:
+``labbench.platform.signals``; on Windows a closed console is SIGBREAK too):
 
 * during a run (``stopping``) a signal only sets the run's ``StopRequest``; the
   loop sees it at the next sample, commands zero force, disables the device and
@@ -21,13 +23,14 @@ import contextlib
 import signal
 from collections.abc import Callable, Iterator
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+from labbench.platform.signals import console_close, ending_signals
 
 
 def interrupt_reason(signum: int) -> str:
-    """``interrupted by SIGTERM``; SIGINT adds "(Ctrl-C)"."""
+    """``interrupted by SIGTERM``; SIGINT adds "(Ctrl-C)", SIGBREAK "(Ctrl-Break or console closed)"."""
     name = signal.Signals(signum).name
-    return f"interrupted by {name}" + (" (Ctrl-C)" if signum == signal.SIGINT else "")
+    how = {"SIGINT": " (Ctrl-C)", "SIGBREAK": " (Ctrl-Break or console closed)"}.get(name, "")
+    return f"interrupted by {name}{how}"
 
 
 class Interrupted(KeyboardInterrupt):
@@ -68,11 +71,14 @@ class StopRequest:
 
 @contextlib.contextmanager
 def handle_signals(on_signal: Callable[[int], None]) -> Iterator[None]:
-    """Call ``on_signal(signum)`` for SIGINT, SIGTERM and SIGHUP (an inherited SIG_IGN
-    included) inside the block; the previous handlers come back afterwards. Main thread only."""
-    previous = {s: signal.signal(s, lambda signum, _frame: on_signal(signum)) for s in SIGNALS}
+    """Call ``on_signal(signum)`` for SIGINT, SIGTERM and SIGHUP or SIGBREAK (an inherited
+    SIG_IGN included) inside the block; the previous handlers come back afterwards. Main
+    thread only."""
+    previous = {s: signal.signal(s, lambda signum, _frame: on_signal(signum))
+                for s in ending_signals()}
     try:
-        yield
+        with console_close():
+            yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)

@@ -1,4 +1,4 @@
-"""Real-time scheduling for the thread that runs the haptic loop (Linux).
+"""Real-time scheduling for the thread that runs the haptic loop (Linux; Windows in part).
 
 ``acquire(config)`` is a context manager entered by the thread about to run a
 paced loop (``labbench.runner.run``: ``labbench run``, the GUI's acquisition
@@ -31,6 +31,12 @@ process). For its duration it asks, each step on its own:
   184 and 118 for the bare pacer; docs/loop.md). The cost is an idle CPU that
   keeps running (power, and on a VM the host's CPU time).
 
+On Windows (``labbench.platform``) the loop's process gets the HIGH priority class and
+its thread TIME_CRITICAL, and the timer resolution is 1 ms while the loop runs (the
+latency request); there is no whole-process memory lock nor a CPU chosen. macOS offers
+none of these to a user process. Each ability the platform lacks is one warning line
+(``labbench.platform.missing``) and ``record["unavailable"]`` names it.
+
 Where the OS refuses (no CAP_SYS_NICE, a zero rtprio limit), one warning line
 per process says how to grant it and the run goes on. ``Grant.record`` is what
 was obtained (policy, priority, affinity, memory lock, GC state), stored in the
@@ -42,25 +48,21 @@ its CPU (the kernel's RT throttling leaves others 5 %).
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import logging
-import os
-import struct
 import sys
 import threading
 import time
 from dataclasses import asdict, dataclass
 
 from labbench.errors import UserError
+from labbench.platform import latency, memlock, missing, scheduling
+from labbench.platform.latency import CPU_LATENCY_FILE
 
 log = logging.getLogger(__name__)
 
 SPIN_S = 150e-6  # spin this long before a deadline: a sleep's wake-up is later by up to ~100 us
 SWITCH_INTERVAL_S = 1e-4
-CPU_LATENCY_FILE = "/dev/cpu_dma_latency"
-_MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 _warned: set[str] = set()
 _lock = threading.Lock()
 
@@ -118,6 +120,8 @@ def sleep_until(deadline: float, clock=time.perf_counter) -> None:
 
 def hint() -> str:
     """How to grant a user real-time scheduling, locked memory and the CPU latency limit."""
+    if not sys.platform.startswith("linux"):
+        return "see docs/loop.md"
     return ("grant it with '<user> - rtprio 95' and '<user> - memlock unlimited' in "
             "/etc/security/limits.conf (then log in again), or CAP_SYS_NICE and CAP_IPC_LOCK "
             f"on the interpreter (setcap), and write access to {CPU_LATENCY_FILE} (a udev rule); "
@@ -130,17 +134,16 @@ class Grant:
     def __init__(self, config: RealtimeConfig, warn=None):
         self.config = config
         self.warn = warn or log.warning
-        self.record: dict = {"requested": config.enabled, "policy": _policy_name(),
-                             "priority": 0, "affinity": _affinity(0), "memory_locked": False,
+        self.record: dict = {"requested": config.enabled, "policy": scheduling.policy_name(),
+                             "priority": 0, "affinity": scheduling.affinity(0),
+                             "memory_locked": False,
                              "gc": "enabled" if gc.isenabled() else "disabled",
                              "cpu_latency_us": None,
-                             "threads": 0, "refused": []}
+                             "threads": 0, "refused": [], "unavailable": []}
         self._undo: list = []
 
     def __enter__(self) -> "Grant":
-        if not self.config.enabled or not sys.platform.startswith("linux"):
-            if self.config.enabled:
-                self.record["refused"].append(f"not available on {sys.platform}")
+        if not self.config.enabled:
             return self
         try:
             self._enter()
@@ -155,37 +158,37 @@ class Grant:
     # ------------------------------------------------------------------------------------
     def _enter(self) -> None:
         cfg, rec, refused = self.config, self.record, self.record["refused"]
-        tid = threading.get_native_id()
-        allowed = sorted(os.sched_getaffinity(0))
-        cpu = None
-        if cfg.cpu is not None:
-            if cfg.cpu not in allowed:
-                raise UserError(f"real-time CPU {cfg.cpu} is not one this process may use "
-                                f"({','.join(map(str, allowed))})")
-            cpu = cfg.cpu
-        elif len(allowed) >= 2:
-            cpu = allowed[-1]
-        siblings = [t for t in _threads() if t != tid]
-        granted = _set_thread(tid, cpu, cfg.priority, self._undo, refused)
+        how = scheduling.kind()
+        if how == "linux":
+            granted = self._linux_fifo()
+        elif how == "windows":
+            granted = scheduling.raise_windows_priority(self._undo, refused)
+            if granted:
+                rec.update(policy="HIGH_PRIORITY_CLASS",
+                           priority=scheduling.THREAD_PRIORITY_TIME_CRITICAL)
+        else:
+            granted = False
+            self._missing("real-time scheduling", "the loop runs as an ordinary thread and may "
+                                                  "miss periods under load")
         if granted:
-            rec.update(policy="SCHED_FIFO", priority=cfg.priority)
-            for t in siblings:
-                if _set_thread(t, cpu, cfg.priority - 1, self._undo, []):
-                    rec["threads"] += 1
             old = sys.getswitchinterval()
             sys.setswitchinterval(SWITCH_INTERVAL_S)
             self._undo.append(lambda: sys.setswitchinterval(old))
-        rec["affinity"] = _affinity(0)
+        rec["affinity"] = scheduling.affinity(0)
         if cfg.lock_memory:
-            err = _mlockall()
-            if err is None:
+            if not memlock.available():
+                self._missing("memory locking", "a page of the loop may be paged out under "
+                                                "memory pressure")
+            elif (err := memlock.lock_all()) is None:
                 rec["memory_locked"] = True
-                self._undo.append(_munlockall)
+                self._undo.append(memlock.unlock_all)
             else:
                 refused.append(f"mlockall: {err}")
         if cfg.cpu_latency_us >= 0:
-            err = self._hold_cpu_latency(cfg.cpu_latency_us)
-            if err is None:
+            if latency.kind() is None:
+                self._missing("the CPU latency request", "an idle CPU's wake-up may delay the "
+                                                         "loop's")
+            elif (err := latency.hold(cfg.cpu_latency_us, self._undo)) is None:
                 rec["cpu_latency_us"] = cfg.cpu_latency_us
             else:
                 refused.append(f"CPU latency limit ({CPU_LATENCY_FILE}): {err}")
@@ -200,19 +203,31 @@ class Grant:
                                   f" the loop runs as an ordinary process and may miss periods "
                                   f"under load: {hint()}")
 
-    def _hold_cpu_latency(self, us: int) -> str | None:
-        """Ask the kernel to keep CPU wake-up latency <= ``us`` until undone; None or the error."""
-        try:
-            fd = os.open(CPU_LATENCY_FILE, os.O_WRONLY | os.O_CLOEXEC)
-        except OSError as exc:
-            return exc.strerror
-        try:
-            os.write(fd, struct.pack("=i", us))  # a binary s32: the request lasts while open
-        except OSError as exc:
-            os.close(fd)
-            return exc.strerror
-        self._undo.append(lambda: os.close(fd))
-        return None
+    def _missing(self, ability: str, consequence: str) -> None:
+        self.record["unavailable"].append(ability)
+        missing(ability, consequence, self.warn)
+
+    def _linux_fifo(self) -> bool:
+        """SCHED_FIFO and one CPU for this thread, one level below for the other Python threads."""
+        cfg, rec = self.config, self.record
+        tid = threading.get_native_id()
+        allowed = scheduling.allowed_cpus()
+        cpu = None
+        if cfg.cpu is not None:
+            if cfg.cpu not in allowed:
+                raise UserError(f"real-time CPU {cfg.cpu} is not one this process may use "
+                                f"({','.join(map(str, allowed))})")
+            cpu = cfg.cpu
+        elif len(allowed) >= 2:
+            cpu = allowed[-1]
+        siblings = [t for t in scheduling.python_threads() if t != tid]
+        if not scheduling.set_fifo(tid, cpu, cfg.priority, self._undo, rec["refused"]):
+            return False
+        rec.update(policy="SCHED_FIFO", priority=cfg.priority)
+        for t in siblings:
+            if scheduling.set_fifo(t, cpu, cfg.priority - 1, self._undo, []):
+                rec["threads"] += 1
+        return True
 
     def _restore(self) -> None:
         while self._undo:
@@ -226,73 +241,6 @@ class Grant:
 def acquire(config: RealtimeConfig | None = None, warn=None) -> Grant:
     """Context manager: real-time scheduling for the calling thread (see the module docstring)."""
     return Grant(config or RealtimeConfig(), warn)
-
-
-# ----------------------------------------------------------------------------------- internals
-def _set_thread(tid: int, cpu: int | None, priority: int, undo: list, refused: list) -> bool:
-    """Affinity ``cpu`` and SCHED_FIFO ``priority`` for thread ``tid``; True if FIFO was granted.
-    (Linux: both calls act on one thread when given its id.)"""
-    try:
-        old_policy, old_param = os.sched_getscheduler(tid), os.sched_getparam(tid)
-        old_cpus = os.sched_getaffinity(tid)
-    except OSError as exc:  # the thread ended
-        refused.append(f"thread {tid}: {exc.strerror}")
-        return False
-    if cpu is not None and old_cpus != {cpu}:
-        try:
-            os.sched_setaffinity(tid, {cpu})
-            undo.append(lambda: os.sched_setaffinity(tid, old_cpus))
-        except OSError as exc:
-            refused.append(f"CPU affinity: {exc.strerror}")
-    try:
-        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as exc:
-        refused.append(f"SCHED_FIFO {priority}: {exc.strerror}")
-        return False
-    undo.append(lambda: os.sched_setscheduler(tid, old_policy, old_param))
-    return True
-
-
-def _threads() -> list[int]:
-    """Native ids of this process's live Python threads."""
-    return [t.native_id for t in threading.enumerate() if t.native_id is not None]
-
-
-def _affinity(tid: int) -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(tid))
-    except OSError:
-        return []
-
-
-def _policy_name() -> str:
-    try:
-        policy = os.sched_getscheduler(0)
-    except (OSError, AttributeError):
-        return "unknown"
-    names = {getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR", "SCHED_BATCH",
-                                          "SCHED_IDLE") if hasattr(os, n)}
-    return names.get(policy, str(policy))
-
-
-def _libc():
-    return ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-
-
-def _mlockall() -> str | None:
-    """Lock current and future pages (as they fault in, where the kernel can); None or the error."""
-    libc = _libc()
-    for flags in (_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT, _MCL_CURRENT | _MCL_FUTURE):
-        if libc.mlockall(flags) == 0:
-            return None
-        err = ctypes.get_errno()
-        if err != 22:  # EINVAL: no MCL_ONFAULT before Linux 4.4, try without
-            return os.strerror(err)
-    return os.strerror(err)
-
-
-def _munlockall() -> None:
-    _libc().munlockall()
 
 
 def _warn_once(warn, message: str) -> None:

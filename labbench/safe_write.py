@@ -114,7 +114,8 @@ def replacing(path, inputs: Iterable = (), force: bool = False) -> Iterator[Path
 
 
 def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
+    # Writable: Windows' fsync (_commit) refuses a read-only descriptor.
+    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
     try:
         os.fsync(fd)
     finally:

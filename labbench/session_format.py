@@ -367,7 +367,9 @@ class SessionWriter:
             raise ValueError(f"a session begins with a start record, got {start.get('kind')!r}")
         path = self.directory / self._file_name(start)
         try:
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            # O_BINARY (Windows): no newline translation in the records' bytes
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                               0o644)
         except FileExistsError:
             raise UserError(f"session file already exists: {path}") from None
         except OSError as exc:

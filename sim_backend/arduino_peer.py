@@ -3,9 +3,10 @@
 The board side of docs/serial-protocol.md in Python: it samples a simulated
 plant, sends ``micros,count`` lines or framed binary samples, takes framed
 force commands back, and has the sketch's watchdog (output zeroed after 3
-periods without a command). Transports: a pty pair (``os.openpty``; the host
-opens the slave by path with pyserial, 8-bit clean and fast) or a pyserial
-``loop://`` port for unit tests (board -> host only; the test calls ``emit``).
+periods without a command). Transports: the platform's serial peer
+(``labbench.platform.serial_peer``: a pty pair the host opens by path, or a local
+socket it opens as ``socket://`` where there is no pty) or a pyserial ``loop://``
+port for unit tests (board -> host only; the test calls ``emit``).
 
 Pacing and delay (sample k = position at the start of period k):
 
@@ -29,19 +30,16 @@ Faults are scheduled by sample index (``schedule``) so tests are repeatable.
 
 from __future__ import annotations
 
-import errno
 import math
-import os
-import select
 import threading
 import time
-import tty
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from labbench.drivers import framing
+from labbench.platform.serial_peer import open_transport
 
 BANNER = b"#labbench encoder v1\r\n"
 APPLIED_KEPT = 1_000_000  # periods of applied force kept (about 17 min at 1 kHz)
@@ -116,35 +114,25 @@ class ArduinoPeer:
         for f in faults:
             self.schedule(f)
         self._write = None
-        self._master: int | None = None
-        self.slave_path: str | None = None
-        self._slave: int | None = None
+        self._transport = None  # labbench.platform.serial_peer's, once opened
+        self.url: str | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.error: BaseException | None = None
         self.unplugged = False
 
     # -- transports -------------------------------------------------------------------
-    def open_pty(self) -> str:
-        """Create the pty pair; returns the path the host opens with pyserial."""
-        master, slave = os.openpty()
-        tty.setraw(slave)  # no echo or line discipline before the host configures it
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.slave_path = os.ttyname(slave)
-        self._write = self._write_pty
-        return self.slave_path
+    def open_port(self, warn=None) -> str:
+        """Open the platform's transport; returns what the host opens with
+        ``serial.serial_for_url`` (a pty's path or a ``socket://`` URL)."""
+        self._transport = open_transport(warn)
+        self._write = self._transport.write
+        self.url = self._transport.url
+        return self.url
 
     def attach_loop(self, port) -> None:
         """Board -> host over a pyserial ``loop://`` port (no command channel)."""
         self._write = port.write
-
-    def _write_pty(self, data: bytes) -> None:
-        # A full pty buffer loses bytes, as a USB-serial bridge does when the host stops reading.
-        try:
-            os.write(self._master, data)
-        except BlockingIOError:
-            pass
 
     # -- the board --------------------------------------------------------------------
     def schedule(self, fault: Fault) -> None:
@@ -253,17 +241,6 @@ class ArduinoPeer:
             return 0.0
         return self._latest
 
-    def _read_master(self, timeout: float) -> bytes:
-        r, _, _ = select.select([self._master], [], [], timeout)
-        if not r:
-            return b""
-        try:
-            return os.read(self._master, 4096)
-        except OSError as exc:  # EIO: host side closed
-            if exc.errno == errno.EIO:
-                return b""
-            raise
-
     def _lockstep_period(self) -> None:
         if not self._send_sample():
             return
@@ -277,7 +254,7 @@ class ArduinoPeer:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
-                for seq, value in self._take_commands(self._read_master(min(left, 0.02))):
+                for seq, value in self._take_commands(self._transport.read(min(left, 0.02))):
                     if self.fmt == "ascii" or seq == want:
                         force = value / self._unit
         if force is None:
@@ -287,7 +264,7 @@ class ArduinoPeer:
         self._advance(force)
 
     def _realtime_period(self) -> None:
-        self._take_commands(self._read_master(0))
+        self._take_commands(self._transport.read(0))
         force = self._watchdog_force()
         if self._send_sample():
             self._advance(force)
@@ -314,22 +291,16 @@ class ArduinoPeer:
     def unplug(self) -> None:
         """The cable is pulled: the host's port fails from now on."""
         self.unplugged = True
-        if self._master is not None:
-            os.close(self._master)
-            self._master = None
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
+        if self._transport is not None:
+            self._transport.close()
 
     def close(self, timeout: float = 2.0) -> None:
-        """Stop the board thread and release the pty (safe to call twice)."""
+        """Stop the board thread and release the transport (safe to call twice)."""
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout)
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                os.close(fd)
-        self._master = self._slave = None
+        if self._transport is not None:
+            self._transport.close()
 
 
 def connect_sim_serial(
@@ -345,7 +316,8 @@ def connect_sim_serial(
     lockstep_timeout_s: float = 1.0,
     sim: dict | None = None,
 ):
-    """The real ``SerialStream`` on a pty to a started ``ArduinoPeer``: ``(driver, peer)``.
+    """The real ``SerialStream`` on a pty (or local socket) to a started ``ArduinoPeer``:
+    ``(driver, peer)``.
 
     Driver settings come from ``rig``'s ``[serial]`` table (port and
     ``force_command = true`` are forced: the simulated plant needs the force).
@@ -379,9 +351,9 @@ def connect_sim_serial(
         seed=seed,
         faults=faults,
     )
-    path = peer.open_pty()
+    url = peer.open_port()
     try:
-        ser = serial.Serial(path, baudrate=config.baudrate, timeout=0)
+        ser = serial.serial_for_url(url, baudrate=config.baudrate, timeout=0)
     except BaseException:
         peer.close()
         raise

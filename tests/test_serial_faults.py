@@ -19,6 +19,8 @@ from labbench.runner import run
 from labbench.safety import DEVICE
 from labbench.ve import VirtualEnvironment
 from labbench.registry import make_protocol
+from labbench.platform.serial_peer import SocketTransport
+from labbench.sim_backend import arduino_peer
 from labbench.sim_backend.arduino_peer import Fault, connect_sim_serial
 from test_serial_stream import no_board_left_running  # noqa: F401
 
@@ -44,17 +46,21 @@ def run_etfe(drv, rig, duration_s=1.0, seed=5):
 
 
 @pytest.mark.parametrize(
-    "fault, explained",
+    "fault, explained, transport",
     [
-        (Fault("flip", FAULT_AT), "1 serial sample(s) lost before seq"),
-        (Fault("drop", FAULT_AT, n=3), "3 serial sample(s) lost before seq"),
-        (Fault("garbage", FAULT_AT, n=40), "serial link error: bytes discarded before seq"),
-        (Fault("reboot", FAULT_AT), "board rebooted: time went from"),
-        (Fault("stall", FAULT_AT, seconds=0.8), "serial stream stale: no sample for"),
-        (Fault("unplug", FAULT_AT), "serial port lost"),
+        (Fault("flip", FAULT_AT), "1 serial sample(s) lost before seq", "pty"),
+        (Fault("drop", FAULT_AT, n=3), "3 serial sample(s) lost before seq", "pty"),
+        (Fault("garbage", FAULT_AT, n=40), "serial link error: bytes discarded before seq", "pty"),
+        (Fault("reboot", FAULT_AT), "board rebooted: time went from", "pty"),
+        (Fault("stall", FAULT_AT, seconds=0.8), "serial stream stale: no sample for", "pty"),
+        (Fault("unplug", FAULT_AT), "serial port lost", "pty"),
+        # the transport where there is no pty (Windows): the host's socket:// port fails too
+        (Fault("unplug", FAULT_AT), "serial port lost", "socket"),
     ],
 )
-def test_fault_during_a_run_zeroes_force_and_is_recorded(fault, explained):
+def test_fault_during_a_run_zeroes_force_and_is_recorded(fault, explained, transport, monkeypatch):
+    if transport == "socket":
+        monkeypatch.setattr(arduino_peer, "open_transport", lambda warn=None: SocketTransport())
     rig = make_rig()
     drv, peer = connect_sim_serial(rig, seed=11, faults=[fault])
     result, stream = run_etfe(drv, rig)

@@ -23,6 +23,8 @@ from labbench.drivers.unwrap import Unwrapper, wrap_delta
 from labbench.device import Device, DeviceFault
 from labbench.errors import DeviceConnectionError, UserError
 from labbench.rig import Rig, rig_from_dict
+from labbench.platform.serial_peer import SocketTransport
+from labbench.sim_backend import arduino_peer
 from labbench.sim_backend.arduino_peer import ArduinoPeer, connect_sim_serial, default_plant
 from labbench.sim_backend.plant import MassDamperPlant
 
@@ -178,9 +180,13 @@ def _run(drv, forces, timeout=1.0):
     return out
 
 
+@pytest.mark.parametrize("transport", ["pty", "socket"])
 @pytest.mark.parametrize("fmt", ["binary", "ascii"])
 @pytest.mark.parametrize("delay", [0, 1])
-def test_lockstep_positions_equal_the_exact_sampled_plant(fmt, delay):
+def test_lockstep_positions_equal_the_exact_sampled_plant(fmt, delay, transport, monkeypatch):
+    """Through a pty and through the local socket used where there is none (Windows)."""
+    if transport == "socket":
+        monkeypatch.setattr(arduino_peer, "open_transport", lambda warn=None: SocketTransport())
     rig = make_rig(format=fmt)
     forces = 0.4 * np.sin(np.arange(400) * 0.05) + 0.1
     drv, peer = connect_sim_serial(rig, seed=3, delay_samples=delay)
@@ -191,6 +197,7 @@ def test_lockstep_positions_equal_the_exact_sampled_plant(fmt, delay):
         assert x0 == 0.0  # nothing applied before enable
         samples = _run(drv, forces)
         d = drv.describe()
+    assert peer.url.startswith("socket://") == (transport == "socket")
     seqs = np.array([s.seq for s in samples])
     assert np.array_equal(np.diff(seqs), np.ones(len(seqs) - 1))
     assert np.allclose(np.diff([s.t_s for s in samples]), rig.sample_time_s, atol=1e-6)
@@ -317,9 +324,9 @@ def test_period_mismatch_is_a_user_error(fmt):
     )
     plant = default_plant(rig)
     peer = ArduinoPeer(plant, 0.001, rig.metres_per_count, fmt=fmt, seed=1)  # board at 1 kHz
-    path = peer.open_pty()
+    url = peer.open_port()
     drv = SerialStream(
-        serial.Serial(path, timeout=0),
+        serial.serial_for_url(url, timeout=0),
         SerialConfig.from_rig(rig, force_command=True),
         rig,
         on_close=peer.close,

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from labbench.interrupts import SIGNALS
+from labbench.platform.signals import ending_signals
 from labbench.session_content import load_session
 
 ROOT = Path(__file__).resolve().parents[1]
+SIGNALS = ending_signals()
 DISPOSITIONS = {"ignored": signal.SIG_IGN, "default": signal.SIG_DFL}
 CASES = [(d, s) for d in DISPOSITIONS for s in SIGNALS]
 # On this shared machine a paced loop can stall for tens of ms: a lenient watchdog, since
