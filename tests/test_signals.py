@@ -150,7 +150,7 @@ def test_acquisition_process_ends_aborted_on_each_signal(tmp_path, disp):
             acq = Acquisition(mailbox)
             acq.connect(functools.partial(open_device, "sim"), rig, {"realtime": True})
             out = tmp_path / str(signum)
-            acq.run("etfe", {"duration_s": 30.0, "seed": 1}, rig, out, None)
+            acq.run("etfe", {"duration_s": 30.0, "seed": 1}, rig, out, None, simulated=True)
             runs.append((signum, acq, mailbox, out))
     finally:
         for s, h in saved.items():
