@@ -123,9 +123,9 @@ def report_rows(timing: dict) -> list[tuple[str, object]]:
     if timing.get("paced"):
         rows.append((f"overruns (> {OVERRUN_T:g} T)", int(timing.get("overruns", 0))))
     hist = timing.get("histogram")
-    if hist:
-        edges = hist["edges_T"]
-        for i, c in enumerate(hist["counts"]):
+    if hist:  # zip: a session's lists may disagree in length (a faulty writer)
+        edges = hist.get("edges_T") or []
+        for i, (c, _lo) in enumerate(zip(hist.get("counts") or [], edges)):
             hi = f"{edges[i + 1]:g} T" if i + 1 < len(edges) else "inf"
             rows.append((f"periods in [{edges[i]:g} T, {hi})", int(c)))
     for key, label in (("wall_s", "wall time (s)"), ("realtime_factor", "simulated s per wall s")):

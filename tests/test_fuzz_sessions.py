@@ -7,6 +7,11 @@ events, unknown kinds); every entry point that reads sessions (replay, paced
 replay, analyze id/etfe, export CSV/HDF5, report) must give a result or one
 error line (tests/fuzzing.py). The report, the slowest entry point, sees every
 corruption under ``-m slow`` and a fixed sample otherwise.
+
+Then the field types: every field of the non-page records of two real sessions
+(chirp-ID, ETFE), down to three levels, given each JSON type it does not have
+(1 860 sessions); the report's content must come out of each (a field of the
+wrong type is left out and flagged, ``labbench.report.shapes``).
 """
 from __future__ import annotations
 
@@ -239,3 +244,118 @@ def test_the_good_session_gives_results(tmp_path, good_items):
     for entry, argv in READERS.items():
         o = run_cli(argv(path, tmp_path))
         assert o.code == 0 and o.crash is None, (entry, o.err, o.crash)
+
+
+# ----- field types mutated: real sessions, each field given every other JSON type -----------
+JSON_TYPES = {"text": "x", "number": 7, "list": [1], "object": {"x": 1}, "null": None,
+              "bool": True}
+
+
+def _json_type(value) -> str:
+    if isinstance(value, bool):
+        return "bool"
+    return {str: "text", int: "number", float: "number", list: "list", dict: "object",
+            type(None): "null"}[type(value)]
+
+
+def _fields(value, path=(), depth=3):
+    """(path, value) of every field down to ``depth`` (a list: its first element)."""
+    if isinstance(value, dict):
+        members = list(value.items())
+    elif isinstance(value, list) and value:
+        members = [(0, value[0])]
+    else:
+        return
+    for key, item in members:
+        yield path + (key,), item
+        if depth > 1:
+            yield from _fields(item, path + (key,), depth - 1)
+
+
+def type_mutations(items):
+    """(name, items) for every field of every record but the pages (whose typed header the
+    value corpus above covers) given each JSON type it does not have."""
+    for i, (head, _) in enumerate(items):
+        if head.get("kind") == "page":
+            continue
+        for path, value in _fields(head):
+            if path == ("kind",):
+                continue
+            for type_name, other in JSON_TYPES.items():
+                if type_name == _json_type(value):
+                    continue
+                mutated = copy.deepcopy(items)
+                target = mutated[i][0]
+                for key in path[:-1]:
+                    target = target[key]
+                target[path[-1]] = other
+                yield f"{head['kind']}[{i}] {'.'.join(map(str, path))} -> {type_name}", mutated
+
+
+@pytest.fixture(scope="module")
+def real_items(tmp_path_factory):
+    """A chirp-ID and an ETFE session of the simulator: the records every analysis writes."""
+    from labbench.session_format import read_session
+
+    out = tmp_path_factory.mktemp("real")
+    for argv in (["run", "chirp-id", "--duration-s", "4", "--f0-hz", "0.5"],
+                 ["run", "etfe", "--duration-s", "2", "--seed", "1"]):
+        o = run_cli([*argv, "--device", "sim", "--out", out], time_limit_s=120)
+        assert o.code == 0 and o.crash is None, o.err
+    return [items_of(list(read_session(p))) for p in sorted(out.glob("*.lbsession"))]
+
+
+def _report_content(tmp_path, real_items, every: int) -> tuple[int, list[str]]:
+    """Build the report of every ``every``-th type-mutated session in this process (the
+    content, where a record's fields are read; the rendering takes only what it built)."""
+    from labbench.errors import LabbenchError
+    from labbench.report.content import build
+
+    n, failures = 0, []
+    for items in real_items:
+        for k, (name, mutated) in enumerate(type_mutations(items)):
+            if k % every:
+                continue
+            path = write_chunks(tmp_path / "case.lbsession", mutated)
+            n += 1
+            try:
+                build([path])
+            except LabbenchError:
+                pass  # one error line from the CLI
+            except Exception as exc:  # noqa: BLE001 - what the fuzzing looks for
+                failures.append(f"{name}: {type(exc).__name__}: {exc}")
+    return n, failures
+
+
+def test_report_content_of_type_mutated_sessions_sample(tmp_path, real_items):
+    """Every 13th case (all six types and every record kind appear); -m slow: all of them."""
+    n, failures = _report_content(tmp_path, real_items, every=13)
+    print(f"\nreport content: {n} type-mutated sessions")
+    assert n > 120 and failures == []
+
+
+@pytest.mark.slow
+def test_report_content_of_type_mutated_sessions_all(tmp_path, real_items):
+    n, failures = _report_content(tmp_path, real_items, every=1)
+    print(f"\nreport content: {n} type-mutated sessions")
+    assert n > 1500 and failures == []
+
+
+@pytest.mark.parametrize("kind, path, value, named", [
+    ("start", ("precheck",), "checks", "start.precheck: str where an object is due"),
+    ("stop", ("results", "identification"), "l2", "stop.results.identification: str where"),
+    ("stop", ("timing", "histogram", "counts"), "many", "stop.timing.histogram.counts: str"),
+])
+def test_report_of_the_issue_cases_is_written_and_flags_the_field(tmp_path, real_items, kind,
+                                                                  path, value, named):
+    """The whole command (HTML and PDF): a result, and page 1 names the field left out."""
+    items = copy.deepcopy(real_items[0])  # the chirp-ID
+    (head,) = [h for h, _ in items if h.get("kind") == kind]
+    for key in path[:-1]:
+        head = head[key]
+    head[path[-1]] = value
+    session = write_chunks(tmp_path / "case.lbsession", items)
+    o = run_cli(["report", session, "-o", tmp_path / "r"], time_limit_s=120)
+    assert o.code == 0 and o.crash is None, (o.err, o.crash)
+    (html,) = (tmp_path / "r").glob("*.html")
+    assert named in html.read_text(encoding="utf-8")

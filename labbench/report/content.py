@@ -179,6 +179,10 @@ def _run_flags(s: ReportSession) -> list[Flag]:
     if s.problem:
         out.append(Flag(s.tag, f"the file ends early ({s.problem}); everything before is shown",
                         "keep the file; re-run if the missing tail matters"))
+    if s.malformed:
+        out.append(Flag(s.tag, f"{len(s.malformed)} record field(s) of the wrong type left out: "
+                               f"{'; '.join(s.malformed[:5])}",
+                        "the session was written by a faulty or foreign tool; re-record it"))
     if s.dropped:
         out.append(Flag(s.tag, f"{s.dropped} samples dropped by the device link",
                         "check the bus load and the host's real-time set-up (docs/loop.md)"))

@@ -8,6 +8,7 @@ import numpy as np
 
 from labbench.predictions import recorded_plant
 from labbench.records import iso_time, protocol_name
+from labbench.report import shapes
 from labbench.session_content import load_session, session_ve
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -22,6 +23,7 @@ class ReportSession:
     stop: dict | None
     problem: str | None
     index: int = 1  # its number in the report: "#1", "#2", ...
+    malformed: tuple[str, ...] = ()  # fields left out: not the shape the report reads
 
     @property
     def tag(self) -> str:
@@ -91,4 +93,12 @@ class ReportSession:
 
 
 def load(path, index: int = 1) -> ReportSession:
-    return ReportSession(Path(path), *load_session(path), index=index)
+    """The session, its start and stop records conformed to what the report reads
+    (``labbench.report.shapes``)."""
+    start, desc, ch, events, stop, problem = load_session(path)
+    malformed: list[str] = []
+    start = shapes.conform(start, shapes.START, "start", malformed)
+    if stop is not None:
+        stop = shapes.conform(stop, shapes.STOP, "stop", malformed)
+    return ReportSession(Path(path), start, desc, ch, events, stop, problem, index=index,
+                         malformed=tuple(malformed))
