@@ -295,6 +295,7 @@ def type_mutations(items):
 @pytest.fixture(scope="module")
 def real_items(tmp_path_factory):
     """A chirp-ID and an ETFE session of the simulator: the records every analysis writes."""
+    from labbench.report import session as report_session
     from labbench.session_format import read_session
 
     out = tmp_path_factory.mktemp("real")
@@ -302,7 +303,9 @@ def real_items(tmp_path_factory):
                  ["run", "etfe", "--duration-s", "2", "--seed", "1"]):
         o = run_cli([*argv, "--device", "sim", "--out", out], time_limit_s=120)
         assert o.code == 0 and o.crash is None, o.err
-    return [items_of(list(read_session(p))) for p in sorted(out.glob("*.lbsession"))]
+    paths = sorted(out.glob("*.lbsession"))
+    assert [report_session.load(p).malformed for p in paths] == [(), ()]  # nothing false
+    return [items_of(list(read_session(p))) for p in paths]
 
 
 def _report_content(tmp_path, real_items, every: int) -> tuple[int, list[str]]:

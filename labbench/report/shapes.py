@@ -8,42 +8,45 @@ leaves out what does not have the shape it needs, saying so
 (``ReportSession.malformed``, a flag on page 1), instead of raising somewhere in
 a table.
 
-A shape is ``NUMBER``, ``TEXT``, ``INTS``/``NUMBERS`` (lists of them), ``list`` or
+A shape is ``NUMBER``, ``OPTIONAL`` (a number or null: a fit that gave none),
+``INT`` (or null), ``INTS``/``NUMBERS`` (lists of them), ``list`` or
 ``dict`` (any contents), ``{key: shape}`` (an object; the keys listed are checked
 when present, ``"*"`` stands for every key) or ``[shape]`` (a list, each element
 checked).
 """
 from __future__ import annotations
 
-NUMBER, TEXT = "number", "text"
-INTS, NUMBERS = ["int"], [NUMBER]
+NUMBER, OPTIONAL, INT = "number", "number or null", "integer or null"
+INTS, NUMBERS = [INT], [NUMBER]
 
-_PLANT = {"m": NUMBER, "b": NUMBER}
-_FIT = {"m": NUMBER, "b": NUMBER, "coulomb": NUMBER, "ci95": {"*": list}, "flags": list,
-        "selection": dict, "rms_residual": NUMBER, "explained": NUMBER}
+_PLANT = {"m": NUMBER, "b": NUMBER}  # a model to compute with: both numbers
+_FIT = {"m": OPTIONAL, "b": OPTIONAL, "coulomb": OPTIONAL, "ci95": {"*": list}, "flags": list,
+        "selection": dict, "rms_residual": OPTIONAL, "explained": NUMBER}
 START = {
     "rig": {"sections": {"*": dict}, "sample_time_s": NUMBER},
     "device": {"details": dict},
     "plant": _PLANT,
-    "precheck": {"plant": _PLANT, "checks": [{"ve": dict, "k_max": NUMBER,
-                                             "k_max_approx": NUMBER}]},
+    "precheck": {"plant": _PLANT, "checks": [{"ve": dict, "k_max": OPTIONAL,
+                                             "k_max_approx": OPTIONAL}]},
     "safety": dict,
 }
-_REALTIME = {"affinity": INTS, "refused": list, "unavailable": list, "priority": "int"}
+_REALTIME = {"affinity": INTS, "refused": list, "unavailable": list, "priority": INT}
 STOP = {
-    "timing": {"T_s": NUMBER, "histogram": {"edges_T": NUMBERS, "counts": INTS},
-               "worst": dict, "realtime": _REALTIME, "overruns": "int", "segments": list},
+    "timing": {"T_s": OPTIONAL, "histogram": {"edges_T": NUMBERS, "counts": INTS},
+               "worst": dict, "realtime": _REALTIME, "overruns": INT},
     "results": {"plant": _PLANT, "identification": {"*": _FIT}, "etfe": dict,
                 "loop_fit": dict, "theory": dict, "bandwidths": dict},
 }
 
 
 def _is(value, leaf: str) -> bool:
+    if value is None:
+        return leaf != NUMBER
     if isinstance(value, bool):
         return False
-    if leaf == NUMBER:
+    if leaf in (NUMBER, OPTIONAL):
         return isinstance(value, (int, float))
-    if leaf == "int":
+    if leaf == INT:
         return isinstance(value, int)
     return isinstance(value, str)
 
