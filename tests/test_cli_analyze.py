@@ -124,3 +124,59 @@ def test_id_of_a_closed_loop_record_subtracts_the_ve_force(loop_csv, capsys):
     assert "VE force" in d["force_source"]
     assert d["model"] == "mb"
     assert abs(d["m"] / PAPER_M - 1) < 1e-3 and abs(d["b"] / PAPER_B - 1) < 1e-2
+
+
+def _late_chirp_csv(path, header: dict | None) -> None:
+    """A chirp from a device that applies each command one period late (the plant feels
+    f[k - 1]); the record holds the command f[k] as sent."""
+    from truthdata import chirp_force, open_loop
+
+    from labbench.analysis.dataio import recording_from_arrays
+
+    n, fs = 30000, 1000.0
+    f = chirp_force(n, fs)
+    x, _ = open_loop(np.concatenate([[0.0], f[:-1]]), PAPER_M, PAPER_B, fs)
+    write_csv(recording_from_arrays(np.arange(n) / fs, f, x, {"fs": fs}, "late"), path, header)
+
+
+def test_id_of_a_csv_regresses_on_the_device_delay_of_its_header(tmp_path, capsys):
+    p = tmp_path / "late.csv"
+    _late_chirp_csv(p, {"device_delay_s": 0.001, "force_hold": "zoh"})
+    d = run_json(capsys, "analyze", "id", p, "--json")
+    assert "device delay of 1 ms" in d["force_source"]
+    assert abs(d["m"] / PAPER_M - 1) < 0.01 and abs(d["b"] / PAPER_B - 1) < 0.02
+    for k, truth in (("m", PAPER_M), ("b", PAPER_B)):
+        lo, hi = d["ci95"][k]
+        assert lo <= truth <= hi
+    # the same record read without the header: the delay is not in the regression, b is off
+    # (by ~13 %: m x'' T shifts into the damping term)
+    _late_chirp_csv(p, {"force_hold": "zoh"})
+    d = run_json(capsys, "analyze", "id", p, "--model", "mb", "--json")
+    assert abs(d["b"] / PAPER_B - 1) > 0.05
+
+
+def test_id_of_a_session_from_a_one_period_late_device(tmp_path, capsys):
+    # the simulator applies its command one sample late; the rig file states that delay, the
+    # start record carries it, and analyze id on the session regresses on the delayed command
+    from labbench.registry import make_protocol
+    from labbench.rig import rig_from_dict
+    from labbench.runner import run_recorded
+    from labbench.sim_backend.sim_device import open_sim
+
+    rig = rig_from_dict({"rig": {"measured_td_s": 0.001}, "sim": {"extra_delay_samples": 1}})
+    _, path = run_recorded(open_sim(rig, seed=4), make_protocol("chirp-id", model="mb"), tmp_path, rig=rig)
+    d = run_json(capsys, "analyze", "id", path, "--json")
+    assert "device delay of 1 ms" in d["force_source"]
+    assert abs(d["m"] / PAPER_M - 1) < 0.01 and abs(d["b"] / PAPER_B - 1) < 0.02
+
+
+def test_a_td_line_of_fractional_samples_uses_the_paper_model(tmp_path, capsys):
+    # docs/analysis.md: a td that is not whole samples is the paper's continuous delay;
+    # both analyses run on it (the ETFE's theory is eq. 2), none exits 2
+    p = tmp_path / "frac.csv"
+    rec = closed_loop_recording(SD, n=30000)
+    write_csv(rec, p, {"td": 0.0015})
+    d = run_json(capsys, "analyze", "etfe", p, "--json")
+    assert d["theory"]["model"] == "paper"
+    d = run_json(capsys, "analyze", "id", p, "--json")
+    assert "VE force" in d["force_source"] and d["m"] > 0

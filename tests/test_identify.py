@@ -326,3 +326,16 @@ def test_stick_slip_on_the_simulated_chirp_id(coulomb_n):
         assert flagged == (coulomb_n > 0), fit["flags"]
         if not flagged:
             assert abs(fit["b"] / PAPER_B - 1) < 0.02
+
+
+@pytest.mark.parametrize("delay_samples", [0.0, 1.0, 1.5, 3.25])
+def test_plant_force_delays_by_fractions_of_a_sample_exactly_on_a_ramp(delay_samples):
+    # the split delay (1 - alpha) u[k - d] + alpha u[k - d - 1] is exact on a ramp
+    from labbench.analysis.compare import _delayed
+
+    T = 1e-3
+    u = np.arange(100, dtype=float)
+    late = _delayed(u, delay_samples * T, T)
+    k = np.arange(10, 100)
+    np.testing.assert_allclose(late[k], k - delay_samples, atol=1e-9)
+    assert np.all(late[: int(delay_samples)] == 0)

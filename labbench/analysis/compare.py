@@ -59,21 +59,27 @@ def plant_force(rec: Recording, ve: VirtualEnvironment | None, latency: float = 
     """Force on the plant: the command f_exo[k] - f_ve[k - n] (f_ve from the sampled
     position; none in open loop) as the plant holds it after the rig's extra delay
     ``latency`` = (d + alpha) T: (1 - alpha) u[k - d] + alpha u[k - d - 1], the two held
-    values the split step carries (``labbench.theory`` module doc), at rest before the record."""
+    values the split step carries (``labbench.theory`` module doc), at rest before the record.
+
+    A VE td that is not whole samples (the paper's continuous delay, docs/analysis.md)
+    delays f_ve the same split way: exact for whole samples, the linear interpolation
+    of the delayed force otherwise."""
     u = np.asarray(rec.force, float)
     if ve is not None and ve.kind != "none":
         x = np.asarray(rec.position, float)
         a, T = ve.filter_pole, ve.T
         xp = np.concatenate([[x[0]], x])  # at rest before the record: x[-1] = x[0]
         v = signal.lfilter([(1 - a) / T, -(1 - a) / T], [1.0, -a], xp)[1:]
-        f_ve = ve.K * x + ve.B * v
-        n = ve.delay_samples if ve.td else 0
-        u = u - np.concatenate([np.zeros(n), f_ve[: len(f_ve) - n]])
-    if latency:
-        d, alpha = theory.latency_split(latency, rec.T)
-        late = np.concatenate([np.zeros(d), u[: len(u) - d]])
-        u = (1 - alpha) * late + alpha * np.concatenate([[0.0], late[:-1]])
-    return u
+        u = u - _delayed(ve.K * x + ve.B * v, ve.td, T)
+    return _delayed(u, latency, rec.T) if latency else u
+
+
+def _delayed(u: np.ndarray, delay: float, T: float) -> np.ndarray:
+    """u delayed by ``delay`` = (d + alpha) T: (1 - alpha) u[k - d] + alpha u[k - d - 1],
+    zero before the record."""
+    d, alpha = theory.latency_split(delay, T)
+    late = np.concatenate([np.zeros(min(d, len(u))), u[: max(len(u) - d, 0)]])
+    return (1 - alpha) * late + alpha * np.concatenate([[0.0], late[:-1]]) if alpha else late
 
 
 def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | None]:
