@@ -291,10 +291,10 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
         a.force_to_permille = rig.lever_arm_m / (a.rated_mnm * 1e-3) * 1000.0
         limit = round(rig.force_limit_n * a.force_to_permille)
         a.max_permille = min(32767, max(1, limit))
-    mpc = rig.metres_per_count
-    lo, hi = rig.position_limits_m
-    wanted = [(0x6072, 0, a.max_permille), (0x607D, 1, math.floor(lo / mpc)),
-              (0x607D, 2, math.ceil(hi / mpc)), (0x605A, 0, config.quick_stop_option),
+    mpc = rig.position_per_count  # signed: a flipped position_sign mirrors the window
+    lo, hi = sorted(x / mpc for x in rig.position_limits_m)
+    wanted = [(0x6072, 0, a.max_permille), (0x607D, 1, math.floor(lo)),
+              (0x607D, 2, math.ceil(hi)), (0x605A, 0, config.quick_stop_option),
               (0x605E, 0, config.fault_reaction_option),
               (0x6007, 0, config.abort_connection_option)]
     for index, sub, value in wanted:

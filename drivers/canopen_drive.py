@@ -111,7 +111,7 @@ class CanopenDrive:
         self._identity: dict = {}
         self._mode = None
         self._seq = -1
-        self._mpc = rig.metres_per_count
+        self._mpc = rig.position_per_count  # signed: [rig] position_sign
         self._tpdo_wait = (config.stale_periods * self.T if realtime
                            else config.lockstep_timeout_s)
         self._window: tuple[int, int] | None = None  # host-side position window [counts]
@@ -229,8 +229,8 @@ class CanopenDrive:
         for index, sub, fmt, value in a.writes:
             self._write_checked(index, sub, fmt, value)
         lo, hi = self.rig.position_limits_m
-        self._window = None if a.has.get((0x607D, 1)) else (
-            math.floor(lo / self._mpc), math.ceil(hi / self._mpc))
+        ends = sorted((lo / self._mpc, hi / self._mpc))  # a negative position_sign mirrors it
+        self._window = None if a.has.get((0x607D, 1)) else (math.floor(ends[0]), math.ceil(ends[1]))
         self._nmt(NMT_START)
         self._wait_nmt(5, timeout)
         self._setup_cyclic()

@@ -244,7 +244,7 @@ class SerialStream:
         self._on_close = on_close
         self._paced, self._kind = paced, kind
         self._clock = clock
-        self._decoder = StreamDecoder(config, self.T, rig.metres_per_count)
+        self._decoder = StreamDecoder(config, self.T, rig.position_per_count)
         self._ready: deque[Sample] = deque()
         self._stale_s = config.stale_periods * self.T if stale_s is None else stale_s
         # Poll granularity of a blocking read: bounds how late a stale stream is seen.
@@ -418,7 +418,7 @@ class SerialStream:
         if ve.td:
             raise UserError(f"the board renders with its own delay (one render tick), not td = {ve.td:g} s")
         u = self._unit  # values in command units: N, or N m at the joint
-        scale = self.config.direction * self.rig.metres_per_count
+        scale = self.config.direction * self.rig.position_per_count
         frame = framing.encode_params(on, ve.K * u, ve.B * u, ve.w0, self.rig.force_limit_n * u,
                                       scale)
         self._write_frame(frame)

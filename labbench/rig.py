@@ -8,7 +8,9 @@ a driver's settings stay next to the driver. Every bad field gives one clear
 Calibration: encoder counts -> metres is ``2*pi*lever_arm_m / counts_per_rev``
 for a rotary joint (a linear encoder gives ``counts_per_rev`` = counts per metre
 and ``lever_arm_m`` = 1/(2*pi)); force at the handle -> joint torque is
-``force * lever_arm_m``.
+``force * lever_arm_m``. ``position_sign`` (1 or -1) is the sign a driver gives the
+encoder's counts so that a positive force moves the handle to positive positions
+(``labbench run commission`` checks it): position = ``position_per_count * count``.
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ class Rig:
     sample_time_s: float = 0.001
     counts_per_rev: float = 4096 * 4
     lever_arm_m: float = 0.1
+    position_sign: int = 1
     force_limit_n: float = 5.0
     position_limits_m: tuple[float, float] = (-0.1, 0.1)
     velocity_limit_m_s: float = 2.0
@@ -42,12 +45,22 @@ class Rig:
     # stability pre-check and theory overlays use it. ``measured_td_from``: where it came from.
     measured_td_s: float | None = None
     measured_td_from: str = ""
+    # When and where the rig last passed ``labbench run commission``'s direction check
+    # (written by ``--write-rig``); "": never. Real hardware renders no spring or damper
+    # before it (``labbench.commissioning.gate``).
+    direction_checked: str = ""
     sections: dict = field(default_factory=dict)  # backend tables, validated by the backend
     source: str = "<defaults>"
 
     @property
     def metres_per_count(self) -> float:
         return 2 * math.pi * self.lever_arm_m / self.counts_per_rev
+
+    @property
+    def position_per_count(self) -> float:
+        """Handle metres per encoder count, signed (``position_sign``): what a driver
+        multiplies a count by."""
+        return self.position_sign * self.metres_per_count
 
     @property
     def nominal_plant(self):
@@ -63,6 +76,7 @@ class Rig:
             "sample_time_s": self.sample_time_s,
             "counts_per_rev": self.counts_per_rev,
             "lever_arm_m": self.lever_arm_m,
+            "position_sign": self.position_sign,
             "force_limit_n": self.force_limit_n,
             "position_limits_m": list(self.position_limits_m),
             "velocity_limit_m_s": self.velocity_limit_m_s,
@@ -70,6 +84,7 @@ class Rig:
             "nominal_damping_ns_m": self.nominal_damping_ns_m,
             "measured_td_s": self.measured_td_s,
             "measured_td_from": self.measured_td_from,
+            "direction_checked": self.direction_checked,
             "sections": self.sections,
             "source": self.source,
         }
@@ -138,11 +153,14 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
             raise UserError(f"{source}: [rig] position_limits_m must be [low, high] with low < high, "
                             f"each within +-{MAX_POSITION_M:g} m")
         common["position_limits_m"] = (float(lim[0]), float(lim[1]))
+    if "position_sign" in common and (common["position_sign"] not in (1, -1)
+                                      or isinstance(common["position_sign"], (bool, float))):
+        raise UserError(f"{source}: [rig] position_sign must be 1 or -1, got {common['position_sign']!r}")
     if "name" in common and (not isinstance(common["name"], str) or len(common["name"]) > MAX_NAME):
         raise UserError(f"{source}: [rig] name must be a string of at most {MAX_NAME} characters")
-    if "measured_td_from" in common and (not isinstance(common["measured_td_from"], str)
-                                         or len(common["measured_td_from"]) > MAX_NAME):
-        raise UserError(f"{source}: [rig] measured_td_from must be a string of at most {MAX_NAME} characters")
+    for name in ("measured_td_from", "direction_checked"):
+        if name in common and (not isinstance(common[name], str) or len(common[name]) > MAX_NAME):
+            raise UserError(f"{source}: [rig] {name} must be a string of at most {MAX_NAME} characters")
     sections = {k: v for k, v in d.items() if k != "rig"}
     rig = Rig(**common, sections=sections, source=source)
     SafetyConfig.from_rig(rig)  # raises for a bad [safety] table

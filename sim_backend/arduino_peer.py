@@ -329,18 +329,23 @@ def connect_sim_serial(
 
     from labbench.drivers.serial_stream import SerialConfig, SerialStream
 
+    from labbench.sim_backend.sim_device import sim_options, true_geometry
+
     config = SerialConfig.from_rig(rig, port="pty", force_command=True)
     T = rig.sample_time_s
     if plant is None:
         plant = SimPlant(rig, seed=seed, **(sim or {}))
-    unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
+    # the board counts the true way (sim_device.true_geometry): as the driver believes
+    # unless [sim] says otherwise
+    geo = true_geometry(rig, sim_options(rig, **(sim or {})), rig.position_sign * config.direction)
+    unit = geo.lever_arm_m if config.command_units == "N*m" else 1.0
     peer = ArduinoPeer(
         plant,
         T,
-        rig.metres_per_count,
+        geo.metres_per_count,
         fmt=config.format,
         count_bits=config.count_bits,
-        direction=config.direction,
+        direction=geo.sign,
         unit=unit,
         realtime=realtime,
         delay_samples=delay_samples,
@@ -390,7 +395,7 @@ class SimPlant:
     def __init__(self, rig, seed: int | None = None, **options):
         from labbench.sim_backend.sim_device import SimDevice
 
-        self._sim = SimDevice(rig, seed=seed, **options)
+        self._sim = SimDevice(rig, seed=seed, as_plant=True, **options)  # true handle units
         self._sim.enable()
         self.position = self._sim.read_raw(1.0)[2]
 

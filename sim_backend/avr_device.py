@@ -14,7 +14,8 @@ about real time here), or ``realtime=True`` (emulated time kept to wall time,
 as a real board; this machine's emulator may not keep up).
 
 Plant: ``m`` and ``b`` of ``[sim]`` (default the rig's nominal model), ``x0_m``,
-``v0_m_s``; the amplifier gives 255 / ``PWM_PER_NEWTON`` N at 100 % duty, matched
+``v0_m_s``, and the truth the rig file may get wrong, ``sign``, ``counts_per_rev``,
+``lever_arm_m`` (``labbench.sim_backend.sim_device.true_geometry``); the amplifier gives 255 / ``PWM_PER_NEWTON`` N at 100 % duty, matched
 to the sketch's constant. The board adds one sample of delay to everything the
 host commands (docs/serial-protocol.md, "Emulated board"); with
 ``SerialStream.render_on_board`` it renders the VE itself at T / ``RENDER_DIV``.
@@ -27,7 +28,7 @@ import math
 import subprocess
 import tempfile
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's tick
 RENDER_DIV = 5  # the sketch's default: render ticks per sample (5 kHz at T = 1 ms)
 LOCKSTEP_TIMEOUT_S = 3.0  # wall time; generous: this machine is shared and loaded
 _PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s")
+_GEOMETRY_OPTIONS = ("sign", "counts_per_rev", "lever_arm_m")
 
 
 @dataclass(frozen=True)
@@ -238,16 +240,21 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
 
     from labbench.drivers.serial_stream import SerialConfig, SerialStream
 
+    from labbench.sim_backend.sim_device import sim_options, true_geometry
+
     config = SerialConfig.from_rig(rig, port="avr-sim", force_command=True, format="binary")
-    plant = _checked({"m": rig.nominal_mass_kg, "b": rig.nominal_damping_ns_m,
-                           **_plant_table(rig, options)})
+    table = _plant_table(rig, options)
+    plant = _checked({"m": rig.nominal_mass_kg, "b": rig.nominal_damping_ns_m, **table})
+    geo = true_geometry(rig, sim_options(replace(rig, sections={}),
+                                         **{k: v for k, v in table.items() if k in _GEOMETRY_OPTIONS}),
+                        believed_sign=rig.position_sign * config.direction)
     hex_path = avr_build.build_firmware({**firmware_defines(rig, config.baudrate), **(defines or {})})
-    unit = rig.lever_arm_m if config.command_units == "N*m" else 1.0
+    unit = geo.lever_arm_m if config.command_units == "N*m" else 1.0
     board = AvrBoard(
         hex_path,
         mass_kg=plant["m"],
         damping_ns_m=plant["b"],
-        metres_per_count=rig.metres_per_count * config.direction,
+        metres_per_count=geo.sign * geo.metres_per_count,
         full_scale_n=255.0 / PWM_PER_NEWTON / unit,
         x0_m=plant["x0_m"],
         v0_m_s=plant["v0_m_s"],
@@ -280,11 +287,11 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
 
 def _plant_table(rig, options: dict) -> dict:
     table = {**rig.section("sim"), **options}
-    other = sorted(set(table) - set(_PLANT_OPTIONS))
+    other = sorted(set(table) - set(_PLANT_OPTIONS) - set(_GEOMETRY_OPTIONS))
     if other:
         raise UserError(
             f"avr-sim option(s) {', '.join(other)} not supported: its plant is a mass-damper "
-            f"with {', '.join(_PLANT_OPTIONS)}"
+            f"with {', '.join(_PLANT_OPTIONS + _GEOMETRY_OPTIONS)}"
         )
     return table
 

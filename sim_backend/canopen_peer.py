@@ -552,8 +552,9 @@ class SimCanopenDrive:
 
 def plant_for(rig, seed=None, **options) -> SimDevice:
     """The handle behind the drive: the plain simulator of ``[sim]`` and ``options``
-    (mass, damping, friction, noise, delay), stepped once per SYNC."""
-    plant = open_sim(rig, realtime=False, seed=seed, **options)
+    (mass, damping, friction, noise, delay), stepped once per SYNC, in true handle units
+    (the drive applies the true geometry, ``sim_device.true_geometry``)."""
+    plant = open_sim(rig, realtime=False, seed=seed, as_plant=True, **options)
     plant.enable()
     return plant
 
@@ -583,8 +584,9 @@ def start_sim_drive(rig, config: CanopenConfig, seed=None,
     """A running simulated drive on a fresh ``virtual`` channel, and the host's bus to it."""
     channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
     plant = plant_for(rig, seed, **options)
-    peer = SimCanopenDrive(channel, config.node_id, plant, rig.metres_per_count,
-                           rig.lever_arm_m, rig.sample_time_s, eds=config.eds or EDS_PATH,
+    geo = plant.geometry  # the encoder's count direction as the signed metres per count
+    peer = SimCanopenDrive(channel, config.node_id, plant, geo.sign * geo.metres_per_count,
+                           geo.lever_arm_m, rig.sample_time_s, eds=config.eds or EDS_PATH,
                            config=config).start()
     try:
         return peer, FaultyVirtualBus(channel=channel)

@@ -15,11 +15,23 @@ noise added to the applied force, ``extra_delay_samples`` whole samples of
 actuator latency and ``extra_delay_fraction`` in [0, 1) more (each step then
 holds the previous command for that fraction of T first: the latency model of
 ``labbench.theory``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
+
+Truth that may differ from the rig file (so commissioning can be tested against a rig
+file that is wrong in a known way; ``true_geometry``): ``sign`` (1 or -1: the way the
+encoder really counts, relative to a positive force; default the rig's belief
+``[rig] position_sign``), ``counts_per_rev`` and ``lever_arm_m`` (the real ones;
+default the rig's). The command is a force at the handle as the rig believes it:
+the joint gets ``force * rig.lever_arm_m`` and the handle feels that over the true
+lever arm; the reported position is the true encoder count times the rig's
+``position_per_count``. Behind a protocol peer (``as_plant=True``: the simulated
+drive and board) the plant is the bare mass-damper in true handle units and the peer
+applies the geometry.
 """
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -43,6 +55,10 @@ _OPTIONS = {
                             "a whole number of samples in 0..1000"),
     "extra_delay_fraction": (0.0, lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1) [samples]"),
     "x0_m": (0.0, lambda v: _num(v), "a number [m]"),
+    "sign": (None, lambda v: isinstance(v, int) and not isinstance(v, bool) and v in (1, -1),
+             "1 or -1"),
+    "counts_per_rev": (None, lambda v: _num(v) and 0 < v <= 1e9, "a number in (0, 1e9] [counts]"),
+    "lever_arm_m": (None, lambda v: _num(v) and 0 < v <= 10, "a number in (0, 10] [m]"),
     "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
 }
 _NOISE_BLOCK = 4096
@@ -71,6 +87,35 @@ def sim_options(rig, **options) -> dict:
     return settings
 
 
+@dataclass(frozen=True)
+class Geometry:
+    """The rig's true calibration: encoder direction, handle metres per count, lever arm."""
+
+    sign: int
+    metres_per_count: float
+    lever_arm_m: float
+
+    def force_gain(self, rig) -> float:
+        """True handle force per newton the rig believes it commands (1.0 when true)."""
+        return rig.lever_arm_m / self.lever_arm_m
+
+    def position_gain(self, rig, believed_sign: int) -> float:
+        """Reported metres per true metre for a driver that multiplies counts by
+        ``believed_sign * rig.metres_per_count`` (1.0 when the rig file is true)."""
+        return believed_sign * self.sign * rig.metres_per_count / self.metres_per_count
+
+
+def true_geometry(rig, settings: dict, believed_sign: int | None = None) -> Geometry:
+    """The truth of ``settings`` (``sim_options``) where the rig file may be wrong;
+    ``believed_sign``: the sign the device's driver gives counts (default the rig's
+    ``position_sign``), which is the encoder's true sign unless ``sign`` says otherwise."""
+    believed = rig.position_sign if believed_sign is None else believed_sign
+    sign = believed if settings.get("sign") is None else settings["sign"]
+    lever = rig.lever_arm_m if settings.get("lever_arm_m") is None else float(settings["lever_arm_m"])
+    counts = rig.counts_per_rev if settings.get("counts_per_rev") is None else float(settings["counts_per_rev"])
+    return Geometry(sign, 2 * math.pi * lever / counts, lever)
+
+
 def open_sim(rig, realtime: bool = False, seed: int | None = None, **options) -> SimDevice:
     """Open the simulated device for ``rig`` (registered as "sim" in ``labbench.devices``)."""
     return SimDevice(rig, realtime=realtime, seed=seed, **options)
@@ -85,14 +130,19 @@ class SimDevice:
     the force applied from the step under way on is zero, and stays zero.
     """
 
-    def __init__(self, rig, realtime: bool = False, seed: int | None = None, **options):
+    def __init__(self, rig, realtime: bool = False, seed: int | None = None,
+                 as_plant: bool = False, **options):
         self.options = sim_options(rig, **options)
         self.rig, self.realtime, self.seed = rig, bool(realtime), seed
         o = self.options
         self.T = T = rig.sample_time_s
         Ad, Bd = zoh_matrices(o["m"], o["b"], T)
         self._coef = (*Ad.ravel().tolist(), *Bd.tolist())  # a11, a12, a21, a22, b1, b2
-        self._q = rig.metres_per_count if o["quantize"] else 0.0
+        # the geometry (module doc); a peer applies it itself
+        self.geometry = geo = true_geometry(rig, o)
+        self._force_gain = 1.0 if as_plant else geo.force_gain(rig)
+        self._x_gain = 1.0 if as_plant else geo.position_gain(rig, rig.position_sign)
+        self._q = geo.metres_per_count if o["quantize"] else 0.0  # a true count
         self._fc = o["coulomb_n"]
         self._noise_std = o["force_noise_n"]
         # A stream of its own: a run passes one seed to the device and to the protocol, and
@@ -143,7 +193,7 @@ class SimDevice:
         self.health = ESTOP_LATCHED
 
     def command(self, force_n: float) -> None:
-        self._u = force_n
+        self._u = force_n * self._force_gain
 
     def status(self) -> DeviceStatus:
         state = ("closed" if self.closed else "E-STOP latched" if self.estopped
@@ -205,9 +255,9 @@ class SimDevice:
         else:
             x = self.x
         q = self._q
-        if q:
+        if q:  # whole true counts (then read as the rig believes counts: _x_gain)
             x = math.floor(x / q + 0.5) * q
-        return k, k * self.T, x, self.health
+        return k, k * self.T, x * self._x_gain, self.health
 
     def close(self) -> None:
         self.emergency_stop()
