@@ -252,7 +252,11 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
 
             loop_fit = fit_loop(res, ve, Plant(float(m), float(b)), fit_ve=fit_ve)
             m, b, latency = loop_fit.m, loop_fit.b, loop_fit.td_s
-            source = "fitted (with the fitted extra delay td)"
+            source = "fitted (with the fitted device latency td)"
+            n_tv = round(loop_fit.tv_s / ve.T)
+            if loop_fit.tv_s != ve.td and abs(loop_fit.tv_s / ve.T - n_tv) < 0.01:
+                ve = ve.with_(td=n_tv * ve.T)  # the overlay's VE delay line: whole samples only
+                source += f" and VE-path delay {n_tv} samples"
         cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
         cmp["plant_source"] = source
         wb_star = cmp["wb_star"]
@@ -298,9 +302,11 @@ class Session:
                                   cutoff_hz=cutoff_hz, solver=solver, force_hold=force_hold)
 
     def etfe(self, estimator: str | None = None, window: int = 200, m: float | None = None,
-             b: float | None = None) -> FrequencyResponse:
-        """``labbench analyze etfe`` on this file (same options, same numbers)."""
-        return etfe_recording(self.recording, estimator=estimator, window=window, m=m, b=b)
+             b: float | None = None, fit: bool = False, fit_ve: bool = False) -> FrequencyResponse:
+        """``labbench analyze etfe`` on this file (same options, same numbers); ``fit``:
+        ``--fit`` (the loop fit in ``.fit``, its verdict in ``.fit.verdict``)."""
+        return etfe_recording(self.recording, estimator=estimator, window=window, m=m, b=b,
+                              fit=fit, fit_ve=fit_ve)
 
     def plot(self, path=None, force: bool = False):
         """Position and forces against time; returns the matplotlib Figure (and writes it to

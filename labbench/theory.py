@@ -147,20 +147,32 @@ def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:
     return ve.K + ve.B * velocity
 
 
-def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> np.ndarray:
+def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0,
+              ve_delay: float | None = None) -> np.ndarray:
     """Exact sampled-data impedance F_exo(e^{jwT}) / (jw X(e^{jwT})).
 
     From ``x = P (f_exo - z^-n C x)`` (module docstring):
     ``Z = 1 / (jw P) + z^-n C / (jw)``, the sampled counterpart of eq. 2; with an
     actuator ``latency`` P carries it (module doc). Raises UserError when td is
     not a whole number of samples.
+
+    ``ve_delay`` [s] (fractions of a sample allowed) replaces the VE's td: the VE
+    force reaches the plant ``latency + ve_delay`` after its sample, the excitation
+    ``latency`` after its own, so ``x = P_L f_exo - P_{L+tv} C x`` and
+    ``Z = (1 + P_{L+tv} C) / (jw P_L)``, P_d the held plant with the input delayed by d
+    (the fractional split of ``latency_split``); for a whole tv = nT,
+    ``P_{L+tv} = z^-n P_L`` and this is the td form above.
     """
     w = np.asarray(w, dtype=float)
-    n = ve.delay_samples
     jw = 1j * w
-    Z = 1.0 / (jw * _plant_response(plant, ve.T, w, latency))
+    p_l = _plant_response(plant, ve.T, w, latency)
+    Z = 1.0 / (jw * p_l)
     if ve.kind != "none":
-        Z = Z + np.exp(-1j * w * n * ve.T) * _ve_sampled(ve, w) / jw
+        if ve_delay is None:
+            path = np.exp(-1j * w * ve.delay_samples * ve.T)
+        else:
+            path = _plant_response(plant, ve.T, w, latency + ve_delay) / p_l
+        Z = Z + path * _ve_sampled(ve, w) / jw
     return Z
 
 

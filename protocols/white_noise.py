@@ -139,7 +139,9 @@ class WhiteNoiseEtfe(ProtocolBase):
         rel = np.abs(Z[band] - z_s[band]) / np.abs(z_s[band])
         eff = effective_impedances(w, Z)
         try:
-            loop_fit = fit_loop(est, ve, plant).as_dict()
+            # the protocol renders the VE itself, so its VE-path delay is known: only the
+            # device's latency on the whole command is the record's to find
+            loop_fit = fit_loop(est, ve, plant, delay_model="common").as_dict()
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
         predicted = predictions.bandwidths(plant, ve, latency)

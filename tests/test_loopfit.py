@@ -3,8 +3,9 @@ import json
 
 import numpy as np
 import pytest
-from truthdata import PAPER_B, PAPER_M, closed_loop_recording, write_csv
+from truthdata import PAPER_B, PAPER_M, closed_loop_recording, delayed_loop_recording, write_csv
 
+from labbench import theory
 from labbench.analysis import compare
 from labbench.analysis.etfe import etfe
 from labbench.analysis.loopfit import fit_loop
@@ -56,13 +57,14 @@ def test_cli_fit_json_and_text(tmp_path, capsys):
     d = json.loads(capsys.readouterr().out)
     fit = d["fit"]
     assert set(fit) >= {"m", "b", "td_s", "ci95", "td_meta_s", "residual_rms"}
-    assert set(fit["ci95"]) == {"m", "b", "td_s"}
+    assert set(fit["ci95"]) == {"m", "b", "td_s"} and fit["delay_model"] == "common"
+    assert fit["verdict"]["level"] == "ok" and fit["tv_s"] == 0.002
     assert abs(fit["td_s"] / T - 1.5) < 0.01 and fit["td_meta_s"] == 0.002
     # the theory overlay uses the fitted plant and delay, so it matches the data
     assert d["theory"]["plant_source"].startswith("fitted") and d["theory"]["deviation_median"] < 1e-3
     assert main(["analyze", "etfe", str(p), "--fit-ve"]) == 0
     out = capsys.readouterr().out
-    assert "closed-loop fit" in out and "td  = " in out and "K   = " in out
+    assert "closed-loop fit" in out and "td  = " in out and "K   = " in out and "verdict " in out
 
 
 def test_fit_needs_a_ve(tmp_path, capsys):
@@ -164,3 +166,87 @@ def test_session_overlay_uses_the_rigs_measured_delay(tmp_path, capsys):
     assert main(["analyze", "etfe", str(path2), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["theory"]["latency_s"] == pytest.approx(td) and d["theory"]["deviation_median"] < 0.01
+
+
+# ----------------------------------------------------------------------------- where the delays live
+def test_ve_path_delay_theory_matches_a_brute_force_simulation():
+    # whole samples: the time-domain simulation is the theory's own state-space loop, to rounding
+    brute = delayed_loop_recording(SD, n=4000, latency=1.5 * T, ve_delay=2 * T)
+    exact = closed_loop_recording(SD.with_(td=2 * T), n=4000, latency=1.5 * T)
+    assert np.max(np.abs(brute.position - exact.position)) < 1e-12 * np.max(np.abs(exact.position))
+    w = np.geomspace(1, 3000, 50)
+    plant = Plant(PAPER_M, PAPER_B)
+    np.testing.assert_allclose(theory.z_sampled(plant, SD, w, 1.5 * T, ve_delay=2 * T),
+                               theory.z_sampled(plant, SD.with_(td=2 * T), w, 1.5 * T), rtol=1e-12)
+    # fractional: the ETFE of an exact noise-free record follows the new formula to its own
+    # error (median ~2e-6 on 60 s; a half-sample error in either delay would be ~1e-2)
+    for latency, tv in ((0.0, 0.5 * T), (1.3 * T, 2.7 * T)):
+        res = etfe(delayed_loop_recording(SD, n=60000, latency=latency, ve_delay=tv))
+        z = theory.z_sampled(plant, SD, res.w, latency, ve_delay=tv)
+        band = res.w < 1000
+        assert np.median(np.abs(res.Z[band] / z[band] - 1)) < 2e-5
+
+
+CASES = [  # (VE, device latency, VE-path delay [samples], model the data should choose)
+    (SD, 0.0, 3.0, "ve-path"),
+    (SD, 0.0, 0.5, "ve-path"),
+    (SD, 1.3, 2.7, "both"),
+    (VirtualEnvironment("spring", K=10.0), 0.0, 5.0, "ve-path"),  # K_max ~ 18 N/m
+    (VirtualEnvironment("damper", B=1.5, w0=200.0), 0.0, 1.5, "ve-path"),
+    (VirtualEnvironment("spring", K=20.0), 2.25, 0.0, "common"),  # K_max ~ 36 N/m
+]
+
+
+@pytest.mark.parametrize("ve, latency, tv, chosen", CASES)
+def test_fit_finds_an_undeclared_ve_path_delay(ve, latency, tv, chosen):
+    # the metadata say td = 0: the VE-path delay is the data's to find, and where it lives
+    rec = delayed_loop_recording(ve, n=20000, latency=latency * T, ve_delay=tv * T, seed=2)
+    fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START)
+    assert fit.delay_model == chosen, fit.selection
+    assert abs(fit.tv_s - tv * T) < 5e-5 and abs(fit.td_s - latency * T) < 5e-5
+    assert abs(fit.m / PAPER_M - 1) < 0.02 and abs(fit.b / PAPER_B - 1) < 0.05
+    assert fit.verdict.level == "ok", fit.verdict
+    for k in ("td_s", "tv_s"):
+        if k in fit.ci95:
+            assert 0.0 <= fit.ci95[k][0] <= getattr(fit, k) <= fit.ci95[k][1]
+    assert chosen.split("-")[0] in fit.selection["reason"] or "both" in fit.selection["reason"]
+
+
+def test_a_model_that_cannot_fit_is_failed_not_silent():
+    # the old fit's blind spot, forced: only the common latency, on a VE-path delay of 3 samples
+    rec = delayed_loop_recording(SD, n=20000, ve_delay=3 * T, seed=4)
+    fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START, delay_model="common")
+    assert fit.verdict.level == "failed" and "chi2/dof" in fit.verdict.reasons[0]
+    assert fit.ci95["td_s"][0] >= 0.0
+    with pytest.raises(UserError, match="unknown delay model"):
+        fit_loop(etfe(rec), SD, START, delay_model="late")
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_noisy_records_meet_the_targets_or_say_why(seed):
+    # force-sensor noise (0.05 N, 0.25 N on a weak excitation) and a fractional VE-path delay:
+    # no silent failure - every parameter within its target or a verdict naming the reason
+    for force_std in (1.0, 0.25):
+        rec = delayed_loop_recording(SD, n=20000, ve_delay=1.75 * T, seed=seed, force_std=force_std,
+                                     force_noise=0.05)
+        fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START)
+        within = (abs(fit.tv_s - 1.75 * T) < 5e-5 and abs(fit.td_s) < 5e-5
+                  and abs(fit.m / PAPER_M - 1) < 0.02 and abs(fit.b / PAPER_B - 1) < 0.05)
+        assert within or fit.verdict.level in ("doubtful", "failed"), (force_std, fit)
+        if fit.verdict.level == "doubtful":
+            assert fit.verdict.reasons
+        lo, hi = fit.ci95["m"]
+        assert lo <= PAPER_M <= hi, (force_std, lo, hi)  # the force-noise bias is in the interval
+
+
+def test_session_etfe_fits_on_request(tmp_path):
+    from labbench.session_api import Session
+
+    rec = delayed_loop_recording(SD, n=20000, ve_delay=2 * T, seed=3)
+    p = tmp_path / "loop.csv"
+    write_csv(rec, p)
+    fr = Session(p, dict(rec.meta), {}, {}).etfe(fit=True)
+    assert fr.fit.delay_model == "ve-path" and abs(fr.fit.tv_s - 2 * T) < 5e-5
+    # the overlay uses the fitted VE-path delay (whole samples here), so it matches the data
+    assert "VE-path delay 2 samples" in fr.comparison["plant_source"]
+    assert fr.comparison["deviation_median"] < 1e-3

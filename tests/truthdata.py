@@ -5,6 +5,8 @@ analysis sweep feeds them to the estimators); this module adds the test-only one
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from labbench.analysis.dataio import Recording, recording_from_arrays
@@ -45,3 +47,52 @@ def write_csv(rec: Recording, path, extra_meta: dict | None = None) -> None:
         fh.writelines(f"# {k}={v}\n" for k, v in {**rec.meta, **(extra_meta or {})}.items())
         fh.write("position,t,force\n")
         np.savetxt(fh, np.column_stack([rec.position, rec.t, rec.force]), delimiter=",", fmt="%.17g")
+
+
+def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PAPER_B,
+                           latency: float = 0.0, ve_delay: float = 0.0, seed: int = 0,
+                           force_std: float = 1.0, force_noise: float = 0.0) -> Recording:
+    """A closed-loop white-noise record simulated step by step in the time domain, with the
+    excitation reaching the plant ``latency`` [s] after its sample and the VE force
+    ``latency + ve_delay`` after its own (either a fraction of a sample or not).
+
+    Brute force, independent of ``labbench.theory``: each step is cut where either held
+    input changes, and every piece integrated exactly (``scipy.linalg.expm`` of the
+    augmented plant). The VE is ``ve``'s law (K, B, w0 filter) with its td ignored: the
+    metadata say td = 0, so the VE-path delay is undeclared. ``force_noise`` [N rms] is
+    added to the recorded force only (a force sensor's noise).
+    """
+    from scipy.linalg import expm
+
+    T = ve.T
+    rng = np.random.default_rng(seed)
+    f_exo = force_std * rng.standard_normal(n)
+    cuts = sorted({0.0, T, *(((d / T) % 1.0) * T for d in (latency, latency + ve_delay))})
+    pieces = []  # (Phi, Gamma, exo index offset, VE index offset) per piece of a step
+    A = np.array([[0.0, 1.0], [0.0, -b / m]])
+    for t0, t1 in zip(cuts[:-1], cuts[1:]):
+        if t1 - t0 < 1e-15:
+            continue
+        aug = np.zeros((3, 3))
+        aug[:2, :2], aug[1, 2] = A * (t1 - t0), (t1 - t0) / m
+        E = expm(aug)
+        mid = 0.5 * (t0 + t1)
+        pieces.append((E[:2, :2], E[:2, 2], math.floor((mid - latency) / T),
+                       math.floor((mid - latency - ve_delay) / T)))
+    a = math.exp(-ve.w0 * T) if math.isfinite(ve.w0) else 0.0
+    state = np.zeros(2)
+    x = np.empty(n)
+    f_ve = np.zeros(n)
+    v_hat, x_prev = 0.0, 0.0
+    for k in range(n):
+        x[k] = state[0]
+        v_hat = a * v_hat + (1 - a) * (x[k] - x_prev) / T
+        x_prev = x[k]
+        f_ve[k] = (ve.K * x[k] + ve.B * v_hat) if ve.kind != "none" else 0.0
+        for Phi, G, oe, ov in pieces:
+            u = (f_exo[k + oe] if k + oe >= 0 else 0.0) - (f_ve[k + ov] if k + ov >= 0 else 0.0)
+            state = Phi @ state + G * u
+    meta = {"fs": 1.0 / T, "ve": ve.kind, "K": ve.K, "B": ve.B,
+            "w0": ve.w0 if math.isfinite(ve.w0) else "none", "td": 0.0}
+    recorded = f_exo + force_noise * rng.standard_normal(n)
+    return recording_from_arrays(np.arange(n) * T, recorded, x, meta, "<delayed-loop truth>")

@@ -1,26 +1,49 @@
-"""Fit the exact sampled closed-loop model to a measured impedance: plant m, b and the
-rig's extra loop delay td (``labbench analyze etfe --fit``).
+"""Fit the exact sampled closed-loop model to a measured impedance: plant m, b and where
+the loop's delays live (``labbench analyze etfe --fit``).
 
-Model: ``labbench.theory.z_sampled(Plant(m, b), ve, w, latency=td)``, the exact
-sampled loop of the VE in the metadata (its own software delay ``ve.td``
-included, whole samples) with an actuator latency ``td`` >= 0 on the whole
-command, continuous in td (fractions of a sample: the held command split over
-two samples, ``labbench.theory`` module doc). With ``fit_ve`` the rendered K
-and B are free too (the VE's law and filter stay those of the metadata).
+Model: ``labbench.theory.z_sampled(Plant(m, b), ve, w, latency=td, ve_delay=tv)``:
+``Z = (1 + P_{td+tv} C) / (jw P_td)``, the VE of the metadata (law, K, B, w0), with two
+delays, both continuous (fractions of a sample: the held input split over two samples,
+``labbench.theory`` module doc):
 
-Weighted complex least squares (``scipy.optimize.least_squares``, trust region
-with bounds m > 0, b >= 0, td >= 0): residual ``(Z - Z_model) / sigma`` at
-every estimated frequency with coherence >= 0.8 below FIT_W_MAX x Nyquist,
-sigma = Z_err / sqrt(ln 20) (the ETFE's 95 % radius of a circular complex
-error). The phase of a delay wraps, so the cost has local minima in td: td
-starts from the best point of a grid over 0-TD_GRID_MAX samples (quarter
-samples, m and b at their start values).
+* ``td`` >= 0, the device's latency on the whole command (excitation and VE force);
+* ``tv`` >= 0, the VE-path delay (the paper's td: software delay on the VE force only).
 
-95 % intervals: Gauss-Newton covariance ``s^2 (J^T J)^-1`` with s^2 the
-residual variance (so a misfit or a mis-stated Z_err widens them rather than
-being ignored), inflated by ``(1 + rho) / (1 - rho)`` for the lag-one
-correlation rho of the standardised residuals along frequency (neighbouring
-ETFE bands share DFT bins), ``theta +- t(0.975, dof) * se``.
+They move Z differently: tv turns the VE's term alone (it lowers ED by ~K tv at any
+frequency), td turns the plant's term (Re Z falls by ~m w^2 td), so a record with a VE
+can tell them apart. Three delay models (``DELAY_MODELS``) are fitted: ``common`` (td
+free, tv the metadata's td), ``ve-path`` (tv free, td = 0) and ``both``; the choice is
+blocked 5-fold cross-validation over frequency (interleaved contiguous blocks, as
+``labbench.analysis.identify`` selects its models): of the two one-delay models the lower
+CV loss; ``both`` replaces it only when its fold log-ratio gain exceeds two standard
+errors and 0.5 % and its second delay's 95 % interval excludes the value the one-delay
+model holds it at. ``selection`` says which won and by how much. With ``fit_ve`` the
+rendered K and B are free too.
+
+Weighted complex least squares (``scipy.optimize.least_squares``, trust region with
+bounds m > 0, b >= 0, delays >= 0): residual ``(Z - Z_model) / sigma`` at every
+estimated frequency with coherence >= 0.8 below FIT_W_MAX x Nyquist, sigma = Z_err /
+sqrt(ln 20) (the ETFE's 95 % radius of a circular complex error). The phase of a delay
+wraps, so the cost has local minima in the delays: each model starts from the best
+points of a grid over 0-DELAY_GRID_MAX samples (quarter samples), refined locally; the
+lowest refined cost wins, so a bound of the start is never the answer.
+
+95 % intervals: Gauss-Newton covariance ``s^2 (J^T J)^-1`` with s^2 the residual
+variance (a misfit widens them), inflated by ``(1 + rho) / (1 - rho)`` for the lag-one
+correlation rho of the standardised residuals along frequency (neighbouring ETFE bands
+share DFT bins), ``theta +- t(0.975, dof) * se``; a delay's interval is cut at 0 (a
+delay is never negative). Force-sensor noise (errors in the variables) scales the
+estimated Z up by 1 + S_nn/S_ff, which the record's coherence bounds:
+gamma^2 = 1 / (1 + S_nn/S_ff) when all the incoherence is sensor noise; the m and b
+intervals are widened downwards by that bound (``eiv_bias_bound``) and the verdict says so
+when it matters (process noise lowers the coherence without any bias, so it is a bound).
+
+Verdict (``labbench.verdict``): failed when chi^2/dof > CHI2_FAILED against the noise
+the record shows (the model cannot describe the record: a delay or VE the metadata do
+not state, a nonlinearity); doubtful at a bound (b = 0, a delay at the grid's end),
+with structured residuals, when the force-noise bound exceeds the m tolerance or when a
+parameter's interval is wider than its accuracy target (m 2 %, b 5 %, a delay 0.05 ms):
+the record cannot vouch for the number to that accuracy.
 """
 from __future__ import annotations
 
@@ -30,96 +53,264 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
-from labbench import theory
-from labbench.analysis.etfe import LOW_COHERENCE, R95, EtfeResult
+from labbench import theory, verdict
+from labbench.analysis.etfe import R95, EtfeResult
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 
 FIT_W_MAX = 0.5  # fraction of the Nyquist frequency: above it the sampled loop's Z
 # swings by orders of magnitude and a few near-Nyquist bins would set the fit
 W_MIN = 1.0  # rad/s: below it records rarely resolve anything
-TD_GRID_MAX, TD_GRID_STEP = 10.0, 0.25  # samples
+DELAY_GRID_MAX, DELAY_GRID_STEP = 12.5, 0.25  # samples
+N_STARTS = 3  # grid minima refined per model
 MIN_POINTS = 10
+DELAY_MODELS = ("common", "ve-path", "both")
+CV_FOLDS, MIN_GAIN_SE, MIN_GAIN_REL = 5, 2.0, 0.005
+CHI2_FAILED = 2.0  # the 164 good fits of issue 24's grid had <= 0.75, the 60 wrong ones >= 2.4
+RHO_DOUBTFUL = 0.6  # lag-one residual correlation beyond the ETFE bands' own overlap
+M_TOLERANCE, B_TOLERANCE, TD_TOLERANCE_S = 0.02, 0.05, 5e-5  # issue 24's accuracy targets
 
 
 @dataclass
 class LoopFit:
     m: float
     b: float
-    td_s: float
+    td_s: float  # device latency on the whole command
     ci95: dict  # name -> (lo, hi)
+    tv_s: float = 0.0  # VE-path delay (the metadata's td unless the data chose to fit it)
+    delay_model: str = "common"
+    selection: dict = field(default_factory=dict)
     K: float | None = None  # rendered stiffness and damping (fit_ve)
     B: float | None = None
-    td_meta_s: float = 0.0  # the VE's own td from the metadata (in the model, not fitted)
+    td_meta_s: float = 0.0  # the VE's own td from the metadata
     residual_rms: float = 0.0  # rms |Z - Z_model| / |Z| over the fitted frequencies
     chi2_dof: float = 0.0  # weighted residual variance (1 when Z_err is right and the model fits)
+    eiv_bias_bound: float = 0.0  # relative upward bias of m, b force-sensor noise could cause
     n_freq: int = 0
     band_rad_s: tuple = ()
+    verdict: verdict.Verdict = field(default_factory=verdict.Verdict)
     Z_model: np.ndarray | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
-        d = {"m": self.m, "b": self.b, "td_s": self.td_s,
+        d = {"m": self.m, "b": self.b, "td_s": self.td_s, "tv_s": self.tv_s,
              "ci95": {k: list(v) for k, v in self.ci95.items()},
-             "td_meta_s": self.td_meta_s, "loop_delay_s": self.td_meta_s + self.td_s,
-             "residual_rms": self.residual_rms, "chi2_dof": self.chi2_dof, "n_freq": self.n_freq,
-             "band_rad_s": list(self.band_rad_s)}
+             "delay_model": self.delay_model, "selection": self.selection,
+             "td_meta_s": self.td_meta_s, "loop_delay_s": self.tv_s + self.td_s,
+             "residual_rms": self.residual_rms, "chi2_dof": self.chi2_dof,
+             "eiv_bias_bound": self.eiv_bias_bound, "n_freq": self.n_freq,
+             "band_rad_s": list(self.band_rad_s), "verdict": self.verdict.as_dict()}
         if self.K is not None:
             d.update(K=self.K, B=self.B)
         return d
 
 
-def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool = False) -> LoopFit:
-    """Fit m, b, td (and K, B with ``fit_ve``) to the measured Z (see module doc).
+@dataclass
+class _Problem:
+    w: np.ndarray
+    Z: np.ndarray
+    sigma: np.ndarray
+    ve: VirtualEnvironment
+    start: Plant
+    fit_ve: bool
 
-    ``start``: initial plant (e.g. identified from the record); ``ve``: the VE of
-    the metadata, whose T, w0, kind and td are taken as they are.
+    def names(self, model: str) -> list[str]:
+        delays = {"common": ["td_s"], "ve-path": ["tv_s"], "both": ["td_s", "tv_s"]}[model]
+        return ["m", "b", *delays] + (["K", "B"] if self.fit_ve else [])
+
+    def scale(self, model: str) -> np.ndarray:
+        s = {"m": self.start.m, "b": self.start.b if self.start.b > 0 else self.start.m,
+             "td_s": self.ve.T, "tv_s": self.ve.T, "K": max(self.ve.K, 1.0), "B": max(self.ve.B, 1e-2)}
+        return np.array([s[k] for k in self.names(model)])
+
+    def model(self, model: str, theta: np.ndarray, use=slice(None)) -> np.ndarray:
+        p = dict(zip(self.names(model), theta))
+        ve = self.ve.with_(K=p["K"], B=p["B"]) if self.fit_ve else self.ve
+        tv = p.get("tv_s", self.ve.td)
+        return theory.z_sampled(Plant(p["m"], p["b"]), ve, self.w[use], latency=p.get("td_s", 0.0),
+                                ve_delay=tv)
+
+    def fit(self, model: str, use=slice(None), starts=None):
+        """Best refined fit of one delay model on the frequencies ``use``: (result, scale)."""
+        scale = self.scale(model)
+        names = self.names(model)
+
+        def residual(p):
+            r = (self.Z[use] - self.model(model, p * scale, use)) / self.sigma[use]
+            return np.concatenate([r.real, r.imag])
+
+        if starts is None:
+            starts = self._grid_starts(model, residual, scale)
+        # the ranges Plant and VirtualEnvironment accept, in scaled units
+        lo_hi = {"m": (1e-6, 1e3), "b": (0.0, 1e4), "td_s": (0.0, 1.0), "tv_s": (0.0, 1.0),
+                 "K": (0.0, 1e7), "B": (0.0, 1e5)}
+        lower = np.array([lo_hi[k][0] for k in names]) / scale * (1 + 1e-9)
+        upper = np.array([lo_hi[k][1] for k in names]) / scale * (1 - 1e-9)
+        best = None
+        for p0 in starts:
+            p0 = np.clip(p0, lower, upper)
+            r = optimize.least_squares(residual, p0, bounds=(lower, upper), x_scale="jac", method="trf")
+            if best is None or r.cost < best.cost:
+                best = r
+        return best, scale
+
+    def _grid_starts(self, model, residual, scale):
+        base = {"m": 1.0, "b": self.start.b / scale[1], "td_s": 0.0, "tv_s": self.ve.td / self.ve.T,
+                "K": self.ve.K / max(self.ve.K, 1.0), "B": self.ve.B / max(self.ve.B, 1e-2)}
+        names = self.names(model)
+        grid = np.arange(0.0, DELAY_GRID_MAX + DELAY_GRID_STEP / 2, DELAY_GRID_STEP)
+        delay_idx = [i for i, k in enumerate(names) if k in ("td_s", "tv_s")]
+        axes = np.meshgrid(*[grid] * len(delay_idx), indexing="ij")
+        points = np.stack([a.ravel() for a in axes], axis=1)
+        p0 = np.array([base[k] for k in names])
+        costs = []
+        for pt in points:
+            p = p0.copy()
+            p[delay_idx] = pt
+            costs.append(np.sum(residual(p) ** 2))
+        order = np.argsort(costs)
+        starts, taken = [], []
+        for i in order:  # distinct minima: at least a sample apart
+            if all(np.max(np.abs(points[i] - t)) >= 1.0 for t in taken):
+                taken.append(points[i])
+                p = p0.copy()
+                p[delay_idx] = points[i]
+                starts.append(p)
+            if len(starts) == N_STARTS:
+                break
+        return starts
+
+
+def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool = False,
+             delay_model: str = "auto") -> LoopFit:
+    """Fit m, b and the delays (and K, B with ``fit_ve``) to the measured Z (module doc).
+
+    ``start``: initial plant (e.g. identified from the record); ``ve``: the VE of the
+    metadata; ``delay_model``: one of ``DELAY_MODELS`` or ``auto`` (cross-validated).
     """
     if ve.kind == "none" and fit_ve:
         raise UserError("--fit-ve needs a VE in the metadata (ve=spring, damper or spring-damper)")
+    if delay_model not in ("auto", *DELAY_MODELS):
+        raise UserError(f"unknown delay model {delay_model!r}; choose auto or one of {', '.join(DELAY_MODELS)}")
     w_max = FIT_W_MAX * math.pi / ve.T
     use = (~res.low_coherence) & (res.w >= W_MIN) & (res.w <= w_max) & (res.Z_err > 0)
     use &= np.isfinite(res.Z) & np.isfinite(res.Z_err)
     if use.sum() < MIN_POINTS:
         raise UserError(f"only {int(use.sum())} coherent frequencies between {W_MIN:g} and "
                         f"{w_max:.4g} rad/s: not enough to fit the loop (need {MIN_POINTS})")
-    w, Z = res.w[use], res.Z[use]
-    sigma = res.Z_err[use] / R95
-    names = ["m", "b", "td_s"] + (["K", "B"] if fit_ve else [])
-    scale = np.array([start.m, start.b if start.b > 0 else start.m, ve.T]
-                     + ([max(ve.K, 1.0), max(ve.B, 1e-2)] if fit_ve else []))
+    prob = _Problem(res.w[use], res.Z[use], res.Z_err[use] / R95, ve, start, fit_ve)
+    if ve.kind == "none":
+        selection = {"model": "common", "reason": "no VE: only the common latency acts"}
+    elif delay_model != "auto":
+        selection = {"model": delay_model, "reason": "given"}
+    else:
+        selection = _select(prob)
+    model = selection["model"]
+    best, scale = selection.pop("_fit", None) or prob.fit(model)
+    names = prob.names(model)
+    theta, half, s2, rho = _spread(best, scale)
+    n = len(prob.w)
+    coh = np.clip(res.coherence[use], 1e-6, 1.0)
+    eiv = float(np.median((1 - coh) / coh))
+    ci = {}
+    for k, c, e in zip(names, theta, half):
+        lo, hi = c - e, c + e
+        if k in ("m", "b"):
+            lo -= eiv * c  # the truth may sit below by the force-noise bias (module doc)
+        if k in ("td_s", "tv_s", "b"):
+            lo = max(lo, 0.0)
+        ci[k] = (float(lo), float(hi))
+    values = dict(zip(names, (float(v) for v in theta)))
+    Zm = prob.model(model, theta)
+    fit = LoopFit(
+        m=values["m"], b=values["b"], td_s=values.get("td_s", 0.0), tv_s=values.get("tv_s", ve.td),
+        ci95=ci, delay_model=model, selection=selection,
+        K=values.get("K"), B=values.get("B"), td_meta_s=ve.td,
+        residual_rms=float(np.sqrt(np.mean(np.abs((prob.Z - Zm) / prob.Z) ** 2))),
+        chi2_dof=float(s2), eiv_bias_bound=eiv, n_freq=n, band_rad_s=(float(prob.w[0]), float(prob.w[-1])),
+        Z_model=Zm)
+    fit.verdict = _judge(fit, rho, ve)
+    return fit
 
-    def model(p):
-        th = p * scale
-        v = ve.with_(K=th[3], B=th[4]) if fit_ve else ve
-        return theory.z_sampled(Plant(th[0], th[1]), v, w, latency=th[2])
 
-    def residual(p):
-        r = (Z - model(p)) / sigma
-        return np.concatenate([r.real, r.imag])
-
-    lower = np.array([1e-6, 0.0, 0.0] + ([0.0, 0.0] if fit_ve else []))
-    p0 = np.array([1.0, start.b / scale[1], 0.0] + ([ve.K / scale[3], ve.B / scale[4]] if fit_ve else []))
-    grid = np.arange(0.0, TD_GRID_MAX + TD_GRID_STEP / 2, TD_GRID_STEP)
-    p0[2] = grid[int(np.argmin([np.sum(residual(np.r_[p0[:2], td, p0[3:]]) ** 2) for td in grid]))]
-    best = optimize.least_squares(residual, p0, bounds=(lower, np.inf), x_scale="jac", method="trf")
+def _spread(best, scale) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(theta, 95 % half-widths, residual variance s^2, lag-one rho) of a fit (module doc)."""
     theta = best.x * scale
     J = best.jac / scale  # d residual / d theta
-    n_res, p = len(best.fun), len(theta)
-    dof = max(n_res - p, 1)
+    dof = max(len(best.fun) - len(theta), 1)
     s2 = 2 * best.cost / dof
-    r = best.fun[: len(w)] + 1j * best.fun[len(w):]
-    rho = _lag1(r)
+    n = len(best.fun) // 2
+    rho = _lag1(best.fun[:n] + 1j * best.fun[n:])
     inflate = (1 + rho) / (1 - rho) if rho > 0 else 1.0
-    cov = s2 * inflate * np.linalg.pinv(J.T @ J)
-    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    t = stats.t.ppf(0.975, dof)
-    ci = {k: (float(c - t * e), float(c + t * e)) for k, c, e in zip(names, theta, se)}
-    Zm = model(best.x)
-    return LoopFit(
-        m=float(theta[0]), b=float(theta[1]), td_s=float(theta[2]), ci95=ci,
-        K=float(theta[3]) if fit_ve else None, B=float(theta[4]) if fit_ve else None,
-        td_meta_s=ve.td, residual_rms=float(np.sqrt(np.mean(np.abs((Z - Zm) / Z) ** 2))),
-        chi2_dof=float(s2), n_freq=int(use.sum()), band_rad_s=(float(w[0]), float(w[-1])), Z_model=Zm)
+    se = np.sqrt(np.maximum(np.diag(s2 * inflate * np.linalg.pinv(J.T @ J)), 0.0))
+    return theta, stats.t.ppf(0.975, dof) * se, float(s2), rho
+
+
+def _folds(n: int) -> list[np.ndarray]:
+    """Test masks of CV_FOLDS folds of interleaved contiguous blocks (two blocks per fold)."""
+    block = np.arange(n) * (2 * CV_FOLDS) // n
+    return [(block % CV_FOLDS) == f for f in range(CV_FOLDS)]
+
+
+def _select(prob: _Problem) -> dict:
+    """The delay model by blocked cross-validation over frequency (module doc)."""
+    n = len(prob.w)
+    fits = {m: prob.fit(m) for m in DELAY_MODELS}
+    losses = {}
+    for model, (best, scale) in fits.items():
+        fold_loss = []
+        for test in _folds(n):
+            r, _ = prob.fit(model, ~test, starts=[best.x])
+            Zt = prob.model(model, r.x * scale, test)
+            fold_loss.append(np.mean(np.abs((prob.Z[test] - Zt) / prob.sigma[test]) ** 2))
+        losses[model] = np.array(fold_loss)
+    one = min(("common", "ve-path"), key=lambda m: losses[m].mean())
+    other = "ve-path" if one == "common" else "common"
+    ratio = np.log(losses[one] / losses["both"])
+    se = float(np.std(ratio, ddof=1) / math.sqrt(len(ratio)))
+    supported = bool(ratio.mean() > max(MIN_GAIN_SE * se, math.log1p(MIN_GAIN_REL)))
+    # the second delay must also differ from the value the one-delay model holds it at
+    extra, held = ("tv_s", prob.ve.td) if one == "common" else ("td_s", 0.0)
+    theta, half, _, _ = _spread(*fits["both"])
+    i = prob.names("both").index(extra)
+    distinct = bool(abs(theta[i] - held) > half[i])
+    both = supported and distinct
+    chosen = "both" if both else one
+    pair = float(losses[other].mean() / losses[one].mean())
+    gain = float(-np.expm1(-ratio.mean()))
+    where = {"common": "on the whole command (device latency)", "ve-path": "on the VE force only",
+             "both": "on the VE force and on the whole command"}
+    why = ("win" if both else "do not win" if not supported else
+           f"win but their {extra[:2]} is within its 95 % interval of {1e3 * held:g} ms")
+    reason = (f"delay {where[chosen]}: {other} predicts held-out frequencies {pair:.3g}x worse than "
+              f"{one}; both delays {why} (CV gain {100 * gain:.2g} %, needs > {MIN_GAIN_SE:g} SE "
+              f"and {100 * MIN_GAIN_REL:g} %)")
+    return {"criterion": f"blocked {CV_FOLDS}-fold cross-validation over frequency",
+            "model": chosen, "cv_loss": {m: float(v.mean()) for m, v in losses.items()},
+            "reason": reason, "_fit": fits[chosen]}
+
+
+def _judge(fit: LoopFit, rho: float, ve: VirtualEnvironment) -> verdict.Verdict:
+    top = DELAY_GRID_MAX * ve.T
+    findings = [
+        (verdict.FAILED if fit.chi2_dof > CHI2_FAILED else verdict.OK,
+         f"chi2/dof {fit.chi2_dof:.3g} > {CHI2_FAILED:g} against the record's own noise: the model "
+         "does not describe this record (a delay, VE or nonlinearity it lacks)"),
+        (verdict.DOUBTFUL if fit.b <= 0.0 else verdict.OK, "b at its bound 0"),
+        (verdict.DOUBTFUL if max(fit.td_s, fit.tv_s - ve.td if fit.delay_model == "common" else fit.tv_s)
+         >= top else verdict.OK, f"a delay at the search's end ({DELAY_GRID_MAX:g} samples)"),
+        (verdict.DOUBTFUL if rho > RHO_DOUBTFUL else verdict.OK,
+         f"residuals structured along frequency (lag-one correlation {rho:.2f})"),
+        (verdict.DOUBTFUL if fit.eiv_bias_bound > M_TOLERANCE else verdict.OK,
+         f"coherence says force-sensor noise could bias m and b up by as much as "
+         f"{100 * fit.eiv_bias_bound:.2g} % (intervals widened downwards by it)"),
+    ]
+    targets = {"m": M_TOLERANCE * fit.m, "b": B_TOLERANCE * fit.b, "td_s": TD_TOLERANCE_S,
+               "tv_s": TD_TOLERANCE_S}
+    for k, (lo, hi) in fit.ci95.items():
+        if k in targets and (hi - lo) / 2 > targets[k]:
+            findings.append((verdict.DOUBTFUL, f"{k} not pinned to its accuracy target: 95 % interval "
+                             f"[{lo:.4g}, {hi:.4g}] is wider than +-{targets[k]:.2g}"))
+    return verdict.judge(findings)
 
 
 def _lag1(r: np.ndarray) -> float:

@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 
+from labbench import verdict
 from labbench.jsonutil import json_safe
 from labbench.numfmt import fmt
 
@@ -47,8 +48,9 @@ def register(subparsers) -> None:
     e.add_argument("--m", type=float, metavar="KG", help="device mass for the theory overlay")
     e.add_argument("--b", type=float, metavar="NS_PER_M", help="device damping for the theory overlay")
     e.add_argument("--fit", action="store_true",
-                   help="fit the exact sampled closed-loop model of the metadata's VE to Z: plant m, b "
-                        "and the extra loop delay td (fractions of a sample), with 95 %% intervals")
+                   help="fit the exact sampled closed-loop model of the metadata's VE to Z: plant m, b, "
+                        "the device latency td and the VE-path delay tv (fractions of a sample; which "
+                        "delays act chosen by cross-validation), with 95 %% intervals and a verdict")
     e.add_argument("--fit-ve", action="store_true",
                    help="with --fit: also fit the rendered K and B")
     e.add_argument("--json", action="store_true", help="print one JSON object")
@@ -139,13 +141,16 @@ def _print_fit(fit: dict) -> None:
     ci = fit["ci95"]
     print(f"closed-loop fit ({fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-{fit['band_rad_s'][1]:.4g} "
           f"rad/s, residual rms {100 * fit['residual_rms']:.2f} % of |Z|):")
-    rows = [("m", "m", "kg", 1.0), ("b", "b", "N s/m", 1.0), ("td", "td_s", "ms", 1e3)]
+    rows = [("m", "m", "kg", 1.0), ("b", "b", "N s/m", 1.0)]
+    rows += [(k, k + "_s", "ms", 1e3) for k in ("td", "tv") if k + "_s" in ci]
     rows += [(k, k, u, 1.0) for k, u in (("K", "N/m"), ("B", "N s/m")) if k in fit]
     for name, key, unit, scale in rows:
         lo, hi = ci[key]
         print(f"  {name:3s} = {scale * fit[key]:.6g} {unit}   95 % [{scale * lo:.6g}, {scale * hi:.6g}]")
-    print(f"  td in the metadata (the VE's own delay, in the model): {1e3 * fit['td_meta_s']:g} ms; "
-          f"loop delay {1e3 * fit['loop_delay_s']:.4g} ms")
+    print(f"  delays: {fit['selection'].get('reason', fit['delay_model'])}")
+    print(f"  VE-path delay tv {1e3 * fit['tv_s']:.4g} ms (metadata td {1e3 * fit['td_meta_s']:g} ms), "
+          f"device latency td {1e3 * fit['td_s']:.4g} ms; loop delay {1e3 * fit['loop_delay_s']:.4g} ms")
+    print(f"  chi2/dof {fit['chi2_dof']:.3g}; verdict {verdict.from_dict(fit['verdict']).line()}")
 
 
 def _pct(v) -> str:
