@@ -7,8 +7,12 @@ from labbench.rig import rig_from_dict
 from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 # Short lock-step timeout so a silent drive is detected quickly in tests.
-# Drive monitors well above the stalls of a loaded machine (tens of ms).
-FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 0.2, "heartbeat_consumer_ms": 800,
+# Drive monitors well above the stalls of a loaded machine (tens of ms). The SDO
+# timeout is the simulated drive's own (2 s): an SDO answer is a thread of this
+# process answering, which a loaded machine can keep off the CPU for longer than
+# 0.2 s (the flaky test_sim_canopen_takes_the_plain_simulator_options); the tests
+# of a silent drive fail on the NMT or the lock-step wait first.
+FAST = {"lockstep_timeout_s": 0.3, "sdo_timeout_s": 2.0, "heartbeat_consumer_ms": 800,
         "rpdo_timeout_ms": 600}
 
 
