@@ -47,6 +47,7 @@ _BUILTIN = {
         "chirp-id": "labbench.protocols.chirp_id:ChirpId",
         "etfe": "labbench.protocols.white_noise:WhiteNoiseEtfe",
         "stability": "labbench.protocols.stability_probe:StabilityProbe",
+        "commission": "labbench.protocols.commission:Commission",
     },
 }
 

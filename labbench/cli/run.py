@@ -33,7 +33,7 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser("run", help="run a protocol on a device and record a session",
                               description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="protocol", required=True, metavar="{chirp-id,etfe,stability,demo}")
+    sub = p.add_subparsers(dest="protocol", required=True, metavar="{chirp-id,etfe,stability,commission,demo}")
     for name in protocol_names():
         config_cls = protocol_class(name).Config
         sp = sub.add_parser(name, help=(config_cls.__doc__ or name).splitlines()[0])
@@ -293,6 +293,14 @@ def summary_lines(name: str, results: dict) -> list[str]:
         lines.append("w_s* measured {} / predicted {} rad/s; w_b* measured {} / predicted {} rad/s".format(
             *(fmt(bw.get(k)) for k in ("ws_star_measured", "ws_star_predicted", "wb_star_measured",
                                       "wb_star_predicted"))))
+    elif name == "commission":
+        for check in ("direction", "delay", "scale", "friction", "k_max"):
+            v = results.get(check, {}).get("verdict", {})
+            lines.append(f"{check}: {v.get('level')}" + "".join(f"; {r}" for r in v.get("reasons", [])))
+        d, s, k = results.get("delay", {}), results.get("scale", {}), results.get("k_max", {})
+        lines.append(f"delay {fmt(d.get('delay_samples'))} samples, m = {fmt(s.get('m'))} kg, "
+                     f"b = {fmt(s.get('b'))} N s/m, K_max = {fmt(k.get('k_max_n_m'))} N/m")
+        lines.append(f"rig changes: {results.get('changes') or 'none'}")
     elif name == "stability":
         unit = "N/m" if results.get("variable") == "K" else "s"
         lines.append(f"boundary ({results.get('variable')}): measured {fmt(results.get('measured_boundary'))}, "

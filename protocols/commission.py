@@ -1,0 +1,116 @@
+"""``labbench run commission``: is the rig file true? Direction, scale, delay, friction, K_max.
+
+VE off, within the rig's force limit and position window: force doublets of both signs
+(+A then -A for ``pulse_s`` each: the handle steps by about A pulse_s^2 / m and comes to
+rest), then a short chirp-ID (the displacement envelope of ``protocols.chirp_id``). The
+analysis is ``labbench.analysis.commission``; ``--write-rig`` is not part of this module.
+About 22 s of rig time by default.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from labbench.errors import UserError
+from labbench.protocol import Config, ProtocolBase, Segment, check_plant_fields, integer, number
+from labbench.protocols import excitation
+from labbench.ve import Plant, VirtualEnvironment
+
+
+@dataclass(frozen=True)
+class CommissionConfig(Config):
+    """Commissioning: doublets and a short chirp, VE off; checks the rig file (issue 20)."""
+
+    pulse_n: float = 0.5  # doublet amplitude
+    pulse_s: float = 0.02  # each half of a doublet
+    pulses: int = 4  # doublets, alternating in sign
+    rest_s: float = 0.3  # after each doublet
+    chirp_s: float = 20.0
+    f0_hz: float = 0.2
+    f1_hz: float = 20.0
+    amplitude_n: float = 1.0  # the chirp's peak force cap
+    x_max_m: float = 0.01  # the chirp's displacement cap
+    sample_time_s: float = 0.001
+    plant_m_kg: float | None = None  # nominal plant (None: the rig's)
+    plant_b: float | None = None
+
+    def check(self):
+        self._set("pulse_n", number("pulse_n", self.pulse_n, "N", lo=0, lo_open=True, hi=1000))
+        self._set("pulse_s", number("pulse_s", self.pulse_s, "s", lo=self.sample_time_s, hi=1.0))
+        self._set("pulses", integer("pulses", self.pulses, lo=2))
+        if self.pulses > 100:
+            raise UserError(f"pulses must be at most 100, got {self.pulses}")
+        self._set("rest_s", number("rest_s", self.rest_s, "s", lo=0.05, hi=10.0))
+        self._set("chirp_s", number("chirp_s", self.chirp_s, "s", lo=1.0, hi=100.0))
+        self._set("f0_hz", number("f0_hz", self.f0_hz, "Hz", lo=0, lo_open=True))
+        self._set("f1_hz", number("f1_hz", self.f1_hz, "Hz", lo=0, lo_open=True,
+                                  hi=0.45 / self.sample_time_s))
+        if not self.f0_hz < self.f1_hz:
+            raise UserError(f"f0_hz ({self.f0_hz:g} Hz) must be below f1_hz ({self.f1_hz:g} Hz)")
+        self._set("amplitude_n", number("amplitude_n", self.amplitude_n, "N", lo=0, lo_open=True, hi=1000))
+        self._set("x_max_m", number("x_max_m", self.x_max_m, "m", lo=0, lo_open=True))
+        check_plant_fields(self)
+
+
+class Commission(ProtocolBase):
+    name = "commission"
+    Config = CommissionConfig
+    config: CommissionConfig
+
+    @property
+    def ve(self) -> VirtualEnvironment:
+        return VirtualEnvironment("none", T=self.config.sample_time_s)
+
+    def _doublets(self):
+        """(force, [(start, stop, first sign)]) of the pulse part."""
+        c = self.config
+        T = c.sample_time_s
+        w, rest = round(c.pulse_s / T), round(c.rest_s / T)
+        parts, marks, at = [], [], 0
+        for i in range(c.pulses):
+            s = 1.0 if i % 2 == 0 else -1.0
+            parts.append(np.concatenate([np.full(w, s * c.pulse_n), np.full(w, -s * c.pulse_n),
+                                         np.zeros(rest)]))
+            marks.append((at, at + 2 * w + rest - 1, s))
+            at += 2 * w + rest
+        return np.concatenate(parts), marks
+
+    def excitation(self, plant: Plant) -> np.ndarray:
+        c = self.config
+        T = c.sample_time_s
+
+        def env(f_hz):
+            return excitation.displacement_envelope(f_hz, plant.m, plant.b, c.x_max_m, c.amplitude_n)
+
+        chirp = excitation.chirp(round(c.chirp_s / T), T, c.f0_hz, c.f1_hz, env, "log", round(1.0 / T))
+        return np.concatenate([self._doublets()[0], chirp])
+
+    @property
+    def n_samples(self) -> int:
+        c = self.config
+        return len(self._doublets()[0]) + round(c.chirp_s / c.sample_time_s)
+
+    def check_plan(self, plant: Plant, rig=None) -> dict:
+        c = self.config
+        if rig is not None and max(c.pulse_n, c.amplitude_n) > rig.force_limit_n:
+            raise UserError(f"pulse_n {c.pulse_n:g} N / amplitude_n {c.amplitude_n:g} N exceed the "
+                            f"rig's force limit {rig.force_limit_n:g} N")
+        step = c.pulse_n * c.pulse_s**2 / plant.m  # each doublet's displacement, nominal plant
+        return {"plan": {"doublet_step_m": step, "rig_time_s": self.n_samples * c.sample_time_s}}
+
+    def segments(self, plant: Plant):
+        yield Segment("commission", self.ve, self.excitation(plant))
+
+    def analyze(self, data: dict, meta: dict) -> dict:
+        from labbench.analysis import commission
+
+        rig = meta.get("rig") or {}
+        # a serial board may take the force at the handle ("N"): then the lever arm scales
+        # the position only (labbench.analysis.commission module doc)
+        serial = (rig.get("sections") or {}).get("serial")
+        via_lever = serial is None or serial.get("command_units") == "N*m"
+        return commission.analyze(
+            data["t"], data["command"], data["position"], self._doublets()[1],
+            {"T": meta["T"], "nominal": meta["plant"], "device_delay_s": meta.get("device_delay_s"),
+             "rig": rig, "force_via_lever": via_lever})
