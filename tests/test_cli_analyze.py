@@ -180,3 +180,24 @@ def test_a_td_line_of_fractional_samples_uses_the_paper_model(tmp_path, capsys):
     assert d["theory"]["model"] == "paper"
     d = run_json(capsys, "analyze", "id", p, "--json")
     assert "VE force" in d["force_source"] and d["m"] > 0
+
+
+def test_verdict_in_json_text_and_strict_exit(tmp_path, chirp_csv, capsys):
+    from labbench.verdict import STRICT_EXIT
+
+    d = run_json(capsys, "analyze", "id", chirp_csv, "--json", "--strict")
+    assert d["verdict"] == {"level": "ok", "reasons": []}
+    assert main(["analyze", "id", str(chirp_csv)]) == 0
+    assert "verdict: ok" in capsys.readouterr().out
+    # a failed identification (no mass seen through the noise: tests/test_identify.py) exits
+    # STRICT_EXIT under --strict only, after printing its result and reasons
+    from truthdata import with_noise
+
+    p = tmp_path / "nomass.csv"
+    rec = with_noise(chirp_recording(n=20000, b=20.0, f1=0.2), np.random.default_rng(2), force_noise=0.3)
+    write_csv(rec, p, {"force_hold": "zoh"})
+    assert main(["analyze", "id", str(p), "--model", "mb"]) == 0
+    out = capsys.readouterr().out
+    assert "verdict: failed" in out and "no mass identified" in out
+    assert main(["analyze", "id", str(p), "--model", "mb", "--strict"]) == STRICT_EXIT
+    capsys.readouterr()

@@ -125,3 +125,21 @@ def test_bad_window():
         etfe(rec, "paper", window=1)
     with pytest.raises(UserError):
         etfe(rec, "nope")
+
+
+def test_verdict_doubtful_at_a_sharp_resonance_and_ok_off_it():
+    # a stiff spring under process noise: coherence dips below 0.9 where Z swings by more than
+    # its band between neighbouring bins; the verdict names the span. A clean spring-damper
+    # record has nothing to doubt.
+    from truthdata import closed_loop_recording
+
+    from labbench.analysis.etfe import etfe
+    from labbench.ve import VirtualEnvironment
+
+    sharp = etfe(closed_loop_recording(VirtualEnvironment("spring", K=150.0), n=30000,
+                                       process_noise=0.3, seed=1))
+    assert sharp.verdict.level == "doubtful"
+    assert any(r.startswith("narrow-band") for r in sharp.verdict.reasons), sharp.verdict
+    clean = etfe(closed_loop_recording(VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0), n=60000))
+    assert clean.verdict.level == "ok", clean.verdict
+    assert clean.as_dict()["verdict"] == {"level": "ok", "reasons": []}

@@ -1,4 +1,6 @@
 """Identification against exact simulated data (tests/truthdata.py)."""
+import re
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -339,3 +341,43 @@ def test_plant_force_delays_by_fractions_of_a_sample_exactly_on_a_ramp(delay_sam
     k = np.arange(10, 100)
     np.testing.assert_allclose(late[k], k - delay_samples, atol=1e-9)
     assert np.all(late[: int(delay_samples)] == 0)
+
+
+def test_verdict_ok_on_clean_and_noisy_records_within_tolerance():
+    # known truth: where m is within 1 % and b within 2 %, nothing is wrong to say
+    rng = np.random.default_rng(3)
+    for rec in (chirp_recording(n=20000), with_noise(chirp_recording(n=20000), rng, force_noise=0.05)):
+        r = identify(rec)
+        assert abs(r.m / PAPER_M - 1) < 0.01 and abs(r.b / PAPER_B - 1) < 0.02
+        assert r.verdict.level == "ok", r.verdict
+        assert r.as_dict()["verdict"] == {"level": "ok", "reasons": []}
+
+
+def test_verdict_names_an_unstated_device_delay():
+    # a device that applies its command one period late, read without that delay: b is off
+    # by ~13 % (beyond the 2 % tolerance), and the verdict says why rather than staying silent
+    from truthdata import chirp_force, open_loop
+
+    from labbench.analysis.dataio import recording_from_arrays
+
+    n, fs = 30000, 1000.0
+    f = chirp_force(n, fs)
+    x, _ = open_loop(np.concatenate([[0.0], f[:-1]]), PAPER_M, PAPER_B, fs)
+    r = identify(recording_from_arrays(np.arange(n) / fs, f, x, {"fs": fs, "force_hold": "zoh"}, "late"),
+                 model="mb")
+    assert abs(r.b / PAPER_B - 1) > 0.02
+    assert r.verdict.level == "doubtful"
+    said = [s for s in r.verdict.reasons if s.startswith("residual structure")]
+    assert said, r.verdict
+    # it even says how large: the x''' coefficient reads the delay to a few % (truth 1 ms)
+    assert abs(float(re.search(r"delay of ([0-9.]+) ms", said[0]).group(1)) - 1.0) < 0.05
+    assert any(s.startswith("b is not resolved") for s in r.verdict.reasons)
+
+
+def test_verdict_failed_when_no_mass_is_identified():
+    # a heavily damped device under a slow chirp and force noise: the inertia is ~1 % of the
+    # force and the noise hides it; m's interval reaches below 0, so m is failed, not flagged
+    rec = with_noise(chirp_recording(n=20000, b=20.0, f1=0.2), np.random.default_rng(2), force_noise=0.3)
+    r = identify(rec, model="mb")
+    assert r.ci95["m"][0] < 0 < r.ci95["m"][1]
+    assert r.verdict.failed and "no mass identified" in r.verdict.reasons[0]

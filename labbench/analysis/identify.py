@@ -64,6 +64,7 @@ from labbench.analysis.derivatives import (
     lowpass,
 )
 from labbench.errors import UserError
+from labbench.verdict import DOUBTFUL, FAILED, Verdict, judge
 
 MODELS = ("mb", "mbc", "mbco")
 MODEL_CHOICES = MODELS + ("auto",)
@@ -85,6 +86,11 @@ QUANT_NOISE_REL = 0.02  # encoder noise in x'' relative to the x'' signal
 # REST_REL x the velocity std on unquantised data); pushed = |f| above STICK_FORCE_REL
 # x the force rms. Clean mass-dampers (chirp reversals) give <= 1 % such samples.
 REST_SIGMAS, REST_REL, STICK_FORCE_REL, STICK_FRACTION = 4.0, 1e-3, 0.01, 0.05
+# a delay between force and motion that the model lacks leaves m tau x''' in the residual
+# (f(t) = m x''(t + tau) + b x'(t + tau) ~ m x'' + b x' + m tau x'''): judged doubtful when
+# |tau| exceeds DELAY_SAMPLES samples and x''' explains DELAY_EXPLAINS of the residual variance
+DELAY_SAMPLES, DELAY_EXPLAINS = 0.25, 0.2
+UNDECIDED_SE = 1.0  # a model step within this many SE of the MIN_GAIN_SE threshold is undecided
 
 
 @dataclass
@@ -101,6 +107,7 @@ class IdResult:
     selection: dict = field(default_factory=dict)
     force_hold: dict = field(default_factory=dict)  # value, source [, cv_loss, loss_ratio]
     residual: np.ndarray | None = field(default=None, repr=False)
+    verdict: Verdict = field(default_factory=Verdict)
 
     @property
     def m(self) -> float:
@@ -123,6 +130,7 @@ class IdResult:
             "flags": list(self.flags),
             "selection": self.selection,
             "force_hold": self.force_hold,
+            "verdict": self.verdict.as_dict(),
         }
 
 
@@ -134,6 +142,7 @@ class _Data:
     a_noise_gain: float
     v_noise_gain: float
     cutoff_hz: float
+    fs: float
 
     def design(self, model: str) -> np.ndarray:
         return np.column_stack([self.cols[t] for t in TERMS[model]])
@@ -184,7 +193,49 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
         residual=resid,
     )
     result.flags = _flags(result, data, fit, method, selection)
+    result.verdict = _verdict(result, data)
     return result
+
+
+def _verdict(res: IdResult, data: _Data) -> Verdict:
+    """failed: a mass that is not positive, or a damping surely negative (no passive device
+    has either: the model or the record is wrong); doubtful: b not resolved from 0, each
+    flag in its own words, a model choice within UNDECIDED_SE of its threshold, or a residual
+    that follows x''' (an unmodelled delay, see DELAY_SAMPLES)."""
+    findings = []
+    (m_lo, m_hi), (b_lo, b_hi) = res.ci95["m"], res.ci95["b"]
+    if m_lo <= 0:
+        findings.append((FAILED, f"m = {res.m:.4g} kg: its 95 % interval [{m_lo:.4g}, {m_hi:.4g}] "
+                         "reaches 0 or below (no mass identified)"))
+    if b_hi < 0:
+        findings.append((FAILED, f"b = {res.b:.4g} N s/m is negative (95 % [{b_lo:.4g}, {b_hi:.4g}]): "
+                         "a passive device cannot have it; an unstated delay or the wrong force_hold?"))
+    elif b_lo <= 0:
+        findings.append((DOUBTFUL, f"b is not resolved from 0: 95 % interval [{b_lo:.4g}, {b_hi:.4g}] N s/m"))
+    findings += [(DOUBTFUL, f) for f in res.flags]
+    for st in res.selection.get("steps", []):
+        se = st.get("cv_gain_se")
+        if se is not None and abs(se - MIN_GAIN_SE) < UNDECIDED_SE and st["why"] != "too small to matter":
+            findings.append((DOUBTFUL, f"model choice undecided: {st['from']} -> {st['to']} gains "
+                             f"{se:.2g} SE in cross-validation against a {MIN_GAIN_SE:g} SE threshold"))
+    tau, share = _residual_delay(res, data)
+    if abs(tau) > DELAY_SAMPLES / data.fs and share > DELAY_EXPLAINS:
+        findings.append((DOUBTFUL, f"residual structure: {100 * share:.0f} % of the residual follows x''' as "
+                         f"a delay of {1e3 * tau:.3g} ms between force and motion would leave it; state "
+                         "the device delay (device_delay_s) or check the force timing"))
+    return judge(findings)
+
+
+def _residual_delay(res: IdResult, data: _Data) -> tuple[float, float]:
+    """(tau [s], share): the residual regressed on m x''' (module doc of DELAY_SAMPLES):
+    tau = coefficient, share = fraction of the residual variance it explains."""
+    r = res.residual
+    jerk = np.gradient(data.cols["m"]) * data.fs * res.m
+    jj = float(jerk @ jerk)
+    if r is None or jj == 0 or not np.any(r):
+        return 0.0, 0.0
+    tau = float(jerk @ r) / jj
+    return tau, float(tau**2 * jj / (r @ r))
 
 
 def _force_hold(rec: Recording, hold, cutoff_hz, method: str, fit) -> dict:
@@ -242,7 +293,7 @@ def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False) -
     coulomb = lowpass(sign, fs, d.cutoff_hz)[d.keep]  # L sign(x'): see module doc
     cols = {"m": d.a, "b": d.v, "coulomb": coulomb, "offset": np.ones_like(d.v)}
     return _Data(y, cols, np.asarray(rec.position)[d.keep], d.noise_gain[1], d.noise_gain[0],
-                 d.cutoff_hz)
+                 d.cutoff_hz, fs)
 
 
 def _fitter(method: str, solver: str):

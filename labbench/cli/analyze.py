@@ -28,7 +28,8 @@ def register(subparsers) -> None:
                    help="mb, mbc (+Coulomb), mbco (+offset), auto (blocked cross-validation; default)")
     q.add_argument("--method", choices=METHODS, default="l2", help="l2 least squares or l1 (exact LAD)")
     q.add_argument("--solver", choices=SOLVERS, default="fast",
-                   help="l1 solver: fast (exact simplex steps, default) or cvxpy (cross-check)")
+                   help="l1 solver: fast (exact simplex steps, default) or cvxpy (a cross-check, "
+                        "about 10x slower)")
     q.add_argument("--cutoff", type=float, metavar="HZ",
                    help="derivative low-pass cut-off (default: 3x the band of the force)")
     q.add_argument("--force-hold", choices=HOLDS, default=None,
@@ -36,6 +37,7 @@ def register(subparsers) -> None:
                         "force) or sample (sampled with the position, a force sensor); default: the "
                         "metadata, else chosen by cross-validation")
     q.add_argument("--json", action="store_true", help="print one JSON object")
+    _strict_option(q)
     q.set_defaults(func=run_id)
 
     e = sub.add_parser("etfe", help="closed-loop impedance Z = F/(jw X) and effective impedances",
@@ -58,7 +60,28 @@ def register(subparsers) -> None:
     e.add_argument("--csv", metavar="FILE", help="the frequency response as CSV: w in rad/s and "
                    "Hz, Z, its 95 %% radius, coherence, ES, ED, EM (and the theory's Z)")
     e.add_argument("--force", action="store_true", help="replace an existing output file (never one of the inputs)")
+    _strict_option(e)
     e.set_defaults(func=run_etfe)
+
+
+def _strict_option(p) -> None:
+    from labbench.verdict import STRICT_EXIT
+
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit {STRICT_EXIT} when a result's verdict is failed (for scripts)")
+
+
+def _verdicts(d: dict) -> list:
+    """The verdicts of a result dict: its own and a nested loop fit's (by path)."""
+    from labbench.verdict import from_dict
+
+    return [from_dict(d.get("verdict")), from_dict((d.get("fit") or {}).get("verdict"))]
+
+
+def _exit(d: dict, args) -> int:
+    from labbench.verdict import strict_exit
+
+    return strict_exit(_verdicts(d), args.strict)
 
 
 def run_id(args) -> int:
@@ -70,7 +93,7 @@ def run_id(args) -> int:
                            force_hold=args.force_hold).as_dict()
     if args.json:
         print(json.dumps(json_safe(d)))
-        return 0
+        return _exit(d, args)
     print(f"{args.file}: model {d['model']} by {d['method']}, {d['n_used']} samples, "
           f"derivative cut-off {d['cutoff_hz']:.3g} Hz; fitted to {d['force_source']}")
     units = {"m": "kg", "b": "N s/m", "coulomb": "N", "offset": "N"}
@@ -85,7 +108,8 @@ def run_id(args) -> int:
     print(f"  selection: {d['selection'].get('reason') or d['selection'].get('criterion')}")
     for f in d["flags"]:
         print(f"  flag: {f}")
-    return 0
+    print(f"  verdict: {d['verdict']['level']}" + "".join(f"\n    - {r}" for r in d["verdict"]["reasons"]))
+    return _exit(d, args)
 
 
 def run_etfe(args) -> int:
@@ -110,7 +134,7 @@ def run_etfe(args) -> int:
     for out in (args.plot, args.csv):
         if out:
             print(f"wrote {out}")
-    return 0
+    return _exit(d, args)
 
 
 def _print_table(path, d, cmp, units) -> None:
@@ -129,6 +153,9 @@ def _print_table(path, d, cmp, units) -> None:
         _print_fit(d["fit"])
     for f in d["flags"]:
         print(f"flag: {f}")
+    for path, v in (("verdict", d["verdict"]), ("fit.verdict", (d.get("fit") or {}).get("verdict"))):
+        if v:
+            print(f"{path}: {v['level']}" + "".join(f"\n  - {r}" for r in v["reasons"]))
     print(f"{('w ' if fu == 'rad/s' else 'f ') + fu:>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
           f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}")
     step = max(1, len(w) // 40)
