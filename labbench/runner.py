@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from labbench import device_delay, records, timing as loop_timing
+from labbench import commissioning, device_delay, records, timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 from labbench.realtime import RealtimeConfig, acquire
@@ -82,7 +82,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         close: bool = True, simulated: bool | None = None,
         realtime: RealtimeConfig | None = None,
         live_timing: Callable[[dict], None] | None = None,
-        warn: Callable[[str], None] | None = None) -> RunResult:
+        warn: Callable[[str], None] | None = None,
+        skip_commissioning: bool = False) -> RunResult:
     """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
 
     ``stop`` (a ``threading.Event`` or ``labbench.interrupts.StopRequest``, set from
@@ -102,7 +103,9 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     (default ``RealtimeConfig()``: on); ``warn(line)`` gets the one line saying
     how to grant what was refused (default: a logging warning).
     ``live_timing(snapshot)``: the run's timing so far after each page (overruns,
-    max_s, worst_t_s, n), e.g. for a status bar.
+    max_s, worst_t_s, n), e.g. for a status bar. ``skip_commissioning``: render a spring
+    or damper on real hardware before the rig passed its direction check
+    (``labbench.commissioning.gate``).
     """
     from labbench.loop import SafetyConfig
     from labbench.safety import WatchdogPolicy
@@ -122,6 +125,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant = protocol.plant(rig)
+        commissioning.gate(protocol.vetted_ves(plant), rig, simulated, skip_commissioning)
         delay = device_delay.resolve(rig, desc)
         check = precheck(protocol, plant, rig, delay)
         safety = SafetyConfig.from_rig(rig)

@@ -114,3 +114,33 @@ class Commission(ProtocolBase):
             data["t"], data["command"], data["position"], self._doublets()[1],
             {"T": meta["T"], "nominal": meta["plant"], "device_delay_s": meta.get("device_delay_s"),
              "rig": rig, "force_via_lever": via_lever})
+
+    def report_sections(self, session):
+        """Page 1: each check's verdict with its numbers, and the rig changes they call for."""
+        from labbench.analysis.commission import CHECKS
+        from labbench.report.blocks import Flag, ReportSections, fmt
+
+        r = session.results
+        if not r or "error" in r:
+            return ReportSections()
+        d, s, k = r.get("delay", {}), r.get("scale", {}), r.get("k_max", {})
+        numbers = {
+            "direction": f"{r.get('direction', {}).get('agree')} of {r.get('direction', {}).get('of')} "
+                         "pulses moved with the force",
+            "delay": f"{fmt(d.get('delay_samples'), 4)} samples, 95 % "
+                     f"[{fmt((d.get('delay_ci_samples') or [None])[0], 4)}, "
+                     f"{fmt((d.get('delay_ci_samples') or [None, None])[1], 4)}]",
+            "scale": f"m = {fmt(s.get('m'), 5)} kg ({fmt(s.get('m_ratio'), 4)} x nominal), "
+                     f"b = {fmt(s.get('b'), 5)} N s/m",
+            "friction": f"model {r.get('friction', {}).get('model')}, Fc = "
+                        f"{fmt(r.get('friction', {}).get('coulomb_n'))} N",
+            "k_max": f"{fmt(k.get('k_max_n_m'), 5)} N/m (exact sampled, measured m, b, delay)",
+        }
+        rows = [(check, f"{r.get(check, {}).get('verdict', {}).get('level')}: {numbers[check]}")
+                for check in CHECKS]
+        rows.append(("rig changes", ", ".join(f"{k} = {v}" for k, v in r.get("changes", {}).items())
+                     or "none"))
+        flags = [Flag(session.tag, f"{check}: {reason}", "the reason says what to change; "
+                      "labbench run commission --write-rig writes it (docs/commissioning.md)")
+                 for check in CHECKS for reason in r.get(check, {}).get("verdict", {}).get("reasons", [])]
+        return ReportSections(verdict_title="Commissioning", verdict=rows, flags=flags)

@@ -122,3 +122,93 @@ def test_commissioning_names_the_fault(backend, case):
         # a right scale: m and b as the nominal model (2 %); K_max of the exact sampled theory
         assert scale["m_ratio"] == pytest.approx(1.0, abs=0.02)
     assert res["k_max"]["k_max_n_m"] > 0
+
+
+def test_gate_refuses_a_spring_on_an_unchecked_real_rig():
+    from labbench.registry import make_protocol
+    from labbench.runner import run
+    from labbench.sim_backend.sim_device import open_sim
+
+    spring = make_protocol("etfe", ve="spring", K=20.0, duration_s=1.0, seed=1)
+    with pytest.raises(UserError, match="labbench run commission"):
+        run(open_sim(R), spring, [], rig=R, simulated=False)
+    assert run(open_sim(R), spring, [], rig=R, simulated=False, skip_commissioning=True).status == "success"
+    checked = replace(R, direction_checked="2026-12-02, a session")
+    assert run(open_sim(checked), spring, [], rig=checked, simulated=False).status == "success"
+    off = make_protocol("commission", chirp_s=2.0, f0_hz=1.0)  # VE off: always allowed
+    assert run(open_sim(R), off, [], rig=R, simulated=False).status == "success"
+
+
+RIG_TEXT = """# my bench: comments stay
+[rig]
+name = "bench 3"   # the one by the window
+counts_per_rev = 16384
+
+[sim]
+{sim}
+"""
+
+
+def _write_rig_run(tmp_path, sim: str, capsys):
+    import json
+
+    from labbench.cli.main import main
+    from labbench.rig import load_rig
+
+    path = tmp_path / "rig.toml"
+    path.write_text(RIG_TEXT.format(sim=sim))
+    before = path.read_text()
+    code = main(["run", "commission", "--rig", str(path), "--write-rig", "--json",
+                 "--out", str(tmp_path / "s")])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    return path, before, out, load_rig(path)
+
+
+def test_write_rig_keeps_comments_and_backs_up(tmp_path, capsys):
+    from labbench.commissioning import gate
+
+    path, before, out, rig = _write_rig_run(tmp_path, "extra_delay_samples = 2", capsys)
+    text = path.read_text()
+    assert "# my bench: comments stay" in text and "# the one by the window" in text
+    assert (tmp_path / "rig.toml.bak").read_text() == before
+    assert rig.measured_td_s == pytest.approx(0.002, abs=1e-4) and "commission" in rig.measured_td_from
+    assert rig.direction_checked  # the direction passed: the gate opens
+    gate([make_spring()], rig, simulated=False)
+
+
+def make_spring():
+    from labbench.ve import VirtualEnvironment
+
+    return VirtualEnvironment("spring", K=50.0, T=R.sample_time_s)
+
+
+def test_a_flipped_rig_never_renders_a_spring(tmp_path, capsys):
+    from labbench.commissioning import gate
+
+    path, _, out, rig = _write_rig_run(tmp_path, "sign = -1", capsys)
+    assert rig.position_sign == -1  # the fix is written ...
+    assert not rig.direction_checked  # ... but the rig has not passed: a re-run must show it
+    with pytest.raises(UserError, match="labbench run commission"):
+        gate([make_spring()], rig, simulated=False)
+    from labbench.cli.main import main
+    from labbench.rig import load_rig
+
+    # with the fix, the (truly flipped) encoder reads the right way: the check passes
+    assert main(["run", "commission", "--rig", str(path), "--write-rig", "--json",
+                 "--out", str(tmp_path / "s")]) == 0
+    capsys.readouterr()
+    assert load_rig(path).direction_checked
+
+
+def test_report_of_a_commissioning_session(tmp_path):
+    from labbench.registry import make_protocol
+    from labbench.report import write_report
+    from labbench.runner import run_recorded
+    from labbench.sim_backend.sim_device import open_sim
+
+    rig = replace(R, sections={"sim": {"extra_delay_samples": 1}})
+    _, path = run_recorded(open_sim(rig), make_protocol("commission"), tmp_path, rig=rig)
+    html, _ = write_report([path], tmp_path / "report")
+    text = html.read_text()
+    assert "Commissioning" in text and "measured_td_s" in text

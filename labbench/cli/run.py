@@ -43,6 +43,10 @@ def register(subparsers) -> None:
                         help="plant for the precheck and theory when --plant-m-kg/--plant-b are "
                              "absent: the newest chirp-ID of this rig in --out (default), else "
                              "the rig's nominal; or always the nominal")
+        if name == "commission":
+            sp.add_argument("--write-rig", action="store_true",
+                            help="write the measured values into --rig FILE (comments kept, the "
+                                 "old file backed up as FILE.bak)")
         sp.set_defaults(func=cmd_run)
     demo = sub.add_parser("demo", help="chirp-ID, then ETFE K=50 B=1 w0=125, then the report")
     _common(demo)
@@ -65,6 +69,9 @@ def _common(sp) -> None:
     sp.add_argument("--port", metavar="PORT", help="with --device serial: the serial port "
                     "(e.g. /dev/ttyACM0; overrides the rig's [serial] port; "
                     "`labbench devices --serial` lists them)")
+    sp.add_argument("--skip-commissioning", action="store_true",
+                    help="render a spring or damper on real hardware before the rig passed "
+                         "`labbench run commission` (for people who know their rig)")
     sp.add_argument("--json", action="store_true", help="print one JSON object: sessions, results")
     sp.add_argument("--can-log", metavar="FILE", default=None,
                     help="CANopen devices: record every CAN frame (.asc, .blf, .log, .trc, .csv)")
@@ -125,7 +132,8 @@ def _words(text: str) -> tuple:
 
 
 _COMMON = ("command", "protocol", "func", "device", "rig", "realtime", "out", "json", "plant_from",
-           "can_log", "rt", "rt_priority", "port", "verbose", "quiet", "units")
+           "can_log", "rt", "rt_priority", "port", "verbose", "quiet", "units",
+           "skip_commissioning", "write_rig")
 
 
 def _options(args) -> dict:
@@ -165,7 +173,8 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     from labbench.runner import run_recorded
     from labbench.registry import make_protocol
 
-    if (getattr(args, "plant_from", "nominal") == "last-id" and name != "chirp-id"
+    # commissioning checks the rig's nominal model itself: never an identified one
+    if (getattr(args, "plant_from", "nominal") == "last-id" and name not in ("chirp-id", "commission")
             and options.get("plant_m_kg") is None and options.get("plant_b") is None):
         found = last_identified(args.out, rig)
         if found is not None:
@@ -195,7 +204,8 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     _print_device_notes(device.describe().details)
     with ProgressBar(name) as bar:
         return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
-                            simulated=args.device.startswith("sim"), realtime=rt)
+                            simulated=args.device.startswith("sim"), realtime=rt,
+                            skip_commissioning=args.skip_commissioning)
 
 
 def _print_device_notes(details: dict) -> None:
@@ -211,6 +221,8 @@ def _print_device_notes(details: dict) -> None:
 
 def cmd_run(args) -> int:
     rig = load_rig(args.rig)
+    if getattr(args, "write_rig", False) and not args.rig:
+        raise UserError("--write-rig writes the rig file: give it with --rig FILE")
     stop = StopRequest()
     with stopping(stop):  # SIGINT/SIGTERM/SIGHUP: zero force, session closed "aborted"
         result, path = _run_one(args, rig, args.protocol, _options(args), stop)
@@ -218,6 +230,17 @@ def cmd_run(args) -> int:
            "sessions": [str(path)] if path else [], "session": str(path) if path else None,
            "results": result.results,
            "timing": result.timing}
+    if getattr(args, "write_rig", False) and result.status == "success" and "error" not in result.results:
+        from datetime import datetime, timezone
+
+        from labbench.commissioning import changes_to_write, write_rig
+
+        fields = changes_to_write(result.results, str(path),
+                                  datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+        backup = write_rig(args.rig, fields)
+        out["rig_written"] = {"fields": fields, "backup": str(backup) if backup else None}
+        print(f"labbench run: {args.rig}: " + (f"wrote {', '.join(fields)} (old file {backup})"
+                                               if backup else "nothing to change"), file=sys.stderr)
     _print(args, out, [(args.protocol, result, path)])
     return stop.exit_code or _EXIT.get(result.status, 1)
 

@@ -1,0 +1,73 @@
+"""What a commissioning run changes outside itself: the rendering gate and ``--write-rig``.
+
+The gate (issue 20): until a rig has passed ``labbench run commission``'s direction check
+(``[rig] direction_checked``, written by ``--write-rig``), a run on real hardware refuses
+a VE with K > 0 or B > 0: a flipped sign turns a spring into positive feedback. The
+simulators need no gate; ``--skip-commissioning`` is for people who know their rig.
+
+``write_rig`` puts a commissioning result's ``changes`` into the rig file with
+``tomlkit``, which keeps the user's comments and layout, after copying the old file
+to ``<name>.bak`` (an existing backup is replaced: it is the file as it was just now).
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from labbench.errors import UserError
+
+# the [rig] fields a commissioning run may write
+WRITABLE = ("position_sign", "measured_td_s", "measured_td_from", "direction_checked")
+
+
+def gate(ves, rig, simulated: bool, skip: bool = False) -> None:
+    """One UserError when real hardware would render a spring or damper before the rig
+    passed its direction check (module doc); ``ves``: every VE the run will render."""
+    if simulated or skip or rig.direction_checked:
+        return
+    for ve in ves:
+        if ve.K > 0 or ve.B > 0:
+            raise UserError(f"{rig.source}: this rig has not passed its direction check: refusing "
+                            f"K = {ve.K:g} N/m, B = {ve.B:g} N s/m on real hardware; run `labbench "
+                            "run commission --rig FILE --write-rig` first (or --skip-commissioning)")
+
+
+def changes_to_write(results: dict, session: str, when: str) -> dict:
+    """The [rig] fields a commissioning result calls for, with where they came from; the
+    direction stamp only when the direction check passed."""
+    out = {k: v for k, v in (results.get("changes") or {}).items() if k in WRITABLE}
+    if "measured_td_s" in out:
+        out["measured_td_from"] = f"labbench run commission, {session}"
+    direction = results.get("direction") or {}
+    if not direction.get("flipped", True) and (direction.get("verdict") or {}).get("level") == "ok":
+        out["direction_checked"] = f"{when}, {session}"
+    return out
+
+
+def write_rig(path, fields: dict) -> Path | None:
+    """Set ``fields`` in the ``[rig]`` table of the rig file ``path`` (comments and layout
+    kept); the old file is copied to ``<path>.bak`` first. Returns the backup's path, or
+    None when nothing changed."""
+    import tomlkit
+
+    p = Path(path)
+    try:
+        doc = tomlkit.parse(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{p}: cannot read the rig file: {exc}") from None
+    except tomlkit.exceptions.ParseError as exc:
+        raise UserError(f"{p}: not valid TOML: {exc}") from None
+    table = doc.get("rig")
+    if table is None:
+        table = tomlkit.table()
+        doc["rig"] = table
+    if not fields or all(table.get(k) == v for k, v in fields.items()):
+        return None
+    for k, v in fields.items():
+        table[k] = v
+    backup = p.with_name(p.name + ".bak")
+    shutil.copy2(p, backup)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(tomlkit.dumps(doc), encoding="utf-8")
+    tmp.replace(p)
+    return backup
