@@ -91,3 +91,12 @@ def test_devices_serial_lists_what_pyserial_sees(capsys, monkeypatch):
     assert main(["devices", "--serial"]) == 0
     assert capsys.readouterr().out == ("/dev/ttyACM0     Arduino Uno (Arduino (www.arduino.cc), "
                                        "USB 2341:0043, serial 85736323838351F0D1C1)\n")
+
+
+def test_version_imports_no_numerical_library():
+    # --version is answered before the subcommands register (they import numpy, scipy);
+    # its time is measured in bench/bench_startup.py, not here
+    code = ("import sys; from labbench.cli import main; main(['--version']); "
+            "print(sorted(m for m in ('numpy', 'scipy', 'labbench.analysis') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines() == [f"labbench {labbench.__version__}", "[]"]

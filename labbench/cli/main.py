@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if list(argv) == ["--version"]:  # answered before the subcommands import numpy and scipy
+        print(f"labbench {__version__}")
+        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args.verbose - args.quiet)
