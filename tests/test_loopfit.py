@@ -218,6 +218,7 @@ def test_a_model_that_cannot_fit_is_failed_not_silent():
     fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START, delay_model="common")
     assert fit.verdict.level == "failed" and "chi2/dof" in fit.verdict.reasons[0]
     assert fit.ci95["td_s"][0] >= 0.0
+    assert fit.as_dict()["verdict"]["level"] == "failed"
     with pytest.raises(UserError, match="unknown delay model"):
         fit_loop(etfe(rec), SD, START, delay_model="late")
 
@@ -250,3 +251,21 @@ def test_session_etfe_fits_on_request(tmp_path):
     # the overlay uses the fitted VE-path delay (whole samples here), so it matches the data
     assert "VE-path delay 2 samples" in fr.comparison["plant_source"]
     assert fr.comparison["deviation_median"] < 1e-3
+
+
+def test_strict_exits_on_a_failed_loop_fit(tmp_path, capsys):
+    # process noise the record's own Z_err cannot see is fine; a VE the metadata misstate is not:
+    # the record says K = 50 where the loop rendered 80, so no plant and delay can fit it
+    from labbench.verdict import STRICT_EXIT
+
+    rec = delayed_loop_recording(SD.with_(K=80.0), n=20000, seed=6)
+    p = tmp_path / "loop.csv"
+    write_csv(rec, p, {"K": 50.0})
+    assert main(["analyze", "etfe", str(p), "--fit", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["fit"]["verdict"]["level"] == "failed", d["fit"]["verdict"]
+    assert main(["analyze", "etfe", str(p), "--fit", "--strict"]) == STRICT_EXIT
+    assert "verdict failed: chi2/dof" in capsys.readouterr().out
+    good = tmp_path / "good.csv"
+    write_csv(delayed_loop_recording(SD, n=20000, seed=6), good)
+    assert main(["analyze", "etfe", str(good), "--fit", "--strict"]) == 0
