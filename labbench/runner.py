@@ -190,6 +190,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
         meta = {"fs": 1.0 / T, "T": T, "ve": protocol.ve.as_dict(), "plant": start["plant"],
                 "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
                 "protocol": protocol.describe(), "force_hold": desc.force_hold,
+                "device_kind": desc.kind,
                 device_delay.META_KEY: delay.s, "segments": run_state.segments}
         total = max(int(protocol.n_samples), 1)
         gen = protocol.segments(plant)

@@ -18,6 +18,11 @@ from labbench.protocols import excitation
 from labbench.ve import Plant, VirtualEnvironment
 
 
+# backends that drive the serial stream (labbench.drivers.serial_stream: [serial]
+# command_units, "N" at the handle by default)
+SERIAL_KINDS = ("serial", "sim-serial", "avr-sim")
+
+
 @dataclass(frozen=True)
 class CommissionConfig(Config):
     """Commissioning: doublets and a short chirp, VE off; checks the rig file (issue 20)."""
@@ -108,8 +113,9 @@ class Commission(ProtocolBase):
         rig = meta.get("rig") or {}
         # a serial board may take the force at the handle ("N"): then the lever arm scales
         # the position only (labbench.analysis.commission module doc)
-        serial = (rig.get("sections") or {}).get("serial")
-        via_lever = serial is None or serial.get("command_units") == "N*m"
+        serial = meta.get("device_kind") in SERIAL_KINDS
+        units = ((rig.get("sections") or {}).get("serial") or {}).get("command_units", "N")
+        via_lever = not serial or units == "N*m"
         return commission.analyze(
             data["t"], data["command"], data["position"], self._doublets()[1],
             {"T": meta["T"], "nominal": meta["plant"], "device_delay_s": meta.get("device_delay_s"),

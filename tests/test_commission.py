@@ -71,11 +71,11 @@ CASES = {
 }
 
 
-def commission(backend: str, sim: dict):
+def commission(backend: str, sim: dict, rig: Rig = R):
     from labbench.registry import make_protocol
     from labbench.runner import run
 
-    rig = replace(R, sections={"sim": sim})
+    rig = replace(rig, sections={**rig.sections, "sim": sim})
     proto = make_protocol("commission", sample_time_s=rig.sample_time_s)
     dev = open_device(backend, rig)
     declared = dev.describe().device_delay_s
@@ -212,3 +212,31 @@ def test_report_of_a_commissioning_session(tmp_path):
     html, _ = write_report([path], tmp_path / "report")
     text = html.read_text()
     assert "Commissioning" in text and "measured_td_s" in text
+
+
+AVR_CASES = ("true", "sign flipped", "counts/rev x2", "lever arm x1.25")
+
+
+@pytest.mark.parametrize("case", AVR_CASES)
+def test_commissioning_on_avr_sim(case):
+    """The reference firmware on the emulator (~40 s a run): the geometry lies only (its C
+    harness has no delay or friction lie). Its board takes the force at the handle ("N"),
+    so a lever arm off by c shows as a mass off by 1/c."""
+    from labbench.rig import load_rig
+    from labbench.sim_backend import avr_build
+
+    if avr_build.missing_tools():
+        pytest.skip("avr toolchain missing: make avr-deps")
+    rig = load_rig("docs/arduino/avr-sim.toml")
+    sim = CASES[case]
+    res, _ = commission("avr-sim", sim, rig)
+    assert abs(res["delay"]["delay_samples"] - 1.0) < 0.1  # the board's own sample, stated
+    scale = res["scale"]
+    if case == "true":
+        assert res["changes"] == {} and res["verdict"]["level"] == "ok"
+    elif case == "sign flipped":
+        assert res["changes"] == {"position_sign": -1}
+    elif case.startswith("counts"):
+        assert scale["counts_per_rev_if_encoder"] == pytest.approx(sim["counts_per_rev"], rel=0.02)
+    else:
+        assert scale["lever_arm_m_if_lever"] == pytest.approx(sim["lever_arm_m"], rel=0.02)
