@@ -390,7 +390,7 @@ def drive_on_named_channel(tmp_path):
                            rig.sample_time_s).start()
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 4\n'
-                        'sdo_timeout_s = 0.2\nheartbeat_consumer_ms = 800\nrpdo_timeout_ms = 600\n'
+                        'sdo_timeout_s = 2.0\nheartbeat_consumer_ms = 800\nrpdo_timeout_ms = 600\n'
                         f'eds = "{EDS_PATH}"\n'
                         '[safety]\nwatchdog_s = 2.0\n')  # lock-step on a shared machine
     yield peer, rig_file
@@ -433,7 +433,7 @@ def test_forced_cst_on_a_drive_without_it_is_refused_naming_0x6502(sim_parts):
 
     peer.node.data_store[0x6502] = {0: struct.pack("<I", 1 << 3)}  # profile torque only
     with pytest.raises(UserError, match="0x6502 = 0x00000008; cyclic synchronous torque: bit 9 of 0x6502 is not set"):
-        CanopenDrive(rig, CanopenConfig.from_section({"mode": "cst", "sdo_timeout_s": 0.2}),
+        CanopenDrive(rig, CanopenConfig.from_section({"mode": "cst", "sdo_timeout_s": 2.0}),
                      bus=bus, realtime=False).open()
     assert peer.mode == 0
 

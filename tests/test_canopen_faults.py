@@ -231,7 +231,7 @@ def paced_drive(**canopen):
     from labbench.sim_backend.canopen_peer import open_sim_canopen
 
     rig = rig_from_dict({"rig": {"sample_time_s": 0.05},
-                         "canopen": {"sdo_timeout_s": 0.2, **canopen}}, source="paced-rig")
+                         "canopen": {"sdo_timeout_s": 2.0, **canopen}}, source="paced-rig")
     return open_sim_canopen(rig, realtime=True)
 
 
