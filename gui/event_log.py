@@ -1,4 +1,7 @@
-"""The event log: every message, safety trip and error of the session, newest last."""
+"""The event log: every message, safety trip and error of the session, newest last.
+
+It follows its newest line unless the user has scrolled up to read an older one (then
+it stays there until they scroll back to the bottom)."""
 from __future__ import annotations
 
 import time
@@ -18,13 +21,31 @@ class EventLog(QtWidgets.QPlainTextEdit):
         self.setFont(QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.SystemFont.FixedFont))
         self.entries: list[tuple[float, str, str]] = []
 
-    def add(self, level: str, text: str) -> None:
+    def add(self, level: str, text: str, rows: list[tuple[str, str]] | None = None) -> None:
+        """One line; ``rows`` (label, value) follow it as an aligned two-column table."""
         now = time.time()
         self.entries.append((now, level, text))
         stamp = time.strftime("%H:%M:%S", time.localtime(now))
         colour = LEVEL_COLOURS.get(level, LEVEL_COLOURS["info"])
-        safe = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-        self.appendHtml(f'<span style="color:{colour}">{stamp} [{level}] {safe}</span>')
+        lines = [f"{stamp} [{level}] {text}"]
+        if rows:
+            width = max(len(label) for label, _ in rows)
+            lines += [f"    {label.ljust(width)}  {value}" for label, value in rows]
+        following = self.following()
+        safe = "<br>".join(_escape(line).replace("  ", "&nbsp;&nbsp;") for line in lines)
+        self.appendHtml(f'<span style="color:{colour}">{safe}</span>')
+        if following:
+            bar = self.verticalScrollBar()
+            bar.setValue(bar.maximum())
+
+    def following(self) -> bool:
+        """Whether the view is at the bottom: the newest line in view (or nothing to scroll)."""
+        bar = self.verticalScrollBar()
+        return bar.value() >= bar.maximum() - 2
 
     def texts(self, level: str | None = None) -> list[str]:
         return [t for _, lv, t in self.entries if level is None or lv == level]
+
+
+def _escape(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

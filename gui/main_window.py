@@ -29,7 +29,7 @@ from labbench.gui.id_view import IdView
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
 from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
-from labbench.gui.protocol_panel import ProtocolPanel
+from labbench.gui.protocol_panel import ProtocolPanel, settings_rows
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.exports import export_in_child
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
@@ -124,6 +124,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._device_used = False  # a run has used the connected device
         self._backend_connected = ""  # the backend name of the device connected
         self._progress_shown = 0.0  # monotonic time of the last progress shown
+        self._progress = 0.0  # the fraction of the run or replay done
+        self._halted = ""  # Stop or E-STOP pressed: what the progress line says until the end
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -256,6 +258,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.banner.setVisible(True)
         self.log.add("error", text)
 
+    def _new_action(self) -> None:
+        """A new user action: an earlier failure's banner is history now (the log keeps it)."""
+        self.banner.setVisible(False)
+
     def info(self, text: str) -> None:
         self.statusBar().showMessage(text, 8000)
         self.log.add("info", text)
@@ -266,28 +272,33 @@ class MainWindow(QtWidgets.QMainWindow):
     def connect_device(self, backend: str, opener=None):
         """Open ``backend`` in the acquisition process (``opener(rig, **options)`` instead of the
         registry's factory when given: a picklable callable, e.g. for an injected fault)."""
+        self._new_action()
         from labbench.registry import open_device
 
         options = {"realtime": self.realtime} if backend == "sim" else {}
         self.log.add("info", f"connecting to {backend} ...")
         self._backend_connected = backend
         self.estop.set_latched(False)
+        self._sync_buttons()
         self.estop_confirmed = False
         self.health = {}
         self.acquisition.connect(opener or functools.partial(open_device, backend), self.rig, options)
 
     @guarded
     def disconnect_device(self):
+        self._new_action()
         if self.mode == "running":
             raise UserError("stop the run before disconnecting")
         was, self.device = self.device, None
         self.device_panel.set_connected(None)
         self.estop.set_latched(False)  # the latch lives in the device being closed
+        self._sync_buttons()
         if was is not None:
             self.acquisition.send("disconnect")
 
     @guarded
     def enable_device(self, on: bool):
+        self._new_action()
         if self.device is None:
             raise UserError("connect a device first")
         self.acquisition.send("enable" if on else "disable", 1.0)
@@ -304,6 +315,9 @@ class MainWindow(QtWidgets.QMainWindow):
         dev = self.device
         self.estop.set_latched(dev is not None)
         self.device_panel.set_enabled(False)
+        if self.mode != "idle":
+            self._halt(f"E-STOP: force zeroed, {self._activity} stopped at {100 * self._progress:.0f} %")
+        self._sync_buttons()
         self.log.add("warning", "E-STOP: force zeroed, run stopped" if dev is not None
                      else "E-STOP: no device connected; any run or replay stopped")
 
@@ -325,6 +339,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- protocol ---------------------------------------------------------------------------
     @guarded
     def select_protocol(self, name: str):
+        self._new_action()
         from labbench.registry import make_protocol
 
         self._remember_protocol()
@@ -411,6 +426,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     @guarded
     def start_protocol(self):
+        self._new_action()
         if self.mode != "idle":
             raise UserError(f"a {self.mode} is in progress; stop it first")
         if self.estop.latched:
@@ -427,16 +443,17 @@ class MainWindow(QtWidgets.QMainWindow):
             self._pending_start = True
             self.connect_device(backend)
             return
-        self.banner.setVisible(False)
         self._reset_view()
         self.stop_event = threading.Event()
         self._device_used = True
         self.mode = "running"
+        self._progress, self._halted = 0.0, ""
         self._live_timing = False
         self._run_started = time.monotonic()
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
-        self.log.add("info", f"start {protocol.name}: {protocol.config.as_dict()}")
+        self.log.add("info", f"start {protocol.name} with these settings:",
+                     rows=settings_rows(protocol.config.as_dict()))
         self.acquisition.run(self.protocol_panel.choice.currentText(), self.protocol_panel.values(),
                              self.rig, self.session_dir,
                              start_extra={"gui_settings": self.protocol_panel.state()},
@@ -448,6 +465,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.stop_event.set()
             self.acquisition.request_stop()
             self.log.add("info", f"stop requested ({self.mode})")
+            self._halt(f"stopping the {self._activity} at {100 * self._progress:.0f} % ...")
 
     def _reset_view(self):
         self.buffer = StreamBuffer()
@@ -490,6 +508,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
             frac, text = payload
+            if self.mode != "running" or self._halted:
+                return  # queued before the run ended or was stopped: the end state stays
+            self._progress = frac
             now = time.monotonic()
             if now - self._progress_shown < 0.5 and frac < 1.0:
                 return  # 2 Hz is plenty, and each update re-lays out the left panel
@@ -522,7 +543,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.device_panel.set_connected(None)
             self._pending_start = False
             if self.mode == "running":
-                self._run_finished()
+                self._run_finished("run ended: the acquisition process died")
             self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
                             "reconnect the device")
 
@@ -531,7 +552,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.device_panel.set_connected(None)
             self._pending_start = False
         if tag in ("run", "replay"):
-            self._run_finished()
+            self._run_finished(f"{tag} failed: {message}")
         self.show_error(f"{tag}: {message}")
 
     def _on_connect_done(self, desc):
@@ -563,19 +584,43 @@ class MainWindow(QtWidgets.QMainWindow):
             self.show_error(f"run {status}: {reason}")
         self._show_timing(getattr(result, "timing", {}) or {})
         self._show_results(getattr(result, "results", {}) or {})
-        self._run_finished()
+        done = f"{100 * self._progress:.0f} %" if status != "success" else "100 %"
+        self._run_finished(f"run {status} at {done}" + (f": {reason}" if status != "success" else ""))
         self.refresh_sessions()
         if self.session_path:
             self.sessions.select_path(self.session_path)
 
     def _on_replay_done(self, status):
         self.log.add("info", f"replay {status}")
-        self._run_finished()
+        self._run_finished(f"replay {status}")
 
-    def _run_finished(self):
+    def _run_finished(self, state: str):
+        """The run or replay is over; ``state``: what the progress line says of its end."""
         self.mode = "idle"
+        self._halted = ""
         self.protocol_panel.set_running(False)
+        self.protocol_panel.set_progress(self._progress, state)
+        self._sync_buttons()
         self._invalidate_estimate()  # the final estimate, with the run's own estimator
+
+    @property
+    def _activity(self) -> str:
+        return "run" if self.mode == "running" else self.mode
+
+    def _halt(self, text: str) -> None:
+        """Stop or E-STOP pressed: the progress line says so at once, and keeps saying it
+        (progress still queued from the run is not shown); Stop cannot be pressed twice."""
+        self._halted = text
+        self.protocol_panel.set_progress(self._progress, text)
+        self.protocol_panel.stop_button.setEnabled(False)
+
+    def _sync_buttons(self) -> None:
+        """Start only when idle and no E-STOP is latched (its tooltip says why not)."""
+        idle = self.mode == "idle"
+        start = self.protocol_panel.start_button
+        start.setEnabled(idle and not self.estop.latched)
+        start.setToolTip("E-STOP is latched: disconnect and reconnect the device to clear it"
+                         if self.estop.latched else "")
 
     def _on_reanalyse_done(self, value):
         est, id_results, data = value
@@ -685,6 +730,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     @guarded
     def replay(self, path: str, speed):
+        self._new_action()
         if self.mode != "idle":
             raise UserError(f"a {self.mode} is in progress; stop it first")
         from labbench.session_format import looks_like_session
@@ -700,6 +746,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     @guarded
     def reanalyse(self, path: str, estimator: str):
+        self._new_action()
         self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
         fallback = self.rig.nominal_plant if self.theory_plant.currentIndex() == RUN_PLANT else None
         run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
@@ -707,6 +754,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     @guarded
     def export(self, path: str, fmt: str):
+        self._new_action()
         out_dir = self.session_dir / "exports"
         out_dir.mkdir(parents=True, exist_ok=True)
         run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)

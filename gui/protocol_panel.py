@@ -88,6 +88,22 @@ def params_from_config(config: dict, choice_lists: dict | None = None) -> list[d
     return children
 
 
+def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
+    """(label with unit, value) per setting of a (nested) config, for a table a person reads
+    (the run's start in the event log); a None is the protocol's default."""
+    from labbench.numfmt import fmt
+
+    rows = []
+    for name, value in config.items():
+        unit, _low, label = _unit(name)
+        if isinstance(value, dict):
+            rows += settings_rows(value, f"{prefix}{label}: ")
+            continue
+        text = "default" if value is None else fmt(value, 6)
+        rows.append((f"{prefix}{label}", f"{text} {unit}" if unit and value is not None else text))
+    return rows
+
+
 def values_of(param: Parameter) -> dict:
     """Nested plain values of a tree built by ``params_from_config`` (lists parsed back)."""
     out = {}
