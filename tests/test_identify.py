@@ -381,3 +381,12 @@ def test_verdict_failed_when_no_mass_is_identified():
     r = identify(rec, model="mb")
     assert r.ci95["m"][0] < 0 < r.ci95["m"][1]
     assert r.verdict.failed and "no mass identified" in r.verdict.reasons[0]
+
+
+@pytest.mark.parametrize("n", [20000, 60000])
+def test_no_outlier_flag_on_a_clean_record_with_friction(n):
+    # Coulomb steps at each velocity reversal are model, not spikes (issue 24: a false
+    # force-outliers flag on a clean record with Fc = 0.2 N)
+    r = identify(chirp_recording(n=n, coulomb=0.2))
+    assert r.model == "mbc" and not any(f.startswith("force-outliers") for f in r.flags), r.flags
+    assert r.verdict.level == "ok" and abs(r.params["coulomb"] / 0.2 - 1) < 0.02
