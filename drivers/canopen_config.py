@@ -68,6 +68,7 @@ class CanopenConfig:
     lockstep_timeout_s: float = 1.0  # simulated drive: wait for the TPDOs of a SYNC
     enable_timeout_s: float = 0.5  # OPERATION ENABLED must show in a TPDO within this
     velocity_tpdo_every: int = 1  # a TPDO carrying only 0x606C: every n-th SYNC
+    sim_drive: str = "thread"  # sim-canopen: the drive in a "thread" or its own "process"
     bus_options: dict = field(default_factory=dict)  # passed on to can.Bus
 
     _RANGES = {
@@ -79,7 +80,7 @@ class CanopenConfig:
         "abort_connection_option": (0, 3), "stale_periods": (1, 100),
         "velocity_tpdo_every": (1, 240),
     }
-    _CHOICES = {"watchdog": ("auto", "heartbeat", "guarding")}
+    _CHOICES = {"watchdog": ("auto", "heartbeat", "guarding"), "sim_drive": ("thread", "process")}
     _NON_NEGATIVE = ("rated_torque_mnm", "torque_constant_nm_per_a", "rated_current_ma")
 
     @classmethod

@@ -55,6 +55,7 @@ from labbench.drivers.canopen_drive import CanopenDrive, probe_drive
 from labbench.drivers.canopen_objects import (RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP, TYPE_FMT,
                                               read_eds)
 from labbench.drivers.cia402 import State
+from labbench.sim_backend.canopen_process import start_process_drive
 from labbench.sim_backend.sim_device import SimDevice, open_sim
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
@@ -131,12 +132,15 @@ class SimCanopenDrive:
 
     ``config``: the rig's ``[canopen]`` table, for what a dictionary may lack
     (the rated torque when 0x6076 is absent or 0) and the vendor torque modes
-    of ``[canopen.modes]``, which this drive then offers.
+    of ``[canopen.modes]``, which this drive then offers. ``bus``: the drive's
+    bus (``canopen_process`` gives a ``udp_multicast`` one); else a ``virtual``
+    bus on ``channel``.
     """
 
     def __init__(self, channel: str, node_id: int, plant: SimDevice,
                  metres_per_count: float, lever_arm_m: float, sample_time_s: float,
-                 eds: str | Path = EDS_PATH, config: CanopenConfig | None = None):
+                 eds: str | Path = EDS_PATH, config: CanopenConfig | None = None,
+                 bus: can.BusABC | None = None):
         self.node_id = node_id
         self.plant = plant
         self.mpc = metres_per_count
@@ -146,7 +150,7 @@ class SimCanopenDrive:
         self.dictionary = read_eds(str(eds), node_id)
         self.od = self.dictionary.od
         self._stand_in_values()
-        self.bus = VirtualBus(channel=channel)
+        self.bus = bus if bus is not None else VirtualBus(channel=channel)
         self.network = canopen.Network(self.bus)
         self.node = _DriveNode(node_id, self.od)
         self.network.add_node(self.node)
@@ -622,10 +626,13 @@ def open_sim_canopen(rig, realtime: bool = False, seed=None, can_log: str | None
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
     ``seed`` and ``options`` are those of the plain simulator (``labbench.sim_backend.sim_device``),
-    applied to the handle behind the drive; ``can_log`` records every frame.
+    applied to the handle behind the drive; ``can_log`` records every frame. With
+    ``[canopen] sim_drive = "process"`` the drive runs in its own process
+    (``canopen_process``), on ``udp_multicast``.
     """
     config = sim_config(rig)
-    peer, host_bus = start_sim_drive(rig, config, seed, **options)
+    start = start_process_drive if config.sim_drive == "process" else start_sim_drive
+    peer, host_bus = start(rig, config, seed, **options)
     return connect_driver(rig, config, peer, host_bus, realtime, can_log)
 
 
