@@ -246,7 +246,7 @@ def run_protocol(device, rig, **options):
 
     records = []
     result = run(open_device(device, rig), make_protocol("etfe", **options), [records.append],
-                 rig=rig)
+                 rig=rig, simulated=device.startswith("sim"))  # sim-canopen: a real driver, a simulated drive
     return result, concat_pages(records), records
 
 
