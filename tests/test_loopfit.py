@@ -265,7 +265,8 @@ def test_strict_exits_on_a_failed_loop_fit(tmp_path, capsys):
     d = json.loads(capsys.readouterr().out)
     assert d["fit"]["verdict"]["level"] == "failed", d["fit"]["verdict"]
     assert main(["analyze", "etfe", str(p), "--fit", "--strict"]) == STRICT_EXIT
-    assert "verdict failed: chi2/dof" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "fit.verdict: failed\n  - chi2/dof" in out and out.count("chi2/dof") == 2, out  # fit line + reason
     good = tmp_path / "good.csv"
     write_csv(delayed_loop_recording(SD, n=20000, seed=6), good)
     assert main(["analyze", "etfe", str(good), "--fit", "--strict"]) == 0
