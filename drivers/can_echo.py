@@ -9,6 +9,10 @@ from collections import deque
 import can
 
 PENDING_MAX = 4096  # own frames not yet seen back; older ones are taken as lost
+# A datagram socket with a timeout polls for room before it sends (CPython's socket
+# timeouts): a host thread kept off the CPU past a 1 ms send timeout then reads as a
+# transmit failure though nothing was full. The bus's own limit, never below this.
+SEND_TIMEOUT_FLOOR_S = 0.05
 
 
 def _key(msg: can.Message) -> tuple:
@@ -32,7 +36,7 @@ class EchoFreeBus:
     def send(self, msg: can.Message, timeout=None) -> None:
         with self._lock:
             self._pending.append(_key(msg))
-        self.bus.send(msg, timeout)
+        self.bus.send(msg, None if timeout is None else max(timeout, SEND_TIMEOUT_FLOOR_S))
 
     def _is_echo(self, msg: can.Message) -> bool:
         key = _key(msg)

@@ -71,3 +71,22 @@ def test_killed_drive_process_is_one_line_device_error():
     finally:
         d.close()
     assert not d.peer.alive()
+
+
+def test_a_datagram_send_gets_room_past_a_short_host_preemption():
+    """The driver sends with its period as the timeout; over udp_multicast that timeout is a
+    poll for room before the send, so the bus floors it (a late thread is not a TX fault)."""
+    import can
+
+    from labbench.drivers.can_echo import SEND_TIMEOUT_FLOOR_S, EchoFreeBus
+
+    class Recording:
+        timeouts = []
+
+        def send(self, msg, timeout=None):
+            self.timeouts.append(timeout)
+
+    bus = EchoFreeBus(Recording())
+    for t in (0.001, None, 0.2):
+        bus.send(can.Message(arbitration_id=0x80, is_extended_id=False), t)
+    assert Recording.timeouts == [SEND_TIMEOUT_FLOOR_S, None, 0.2]
