@@ -64,7 +64,7 @@ def test_cli_fit_json_and_text(tmp_path, capsys):
     assert d["theory"]["plant_source"].startswith("fitted") and d["theory"]["deviation_median"] < 1e-3
     assert main(["analyze", "etfe", str(p), "--fit-ve"]) == 0
     out = capsys.readouterr().out
-    assert "closed-loop fit" in out and "td  = " in out and "K   = " in out and "verdict " in out
+    assert "closed-loop fit" in out and "td  = " in out and "K   = " in out and "fit.verdict: ok" in out
 
 
 def test_fit_needs_a_ve(tmp_path, capsys):

@@ -18,7 +18,8 @@ STALL_S = 0.2  # four times the default watchdog (50 ms)
 
 
 def _run(simulated: bool):
-    rig = Rig()
+    # a commissioned rig: the hardware arm must meet the watchdog, not the commissioning gate
+    rig = Rig(direction_checked="2026-12-02, a commission session")
     records = []
     device = StallingDevice(rig, at=400, stall_s=STALL_S)
     result = run(device, make_protocol("etfe", duration_s=1.0, seed=1), [records.append], rig=rig,
