@@ -14,9 +14,11 @@ about real time here), or ``realtime=True`` (emulated time kept to wall time,
 as a real board; this machine's emulator may not keep up).
 
 Plant: ``m`` and ``b`` of ``[sim]`` (default the rig's nominal model), ``x0_m``,
-``v0_m_s``, and the truth the rig file may get wrong, ``sign``, ``counts_per_rev``,
-``lever_arm_m`` (``labbench.sim_backend.sim_device.true_geometry``); the amplifier gives 255 / ``PWM_PER_NEWTON`` N at 100 % duty, matched
-to the sketch's constant. The board adds one sample of delay to everything the
+``v0_m_s``, ``coulomb_n`` (Coulomb friction, stick/slip as ``--device sim``), and the
+truth the rig file may get wrong, ``sign``, ``counts_per_rev``, ``lever_arm_m``
+(``labbench.sim_backend.sim_device.true_geometry``) and ``extra_delay_samples`` (an
+amplifier that applies each force that many samples late); the amplifier gives
+255 / ``PWM_PER_NEWTON`` N at 100 % duty, matched to the sketch's constant. The board adds one sample of delay to everything the
 host commands (docs/serial-protocol.md, "Emulated board"); with
 ``SerialStream.render_on_board`` it renders the VE itself at T / ``RENDER_DIV``.
 """
@@ -41,7 +43,7 @@ PWM_PER_NEWTON = 40.0  # the sketch's default: duty counts (of 255) per newton
 VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's tick
 RENDER_DIV = 5  # the sketch's default: render ticks per sample (5 kHz at T = 1 ms)
 LOCKSTEP_TIMEOUT_S = 3.0  # wall time; generous: this machine is shared and loaded
-_PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s")
+_PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s", "coulomb_n", "extra_delay_samples")
 _GEOMETRY_OPTIONS = ("sign", "counts_per_rev", "lever_arm_m")
 
 
@@ -120,6 +122,8 @@ class AvrBoard:
         full_scale_n: float,
         x0_m: float = 0.0,
         v0_m_s: float = 0.0,
+        coulomb_n: float = 0.0,
+        amp_delay_s: float = 0.0,
         baud: int = 500_000,
         realtime: bool = False,
         host_latency_us: float = 30.0,
@@ -138,6 +142,7 @@ class AvrBoard:
             str(exe), "--hex", str(hex_path), "--mass", repr(mass_kg),
             "--damping", repr(damping_ns_m), "--metres-per-count", repr(metres_per_count),
             "--full-scale-n", repr(full_scale_n), "--x0", repr(x0_m), "--v0", repr(v0_m_s),
+            "--coulomb-n", repr(coulomb_n), "--amp-delay-us", repr(amp_delay_s * 1e6),
             "--baud", str(baud), "--host-latency-us", repr(host_latency_us),
             "--lockstep-timeout-ms", repr(LOCKSTEP_TIMEOUT_S * 1e3),
         ]
@@ -213,7 +218,7 @@ def firmware_defines(rig, baud: int) -> dict:
 
 
 def _checked(table: dict) -> dict:
-    """The plant's m, b, x0_m, v0_m_s, validated as ``--device sim`` validates them."""
+    """The plant's options (``_PLANT_OPTIONS``), validated as ``--device sim`` validates them."""
     from labbench.sim_backend.sim_device import _OPTIONS
 
     out = {}
@@ -259,6 +264,8 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
         full_scale_n=geo.sign * 255.0 / PWM_PER_NEWTON / unit,
         x0_m=plant["x0_m"],
         v0_m_s=plant["v0_m_s"],
+        coulomb_n=plant["coulomb_n"],
+        amp_delay_s=plant["extra_delay_samples"] * rig.sample_time_s,
         baud=config.baudrate,
         realtime=realtime,
         host_latency_us=host_latency_us,

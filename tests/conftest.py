@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import sys
 
+import pytest
+
 _FUZZ = "RLIMIT_AS (resource) and /proc bound each fuzz case's memory"
 LINUX_ONLY = {
     "test_fuzz_cli.py": _FUZZ + "; a FIFO (os.mkfifo) is one of its inputs",
@@ -19,10 +21,36 @@ POSIX_ONLY = {
     "test_session_kill.py": "SIGKILL of a recording process at random moments",
 }
 
+# The firmware on the emulator needs Debian's AVR toolchain and simavr (`make avr-deps`,
+# the CI workflow's apt step): Linux only. There a missing toolchain fails the tests that
+# need it (the fixture below); elsewhere those tests are not collected.
+AVR = "the AVR toolchain and simavr, Debian packages (make avr-deps)"
+AVR_MODULES = ("test_avr_firmware.py", "test_avr_accuracy.py")
+_LINUX = sys.platform.startswith("linux")
+
 _skipped = {**LINUX_ONLY, **POSIX_ONLY} if sys.platform == "win32" else (
-    LINUX_ONLY if not sys.platform.startswith("linux") else {})
+    LINUX_ONLY if not _LINUX else {})
+if not _LINUX:
+    _skipped.update(dict.fromkeys(AVR_MODULES, AVR))
 collect_ignore = list(_skipped)
 
 
 def pytest_report_header(config):
-    return [f"not collected on {sys.platform}: {name} ({why})" for name, why in _skipped.items()]
+    lines = [f"not collected on {sys.platform}: {name} ({why})" for name, why in _skipped.items()]
+    if not _LINUX:
+        lines.append(f"not collected on {sys.platform}: the avr-sim cases of other modules ({AVR})")
+    return lines
+
+
+def pytest_collection_modifyitems(config, items):
+    if not _LINUX:
+        items[:] = [item for item in items if "avr" not in item.name]
+
+
+@pytest.fixture
+def avr_toolchain():
+    """Fails (never skips) where the emulated board cannot be built: the project installs it."""
+    from labbench.sim_backend.avr_build import problem
+
+    if (why := problem()) is not None:
+        pytest.fail(f"avr-sim cannot run here: {why}")

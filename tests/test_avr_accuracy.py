@@ -20,11 +20,9 @@ from labbench.analysis.identify import identify
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.registry import make_protocol
 from labbench.rig import Rig
-from labbench.sim_backend import avr_build
 from labbench.ve import Plant, VirtualEnvironment
 
-PROBLEM = avr_build.problem()
-pytestmark = pytest.mark.skipif(PROBLEM is not None, reason=f"AVR firmware tests: {PROBLEM}")
+pytestmark = pytest.mark.usefixtures("avr_toolchain")  # tests/conftest.py
 
 RIG = Rig()
 PLANT = Plant(RIG.nominal_mass_kg, RIG.nominal_damping_ns_m)

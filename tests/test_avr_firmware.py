@@ -18,11 +18,9 @@ import pytest
 from labbench.drivers import framing
 from labbench.drivers import serial_stream as ss
 from labbench.rig import Rig, rig_from_dict
-from labbench.sim_backend import avr_build
 from labbench.sim_backend.avr_device import connect_avr_sim
 
-PROBLEM = avr_build.problem()
-pytestmark = pytest.mark.skipif(PROBLEM is not None, reason=f"AVR firmware tests: {PROBLEM}")
+pytestmark = pytest.mark.usefixtures("avr_toolchain")  # tests/conftest.py
 
 RIG = Rig()
 MPC = RIG.metres_per_count

@@ -29,7 +29,6 @@ def test_the_page_has_both_kinds_of_block():
 
 
 def test_notebook_page_runs(tmp_path, monkeypatch, capsys):
-    pytest.importorskip("pandas")
     monkeypatch.chdir(tmp_path)
     ns: dict = {"__name__": "__notebook__"}
     for kind, code in blocks(DOC.read_text()):

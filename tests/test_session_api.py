@@ -97,7 +97,6 @@ def test_plot_and_dataframe(sessions, tmp_path, monkeypatch):
     s = labbench.load(sessions["chirp"])
     fig = s.plot(tmp_path / "s.png")
     assert len(fig.axes) == 2 and (tmp_path / "s.png").stat().st_size > 5_000
-    pytest.importorskip("pandas")
     df = s.to_dataframe()
     assert list(df["position"]) == list(s.data["position"]) and df.attrs["units"]["t"] == "s"
     monkeypatch.setitem(sys.modules, "pandas", None)  # as if not installed

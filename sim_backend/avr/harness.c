@@ -10,9 +10,12 @@
  *     Timer1 registers (or the pin level when the PWM is not connected): an
  *     amplifier that takes the duty as its set point. The force changes at the
  *     instruction that changes it.
- *   plant: mass-damper m x'' = F - b x', integrated exactly between force changes
- *     (zero-order hold, the model of labbench.theory); or, with --drive-cps, a
- *     prescribed constant count rate (encoder tests).
+ *   plant: mass-damper m x'' = F - b x' - Fc sign(x') (--coulomb-n Fc, default 0:
+ *     sticking while |F| <= Fc), integrated exactly between force changes and
+ *     velocity reversals (zero-order hold, the model of labbench.theory and of
+ *     sim_backend/friction.py); or, with --drive-cps, a prescribed constant count
+ *     rate (encoder tests). --amp-delay-us D: the amplifier applies each force
+ *     D later than the board set it (a slow current loop the rig file may not state).
  *   host <-> board: UART0 bytes to and from a pty. Host bytes are handed to the
  *     UART at the real line rate (10 bits per byte at the set baud): simavr itself
  *     would take a burst faster than any wire delivers it.
@@ -63,7 +66,7 @@ enum { R_PIND = 0x29, R_DDRB = 0x24, R_PORTB = 0x25, R_TCCR1A = 0x80, R_TCCR1B =
 
 static struct {
     const char *hex;
-    double mass, damping, metres_per_count, full_scale_n, x0, v0;
+    double mass, damping, metres_per_count, full_scale_n, x0, v0, coulomb, amp_delay_us;
     double drive_cps, drive_start_ms, drive_stop_ms;
     long baud;
     double host_latency_us, lockstep_timeout_ms, max_ms;
@@ -103,7 +106,7 @@ static unsigned long long pins_restored;
 
 static int64_t count_of(double x) { return (int64_t)floor(x / opt.metres_per_count + 0.5); }
 
-/* Exact mass-damper response over dt seconds under constant force f. */
+/* Exact mass-damper response over dt seconds under constant force f (no friction). */
 static void integrate(double dt, double f, double *x, double *v) {
     double m = opt.mass, b = opt.damping;
     if (dt <= 0) return;
@@ -116,6 +119,33 @@ static void integrate(double dt, double f, double *x, double *v) {
     double xs = (a * dt - e1) / (a * a * m);      /* x response to a unit force */
     *x += *v * e1 / a + f * xs;
     *v = *v * (1 - e1) + f * e1 / b;
+}
+
+/* Exact response with Coulomb friction: between velocity reversals the friction is a
+ * constant force, so each piece is integrate(); at a reversal the handle sticks while
+ * |f| <= Fc (as sim_backend/friction.py, so the two simulators share one model). */
+static void evolve(double dt, double f, double *x, double *v) {
+    double fc = opt.coulomb, m = opt.mass, b = opt.damping;
+    while (dt > 0) {
+        double s = *v > 0 ? 1.0 : *v < 0 ? -1.0 : 0.0;
+        if (s == 0) {
+            if (fabs(f) <= fc) return;  /* sticks */
+            s = f > 0 ? 1.0 : -1.0;
+        }
+        double f1 = f - fc * s;
+        if (*v == 0 || f1 * s >= 0) {  /* friction cannot stop it within this piece */
+            integrate(dt, f1, x, v);
+            return;
+        }
+        double t_rest = b > 0 ? log1p(-*v * b / f1) * m / b : -*v * m / f1;
+        if (t_rest >= dt) {
+            integrate(dt, f1, x, v);
+            return;
+        }
+        integrate(t_rest, f1, x, v);
+        *v = 0;
+        dt -= t_rest;
+    }
 }
 
 static double drive_position(uint64_t cycle) {
@@ -132,7 +162,7 @@ static void state_at(uint64_t cycle, double *x, double *v) {
     }
     *x = plant.x;
     *v = plant.v;
-    integrate((double)(cycle - plant.t) / avr->frequency, plant.force, x, v);
+    evolve((double)(cycle - plant.t) / avr->frequency, plant.force, x, v);
 }
 
 /* Schedule the edges that bring the pins from the count they show to the count of
@@ -217,20 +247,53 @@ static double duty_oc1a(void) {
     return com == 3 ? 1.0 - duty : duty;
 }
 
+/* The plant feels force f from now on. */
+static void apply_force(double f) {
+    if (f == plant.force) return;
+    if (isnan(opt.drive_cps)) {
+        evolve((double)(avr->cycle - plant.t) / avr->frequency, plant.force, &plant.x, &plant.v);
+        plant.t = avr->cycle;
+    }
+    plant.force = f;
+    if (trace) fprintf(trace, "force %llu %.9g\n", (unsigned long long)avr->cycle, f);
+    plan_edges();
+}
+
+/* Force set points on their way through the amplifier (--amp-delay-us): a ring of
+ * (cycle due, force), in order; one per set-point change, so a few per sample. */
+#define AMPQ 4096
+static struct { uint64_t at; double f; } ampq[AMPQ];
+static size_t amp_head, amp_tail;
+static uint64_t amp_delay_cycles;
+static unsigned long long amp_overflow;
+
+static void apply_due_forces(void) {
+    while (amp_head != amp_tail && ampq[amp_head].at <= avr->cycle) {
+        apply_force(ampq[amp_head].f);
+        amp_head = (amp_head + 1) % AMPQ;
+    }
+}
+
 static void update_force(void) {
     uint32_t sig = force_signature();
     if (sig == plant.sig) return;
     plant.sig = sig;
     double f = ((avr->data[R_PORTB] & 0x01) ? -1.0 : 1.0) * duty_oc1a() * opt.full_scale_n;
     if (!(avr->data[R_DDRB] & 0x01)) f = fabs(f);  /* DIR not an output: reads as low */
-    if (f == plant.force) return;
-    if (isnan(opt.drive_cps)) {
-        integrate((double)(avr->cycle - plant.t) / avr->frequency, plant.force, &plant.x, &plant.v);
-        plant.t = avr->cycle;
+    if (!amp_delay_cycles) {
+        apply_force(f);
+        return;
     }
-    plant.force = f;
-    if (trace) fprintf(trace, "force %llu %.9g\n", (unsigned long long)avr->cycle, f);
-    plan_edges();
+    size_t next = (amp_tail + 1) % AMPQ;
+    if (next == amp_head) {  /* cannot happen at sane rates; counted, never silent */
+        amp_overflow++;
+        apply_due_forces();
+        apply_force(ampq[amp_head].f);
+        amp_head = (amp_head + 1) % AMPQ;
+    }
+    ampq[amp_tail].at = avr->cycle + amp_delay_cycles;
+    ampq[amp_tail].f = f;
+    amp_tail = next;
 }
 
 /* ---- UART <-> pty -------------------------------------------------------------- */
@@ -410,7 +473,7 @@ static double wall_s(void) {
 
 static void usage(void) {
     fprintf(stderr, "usage: avr_harness --hex FILE [--mass KG --damping NS_M --metres-per-count M "
-            "--full-scale-n N --x0 M --v0 M_S --baud B --host-latency-us US --lockstep-timeout-ms MS "
+            "--full-scale-n N --x0 M --v0 M_S --coulomb-n N --amp-delay-us US --baud B --host-latency-us US --lockstep-timeout-ms MS "
             "--lockstep-frame-len N --realtime --max-ms MS --trace FILE --trace-vector N "
             "--drive-cps C --drive-start-ms MS --drive-stop-ms MS]\n");
     exit(2);
@@ -424,7 +487,8 @@ int main(int argc, char **argv) {
         {"lockstep-timeout-ms", 1, 0, 'w'}, {"lockstep-frame-len", 1, 0, 'L'},
         {"realtime", 0, 0, 'r'}, {"max-ms", 1, 0, 'M'}, {"trace", 1, 0, 't'},
         {"trace-vector", 1, 0, 'V'}, {"drive-cps", 1, 0, 'c'}, {"drive-start-ms", 1, 0, 's'},
-        {"drive-stop-ms", 1, 0, 'S'}, {0, 0, 0, 0}};
+        {"drive-stop-ms", 1, 0, 'S'}, {"coulomb-n", 1, 0, 'C'}, {"amp-delay-us", 1, 0, 'D'},
+        {0, 0, 0, 0}};
     int c;
     while ((c = getopt_long(argc, argv, "", longopts, NULL)) != -1) {
         switch (c) {
@@ -446,10 +510,13 @@ int main(int argc, char **argv) {
         case 'c': opt.drive_cps = atof(optarg); break;
         case 's': opt.drive_start_ms = atof(optarg); break;
         case 'S': opt.drive_stop_ms = atof(optarg); break;
+        case 'C': opt.coulomb = atof(optarg); break;
+        case 'D': opt.amp_delay_us = atof(optarg); break;
         default: usage();
         }
     }
-    if (!opt.hex || opt.mass <= 0 || opt.damping < 0 || opt.metres_per_count <= 0 || opt.baud <= 0)
+    if (!opt.hex || opt.mass <= 0 || opt.damping < 0 || opt.metres_per_count <= 0 || opt.baud <= 0
+        || !(opt.coulomb >= 0) || !(opt.amp_delay_us >= 0))
         usage();
     if (!isnan(opt.drive_cps) && opt.drive_stop_ms < opt.drive_start_ms) usage();
 
@@ -463,6 +530,7 @@ int main(int argc, char **argv) {
     if (size <= 0) { fprintf(stderr, "avr_harness: cannot load %s\n", opt.hex); return 1; }
     avr_loadcode(avr, flash, size, 0);
     cycles_per_byte = (uint64_t)llround(10.0 * avr->frequency / opt.baud);
+    amp_delay_cycles = (uint64_t)llround(opt.amp_delay_us * 1e-6 * avr->frequency);
 
     if (opt.trace && !(trace = fopen(opt.trace, "w"))) { perror(opt.trace); return 1; }
     if ((pty_master = open_pty()) < 0) { perror("pty"); return 1; }
@@ -527,6 +595,7 @@ int main(int argc, char **argv) {
             awaiting_host = 0;
         }
         feed_uart();
+        apply_due_forces();
         emit_due_edges();
         state = avr_run(avr);
         if (state == cpu_Done || state == cpu_Crashed) break;
@@ -541,10 +610,10 @@ int main(int argc, char **argv) {
            "\"edges\": %llu, \"count\": %lld, \"position_m\": %.12g, \"velocity_m_s\": %.12g, "
            "\"tx_bytes\": %llu, \"rx_bytes\": %llu, \"tx_dropped\": %llu, "
            "\"lockstep_timeouts\": %llu, \"uart_fifo_full\": %llu, \"pins_restored\": %llu, "
-           "\"crashed\": %s}\n",
+           "\"amp_overflow\": %llu, \"crashed\": %s}\n",
            (unsigned long long)avr->cycle, emulated, wall, waited,
            (unsigned long long)plant.edges, (long long)plant.count, x, v, tx_bytes, rx_bytes,
-           tx_dropped, lockstep_timeouts, uart_fifo_full, pins_restored, state == cpu_Crashed ? "true" : "false");
+           tx_dropped, lockstep_timeouts, uart_fifo_full, pins_restored, amp_overflow, state == cpu_Crashed ? "true" : "false");
     fflush(stdout);
     return state == cpu_Crashed ? 3 : 0;
 }
