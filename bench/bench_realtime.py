@@ -10,7 +10,10 @@ Each arm is a fresh process, started as a user would start it:
   (idle CPUs may sleep: what the CPU latency limit is worth);
 * ``canopen``: ``labbench run etfe --device sim-canopen --realtime`` with the driver's
   real monitor limits (stale TPDO after 3 periods, heartbeat 100 ms, RPDO 50 ms), not
-  the simulation's relaxed defaults.
+  the simulation's relaxed defaults;
+* ``canopen-process``: the same with the simulated drive in its own process
+  (``[canopen] sim_drive = "process"``, over udp_multicast), as a real drive is: a host
+  stall no longer stalls the drive, so its faults can be set against the floor's stalls.
 
 with 0 and 2 CPU hogs (``while True: pass`` processes at normal priority, one per core
 of this 2-core machine). Printed per arm: periods > 1.5 T, max period and when, p99,
@@ -69,8 +72,10 @@ def arm_command(arm: str, seconds: float, out: str, rig: str) -> list[str]:
            "--duration-s", str(seconds), "--plant-from", "nominal"]
     if arm == "sim-nort":
         cmd.append("--no-rt")
-    cmd += ["--rig", rig.replace(".toml", "-idle.toml") if idle else rig]
-    if arm == "canopen":
+    variant = {"-idle": "-idle", "canopen-process": "-process"}
+    suffix = next((v for k, v in variant.items() if arm.endswith(k)), "")
+    cmd += ["--rig", rig.replace(".toml", f"{suffix}.toml")]
+    if arm.startswith("canopen"):
         cmd += ["--device", "sim-canopen"]
     return cmd
 
@@ -116,9 +121,9 @@ def line(r: dict) -> str:
     sched = (f"{rt.get('policy', '?')} {rt.get('priority') or ''}".strip()
              if rt.get("requested") else "rt off")
     if not t:
-        return f"{r['arm']:9s} {r.get('status')}: {r.get('reason', '')}"
+        return f"{r['arm']:15s} {r.get('status')}: {r.get('reason', '')}"
     at = f"{w['t_s']:.1f}" if isinstance(w.get("t_s"), (int, float)) else "-"
-    return (f"{r['arm']:9s} {r.get('status', '?'):8s} periods {t.get('periods', 0):7d}  overruns "
+    return (f"{r['arm']:15s} {r.get('status', '?'):8s} periods {t.get('periods', 0):7d}  overruns "
             f"{t['overruns']:5d}  max {t['max_s'] * 1e3:6.2f} ms at {at:>6s} s  p99 "
             f"{t['p99_s'] * 1e3:5.3f} ms  [{sched}]  load {r['load']:.1f}  steal {r['steal']:.2f} s"
             + ("" if r.get("status") == "success" else f"  ({r.get('reason', '')})"))
@@ -127,7 +132,7 @@ def line(r: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="per arm (issue goal: 600)")
-    ap.add_argument("--arms", default="floor,floor-idle,sim,sim-idle,sim-nort,canopen")
+    ap.add_argument("--arms", default="floor,floor-idle,sim,sim-idle,sim-nort,canopen,canopen-process")
     ap.add_argument("--hogs", default="0,2")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--watchdog-s", type=float, default=None,
@@ -142,6 +147,8 @@ def main() -> int:
                               else f"[safety]\nwatchdog_s = {args.watchdog_s}\n"))
         (Path(tmp) / "rig-idle.toml").write_text(rig.read_text()
                                                  + "[realtime]\ncpu_latency_us = -1\n")
+        (Path(tmp) / "rig-process.toml").write_text(
+            rig.read_text().replace("[canopen]\n", '[canopen]\nsim_drive = "process"\n'))
         for rep in range(args.repeats):
             for n_hogs in (int(h) for h in args.hogs.split(",")):
                 print(f"-- {n_hogs} CPU hogs, {args.seconds:g} s per arm, repeat {rep + 1}",
