@@ -31,6 +31,7 @@ from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.protocol_panel import ProtocolPanel, settings_rows
 from labbench.gui.sessions_view import SessionsView
+from labbench.gui.sweep_view import SweepView
 from labbench.gui.exports import export_in_child
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
@@ -167,6 +168,7 @@ class MainWindow(QtWidgets.QMainWindow):
                                      "its analysis and report use), or l2 identified on its data")
         self.id_view = IdView()
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
+        self.sweeps = SweepView(self.session_dir)  # a re-run point's session goes with the runs
         self.log = EventLog()
         self.banner = QtWidgets.QLabel()
         self.banner.setWordWrap(True)
@@ -204,6 +206,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(live, "Live")
         self.tabs.addTab(self.id_view, "Identification")
         self.tabs.addTab(self.sessions, "Sessions")
+        self.tabs.addTab(self.sweeps, "Sweeps")
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         right.addWidget(self.tabs)
         right.addWidget(self.log)
@@ -239,6 +242,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.replay_requested.connect(self.replay)
         self.sessions.reanalyse_requested.connect(self.reanalyse)
         self.sessions.export_requested.connect(self.export)
+        self.sweeps.session_requested.connect(lambda path: self.replay(path, None))
         self.theory_plant.currentTextChanged.connect(lambda *_: self._invalidate_estimate())
 
         self.select_protocol(self.protocol_panel.choice.currentText())
