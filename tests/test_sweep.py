@@ -94,6 +94,32 @@ def test_random_and_latin_hypercube_draws():
             assert sorted(np.floor(u * 50).astype(int)) == list(range(50))
 
 
+def test_a_spec_is_the_same_spec_once_sent_to_a_worker():
+    """compute_row reads the spec back from Spec.as_dict(): every shipped example and a sample
+    with a list of choices give the same spec and points again."""
+    specs = [load_spec(p) for p in sorted(EXAMPLES.glob("*.toml")) if p.name != "example-rig.toml"]
+    specs.append(spec_from_dict({"sweep": {"protocol": "etfe", "sample": "lhs", "points": 5},
+                                 "ranges": {"K": {"lo": 10.0, "hi": 100.0},
+                                            "estimator": ["lpm", "paper"]}}))
+    for spec in specs:
+        again = spec_from_dict(spec.as_dict())
+        assert again.as_dict() == spec.as_dict() and again.points() == spec.points()
+
+
+def test_a_point_drawn_twice_is_computed_once_and_the_sweep_completes(tmp_path):
+    """A random draw over few choices repeats points (same key): one row each, and the
+    sweep is complete, not stopped (on Dask one task per key)."""
+    d = {"sweep": {"kind": "analysis", "analysis": "etfe", "sample": "random", "points": 6},
+         "fixed": {"n": 2000}, "ranges": {"seed": [1, 2]}}
+    spec = spec_from_dict(d)
+    assert len({p.key(spec) for p in spec.points()}) == 2
+    first = run_sweep(spec, tmp_path / "d.sweep", workers=1)
+    assert (first.total, first.computed, first.stopped) == (2, 2, False)
+    again = run_sweep(spec, tmp_path / "d.sweep", workers=0)
+    assert (again.total, again.before, again.computed, again.stopped) == (2, 2, 0, False)
+    assert sorted(r["seed"] for r in tables.read_table(first.table).to_pylist()) == [1, 2]
+
+
 @pytest.mark.parametrize("bad, words", [
     ({"sweep": {"protocol": "etfe"}, "grids": {}}, "unknown table 'grids'"),
     ({"sweep": {"protocol": "etfe", "sampel": "grid"}}, "did you mean 'sample'"),
@@ -294,6 +320,18 @@ def test_rerun_skips_points_and_a_grown_grid_computes_only_the_new(tmp_path, sma
     assert grown.before == 8 and grown.computed == 4
     assert sorted(rows_without_times(out), key=lambda r: r["key"]) == \
         sorted(small_inline[1], key=lambda r: r["key"])
+
+
+def test_kept_sessions_are_named_wherever_the_table_is_read(tmp_path, monkeypatch):
+    from labbench.session_format import looks_like_session
+
+    monkeypatch.chdir(tmp_path)
+    d = json.loads(json.dumps(SMALL))
+    d["grid"] = {"K": [20.0]}
+    s = run_sweep(spec_from_dict(d), "t.sweep", workers=0, keep_sessions="kept")
+    [row] = tables.read_table(s.table).to_pylist()
+    assert Path(row["session"]).is_absolute() and looks_like_session(row["session"])
+    assert Path(row["session"]).parent == tmp_path / "kept"
 
 
 def test_table_folder_rules(tmp_path):

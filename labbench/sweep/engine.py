@@ -78,17 +78,19 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
     t0 = time.perf_counter()
     out = tables.open_table(out)
     points = spec.points()
-    keys = [p.key(spec) for p in points]
-    done = tables.done_keys(out) & set(keys)
-    todo = [(p, k) for p, k in zip(points, keys) if k not in done]
+    distinct = {}  # key -> its first point: a random draw may repeat a point, computed once
+    for p in points:
+        distinct.setdefault(p.key(spec), p)
+    done = tables.done_keys(out) & distinct.keys()
+    todo = [(p, k) for k, p in distinct.items() if k not in done]
     check_names(spec, points)
     keep = None
     if keep_sessions is not None:
         from labbench.safe_write import output_folder
 
-        keep = str(output_folder(keep_sessions))
+        keep = str(output_folder(keep_sessions).resolve())  # rows name sessions wherever read
     tables.write_spec(out, spec.as_dict())
-    state = Progress(len(done), len(points), 0, 0, 0.0)
+    state = Progress(len(done), len(distinct), 0, 0, 0.0)
     writer = tables.TableWriter(out, flush_rows, flush_s)
     stopped = False
     n_workers = 0
@@ -114,7 +116,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         writer.close()
     if not stopped:
         tables.compact(out)
-    return Summary(out, len(points), len(done), state.computed, state.failed,
+    return Summary(out, len(distinct), len(done), state.computed, state.failed,
                    time.perf_counter() - t0, stopped, n_workers)
 
 

@@ -114,7 +114,8 @@ class Spec:
         return {"sweep": sweep,
                 "fixed": self.fixed, "grid": self.grid,
                 "cases": {g: [{"label": lab, **p} for lab, p in v] for g, v in self.cases.items()},
-                "ranges": self.ranges, "chart": self.charts}
+                "ranges": {k: r.get("choices", r) for k, r in self.ranges.items()},
+                "chart": self.charts}
 
     def points(self) -> list[Point]:
         """Every point, in the spec's order (see the module doc)."""
