@@ -270,6 +270,7 @@ def test_an_existing_cluster(tmp_path, small_inline):
                                        "--nworkers", "2", "--no-dashboard"],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                       env=env))
+        _wait_for_workers(f"tcp://127.0.0.1:{port}", 2)  # both registered, as a user waits
         summary = _retry_cluster(lambda: run_sweep(spec_from_dict(SMALL), tmp_path / "c.sweep",
                                                    scheduler=f"tcp://127.0.0.1:{port}"))
         assert summary.workers == 2
@@ -293,6 +294,22 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _wait_for_workers(address: str, n: int, timeout_s: float = 120.0) -> None:
+    """On a loaded machine the second worker process can register well after the first."""
+    from distributed import Client
+
+    t0 = time.monotonic()
+    while True:
+        try:
+            with Client(address, timeout=10) as client:
+                client.wait_for_workers(n, timeout=max(1.0, timeout_s - (time.monotonic() - t0)))
+                return
+        except OSError:  # the scheduler not listening yet
+            if time.monotonic() - t0 > timeout_s:
+                raise
+            time.sleep(0.5)
 
 
 def _retry_cluster(fn, timeout_s: float = 60.0):
