@@ -89,9 +89,16 @@ def start_process_drive(rig, config: CanopenConfig, seed=None,
     except TypeError as exc:
         raise UserError(f"sim-canopen in a process: an option cannot be passed on: {exc}") \
             from None
+    return spawn([sys.executable, "-m", "labbench.sim_backend.canopen_process"], spec, port)
+
+
+def spawn(argv: list[str], spec: str, port: int) -> tuple[ProcessDrive, EchoFreeBus]:
+    """Start the drive program ``argv``, hand it ``spec`` (one JSON line) and wait for its
+    ``ready``; the drive and the host's bus on ``port``. Any drive program that follows
+    this module's contract (its own port, ``ready``, runs until stdin closes) can be
+    started so: the tests start a CANopenNode drive this way."""
     log = tempfile.TemporaryFile()
-    proc = subprocess.Popen([sys.executable, "-m", "labbench.sim_backend.canopen_process"],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log,
+    proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log,
                             start_new_session=True)  # a terminal's Ctrl-C goes to the host
     drive = ProcessDrive(proc, log, port)
     try:
