@@ -122,7 +122,7 @@ def _writable(a: Assessment, d: Dictionary, index: int, sub: int, required: bool
     e = d.get(index, sub)
     if e is None:
         if required:
-            a.obstacles.append(f"{_what(index, sub)} absent")
+            a.obstacles.append(f"{_what(index, sub)} {d.gone(index, sub)}")
         return False
     if not e.writable:
         (a.obstacles if required else a.warnings).append(
@@ -149,6 +149,10 @@ def _modes(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
         return
     supported = d.value(0x6502)
     e6060 = d.get(0x6060)
+    if not e6060.readable and not d.has(0x6061, 0):
+        a.warnings.append("0x6060:00 (modes of operation) is write-only and 0x6061 (modes of "
+                          "operation display) absent: the drive's acknowledgment of the mode "
+                          "write is its only confirmation")
     lo = e6060.low if e6060.low is not None else -128
     hi = e6060.high if e6060.high is not None else 127
     why = []
@@ -250,7 +254,8 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
                           "CiA 402 drive is the drive's answer")
     elif device_type is None:
         a.capabilities["CiA 402"] = "unknown"
-        a.obstacles.append("device type 0x1000 absent: not known to be a CiA 402 drive")
+        a.obstacles.append(f"device type 0x1000 {d.gone(0x1000)}: not known to be a CiA 402 "
+                           "drive")
     elif device_type & 0xFFFF != 402:
         a.capabilities["CiA 402"] = f"no (profile {device_type & 0xFFFF})"
         a.obstacles.append(f"not a CiA 402 drive: device type 0x1000 = 0x{device_type:08X} "
@@ -266,7 +271,7 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
     _writable(a, d, 0x6040, 0, True)
     for index in (0x6041, 0x6064):
         if not d.has(index, 0):
-            a.obstacles.append(f"{_what(index)} absent")
+            a.obstacles.append(f"{_what(index)} {d.gone(index)}")
     for index, bits in ((0x6040, 16), (0x6041, 16), (0x6064, 32)):
         e = d.get(index, 0)
         if e is not None and e.bits and e.bits != bits:

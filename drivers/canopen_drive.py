@@ -14,12 +14,21 @@ receiver at a time:
   heartbeat or its node-guarding answers, never assumed from the command sent.
 * **cyclic phase** (between ``enable`` and ``disable``): no thread. Each
   ``read()`` sends SYNC (and the host heartbeat or guarding request when due)
-  and pumps the bus itself until every TPDO of that SYNC arrives;
-  ``command()`` sends the RPDO(s). SYNC and heartbeat/guarding exist only
-  while the loop runs: a frozen loop stops them, and the drive's heartbeat
-  consumer 0x1016 or life guarding 0x100C/0x100D, and its RPDO event timer
-  0x1400:05 if it has one, remove torque on their own. No python-can periodic
-  task is used (they stop silently after one TX error, python-can #743).
+  and pumps the bus itself until every TPDO of that SYNC arrives, within
+  ``stale_periods`` of the moment the SYNC actually went out (a SYNC the host
+  sends late is the host's overrun, counted in ``late_syncs``, not a silent
+  drive); ``command()`` sends the RPDO(s). SYNC and heartbeat/guarding exist
+  only while the loop runs: a frozen loop stops them, and the drive's
+  heartbeat consumer 0x1016 or life guarding 0x100C/0x100D, and its RPDO
+  event timer 0x1400:05 if it has one, remove torque on their own. No
+  python-can periodic task is used (they stop silently after one TX error,
+  python-can #743).
+
+The drive is NMT OPERATIONAL and watches the host only in the cyclic phase:
+``enable`` arms the watch (0x1016:01, 0x100C, 0x14xx:05) in PRE-OPERATIONAL,
+then starts the node; ``disable`` winds down in the reverse order, each watch
+fed until it is off (``disable`` says how), so no run ends in an EMCY; ``close``
+writes back the values the survey found in the objects the driver set.
 
 Any fault (EMCY, TX error, error frame, bus-off, stale TPDO, drive leaving
 OPERATION ENABLED, NMT state other than OPERATIONAL, leaving the host-side
@@ -45,6 +54,7 @@ import canopen
 
 from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.drivers import cia402, emcy
+from labbench.drivers.can_echo import EchoFreeBus
 from labbench.drivers.can_trace import TracedBus
 from labbench.drivers.canopen_check import Assessment, assess
 from labbench.drivers.canopen_config import CanopenConfig
@@ -62,6 +72,7 @@ logging.getLogger("canopen").addHandler(logging.NullHandler())
 # NMT states as coded in heartbeat and node-guarding frames (CiA 301).
 NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
+NMT_TIMEOUT_S = 3.0  # for a heartbeat or guarding answer showing the NMT state asked for
 
 # SocketCAN error-frame classes (linux/can/error.h), carried in arbitration_id.
 ERROR_CLASSES = {
@@ -103,7 +114,9 @@ class CanopenDrive:
         self._state_seen = State.NOT_READY_TO_SWITCH_ON  # from the latest statusword
         self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]  # sent with each RPDO
         self._next_tick = 0.0  # paced mode: perf_counter time of the next SYNC
-        self._watch_armed = False  # the drive watches our heartbeat / guarding
+        self._watch_armed = False  # the drive watches our heartbeat / guarding / RPDOs
+        self._operational = False  # NMT OPERATIONAL as this host last set and saw it
+        self._found: dict = {}  # (index, sub) -> the survey's value of an object the driver sets
         self._fault: str | None = None
         self._last_emcy: emcy.Emcy | None = None
         self._hb = threading.Condition()
@@ -119,7 +132,10 @@ class CanopenDrive:
         self._last_answer = 0.0  # perf_counter time of the last node-guarding answer
         self.velocity_m_s = 0.0
         self.torque_actual_n = math.nan
-        self.counters = {"error_frames": 0, "emcy": 0, "stray_frames": 0, "late_ticks": 0}
+        # late_syncs: SYNCs the host sent more than half a period after their time (its
+        # overrun); late_ticks: of those, the ones after which the pacing re-phased.
+        self.counters = {"error_frames": 0, "emcy": 0, "stray_frames": 0, "late_ticks": 0,
+                         "late_syncs": 0}
         id_ = config.node_id
         self._emcy_id, self._hb_id = 0x80 + id_, 0x700 + id_
         self._sync_msg = can.Message(arbitration_id=SYNC_ID, data=b"", is_extended_id=False)
@@ -155,6 +171,8 @@ class CanopenDrive:
                         "configuration (~/.canrc, CAN_INTERFACE) has none") from None
                 shown = ", ".join(f"{k}={v!r}" for k, v in kwargs.items())
                 raise DeviceConnectionError(f"cannot open CAN bus ({shown}): {exc}") from None
+            if type(self._bus).__name__ == "UdpMulticastBus":  # hands its frames back
+                self._bus = EchoFreeBus(self._bus)  # else each is a stray frame
         if self.can_log:
             self._bus = TracedBus(self._bus, self.can_log)
         self._network = canopen.Network(self._bus)
@@ -221,7 +239,12 @@ class CanopenDrive:
         self._identity = self._ident()
         self._mode = None
         self._nmt(NMT_PRE_OPERATIONAL)
-        for index, sub, value in self._timing_writes(armed=False):
+        self._operational = False
+        d = self.dictionary
+        for index, sub, value in self._service_values() + self._watch_values(armed=False):
+            e = d.get(index, sub)
+            if e is not None and e.value is not None and e.writable:
+                self._found[(index, sub)] = e.value
             self._write_checked(index, sub, self._fmt(index, sub), value)
         self._wait_nmt(127, timeout)
         self._map_pdos()
@@ -231,27 +254,41 @@ class CanopenDrive:
         lo, hi = self.rig.position_limits_m
         ends = sorted((lo / self._mpc, hi / self._mpc))  # a negative position_sign mirrors it
         self._window = None if a.has.get((0x607D, 1)) else (math.floor(ends[0]), math.ceil(ends[1]))
-        self._nmt(NMT_START)
-        self._wait_nmt(5, timeout)
         self._setup_cyclic()
 
     def _fmt(self, index: int, sub: int) -> str:
         e = self.dictionary.get(index, sub)
         return "<" + (e.fmt if e is not None and e.fmt else "I")
 
-    def _timing_writes(self, armed: bool) -> list[tuple[int, int, int]]:
-        """Heartbeat/guarding objects: ``armed`` is the cyclic phase (the drive watches)."""
+    def _service_values(self) -> list[tuple[int, int, int]]:
+        """What the host needs from the drive in every phase: its heartbeat 0x1017 (how the
+        host sees the NMT state) and the life time factor 0x100D of guarding."""
         a, cfg = self.assessment, self.config
         out = []
         if a.nmt_by == "heartbeat":
             out.append((0x1017, 0, cfg.drive_heartbeat_ms))
+        if "guarding" in (a.watchdog, a.nmt_by):
+            out.append((0x100D, 0, cfg.life_time_factor))
+        return out
+
+    def _watch_values(self, armed: bool) -> list[tuple[int, int, int]]:
+        """The drive's watch on the host: heartbeat consumer 0x1016:01, guard time 0x100C
+        (life guarding), RPDO event timers 0x14xx:05; all 0 (off) unless ``armed``.
+
+        Each starts watching only with the host's first frame after it is set (CiA 301:
+        heartbeat consumer, life guarding, RPDO deadline monitoring), so arming them before
+        the cyclic phase starts is safe.
+        """
+        a, cfg = self.assessment, self.config
+        out = []
         if a.watchdog == "heartbeat":
             out.append((0x1016, 1, cfg.host_node_id << 16 | cfg.heartbeat_consumer_ms
                         if armed else 0))
         if "guarding" in (a.watchdog, a.nmt_by):
-            # Life guarding starts with the first request: off in the service phase.
             guard = cfg.guard_time_ms if armed and a.watchdog == "guarding" else 0
-            out += [(0x100D, 0, cfg.life_time_factor), (0x100C, 0, guard)]
+            out.append((0x100C, 0, guard))
+        out += [(p.comm, 5, p.event_timer_ms if armed else 0)
+                for p in a.plan.rpdos if p.event_timer_ms]
         return out
 
     def _map_pdos(self) -> None:
@@ -274,7 +311,7 @@ class CanopenDrive:
                 self._write_checked(p.mapping, 0, "<B", len(p.entries))
             if p.write_trans:
                 self._write_checked(p.comm, 2, "<B", p.trans_type)
-            if p.event_timer_ms is not None:
+            if p.tx and p.event_timer_ms is not None:  # an RPDO's is the watch (enable arms it)
                 self._write_checked(p.comm, 5, "<H", p.event_timer_ms)
             if not p.cob_fixed:
                 self._write_checked(p.comm, 1, "<I", p.cob_id)
@@ -285,7 +322,7 @@ class CanopenDrive:
     def _select_mode(self) -> None:
         """The first torque mode the drive takes (``auto``: CST, profile torque, vendor)."""
         refusals = []
-        display = 0x6061 if self.dictionary.has(0x6061, 0) else 0x6060
+        display = self._mode_display()
         for m in self.assessment.modes:
             try:
                 self._write(0x6060, 0, "<b", m.code)
@@ -293,7 +330,7 @@ class CanopenDrive:
                 refusals.append(exc)
                 continue
             deadline = time.monotonic() + self.config.sdo_timeout_s * 4
-            while (shown := self._read(display, 0, "<b")) != m.code:
+            while display is not None and (shown := self._read(display, 0, "<b")) != m.code:
                 if time.monotonic() > deadline:
                     raise UserError(f"node {self.config.node_id}: 0x{display:04X}:00 "
                                     f"({object_name(display)}) shows {shown}, expected "
@@ -305,6 +342,15 @@ class CanopenDrive:
             raise refusals[0]
         raise DeviceError(f"node {self.config.node_id}: no torque mode accepted: "
                           + "; ".join(str(r) for r in refusals))
+
+    def _mode_display(self) -> int | None:
+        """Where the drive shows its mode: 0x6061, else 0x6060 read back, else nowhere (a
+        write-only 0x6060 and no 0x6061: the write's acknowledgment is all there is)."""
+        for index in (0x6061, 0x6060):
+            e = self.dictionary.get(index, 0)
+            if e is not None and e.readable:
+                return index
+        return None
 
     def _setup_cyclic(self) -> None:
         """Per-cycle tables from the plan: TPDO decoders, RPDO frames, periodic frames."""
@@ -340,11 +386,19 @@ class CanopenDrive:
         self._sdo.write(index, sub, fmt, value)
 
     def _write_checked(self, index: int, sub: int, fmt: str, value: int) -> None:
-        self._sdo.write_checked(index, sub, fmt, value)
+        """Write and read back; a write-only object is only written (nothing to read)."""
+        e = self.dictionary.get(index, sub) if self.dictionary is not None else None
+        if e is not None and not e.readable:
+            self._sdo.write(index, sub, fmt, value)
+        else:
+            self._sdo.write_checked(index, sub, fmt, value)
+
+    def _nmt_msg(self, command: int) -> can.Message:
+        return can.Message(arbitration_id=0, data=bytes([command, self.config.node_id]),
+                           is_extended_id=False)
 
     def _nmt(self, command: int) -> None:
-        self._send(can.Message(arbitration_id=0, data=bytes([command, self.config.node_id]),
-                               is_extended_id=False))
+        self._send(self._nmt_msg(command))
 
     def _on_heartbeat(self, can_id, data, timestamp) -> None:
         with self._hb:
@@ -429,12 +483,14 @@ class CanopenDrive:
     def _error_code(self) -> str:
         """What explains a FAULT: 0x603F, else the last EMCY, 0x1001 and 0x1003."""
         d = self.dictionary
-        if d is not None and d.has(0x603F, 0) or d is None:
-            code = self._read(0x603F, 0, "<H")
-            return f"error code 0x603F = 0x{code:04X} ({emcy.code_text(code)})"
+        if d is None or d.has(0x603F, 0):
+            raw, _ = self._sdo.attempt(0x603F, 0)
+            if raw:
+                code = struct.unpack("<H", raw[:2].ljust(2, b"\0"))[0]
+                return f"error code 0x603F = 0x{code:04X} ({emcy.code_text(code)})"
         parts = [f"last EMCY 0x{self._last_emcy.code:04X} ({self._last_emcy.text})"] \
             if self._last_emcy else []
-        register = self._sdo.upload(0x1001, 0)
+        register, _ = self._sdo.attempt(0x1001, 0)
         if register:
             parts.append(f"error register 0x1001 = 0x{register[0]:02X}")
         history = self._error_history()
@@ -444,15 +500,21 @@ class CanopenDrive:
         return "; ".join(parts) or "no error code (0x603F and 0x1003 absent, no EMCY heard)"
 
     def _error_history(self) -> list[int]:
-        """Pre-defined error field 0x1003, newest first (empty when absent)."""
-        count = self._sdo.upload(0x1003, 0)
+        """Pre-defined error field 0x1003, newest first (empty when absent or unreadable).
+
+        Entries 1..count (0x1003:00) only: above the count a drive may answer abort
+        0x08000024 "no data available" (CiA 301; CANopenNode does). A refused entry (the
+        count changed meanwhile) ends the list.
+        """
+        count, _ = self._sdo.attempt(0x1003, 0)
         if not count:
             return []
         out = []
         for sub in range(1, min(count[0], 8) + 1):
-            raw = self._sdo.upload(0x1003, sub)
-            if raw is not None:
-                out.append(struct.unpack("<I", raw[:4].ljust(4, b"\0"))[0])
+            raw, _ = self._sdo.attempt(0x1003, sub)
+            if raw is None:
+                break
+            out.append(struct.unpack("<I", raw[:4].ljust(4, b"\0"))[0])
         return out
 
     # ------------------------------------------------------------------ Device
@@ -471,13 +533,26 @@ class CanopenDrive:
                 warnings=list(a.warnings), dictionary=a.source)
         if self.can_log:
             details["can_log"] = self.can_log
+        delay, why = self._own_delay()
         return DeviceDescription(
             kind="canopen", name=f"CiA 402 drive, node {self.config.node_id}",
             sample_time_s=self.T, force_limit_n=limit,
-            position_limits_m=self.rig.position_limits_m, details=details)
+            position_limits_m=self.rig.position_limits_m, details=details,
+            device_delay_s=delay, device_delay_why=why)
+
+    def _own_delay(self) -> tuple[float, str]:
+        """The delay the drive adds to every command (``labbench.device_delay``): one
+        period when the torque RPDO is synchronous, none known otherwise."""
+        p = self.assessment.plan.torque_at_sync() if self.assessment is not None else None
+        if p is None:
+            return 0.0, ""
+        return self.T, (f"{p.name} is synchronous (transmission type {p.trans_type}, fixed by "
+                        "the drive): the torque takes effect at the next SYNC, one sample "
+                        "period after it is sent (CiA 301 7.2.2)")
 
     def _start_cyclic(self) -> None:
-        """Service -> cyclic phase: re-verify the drive, arm its watch on the host."""
+        """Service -> cyclic phase: re-verify the drive, arm its watch on the host (still
+        PRE-OPERATIONAL), NMT start, seen OPERATIONAL."""
         if self._fault:
             raise self._latched()
         a = self.assessment
@@ -486,18 +561,23 @@ class CanopenDrive:
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self._latch(f"drive is in {state.value}: {self._error_code()}")
                 raise self._latched()
-            display = 0x6061 if self.dictionary.has(0x6061, 0) else 0x6060
-            checks = list(a.writes) + [(p.comm, 5, "<H", p.event_timer_ms)
-                                       for p in a.plan.rpdos if p.event_timer_ms] + [
-                (display, 0, "<b", self._mode.code)]
+            display = self._mode_display()
+            checks = list(a.writes) + ([(display, 0, "<b", self._mode.code)]
+                                       if display is not None else [])
             for index, sub, fmt, value in checks:
+                e = self.dictionary.get(index, sub)
+                if e is not None and not e.readable:
+                    continue  # write-only: as written at open
                 if (back := self._read(index, sub, fmt)) != value:
                     raise UserError(f"node {self.config.node_id}: object {where(index, sub)} "
                                     f"({object_name(index)}) is {hexval(back, fmt)}, expected "
                                     f"{hexval(value, fmt)}: refusing to enable")
             self._watch_armed = True
-            for index, sub, value in self._timing_writes(armed=True):
+            for index, sub, value in self._watch_values(armed=True):
                 self._write_checked(index, sub, self._fmt(index, sub), value)
+            self._nmt(NMT_START)
+            self._wait_nmt(5, NMT_TIMEOUT_S)
+            self._operational = True
         except UserError as exc:  # inside a run this is a device fault with the same words
             self._latch(str(exc))
             raise DeviceFault(self._fault) from None
@@ -529,32 +609,88 @@ class CanopenDrive:
         self._send_rpdos(0)
 
     def disable(self, timeout: float = 1.0) -> None:
-        """Zero torque, SWITCH ON DISABLED (confirmed over SDO), the drive's watch off."""
+        """Zero torque, SWITCH ON DISABLED, the drive's watch on the host off and the node
+        PRE-OPERATIONAL: nothing the driver armed is left to fire when the host goes quiet.
+
+        The order feeds each watch until it is off: (1) still cyclic, RPDOs with zero
+        torque and DISABLE VOLTAGE, SYNC by SYNC with the heartbeat/guarding due, until a
+        TPDO shows the power stage off (at most ``timeout``); (2) the heartbeat/guarding
+        request once more, then NMT PRE-OPERATIONAL, which ends the RPDO deadline
+        monitoring (PDOs exist in OPERATIONAL only, CiA 301; CANopenNode clears its RPDO
+        timers there); (3) over SDO, first the heartbeat consumer and guard time (they
+        run in PRE-OPERATIONAL too and were just fed), then the RPDO event timers, to 0;
+        (4) SWITCH ON DISABLED confirmed over SDO. After a fault: ``_after_fault``.
+        """
         if self._closed or self._network is None:
             return
         self._zero_force(Command.DISABLE_VOLTAGE)
         if self._cyclic:
+            if not self._fault:
+                self._wind_down(timeout)
             self._cyclic = False
+            if not self._fault:
+                self._end_cyclic_traffic()
             self._start_receiver()
+        elif self._operational and not self._fault:  # started, the cyclic phase never began
+            self._end_cyclic_traffic()
         if self._fault:
-            # Perhaps unreachable: one attempt to stop the drive watching a host that
-            # no longer sends; the fault already says what went wrong.
-            if self._watch_armed:
-                self._watch_armed = False
-                try:
-                    for index, sub, value in self._timing_writes(armed=False):
-                        self._write(index, sub, self._fmt(index, sub), value)
-                except (UserError, DeviceError):
-                    pass
+            self._after_fault()
             return
         try:
+            if self._watch_armed:
+                for index, sub, value in self._watch_values(armed=False):
+                    self._write_checked(index, sub, self._fmt(index, sub), value)
+                self._watch_armed = False
             self._drive_to(State.SWITCH_ON_DISABLED, timeout)
-            for index, sub, value in self._timing_writes(armed=False):
-                self._write_checked(index, sub, self._fmt(index, sub), value)
-            self._watch_armed = False
         except (UserError, DeviceError) as exc:
             self._latch(f"disable failed: {exc}")
             raise DeviceFault(self._fault) from None
+
+    def _after_fault(self) -> None:
+        """Disable after a fault: one attempt, perhaps on a drive that no longer answers,
+        to switch the power stage off over SDO; only once the drive shows no torque, NMT
+        PRE-OPERATIONAL and its watch off (until then its watch is what removes the
+        torque). The fault already says what went wrong."""
+        try:
+            self._sdo.write(0x6040, 0, "<H", cia402.CONTROLWORD[Command.DISABLE_VOLTAGE])
+            if self.drive_state() in cia402.TORQUE_STATES:
+                return
+            self._end_cyclic_traffic()
+            if self._watch_armed:
+                for index, sub, value in self._watch_values(armed=False):
+                    self._write(index, sub, self._fmt(index, sub), value)
+                self._watch_armed = False
+        except (UserError, DeviceError):
+            pass
+
+    def _wind_down(self, timeout: float) -> None:
+        """Disable step (1): cyclic exchanges with zero torque and DISABLE VOLTAGE until a
+        TPDO shows a state without torque. A fault on the way is latched, not raised."""
+        self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]
+        end = time.perf_counter() + timeout
+        try:
+            while True:
+                self._send_rpdos(0)
+                status = self._exchange(self._pace(), min(self._tpdo_wait, timeout))["status"]
+                try:
+                    off = cia402.decode_status(status) not in cia402.TORQUE_STATES
+                except cia402.UnknownStatusword:
+                    off = False
+                if off or time.perf_counter() > end:
+                    return
+        except DeviceFault:
+            pass  # latched: disable goes on as after any fault
+
+    def _end_cyclic_traffic(self) -> None:
+        """Disable step (2): the heartbeat/guarding request once more, then NMT
+        PRE-OPERATIONAL. Plain sends that never raise: the bus may be what failed."""
+        try:
+            for entry in self._periodic:
+                self._bus.send(entry[0], timeout=self.T)
+            self._bus.send(self._nmt_msg(NMT_PRE_OPERATIONAL), timeout=self.T)
+            self._operational = False
+        except can.CanError:
+            pass
 
     def emergency_stop(self) -> None:
         """Zero torque and power stage off at once; latch. Never raises."""
@@ -624,6 +760,66 @@ class CanopenDrive:
         except can.CanError as exc:
             self._fail(f"CAN transmit error: {exc}")
 
+    def _pace(self) -> float | None:
+        """Paced mode: wait for the next SYNC's time and return it (None: lock-step)."""
+        if not self.realtime:
+            return None
+        due = self._next_tick
+        now = time.perf_counter()
+        if now < due:
+            sleep_until(due)  # a plain sleep wakes up to ~100 us late
+        elif now > due + self.T:
+            self.counters["late_ticks"] += 1
+            self._next_tick = now  # re-phase instead of bursting SYNCs to catch up
+        self._next_tick += self.T
+        return due
+
+    def _exchange(self, due: float | None, wait: float) -> dict:
+        """SYNC (and the heartbeat/guarding request when due), then every TPDO of that SYNC.
+
+        The TPDOs are the drive's to deliver within ``wait`` of the moment the SYNC went
+        out, not of when it was ``due``: a SYNC sent more than half a period late is the
+        host's overrun (``late_syncs``; the loop's timing counts the long period too).
+        """
+        bus = self._bus
+        if bus.state is can.BusState.ERROR:
+            self._fail("CAN controller is bus-off (error state)")
+        self._send(self._sync_msg)
+        sent = time.perf_counter()
+        late = sent - due if due is not None else 0.0
+        if late > 0.5 * self.T:
+            self.counters["late_syncs"] += 1
+        for entry in self._periodic:
+            if sent - entry[2] >= entry[1]:
+                self._send(entry[0])
+                entry[2] = sent
+        if self._guard_life and sent - self._last_answer > self._guard_life:
+            self._fail(f"no node guarding answer for {self._guard_life * 1e3:.0f} ms")
+        deadline = sent + wait
+        decoders, vals, seen = self._decoders, self._vals, 0
+        while True:
+            left = deadline - time.perf_counter()
+            msg = bus.recv(left if left > 0 else 0.0)
+            if msg is None:
+                host = (f" (the host sent the SYNC {late * 1e3:.3g} ms late)"
+                        if late > 0.5 * self.T else "")
+                self._fail(f"stale TPDO: no answer to SYNC {self._seq + 1} within "
+                           f"{wait * 1e3:.3g} ms of sending it{host}")
+            dec = decoders.get(msg.arbitration_id)
+            if dec is not None and not msg.is_error_frame:
+                try:
+                    vals.update(zip(dec[1], dec[0].unpack_from(msg.data)))
+                except struct.error:
+                    self._fail(f"TPDO 0x{msg.arbitration_id:03X} of {len(msg.data)} bytes, "
+                               f"expected {dec[0].size}")
+                seen |= dec[2]
+                if seen == self._all_sync:
+                    return vals
+                continue
+            self._dispatch(msg)
+            if self._fault:  # EMCY, error frame or NMT change seen while waiting
+                self._fail(self._fault)
+
     def read(self, timeout: float) -> Sample:
         return Sample(*self.read_raw(timeout))
 
@@ -636,48 +832,7 @@ class CanopenDrive:
             raise DeviceFault(self._fault) if self._cyclic else self._latched()
         if not self._cyclic:
             self._start_cyclic()
-        now = time.perf_counter()
-        if self.realtime:
-            if now < self._next_tick:
-                sleep_until(self._next_tick)  # a plain sleep wakes up to ~100 us late
-                now = time.perf_counter()
-            elif now > self._next_tick + self.T:
-                self.counters["late_ticks"] += 1
-                self._next_tick = now  # re-phase instead of bursting SYNCs to catch up
-            self._next_tick += self.T
-        wait = min(self._tpdo_wait, timeout)
-        bus = self._bus
-        if bus.state is can.BusState.ERROR:
-            self._fail("CAN controller is bus-off (error state)")
-        self._send(self._sync_msg)
-        for entry in self._periodic:
-            if now - entry[2] >= entry[1]:
-                self._send(entry[0])
-                entry[2] = now
-        if self._guard_life and now - self._last_answer > self._guard_life:
-            self._fail(f"no node guarding answer for {self._guard_life * 1e3:.0f} ms")
-        deadline = now + wait
-        decoders, vals, seen = self._decoders, self._vals, 0
-        while True:
-            left = deadline - time.perf_counter()
-            msg = bus.recv(left if left > 0 else 0.0)
-            if msg is None:
-                self._fail(f"stale TPDO: no answer to SYNC {self._seq + 1} within "
-                           f"{wait * 1e3:.3g} ms")
-            dec = decoders.get(msg.arbitration_id)
-            if dec is not None and not msg.is_error_frame:
-                try:
-                    vals.update(zip(dec[1], dec[0].unpack_from(msg.data)))
-                except struct.error:
-                    self._fail(f"TPDO 0x{msg.arbitration_id:03X} of {len(msg.data)} bytes, "
-                               f"expected {dec[0].size}")
-                seen |= dec[2]
-                if seen == self._all_sync:
-                    break
-                continue
-            self._dispatch(msg)
-            if self._fault:  # EMCY, error frame or NMT change seen while waiting
-                self._fail(self._fault)
+        vals = self._exchange(self._pace(), min(self._tpdo_wait, timeout))
         status, counts = vals["status"], vals["position"]
         if status & 0x6F != 0x27:  # CiA 402 coding of OPERATION ENABLED
             self._not_enabled(status)
@@ -763,12 +918,17 @@ class CanopenDrive:
         self._close_hooks.append(hook)
 
     def close(self) -> None:
+        """Disable if still running, write back what the survey found, shut the bus down."""
         if self._closed:
             return
         try:
-            if self._cyclic:
+            if self._cyclic or self._operational:
                 self.disable()
         except Exception:  # closing must not fail; the drive's own timers remove torque
+            pass
+        try:
+            self._restore()
+        except Exception:  # as above: a drive gone by now keeps what it has
             pass
         self._closed = True
         self._cyclic = False
@@ -780,6 +940,23 @@ class CanopenDrive:
             self._bus.shutdown()
         for hook in self._close_hooks:
             hook()
+
+    def _restore(self) -> None:
+        """The objects the driver set for its own use (producer heartbeat, life time factor,
+        the watch) back to the values the survey found, where they differ from what the
+        driver left; only when the drive is disabled and answers."""
+        if self._cyclic or self._operational or self._network is None \
+                or self._network.notifier is None or self.assessment is None:
+            return
+        left = {(i, s): v for i, s, v in self._service_values() + self._watch_values(False)}
+        for (index, sub), value in self._found.items():
+            if left.get((index, sub)) != value:
+                try:
+                    self._write(index, sub, self._fmt(index, sub), value)
+                except DeviceConnectionError:
+                    return
+                except DeviceError:
+                    continue  # refused now: what the driver left stays
 
     def __enter__(self):
         return self

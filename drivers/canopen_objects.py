@@ -6,7 +6,12 @@ DataType) give a warning and the rest of the file is used. ``survey`` asks the
 drive itself, read-only, which of the objects the driver may use exist and
 what they hold; given a ``Dictionary`` from a file it confirms each object
 against the drive (the drive wins), otherwise it probes PDO slots one
-subindex at a time. Without a file, access types and PDO mappability are
+subindex at a time. It never stops on a refused read: a write-only object
+(the file's ``AccessType=wo``, or abort 0x06010001) is known to exist and
+never read; any other refusal (e.g. 0x08000024 "no data available") is
+recorded in ``Dictionary.refused`` with a warning and the object is taken as
+absent, so the assessment names it as an obstacle only if the driver cannot
+do without it. Without a file, access types and PDO mappability are
 unknown (``access == ""``, ``mappable is None``): the drive's answer to the
 write decides, and a refusal names the object.
 
@@ -18,13 +23,13 @@ from __future__ import annotations
 import io
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.eds import import_eds
 
 from labbench.drivers import eds_values
-from labbench.drivers.canopen_sdo import where
+from labbench.drivers.canopen_sdo import ABSENT, WRITE_ONLY, abort_text, where
 from labbench.errors import UserError
 
 # CiA 301 data type codes -> struct code (integers only: nothing else is mapped or compared).
@@ -36,7 +41,9 @@ U8, I8, U16, I16, U32, I32 = 0x5, 0x2, 0x6, 0x3, 0x7, 0x4
 STANDARD = {
     0x1000: ("device type", {0: U32}),
     0x1001: ("error register", {0: U8}),
-    0x1003: ("pre-defined error field", {0: U8, 1: U32, 2: U32, 3: U32, 4: U32}),
+    # The count only: entries above it need not exist (CANopenNode answers 0x08000024);
+    # the driver's history reader reads 1..count when it needs them.
+    0x1003: ("pre-defined error field", {0: U8}),
     0x100C: ("guard time", {0: U16}),
     0x100D: ("life time factor", {0: U8}),
     0x1016: ("consumer heartbeat time", {0: U8, 1: U32}),
@@ -103,6 +110,10 @@ class Entry:
         return self.access == "" or "w" in self.access
 
     @property
+    def readable(self) -> bool:
+        return self.access != "wo"
+
+    @property
     def fixed(self) -> bool:
         """Known to be not writable."""
         return not self.writable
@@ -117,6 +128,12 @@ class Dictionary:
     warnings: list = field(default_factory=list)
     od: object = None  # the canopen ObjectDictionary read from the file (the simulated drive's)
     from_file: bool = False
+    refused: dict = field(default_factory=dict)  # (index, sub) -> SDO abort code of its read
+
+    def gone(self, index: int, sub: int = 0) -> str:
+        """Why an object is not there: "absent", or the abort with which its read was refused."""
+        code = self.refused.get((index, sub))
+        return "absent" if code is None else f"unreadable ({abort_text(code)})"
 
     def has(self, index: int, sub: int | None = None) -> bool:
         if sub is not None:
@@ -273,24 +290,36 @@ def read_eds(path: str, node_id: int) -> Dictionary:
 
 
 # ------------------------------------------------------------------ the drive
-def _pdo_indices(d: Dictionary | None, comm_base: int, sdo) -> list[int]:
+def _attempt(sdo, out: Dictionary, index: int, sub: int):
+    """The raw value, or None; a refusal other than "does not exist" or "write-only" is
+    recorded in ``out`` with a warning (the object is then taken as absent)."""
+    raw, code = sdo.attempt(index, sub)
+    if code is not None and code not in ABSENT and code != WRITE_ONLY:
+        out.refused[(index, sub)] = code
+        name = object_name(index)
+        out.warnings.append(f"{where(index, sub)}{f' ({name})' if name else ''}: the drive "
+                            f"refused the read ({abort_text(code)}): taken as absent")
+    return raw, code
+
+
+def _pdo_indices(d: Dictionary | None, comm_base: int, sdo, out: Dictionary) -> list[int]:
     """PDO numbers (0-based) whose communication object exists."""
     if d is not None:
         return [n for n in range(MAX_PDOS) if d.has(comm_base + n, 1)]
     found = []
     for n in range(MAX_PDOS):
-        if sdo.upload(comm_base + n, 1) is None:
+        if _attempt(sdo, out, comm_base + n, 1)[0] is None:
             break
         found.append(n)
     return found
 
 
-def _wanted(d: Dictionary | None, sdo):
+def _wanted(d: Dictionary | None, sdo, out: Dictionary):
     """(index, sub, data type) of everything to read from the drive, device type first
     (PDOs are found as they are read)."""
     yield from ((i, s, t) for i, (_, subs) in STANDARD.items() for s, t in subs.items())
     for comm, mapping in ((RPDO_COMM, RPDO_MAP), (TPDO_COMM, TPDO_MAP)):
-        for n in _pdo_indices(d, comm, sdo):
+        for n in _pdo_indices(d, comm, sdo, out):
             yield from ((comm + n, s, t) for s, t in _PDO_COMM_TYPES.items())
             subs = range(MAX_SLOTS + 1) if d is None else d.subs(mapping + n)
             yield from ((mapping + n, s, U8 if s == 0 else U32) for s in subs)
@@ -301,33 +330,37 @@ def survey(sdo, d: Dictionary | None = None) -> Dictionary:
 
     With ``d`` (from the drive's file) every object it lists is confirmed on the
     drive; one the drive says does not exist is dropped with a warning. Without,
-    mapping slots are probed up to the first missing subindex.
+    mapping slots are probed up to the first missing subindex. No refused read
+    stops it (module doc); only a drive that does not answer does.
     """
     out = Dictionary(source=d.source if d else "drive", warnings=list(d.warnings) if d else [],
                      od=d.od if d else None, from_file=d is not None)
     gone_mapping = set()
-    for index, sub, dtype in _wanted(d, sdo):
+    for index, sub, dtype in _wanted(d, sdo, out):
         known = d.get(index, sub) if d is not None else None
         if d is not None and known is None:
             continue
         if index in gone_mapping:
             continue
-        if known is not None and known.access == "wo":
-            out.entries[(index, sub)] = Entry(**{**known.__dict__, "value": None})
+        if known is not None and not known.readable:
+            out.entries[(index, sub)] = replace(known, value=None)
             continue  # write-only: known to exist, never read
-        raw = sdo.upload(index, sub)
+        raw, code = _attempt(sdo, out, index, sub)
+        if code == WRITE_ONLY:  # the drive says what its file did not
+            out.entries[(index, sub)] = replace(known or Entry(index, sub, dtype),
+                                                access="wo", value=None)
+            continue
         if raw is None:
-            if known is not None:
+            if known is not None and code in ABSENT:
                 out.warnings.append(f"{d.source} lists 0x{index:04X}:{sub:02X} but the drive "
                                     "says it does not exist: taken as absent")
-            elif (index & 0xFF00) in (RPDO_MAP, TPDO_MAP) and sub > 0:
+            if (index & 0xFF00) in (RPDO_MAP, TPDO_MAP) and sub > 0:
                 gone_mapping.add(index)  # slots are contiguous: stop at the first gap
             continue
-        entry = Entry(**{**known.__dict__}) if known is not None else Entry(index, sub, dtype)
+        entry = replace(known) if known is not None else Entry(index, sub, dtype)
         fmt = entry.fmt
         if fmt and len(raw) >= 1:
             size = struct.calcsize(fmt)
             entry.value = struct.unpack(fmt, raw[:size].ljust(size, b"\0"))[0]
         out.entries[(index, sub)] = entry
     return out
-

@@ -104,6 +104,11 @@ class PlannedPdo:
     def write_mapping(self) -> bool:
         return self.origin != "fixed"
 
+    @property
+    def synchronous(self) -> bool:
+        """An RPDO of types 0-240: its data take effect at the next SYNC (CiA 301 7.2.2)."""
+        return not self.tx and self.trans_type <= 240
+
     def struct(self) -> struct.Struct:
         return struct.Struct("<" + "".join(e.fmt for e in self.entries))
 
@@ -128,6 +133,11 @@ class PdoPlan:
 
     def carries(self, role: str, tx: bool) -> bool:
         return any(role in p.roles() for p in (self.tpdos if tx else self.rpdos))
+
+    def torque_at_sync(self) -> PlannedPdo | None:
+        """The synchronous RPDO that carries the torque (the drive applies it one period
+        after the host sends it), or None."""
+        return next((p for p in self.rpdos if p.synchronous and "torque" in p.roles()), None)
 
     def lines(self) -> list[str]:
         return [p.line() for p in self.rpdos + self.tpdos]
@@ -282,10 +292,14 @@ def plan_pdos(d: Dictionary, node_id: int, rpdo_timeout_ms: int,
         else:
             plan.rpdos = planned
     for q in plan.rpdos:
-        if q.trans_type < 254:
-            plan.warnings.append(f"{q.name} transmission type is fixed at {q.trans_type}: the "
-                                 "drive takes the torque at the next SYNC, one period later "
-                                 "(add the sample time to the protocol's td_s)")
+        if not q.synchronous:
+            continue
+        what = "torque" if "torque" in q.roles() else "controlword"
+        later = (": the device's own delay is one sample period, which the driver declares "
+                 "(labbench.device_delay: every analysis uses it; a measured [rig] "
+                 "measured_td_s takes precedence)" if what == "torque" else "")
+        plan.warnings.append(f"{q.name} transmission type is fixed at {q.trans_type}: the drive "
+                             f"takes the {what} at the next SYNC, one period later{later}")
     return plan
 
 

@@ -2,8 +2,9 @@
 
 ``Sdo.upload`` tells "the object does not exist" (abort 0x06020000 or
 0x06090011, returned as ``None``) from "the node refused" (``DeviceError``)
-and "the node did not answer" (``DeviceConnectionError``). Abort codes and
-their meanings: CiA 301, "SDO abort codes".
+and "the node did not answer" (``DeviceConnectionError``); ``Sdo.attempt``
+returns any abort code instead of raising, for reads the caller can do
+without. Abort codes and their meanings: CiA 301, "SDO abort codes".
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from canopen.sdo.constants import (REQUEST_DOWNLOAD, REQUEST_UPLOAD, RESPONSE_AB
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
 ABSENT = (0x06020000, 0x06090011)  # object / subindex does not exist
+WRITE_ONLY = 0x06010001  # the object exists and cannot be read
 ABORT_TEXT = {
     0x06010000: "unsupported access", 0x06010001: "object is write-only",
     0x06010002: "object is read-only", 0x06020000: "object does not exist",
@@ -25,8 +27,10 @@ ABORT_TEXT = {
     0x06040042: "mapping exceeds the PDO length", 0x06040043: "parameter incompatibility",
     0x06070010: "data type does not match (length)", 0x06090011: "subindex does not exist",
     0x06090030: "value range exceeded", 0x06090031: "value too high",
-    0x06090032: "value too low", 0x08000020: "cannot store",
-    0x08000022: "not in the present device state",
+    0x06090032: "value too low", 0x060A0023: "resource not available",
+    0x08000000: "general error", 0x08000020: "cannot store",
+    0x08000021: "cannot store: local control", 0x08000022: "not in the present device state",
+    0x08000024: "no data available",
 }
 
 
@@ -92,20 +96,26 @@ class Sdo:
         name = self._names(index)
         return f"{where(index, sub)}" + (f" ({name})" if name else "")
 
-    def upload(self, index: int, sub: int) -> bytes | None:
-        """The raw value, or ``None`` when the node says the object does not exist."""
+    def attempt(self, index: int, sub: int) -> tuple[bytes | None, int | None]:
+        """``(raw value, None)``, or ``(None, abort code)`` when the node refuses (any abort,
+        "does not exist" included); no answer still raises ``DeviceConnectionError``."""
         self._check()
         try:
-            return bytes(self.client.upload(index, sub))
+            return bytes(self.client.upload(index, sub)), None
         except SdoAbortedError as exc:
-            if exc.code in ABSENT:
-                return None
-            raise DeviceError(f"node {self.node_id}: SDO read of {self._what(index, sub)} "
-                              f"refused: {abort_text(exc.code)}") from None
+            return None, exc.code
         except SdoCommunicationError as exc:
             self._check()
             raise DeviceConnectionError(f"node {self.node_id}: no answer to SDO read of "
                                         f"{where(index, sub)} ({exc})") from None
+
+    def upload(self, index: int, sub: int) -> bytes | None:
+        """The raw value, or ``None`` when the node says the object does not exist."""
+        raw, code = self.attempt(index, sub)
+        if code is None or code in ABSENT:
+            return raw
+        raise DeviceError(f"node {self.node_id}: SDO read of {self._what(index, sub)} "
+                          f"refused: {abort_text(code)}")
 
     def read(self, index: int, sub: int, fmt: str) -> int:
         raw = self.upload(index, sub)

@@ -11,7 +11,11 @@ On a paced device the segments run under ``labbench.realtime.acquire``
 (SCHED_FIFO, CPU affinity, locked memory, GC frozen; the analysis after them
 does not); the start record's ``realtime`` and the stop record's
 ``timing.realtime`` say what the OS granted, ``timing`` (``labbench.timing``)
-how well the loop kept time.
+how well the loop kept time. A device that reports its link counters
+(``StatusReporting``: stray frames, EMCYs, late SYNCs, CRC errors, ...) has them
+as they stand at each segment's start (its ``segment`` event), at its end (its
+row in the segment table) and after the run (the stop record), as
+``device_counters``.
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ import numpy as np
 
 from labbench import commissioning, device_delay, records, timing as loop_timing
 from labbench.jsonutil import json_safe
+from labbench.device import StatusReporting
 from labbench.errors import UserError
 from labbench.realtime import RealtimeConfig, acquire
 from labbench.rig import Rig
@@ -114,6 +119,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     stop = stop or threading.Event()
     consumers = list(consumers)
     run_state = _Run(consumers)
+    run_state.counters = lambda: device_counters(device)
     try:
         desc = device.describe()
         T = float(desc.sample_time_s)
@@ -213,7 +219,8 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
 
             run_state.emit(records.event_record(
                 run_state.last_t, "segment", segment.label, role=segment.role,
-                ve=segment.ve.as_dict(), n_samples=len(segment.excitation)))
+                ve=segment.ve.as_dict(), n_samples=len(segment.excitation),
+                device_counters=run_state.counters()))
             grant = grant or realtime().__enter__()
             try:
                 outcome = run_loop(device, HapticLoop(segment.ve, safety), segment.excitation,
@@ -232,7 +239,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
                 "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
                 "start": first,
                 "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
-                "timing": dict(t)})
+                "timing": dict(t), "device_counters": run_state.counters()})
             if outcome.status == "aborted":
                 run_state.finish("aborted", _stop_reason(stop, outcome.reason))
                 return meta
@@ -265,6 +272,7 @@ class _Run(records.RecordRouter):
         self.n_samples = 0
         self.last_t = 0.0
         self.realtime: dict | None = None  # labbench.realtime.Grant.record of the segments
+        self.counters: Callable[[], dict | None] = lambda: None  # the device's, now
 
     def emit(self, rec: dict) -> None:
         self(rec)
@@ -305,10 +313,22 @@ class _Run(records.RecordRouter):
             timing = self.timing()
             if self.started:  # no stream without its start record (e.g. Ctrl-C in the precheck)
                 self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
-                                              timing=timing, results=summarize(self.results)))
+                                              timing=timing, results=summarize(self.results),
+                                              device_counters=self.counters()))
             self.finished = RunResult(status, reason, self.results, timing, self.uid,
                                       self.n_samples)
         return self.finished
+
+
+def device_counters(device) -> dict | None:
+    """The device's link counters now (``StatusReporting``: stray frames, EMCY, late
+    SYNCs, CRC errors, ...), for the segment table and the stop record; None without."""
+    if not isinstance(device, StatusReporting):
+        return None
+    try:
+        return json_safe(dict(device.status().link))
+    except Exception:  # noqa: BLE001 - a record of counters must not end a run
+        return None
 
 
 def summarize(results: dict, max_len: int = 64):

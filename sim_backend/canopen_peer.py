@@ -14,22 +14,28 @@ reads its bus and acts like a drive:
   valid PDO is not changed, 0x06090030);
 * NMT, the heartbeat producer 0x1017, node guarding answers (any RTR on
   0x700 + id, toggle bit per CiA 301) and life guarding 0x100C x 0x100D;
-* SYNC: advance the plant one period with the torque held since the last
-  RPDO, then sample and send the TPDOs as mapped (every n-th SYNC, their
-  transmission type); RPDOs of transmission type 254/255 apply on arrival,
-  synchronous ones at the next SYNC; controlword through the pure CiA 402
+* SYNC: advance the plant one period with the torque held over it, then
+  sample and send the TPDOs as mapped (every n-th SYNC, their transmission
+  type); RPDOs of transmission type 254/255 apply on arrival, synchronous
+  ones (0-240) at the next SYNC, i.e. over the period after it (one period
+  later than on arrival, CiA 301 7.2.2); controlword through the pure CiA 402
   table of ``labbench.drivers.cia402``;
 * the heartbeat consumer 0x1016, life guarding and RPDO event timers with the
-  reaction of 0x6007 (fault when absent); the torque limit 0x6072 and the
+  reaction of 0x6007 (fault when absent), with CANopenNode's rules: each
+  starts with the first host frame after it is set (a write restarts it); an
+  RPDO's deadline is watched whenever the node is OPERATIONAL and the PDO
+  valid, whatever the CiA 402 state, and leaving OPERATIONAL ends it
+  (``CO_PDO.c`` ``CO_RPDO_process``); the torque limit 0x6072 and the
   software position limits 0x607D when present; error register 0x1001 and
-  error history 0x1003 when present.
+  error history 0x1003 when present (an entry above the count 0x1003:00 is
+  abort 0x08000024, "no data available", as CANopenNode answers).
 
 Only objects the dictionary has exist. ``LocalNode`` reacts neither to SYNC
 nor (through write callbacks) to RPDOs, hence the thread. Timers run on
 wall-clock time; the plant on SYNC time.
 
-Fault hooks for tests: ``mute`` (stop answering), ``ignore_sdo_write`` and
-``abort_sdo_write``, ``inject_emcy``, ``send_error_frame``, and on the host's bus
+Fault hooks for tests: ``mute`` (stop answering), ``ignore_sdo_write``,
+``abort_sdo_write`` and ``abort_sdo_read``, ``inject_emcy``, ``send_error_frame``, and on the host's bus
 (``FaultyVirtualBus``) ``fail_tx_for`` and ``go_bus_off``. A frozen host loop needs no hook: stop
 calling ``read()`` and the drive's watch fires.
 """
@@ -63,6 +69,7 @@ SIM_DEVICE_TYPE = 0x00020192  # CiA 402 (0x192), servo drive (0x02 in bits 16-23
 ABORT_RANGE, ABORT_HIGH, ABORT_LOW = 0x06090030, 0x06090031, 0x06090032
 ABORT_NOT_MAPPABLE, ABORT_PDO_LENGTH = 0x06040041, 0x06040042
 ABORT_PARAMETER, ABORT_STATE, ABORT_NO_OBJECT = 0x06040043, 0x08000022, 0x06020000
+ABORT_NO_DATA = 0x08000024
 
 
 class FaultyVirtualBus(VirtualBus):
@@ -103,6 +110,7 @@ class _DriveNode(canopen.LocalNode):
         super().__init__(node_id, od)
         self.ignored: set[tuple[int, int]] = set()
         self.aborted: dict[tuple[int, int], int] = {}
+        self.read_aborted: dict[tuple[int, int], int] = {}
         self.writes: list[tuple[int, int]] = []
 
     def set_data(self, index, subindex, data, check_writable=False):
@@ -171,6 +179,7 @@ class SimCanopenDrive:
         self.muted = False
         self.sync_count = 0
         self.events: list[str] = []  # what the drive did on its own, for tests and docs
+        self.emcy_sent: list[int] = []  # error codes of the EMCYs it sent
         self._torque_modes = {c for c, _, _ in STANDARD_MODES.values()} | {
             m["code"] for m in self.config.modes.values()}
         self._hb_next = math.inf
@@ -178,7 +187,7 @@ class SimCanopenDrive:
         self._guard_last: float | None = None  # last guarding request (life guarding)
         self._toggle = 0
         self._tpdos: list = []
-        self._rpdos: dict = {}  # COB-ID -> [indices, struct, timer ms, synchronous, last]
+        self._rpdos: dict = {}  # COB-ID -> [indices, struct, timer ms, synchronous, last, n]
         self._pending: list = []  # synchronous RPDO values, applied at the next SYNC
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sim-canopen-drive", daemon=True)
@@ -233,14 +242,17 @@ class SimCanopenDrive:
         if index == 0x606C:
             return round(self.plant.v / self.mpc)
         if index == 0x1003:
-            return len(self.history) if sub == 0 else (
-                self.history[sub - 1] if sub <= len(self.history) else 0)
+            if sub > len(self.history):
+                raise SdoAbortedError(ABORT_NO_DATA)  # CANopenNode's answer above the count
+            return len(self.history) if sub == 0 else self.history[sub - 1]
         if index == 0x1001:
             return 0x01 if self.state is State.FAULT else 0
         return {0x6061: self.mode, 0x603F: self.error_code, 0x6071: self.target_permille,
                 0x6040: self.controlword}.get(index)
 
     def _on_sdo_read(self, index, subindex, od):
+        if (index, subindex) in self.node.read_aborted:
+            raise SdoAbortedError(self.node.read_aborted[(index, subindex)])
         return self._live(index, subindex)
 
     def _on_sdo_write(self, index, subindex, od, data):
@@ -268,8 +280,12 @@ class SimCanopenDrive:
             self._apply_torque()
         elif index == 0x1017:
             self._hb_next = time.monotonic() + value * 1e-3 if value else math.inf
+        elif index == 0x1016:
+            self._host_hb_last = None  # the consumer (re)starts with the next heartbeat
         elif index in (0x100C, 0x100D):
             self._guard_last = None  # life guarding (re)starts with the next request
+        elif index & 0xFE00 == RPDO_COMM and subindex in (1, 2, 5) and self.nmt_state == 5:
+            self._load_rpdo(index - RPDO_COMM)  # CANopenNode: a write restarts the watch
 
     def _mode_supported(self, code: int) -> bool:
         bits = {c: b for c, b, _ in STANDARD_MODES.values()}
@@ -332,9 +348,6 @@ class SimCanopenDrive:
         if new is State.SWITCH_ON_DISABLED and self.state is State.FAULT:
             self.error_code = 0
         self.state = new
-        if new is not State.OPERATION_ENABLED:
-            for r in self._rpdos.values():
-                r[4] = None  # RPDO monitoring is armed in OPERATION ENABLED only
         self._apply_torque()
 
     def _apply_torque(self) -> None:
@@ -351,10 +364,12 @@ class SimCanopenDrive:
         self.error_code = code
         self.history.insert(0, code)
         del self.history[8:]
-        for r in self._rpdos.values():
-            r[4] = None
         self.events.append(f"fault 0x{code:04X}: {why}")
         register = 0x01 | (0x10 if code >> 8 == 0x81 else 0)  # generic (+ communication)
+        self._emcy(code, register)
+
+    def _emcy(self, code: int, register: int) -> None:
+        self.emcy_sent.append(code)
         self._send(0x80 + self.node_id, emcy.encode(code, register))
 
     def _abort_connection(self, code: int, why: str) -> None:
@@ -395,16 +410,26 @@ class SimCanopenDrive:
                 every = self._get(comm, 2, 255)
                 if indices and every <= 240:
                     self._tpdos.append((self._get(comm, 1) & 0x7FF, max(every, 1), indices, st))
-            comm = RPDO_COMM + n
-            if self.has(comm, 1) and not self._get(comm, 1) & 0x8000_0000:
-                indices, st = self._pdo_layout(RPDO_MAP + n)
-                self._rpdos[self._get(comm, 1) & 0x7FF] = [
-                    indices, st, self._get(comm, 5, 0), self._get(comm, 2, 255) <= 240, None]
+            self._load_rpdo(n)
+
+    def _load_rpdo(self, n: int) -> None:
+        """RPDO ``n`` (0-based) as configured now, its deadline not yet watched (it is from
+        its first frame on); dropped while invalid."""
+        comm = RPDO_COMM + n
+        for cob_id in [c for c, r in self._rpdos.items() if r[5] == n]:
+            del self._rpdos[cob_id]
+        if self.has(comm, 1) and not self._get(comm, 1) & 0x8000_0000:
+            indices, st = self._pdo_layout(RPDO_MAP + n)
+            self._rpdos[self._get(comm, 1) & 0x7FF] = [
+                indices, st, self._get(comm, 5, 0), self._get(comm, 2, 255) <= 240, None, n]
 
     def _on_nmt(self, data: bytes) -> None:
         if len(data) < 2 or data[1] not in (0, self.node_id):
             return
         cs = data[0]
+        if cs != 0x01:
+            for r in self._rpdos.values():
+                r[4] = None  # not OPERATIONAL: no PDO, no RPDO deadline (CO_RPDO_process)
         if cs == 0x01:
             self._load_pdos()
             self.nmt_state = 5
@@ -420,13 +445,14 @@ class SimCanopenDrive:
     def _on_sync(self) -> None:
         if self.nmt_state != 5:
             return
+        # SYNC k samples x[k]; from the second SYNC on the plant first advances one
+        # period under the torque held over it (as sim_backend.sim_device).
+        self.plant.command(self.torque_permille * 1e-3 * self.rated_mnm() * 1e-3 / self.lever)
+        self.plant.read_raw(1.0)
+        # Synchronous RPDOs received since the last SYNC take effect now: held from here.
         for values in self._pending:
             self._take(values)
         self._pending = []
-        # SYNC k samples x[k]; from the second SYNC on the plant first advances one
-        # period under the torque held since the last RPDO (as sim_backend.sim_device).
-        self.plant.command(self.torque_permille * 1e-3 * self.rated_mnm() * 1e-3 / self.lever)
-        self.plant.read_raw(1.0)
         self.sync_count += 1
         counts = round(self.plant.x / self.mpc)
         if self.state is State.OPERATION_ENABLED and self.has(0x607D, 1):
@@ -446,17 +472,16 @@ class SimCanopenDrive:
             self._apply_torque()
 
     def _on_rpdo(self, rpdo: list, data: bytes, now: float) -> None:
-        indices, st, _, synchronous, _ = rpdo
+        indices, st, _, synchronous, _, _ = rpdo
         if len(data) < st.size:
-            self._send(0x80 + self.node_id, emcy.encode(0x8210, 0x11))  # length error
+            self._emcy(0x8210, 0x11)  # length error
             return
         values = dict(zip(indices, st.unpack_from(data)))
         if synchronous:
             self._pending.append(values)
         else:
             self._take(values)
-        if self.state is State.OPERATION_ENABLED:
-            rpdo[4] = now
+        rpdo[4] = now  # the deadline is watched from the first RPDO on, in any 402 state
 
     def _on_guard(self) -> None:
         """Node guarding request: answer state + toggle; life guarding starts with it."""
@@ -501,10 +526,10 @@ class SimCanopenDrive:
         if life_ms and self._guard_last is not None and now - self._guard_last > life_ms * 1e-3:
             self._guard_last = None  # re-armed by the next request
             self._abort_connection(0x8130, f"life guarding: no request for {life_ms} ms")
-        for rpdo in self._rpdos.values():
+        for rpdo in list(self._rpdos.values()):
             timer, last = rpdo[2], rpdo[4]
             if timer and last is not None and now - last > timer * 1e-3:
-                rpdo[4] = None
+                rpdo[4] = None  # fires once; the next RPDO watches again
                 self._abort_connection(0x8250, f"no RPDO for {timer} ms")
 
     def _run(self) -> None:
@@ -529,6 +554,10 @@ class SimCanopenDrive:
     def abort_sdo_write(self, index: int, sub: int = 0, code: int = 0x08000020) -> None:
         """Answer writes to this object with an SDO abort (default: cannot store)."""
         self.node.aborted[(index, sub)] = code
+
+    def abort_sdo_read(self, index: int, sub: int = 0, code: int = ABORT_NO_DATA) -> None:
+        """Answer reads of this object with an SDO abort (default: no data available)."""
+        self.node.read_aborted[(index, sub)] = code
 
     def inject_emcy(self, code: int = 0x2310, why: str = "injected fault") -> None:
         """An internal drive fault: torque off, FAULT, EMCY sent."""

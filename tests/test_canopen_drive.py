@@ -53,7 +53,7 @@ def test_hardware_factory_reports_a_missing_interface_in_one_line():
 def test_bring_up_observes_nmt_maps_pdos_and_selects_cst(drive):
     assert isinstance(drive, Device)
     peer = drive.peer
-    assert peer.nmt_state == 5  # NMT start was sent and the heartbeat showed OPERATIONAL
+    assert peer.nmt_state == 127  # OPERATIONAL only in the cyclic phase (enable starts it)
     ident = drive.identity()
     assert ident["device_type"] & 0xFFFF == 402
     assert ident["vendor_id"] == 0x4C4200AB and ident["supported_modes"] == 0x208
@@ -65,7 +65,13 @@ def test_bring_up_observes_nmt_maps_pdos_and_selects_cst(drive):
     assert [u32(0x1A00, s) for s in (1, 2, 3)] == [0x60640020, 0x60410010, 0x60770010]
     assert u32(0x1A01, 1) == 0x606C0020
     assert [u32(0x1600, s) for s in (1, 2)] == [0x60710010, 0x60400010]
-    assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 600)
+    assert u32(0x1400, 1) == 0x201 and store[0x1400][5] == struct.pack("<H", 0)  # not armed
+    enabled(drive)  # the watch armed, then NMT start seen in the drive's heartbeat
+    assert peer.nmt_state == 5 and store[0x1400][5] == struct.pack("<H", 600)
+    assert u32(0x1016, 1) == 127 << 16 | 800
+    drive.disable()  # each watch off, the node back to PRE-OPERATIONAL
+    assert peer.nmt_state == 127 and peer.state is State.SWITCH_ON_DISABLED
+    assert store[0x1400][5] == struct.pack("<H", 0) and u32(0x1016, 1) == 0
 
 
 def enabled(drive):
@@ -217,6 +223,48 @@ def test_devices_command_reports_a_silent_drive_in_one_line(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "no answer: node 3: no answer to SDO read of 0x1000:00" in captured.out
     assert captured.err == ""
+
+
+@pytest.mark.parametrize("exc,code", [
+    (DeviceError("node 1: SDO read of 0x1003:01 (pre-defined error field) refused: SDO abort "
+                 "0x08000024 (no data available)"), 1),  # as a drive's own words
+    (RuntimeError("a bug\nin two lines"), 1),  # not ours: named by its type, on one line
+    (UserError("[canopen] nodeid: unknown field"), 2),  # a bad setting
+])
+def test_devices_shows_every_row_whatever_one_probe_raises(monkeypatch, tmp_path, capsys, exc,
+                                                           code):
+    import json
+
+    import labbench.registry as registry
+    from labbench.cli import main
+
+    real = registry.device_probe
+
+    def probe_of(name):
+        if name != "canopen":
+            return real(name)
+
+        def probe(rig, fault_reset=False):
+            raise exc
+        return probe
+
+    monkeypatch.setattr(registry, "device_probe", probe_of)
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[canopen]\nnode_id = 1\n")
+    assert main(["devices", "--rig", str(rig)]) == code  # from every row
+    out, err = capsys.readouterr()
+    assert err == ""
+    listed = [line.split()[0] for line in out.splitlines()[1:] if not line.startswith(" ")]
+    assert listed == registry.device_names()  # every backend's row
+    (error,) = [line.strip() for line in out.splitlines() if "error:" in line]
+    words = " ".join(str(exc).split())
+    assert error == "error: " + (words if code == 2 or isinstance(exc, DeviceError)
+                                 else f"RuntimeError: {words}")
+    assert "node 1 answered" in out.split("sim-canopen")[1]  # the simulated drive's answer
+    assert main(["devices", "--rig", str(rig), "--json"]) == code
+    rows = {r["device"]: r for r in json.loads(capsys.readouterr().out)["devices"]}
+    assert rows["canopen"]["error"] == error[len("error: "):]
+    assert "answer" in rows["sim-canopen"] and "error" not in rows["sim-canopen"]
 
 
 def test_devices_fault_reset_on_the_simulated_drive(capsys):
@@ -457,13 +505,14 @@ def test_can_log_records_every_frame_and_reads_back(tmp_path, suffix):
         for _ in range(50):
             d.read(1.0)
             d.command(0.1)
-        n_sync = d.peer.sync_count
+        peer = d.peer
+    n_sync = peer.sync_count  # 53 of the loop, and the one of disable's wind-down
     frames = list(can.LogReader(str(path)))
     ids = [m.arbitration_id for m in frames if not m.is_error_frame]
-    assert ids.count(0x080) == n_sync == 53  # every SYNC the host sent
+    assert ids.count(0x080) == n_sync == 54  # every SYNC the host sent
     assert ids.count(0x181) == ids.count(0x281) == n_sync  # every TPDO the drive sent
-    assert ids.count(0x201) >= 53 and ids.count(0x601) > 20 and ids.count(0x581) > 20  # RPDO, SDO
-    assert ids.count(0x000) == 2  # NMT pre-operational, start
+    assert ids.count(0x201) >= 54 and ids.count(0x601) > 20 and ids.count(0x581) > 20  # RPDO, SDO
+    assert ids.count(0x000) == 3  # NMT pre-operational (open), start (enable), pre-op (disable)
     if suffix == "asc":  # directions are kept where the format has them
         assert {m.is_rx for m in frames if m.arbitration_id == 0x080} == {False}
         assert {m.is_rx for m in frames if m.arbitration_id == 0x181} == {True}

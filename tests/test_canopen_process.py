@@ -90,3 +90,24 @@ def test_a_datagram_send_gets_room_past_a_short_host_preemption():
     for t in (0.001, None, 0.2):
         bus.send(can.Message(arbitration_id=0x80, is_extended_id=False), t)
     assert Recording.timeouts == [SEND_TIMEOUT_FLOOR_S, None, 0.2]
+
+
+def test_the_factory_on_a_udp_multicast_rig_drops_its_own_frames():
+    """A rig naming python-can's udp_multicast (as a lab reaching a drive process does):
+    the frames the group hands back are not stray frames."""
+    from labbench.drivers.canopen_drive import open_canopen
+    from labbench.sim_backend.canopen_peer import sim_config
+    from labbench.sim_backend.canopen_process import GROUP, start_process_drive
+
+    r = rig()
+    peer, host_bus = start_process_drive(r, sim_config(r))
+    host_bus.shutdown()  # the driver opens its own from the rig, as on hardware
+    try:
+        hw = rig_from_dict({"canopen": {**FAST, "interface": "udp_multicast", "channel": GROUP,
+                                        "port": peer.port},
+                            "safety": {"watchdog_s": 2.0}}, source="test-rig")
+        with open_canopen(hw, realtime=False) as d:
+            run_forces(d, FORCES[:50])
+            assert d.counters["stray_frames"] == 0 and d._bus.echoes > 100
+    finally:
+        peer.close()

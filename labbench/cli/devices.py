@@ -7,9 +7,12 @@ the capability report (identity, device type, CiA 402 state, torque modes,
 the planned PDO mapping, how it watches the host, bus load, error history
 0x1003, every obstacle and warning). "no answer" (nothing on the bus answered)
 is told apart from an object the drive says it does not have ("absent").
-Exit code 1 when none of the configured hardware answers (with no hardware
-configured: when no simulated device answers). ``--fault-reset`` is the
-operator's fault reset: FAULT -> SWITCH ON DISABLED, never further.
+A probe that raises does not hide the others: its row says what went wrong
+in one line. Exit code, from all the rows: 2 when a probe found a bad
+setting (``UserError``), else 1 when one failed otherwise or none of the
+configured hardware answers (with no hardware configured: no simulated
+device answers), else 0. ``--fault-reset`` is the operator's fault reset:
+FAULT -> SWITCH ON DISABLED, never further.
 
 ``--serial`` lists the serial ports of this computer (pyserial's
 ``serial.tools.list_ports``) with what the operating system says about them,
@@ -61,13 +64,12 @@ def run(args) -> int:
         configured = table is None or table in rig.sections
         row = {"device": name, "configured": configured,
                "table": f"[{table}]" if table else "(built in)"}
-        probe = device_probe(name)
-        if probe is not None and configured:
-            row["answer"] = probe(rig)
+        if configured:
+            row.update(_probe(name, rig))
         rows.append(row)
-    probed = [r for r in rows if "answer" in r]
-    hardware = [r for r in probed if not r["device"].startswith("sim")] or probed
-    status = 0 if not hardware or any("no_answer" not in r["answer"] for r in hardware) else 1
+    status = _status(rows)
+    for r in rows:
+        r.pop("exit", None)
     if args.json:
         print(json.dumps(json_safe({"rig": rig.name, "source": rig.source, "devices": rows}),
                          indent=2))
@@ -76,9 +78,36 @@ def run(args) -> int:
     for r in rows:
         state = "configured" if r["configured"] else f"not configured (no {r['table']})"
         print(f"{r['device']:<12} {state}")
-        for line in _describe(r.get("answer")):
+        lines = [f"error: {r['error']}"] if "error" in r else _describe(r.get("answer"))
+        for line in lines:
             print("             " + line)
     return status
+
+
+def _probe(name: str, rig) -> dict:
+    """``{"answer": ...}`` of the backend's probe (none: {}), or ``{"error": one line,
+    "exit": 1 or 2}`` whatever it raised."""
+    from labbench.errors import LabbenchError, UserError
+    from labbench.registry import device_probe
+
+    try:
+        probe = device_probe(name)
+        return {} if probe is None else {"answer": probe(rig)}
+    except Exception as exc:  # noqa: BLE001 - one backend's failure is its row, not the listing's
+        text = " ".join(str(exc).split())
+        if not isinstance(exc, LabbenchError):  # not one of ours: say what it is
+            text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+        return {"error": text, "exit": 2 if isinstance(exc, UserError) else 1}
+
+
+def _status(rows: list[dict]) -> int:
+    """The exit code of the listing (module doc), from every row."""
+    worst = max((r["exit"] for r in rows if "exit" in r), default=0)
+    if worst:
+        return worst
+    probed = [r for r in rows if "answer" in r]
+    hardware = [r for r in probed if not r["device"].startswith("sim")] or probed
+    return 0 if not hardware or any("no_answer" not in r["answer"] for r in hardware) else 1
 
 
 def serial_ports() -> list[dict]:
