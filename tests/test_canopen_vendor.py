@@ -458,7 +458,7 @@ def test_python_can_configuration_applies_when_the_rig_names_no_bus(node_on_chan
     monkeypatch.setenv("CAN_INTERFACE", "virtual")
     monkeypatch.setenv("CAN_CHANNEL", channel)
     rig_file = tmp_path / "rig.toml"
-    rig_file.write_text(f'[canopen]\nnode_id = 5\neds = "{path.name}"\nsdo_timeout_s = 0.2\n'
+    rig_file.write_text(f'[canopen]\nnode_id = 5\neds = "{path.name}"\nsdo_timeout_s = 2.0\n'
                         'receive_own_messages = false\n')  # a python-can option, passed on
     from labbench.rig import load_rig
 
@@ -476,7 +476,7 @@ def test_devices_prints_the_capability_report_and_tells_absent_from_no_answer(
     peer, channel, path = node_on_channel("OPTIONAL_MISSING")
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 5\n'
-                        f'eds = "{path}"\nsdo_timeout_s = 0.2\n')
+                        f'eds = "{path}"\nsdo_timeout_s = 2.0\n')
     assert main(["devices", "--rig", str(rig_file)]) == 0
     out = capsys.readouterr().out.split("canopen      configured")[1]
     assert "node 5 answered" in out and "serial absent" in out and "vendor 0x00ABCDEF" in out
@@ -512,7 +512,7 @@ def test_devices_shows_the_error_history_of_a_faulted_drive(node_on_channel, tmp
     peer.inject_emcy(0x4310, "too hot")
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\ninterface = "virtual"\nchannel = "{channel}"\nnode_id = 5\n'
-                        'sdo_timeout_s = 0.2\n')  # no eds: everything from the drive itself
+                        'sdo_timeout_s = 2.0\n')  # no eds: everything from the drive itself
     assert main(["devices", "--rig", str(rig_file)]) == 0
     out = capsys.readouterr().out.split("canopen      configured")[1]
     assert "node 5 answered (drive)" in out
