@@ -399,13 +399,15 @@ def _spec_file(tmp_path) -> Path:
     return p
 
 
-def _stop_after_parts(cmd, out: Path, n_parts: int, sig: int, timeout_s: float = 240.0):
-    """Start ``cmd``, send ``sig`` once ``n_parts`` part files exist; (returncode, stderr,
-    the pids of its children seen while it ran)."""
+def _stop_after_parts(cmd, out: Path, n_parts: int, sig: int, timeout_s: float = 240.0,
+                      group: bool = False):
+    """Start ``cmd``, send ``sig`` once ``n_parts`` part files exist (``group``: to its whole
+    process group, as a terminal does); (returncode, stderr, the pids of its children seen
+    while it ran)."""
     import psutil
 
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT)
+                            cwd=ROOT, start_new_session=group)
     children = set()
     t0 = time.monotonic()
     try:
@@ -415,7 +417,10 @@ def _stop_after_parts(cmd, out: Path, n_parts: int, sig: int, timeout_s: float =
             with_children = psutil.Process(proc.pid).children(recursive=True)
             children.update(c.pid for c in with_children)
             time.sleep(0.05)
-        proc.send_signal(sig)
+        if group:
+            os.killpg(proc.pid, sig)
+        else:
+            proc.send_signal(sig)
         _out, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
@@ -447,6 +452,21 @@ def test_sigterm_on_dask_workers_then_resume_loses_no_row(tmp_path, resume_refer
     summary = json.loads(done.stdout)
     assert summary["already"] == partial.num_rows
     assert summary["computed"] == 18 - partial.num_rows
+    assert rows_without_times(out) == resume_reference
+
+
+def test_ctrl_c_to_the_whole_process_group_loses_no_row(tmp_path, resume_reference):
+    """A terminal's Ctrl-C reaches the workers too: they go on (the sweep stops them), no
+    task cut short becomes an error row that a resume would skip, no traceback."""
+    spec = _spec_file(tmp_path)
+    out = tmp_path / "i.sweep"
+    cmd = [*LABBENCH, "sweep", str(spec), "--out", str(out), "--workers", "2", "--flush-rows", "1"]
+    code, err, _ = _stop_after_parts(cmd, out, 3, signal.SIGINT, group=True)
+    assert code == 128 + signal.SIGINT, err
+    assert all(line.startswith("labbench sweep: ") for line in err.splitlines()), err
+    partial = tables.read_table(out).to_pylist()
+    assert 3 <= len(partial) < 18 and {r["status"] for r in partial} == {"ok"}
+    run_sweep(load_spec(spec), out, workers=0)
     assert rows_without_times(out) == resume_reference
 
 

@@ -17,7 +17,11 @@ or ``flush_s`` seconds, and no session is kept unless asked (``keep_sessions``).
 Stopping: ``stop`` (a ``labbench.interrupts.StopRequest``: the CLI sets it on
 SIGINT, SIGTERM or SIGHUP) is looked at twice a second; the tasks still out are
 cancelled, the rows finished so far written, and the workers shut down. A rerun
-skips the points already in the table (by key, ``labbench.sweep.spec``).
+skips the points already in the table (by key, ``labbench.sweep.spec``). The
+local workers ignore the signals a terminal sends its whole foreground process
+group (Ctrl-C, a hang-up: ``labbench.sweep.dask_worker``), so they end with the
+sweep, not before it; and a task that did not finish (cancelled, or its worker
+lost once the stop was asked) is no row: its point stays to compute.
 """
 from __future__ import annotations
 
@@ -134,11 +138,12 @@ def _task(p: Point) -> dict:
 def _client(workers: int | None, scheduler: str | None):
     """A Dask client: of the cluster at ``scheduler``, or of a new LocalCluster of processes
     (closed with the client). Returns (client, number of worker threads)."""
+    level = logging.getLogger("distributed").level  # the CLI's (-v), before Dask configures it
     try:
         from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - a dependency of the package
         raise UserError(f"labbench sweep needs dask[distributed]: {exc}") from None
-    _quiet_dask()
+    _quiet_dask(level)
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
@@ -153,17 +158,22 @@ def _client(workers: int | None, scheduler: str | None):
     if n < 1:
         raise UserError(f"--workers must be at least 1 (0: in this process), got {n}")
     os.environ.update(WORKER_ENV)  # inherited by the worker processes the nannies start
+    # no dashboard; the scheduler's other HTTP routes on a free port (its default, 8787,
+    # taken by a second sweep on the machine, is a warning on stderr)
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR,
-                           env=dict(WORKER_ENV))
+                           dashboard_address=None, scheduler_kwargs={"dashboard_address": ":0"},
+                           silence_logs=logging.ERROR, env=dict(WORKER_ENV),
+                           preload=["labbench.sweep.dask_worker"])
     client = Client(cluster)
     client._labbench_cluster = cluster  # closed with the client (_close)
     return client, n
 
 
-def _quiet_dask() -> None:
-    """Dask's own loggers inherit the level of "distributed" (the CLI's -v sets it, as for
-    the other libraries): its configuration gives each an INFO level of its own."""
+def _quiet_dask(level: int) -> None:
+    """Importing distributed gives its loggers levels of their own (INFO) and a handler:
+    "distributed" gets back the level it had (the CLI's -v sets it, as for the other
+    libraries) and the others inherit it."""
+    logging.getLogger("distributed").setLevel(level)
     for name in list(logging.root.manager.loggerDict):
         if name.startswith("distributed."):
             logging.getLogger(name).setLevel(logging.NOTSET)
@@ -180,10 +190,9 @@ def _close(client) -> None:
 
 def _on_dask(client, spec_d: dict, todo: list[tuple[Point, str]], keep, stop, window: int):
     """Rows of ``todo`` as the workers finish them, at most ``window`` tasks out at once.
-    A task whose worker died (or that raised past compute_row) is a row with its error."""
+    A task whose worker died (or that raised past compute_row) is a row with its error,
+    unless it was cancelled or the sweep is stopping (then it is no row: see the module doc)."""
     from distributed import wait
-
-    from labbench.sweep.point import typed_row
 
     try:
         spec_f = client.scatter(spec_d, broadcast=True)
@@ -207,19 +216,31 @@ def _on_dask(client, spec_d: dict, todo: list[tuple[Point, str]], keep, stop, wi
                 continue
             for f in sorted(finished, key=lambda f: running[f][0].index):
                 p, key = running.pop(f)
-                try:
-                    row = f.result()
-                except Exception as exc:  # noqa: BLE001 - the worker, not the point, failed
-                    row = typed_row({"key": key, "index": p.index, **p.tags,
-                                  **p.params, "status": "error",
-                                  "error": f"worker: {type(exc).__name__}: {exc}"})
+                row = _finished_row(f, p, key, stop)
                 f.release()
-                yield row
+                if row is not None:
+                    yield row
             submit()
     finally:
         with contextlib.suppress(Exception):
             client.cancel(list(running))
         _close(client)
+
+
+def _finished_row(f, p: Point, key: str, stop) -> dict | None:
+    from concurrent.futures import CancelledError
+
+    from labbench.sweep.point import typed_row
+
+    try:
+        return f.result()
+    except CancelledError:
+        return None
+    except Exception as exc:  # noqa: BLE001 - the worker, not the point, failed
+        if stop is not None and stop.is_set():
+            return None
+        return typed_row({"key": key, "index": p.index, **p.tags, **p.params, "status": "error",
+                          "error": f"worker: {type(exc).__name__}: {exc}"})
 
 
 def check_names(spec: Spec, points: list[Point]) -> None:
