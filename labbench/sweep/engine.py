@@ -41,6 +41,10 @@ from labbench.sweep.spec import Point, Spec
 # One thread per worker for the numeric libraries (a worker is one core's share).
 WORKER_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                      "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")}
+# Dask's statistical profiler samples each worker's task thread every 10 ms: CPU a sweep has
+# no use for (and, seen here under load, a traceback of its own on stderr now and then).
+# The nannies hand the workers this process's Dask configuration.
+WORKER_DASK = {"distributed.worker.profile.enabled": False}
 POLL_S = 0.5  # how often a running sweep looks at its stop request
 
 
@@ -160,10 +164,14 @@ def _client(workers: int | None, scheduler: str | None):
     os.environ.update(WORKER_ENV)  # inherited by the worker processes the nannies start
     # no dashboard; the scheduler's other HTTP routes on a free port (its default, 8787,
     # taken by a second sweep on the machine, is a warning on stderr)
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, scheduler_kwargs={"dashboard_address": ":0"},
-                           silence_logs=logging.ERROR, env=dict(WORKER_ENV),
-                           preload=["labbench.sweep.dask_worker"])
+    import dask
+
+    with dask.config.set(WORKER_DASK):
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": ":0"},
+                               silence_logs=logging.ERROR, env=dict(WORKER_ENV),
+                               preload=["labbench.sweep.dask_worker"])
     client = Client(cluster)
     client._labbench_cluster = cluster  # closed with the client (_close)
     return client, n
