@@ -32,6 +32,7 @@ CATEGORY_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e37
                     "#7f7f7f", "#bcbd22", "#17becf")
 POLL_MS = 100  # how often a re-run's mailbox is read
 LOG_SPAN = 50  # an axis of positive values spanning more than this ratio starts as log
+SHADES = 64  # of the colour map
 
 
 def numeric(values: list) -> bool:
@@ -52,23 +53,27 @@ def wide_positive(values: np.ndarray) -> bool:
 
 def colours(values: list) -> tuple[list, str]:
     """A brush per value and a one-line legend: numbers on viridis (log when they span
-    over LOG_SPAN), anything else (text, yes/no) one colour per distinct value."""
+    over LOG_SPAN), anything else (text, yes/no) one colour per distinct value. Brushes
+    are shared (SHADES of viridis): the scatter renders each distinct brush once."""
     if numeric(values):
         v = as_float(values)
         log = wide_positive(v)
         u = np.log10(v) if log else v
         lo, hi = np.nanmin(u), np.nanmax(u)
         t = (u - lo) / (hi - lo) if hi > lo else np.zeros_like(u)
-        brushes = [pg.mkBrush(NO_VALUE_BRUSH) if not np.isfinite(x) else
-                   pg.mkBrush(CMAP.map(float(x), mode="qcolor")) for x in t]
+        shade = np.rint(np.nan_to_num(t, nan=-1.0) * (SHADES - 1)).astype(int)
+        palette = [pg.mkBrush(c) for c in CMAP.getLookupTable(nPts=SHADES, alpha=False)]
+        grey = pg.mkBrush(NO_VALUE_BRUSH)
+        brushes = [palette[k] if k >= 0 else grey for k in shade.tolist()]
         scale = "log " if log else ""
         return brushes, (f"{scale}colour: dark blue {fmt(np.nanmin(v))} .. yellow "
                          f"{fmt(np.nanmax(v))}; grey: no value")
     levels = list(dict.fromkeys(fmt(v) for v in values))
-    table = {lev: CATEGORY_COLOURS[i % len(CATEGORY_COLOURS)] for i, lev in enumerate(levels)}
-    legend = ", ".join(f"<span style='color:{table[lev]}'>&#9679;</span> {lev}"
+    table = {lev: pg.mkBrush(CATEGORY_COLOURS[i % len(CATEGORY_COLOURS)])
+             for i, lev in enumerate(levels)}
+    legend = ", ".join(f"<span style='color:{table[lev].color().name()}'>&#9679;</span> {lev}"
                        for lev in levels[:12])
-    return [pg.mkBrush(table[fmt(v)]) for v in values], legend
+    return [table[fmt(v)] for v in values], legend
 
 
 class SweepView(QtWidgets.QWidget):
@@ -261,7 +266,8 @@ class SweepView(QtWidgets.QWidget):
             legend += "; red crosses: status not ok"
         else:
             brushes = [pg.mkBrush("#1f5fa8")] * len(rows)
-        brushes = [b if good else pg.mkBrush(NOT_OK_BRUSH) for b, good in zip(brushes, ok)]
+        red = pg.mkBrush(NOT_OK_BRUSH)
+        brushes = [b if good else red for b, good in zip(brushes, ok)]
         symbols = ["o" if good else "x" for good in ok]
         self.plot.getPlotItem().setLogMode(*logs)
         self.points.setData(x=px, y=py, data=rows, brush=brushes, symbol=symbols,
