@@ -97,20 +97,20 @@ def cmd_sweep(args) -> int:
               "not_ok": summary.failed, "workers": summary.workers,
               "wall_s": summary.wall_s, "stopped": summary.stopped, "charts": []}
     tab = table.read_table(summary.table)
-    rows = charts.columns(tab) if tab.num_rows else {}
-    if not summary.stopped and rows:
+    if not summary.stopped and tab.num_rows:
         where = Path(args.charts) if args.charts else summary.table
         wanted = [(c, where / charts.default_file(c, i)) for i, c in enumerate(spec.charts, 1)]
         if args.chart:
             extra = {"kind": "map", "x": args.x, "y": args.y,
                      **({"color": args.color} if args.color else {})}
             wanted.append((extra, Path(args.chart)))
+        rows = charts.columns(tab) if wanted else {}  # as Python lists: only to draw
         for chart, path in wanted:
             charts.write(rows, chart, path, force=args.force or path.parent == summary.table)
             result["charts"].append(str(path))
         if args.csv:
             result["csv"] = str(table.to_csv(summary.table, args.csv, force=args.force))
-    bad = _not_ok(rows)
+    bad = _not_ok(tab)
     result["failed_points"] = bad
     if args.json:
         print(json.dumps(result, allow_nan=False))
@@ -131,8 +131,10 @@ def cmd_sweep(args) -> int:
     return EXIT_STRICT if args.strict and bad else 0
 
 
-def _not_ok(rows: dict) -> int:
+def _not_ok(tab) -> int:
     """Rows whose status is not ok or whose verdict is failed."""
-    status = rows.get("status", [])
-    verdict = rows.get("verdict", [None] * len(status))
+    if not tab.num_rows:
+        return 0
+    status = tab["status"].to_pylist()
+    verdict = tab["verdict"].to_pylist() if "verdict" in tab.column_names else [None] * len(status)
     return sum(s != "ok" or v == "failed" for s, v in zip(status, verdict))
