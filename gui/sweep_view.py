@@ -88,7 +88,6 @@ class SweepView(QtWidgets.QWidget):
         self.folder: Path | None = None
         self.cols: dict[str, list] = {}
         self.spec: dict | None = None
-        self.shown_rows = np.zeros(0, int)  # the table rows plotted, in plotting order
         self.hovered: int | None = None
         self.selected: int | None = None
         self._rerun_of: dict = {}  # the table's row of the point being re-run
@@ -235,11 +234,19 @@ class SweepView(QtWidgets.QWidget):
         return pick[0], pick[1], "status"
 
     def _axes_changed(self, *_):
-        for combo, box in ((self.x, self.log_x), (self.y, self.log_y)):
+        for axis, combo, box in (("x", self.x, self.log_x), ("y", self.y, self.log_y)):
             box.blockSignals(True)
-            box.setChecked(wide_positive(as_float(self.cols.get(combo.currentText(), []))))
+            box.setChecked(self._log_default(axis, combo.currentText()))
             box.blockSignals(False)
         self.redraw()
+
+    def _log_default(self, axis: str, name: str) -> bool:
+        """As the spec's charts draw this column on this axis, else log when its positive
+        values span more than LOG_SPAN."""
+        for c in (self.spec or {}).get("chart", []):
+            if c.get(axis) == name and f"log_{axis}" in c:
+                return bool(c[f"log_{axis}"])
+        return wide_positive(as_float(self.cols.get(name, [])))
 
     # ----- the map -------------------------------------------------------------------------
     def redraw(self, *_):
@@ -247,7 +254,6 @@ class SweepView(QtWidgets.QWidget):
         xname, yname = self.x.currentText(), self.y.currentText()
         if xname not in self.cols or yname not in self.cols:
             self.points.setData([], [])
-            self.shown_rows = np.zeros(0, int)
             return
         x, y = as_float(self.cols[xname]), as_float(self.cols[yname])
         logs = (self.log_x.isChecked(), self.log_y.isChecked())
@@ -272,7 +278,6 @@ class SweepView(QtWidgets.QWidget):
         self.plot.getPlotItem().setLogMode(*logs)
         self.points.setData(x=px, y=py, data=rows, brush=brushes, symbol=symbols,
                             pen=pg.mkPen(None))
-        self.shown_rows = rows
         self.plot.setLabel("bottom", xname)
         self.plot.setLabel("left", yname)
         self.plot.getPlotItem().enableAutoRange()

@@ -22,7 +22,8 @@ from labbench.sweep.spec import spec_from_dict  # noqa: E402
 RUN_TIMEOUT_MS = 120_000
 # six 2 s ETFE runs; K = 5000 N/m is beyond K_max (1212 N/m): refused, a row without results
 SPEC = {"sweep": {"name": "gui", "protocol": "etfe"}, "fixed": {"duration_s": 2.0},
-        "grid": {"K": [20.0, 50.0, 5000.0], "seed": [1, 2]}}
+        "grid": {"K": [20.0, 50.0, 5000.0], "seed": [1, 2]},
+        "chart": [{"kind": "map", "x": "K", "y": "truth.k_max", "color": "seed", "log_x": False}]}
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +78,10 @@ def test_picked_axes_plot_the_tables_values(view, small_table):
     folder, rows = small_table
     assert view.open_table(folder)
     assert "6 rows" in view.table_label.text()
+    # first shown as the spec's chart draws it (K spans 250x, but the chart says linear)
+    assert (view.x.currentText(), view.y.currentText(), view.color.currentText()) == \
+        ("K", "truth.k_max", "seed")
+    assert not view.log_x.isChecked() and not view.log_y.isChecked()
     # K spans 250x: its axis starts as log; the refused rows have no truth.median_rel
     pick(view, "K", "truth.median_rel")
     view.log_x.setChecked(True)
