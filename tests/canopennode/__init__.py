@@ -22,7 +22,7 @@ HERE = Path(__file__).resolve().parent
 
 
 class Watch(can.Listener):
-    """Keeps the frames of the given COB-IDs seen on the bus (the EMCYs of a drive)."""
+    """Keeps the data frames of the given COB-IDs seen on the bus, in arrival order."""
 
     def __init__(self, ids):
         self.ids = set(ids)
@@ -34,23 +34,24 @@ class Watch(can.Listener):
             with self.lock:
                 self.frames.append(msg)
 
-    def seen(self) -> list[can.Message]:
+    def seen(self, cob_id: int) -> list[can.Message]:
         with self.lock:
-            return list(self.frames)
+            return [m for m in self.frames if m.arbitration_id == cob_id]
 
 
 @dataclass
 class Running:
-    """A drive process, the rig that reaches it, and ``emcy``: every EMCY frame of the drive
-    seen on the bus by a listener of the test's own (it reads every frame, so none waits
-    in its socket). ``close()`` ends the process and the listener."""
+    """A drive process, the rig that reaches it, and ``watch``: every EMCY and every
+    heartbeat or guarding answer of the drive seen on the bus by a listener of the test's
+    own (it reads every frame, so none waits in its socket). ``close()`` ends the process
+    and the listener."""
 
     proc: ProcessDrive
     monitor: object
     rig: object
     tables: dict
     eds: Path
-    emcy: Watch = field(default=None)
+    watch: Watch = field(default=None)
     notifier: can.Notifier = field(default=None)
 
     def inject_fault(self, code: int) -> None:
@@ -93,6 +94,7 @@ def start(variant: str = "event", tables: dict | None = None, use_eds: bool = Tr
     spec = json.dumps({"lib": str(built.lib), "node_id": node_id, "rig": rig.as_dict(),
                        "seed": seed, "options": options, "port": port})
     proc, monitor = spawn([sys.executable, str(HERE / "drive_process.py")], spec, port)
-    running = Running(proc, monitor, rig, tables, built.eds, Watch({0x80 + node_id}))
-    running.notifier = can.Notifier(monitor, [running.emcy], timeout=0.05)
+    watch = Watch({0x80 + node_id, 0x700 + node_id})  # EMCY, heartbeat / guarding answers
+    running = Running(proc, monitor, rig, tables, built.eds, watch)
+    running.notifier = can.Notifier(monitor, [running.watch], timeout=0.05)
     return running

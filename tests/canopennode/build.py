@@ -61,9 +61,10 @@ def _inputs(variant: str) -> dict[str, bytes]:
     """Every file of the build by its name in the build folder, generated ones included."""
     missing = [s for s in STACK_SOURCES if not (STACK / s).is_file()]
     if missing:
-        raise StackMissing(f"CANopenNode sources not found at {STACK} (missing "
-                           f"{', '.join(missing)}): the project expects them at "
-                           "../shared/third_party/CANopenNode from its root")
+        what = ", ".join(missing) if STACK.is_dir() else "the folder"
+        raise StackMissing(f"CANopenNode sources not found at {STACK} (missing {what}): the "
+                           "tests build it from ../shared/third_party/CANopenNode beside the "
+                           "project's root")
     files = {f"ours/{n}": (HERE / n).read_bytes() for n in OUR_SOURCES + OUR_HEADERS}
     files["ours/OD.h"] = dictionary.od_h(variant).encode()
     files["ours/OD.c"] = dictionary.od_c(variant).encode()
