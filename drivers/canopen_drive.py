@@ -262,11 +262,17 @@ class CanopenDrive:
 
     def _service_values(self) -> list[tuple[int, int, int]]:
         """What the host needs from the drive in every phase: its heartbeat 0x1017 (how the
-        host sees the NMT state) and the life time factor 0x100D of guarding."""
+        host sees the NMT state) and the life time factor 0x100D of guarding.
+
+        Guarded, a drive whose heartbeat producer is on gets it off: a node with a producer
+        heartbeat time other than 0 uses the heartbeat, not node guarding (CiA 301), and
+        answers and watches nothing (CANopenNode's guarding slave is off then)."""
         a, cfg = self.assessment, self.config
         out = []
         if a.nmt_by == "heartbeat":
             out.append((0x1017, 0, cfg.drive_heartbeat_ms))
+        elif "guarding" in (a.watchdog, a.nmt_by) and self.dictionary.value(0x1017):
+            out.append((0x1017, 0, 0))
         if "guarding" in (a.watchdog, a.nmt_by):
             out.append((0x100D, 0, cfg.life_time_factor))
         return out

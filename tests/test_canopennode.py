@@ -116,6 +116,22 @@ def shows_pre_operational(r, ask: bool, within_s: float = 2.0) -> bool:
     return False
 
 
+@contextlib.contextmanager
+def remote_node(r, eds=None):
+    """canopen's own ``RemoteNode`` of the drive on the test's bus (its SDO client)."""
+    import canopen
+
+    net = canopen.Network(r.monitor)
+    node = canopen.RemoteNode(1, str(eds) if eds else canopen.ObjectDictionary())
+    net.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = 2.0
+    r.notifier.add_listener(net.listeners[0])
+    try:
+        yield node
+    finally:
+        r.notifier.remove_listener(net.listeners[0])
+
+
 def run_protocol(r, name, **options):
     d = open_device("canopen", r.rig, realtime=False)  # lock-step: SYNC when the loop asks
     records = []
@@ -135,12 +151,7 @@ def test_the_drive_serves_its_eds_and_the_stack_answers_as_cia_301_says(drive):
     from canopen.objectdictionary import ODVariable
 
     r = drive("sync")
-    net = canopen.Network(r.monitor)
-    node = canopen.RemoteNode(1, str(r.eds))
-    net.add_node(node)
-    node.sdo.RESPONSE_TIMEOUT = 2.0
-    r.notifier.add_listener(net.listeners[0])
-    try:
+    with remote_node(r, r.eds) as node:
         for obj in node.object_dictionary.values():
             for v in [obj] if isinstance(obj, ODVariable) else obj.values():
                 if v.index == 0x1003 and v.subindex > 0:
@@ -163,8 +174,6 @@ def test_the_drive_serves_its_eds_and_the_stack_answers_as_cia_301_says(drive):
         assert node.sdo.upload(0x6061, 0) == b"\x0a"
         node.sdo.download(0x6040, 0, b"\x06\x00")  # shutdown: READY TO SWITCH ON
         assert int.from_bytes(node.sdo.upload(0x6041, 0), "little") & 0x6F == 0x21
-    finally:
-        r.notifier.remove_listener(net.listeners[0])
 
 
 def test_labbench_devices_reports_the_drive(drive, tmp_path):
@@ -239,12 +248,20 @@ def test_a_frozen_host_is_caught_by_the_drive(drive, tmp_path, watch, code):
     """The host stops (no SYNC, RPDO, heartbeat or guarding request): the stack's monitor
     (RPDO event timer, heartbeat consumer, life guarding) sends its EMCY and leaves
     OPERATIONAL, the drive faults (0x6007 = 1: no torque), the driver's next read is a
-    one-line device fault and ``labbench devices`` shows the FAULT and its code."""
+    one-line device fault and ``labbench devices`` shows the FAULT and its code.
+
+    Guarded, the drive comes with its heartbeat producer on (as many ship): a node whose
+    producer heartbeat time is not 0 uses the heartbeat, not node guarding (CiA 301;
+    CANopenNode's guarding slave then answers nothing and watches nothing), so the driver
+    must turn it off."""
     canopen = {"rpdo": {"rpdo_timeout_ms": 400, "heartbeat_consumer_ms": 10000},
                "heartbeat": {"rpdo_timeout_ms": 10000, "heartbeat_consumer_ms": 400},
                "guarding": {"rpdo_timeout_ms": 10000, "watchdog": "guarding",
                             "guard_time_ms": 20, "life_time_factor": 20}}[watch]
     r = drive(tables={"canopen": canopen})
+    if watch == "guarding":
+        with remote_node(r) as node:
+            node.sdo.download(0x1017, 0, (100).to_bytes(2, "little"))
     d = open_device("canopen", r.rig, realtime=False)
     try:
         assert d.assessment.watchdog == ("guarding" if watch == "guarding" else "heartbeat")
@@ -260,6 +277,9 @@ def test_a_frozen_host_is_caught_by_the_drive(drive, tmp_path, watch, code):
         assert "\n" not in str(info.value)
     finally:
         d.close()
+    if watch == "guarding":  # its own heartbeat back
+        with remote_node(r) as node:
+            assert node.sdo.upload(0x1017, 0) == (100).to_bytes(2, "little")
     a = canopen_answer(r.write_rig(tmp_path / "rig.toml"))
     assert a["state"] == "FAULT" and f"0x{code:04X}" in a["error_code"], a
 
