@@ -660,8 +660,10 @@ def open_sim_canopen(rig, realtime: bool = False, seed=None, can_log: str | None
     (``canopen_process``), on ``udp_multicast``.
     """
     config = sim_config(rig)
-    start = start_process_drive if config.sim_drive == "process" else start_sim_drive
-    peer, host_bus = start(rig, config, seed, **options)
+    if config.sim_drive == "process":
+        peer, host_bus = start_process_drive(rig, config, seed, paced=realtime, **options)
+    else:
+        peer, host_bus = start_sim_drive(rig, config, seed, **options)
     return connect_driver(rig, config, peer, host_bus, realtime, can_log)
 
 

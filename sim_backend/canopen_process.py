@@ -11,6 +11,13 @@ drive listens. The child runs until its stdin closes: the host closing it, or
 the host dying (the pipe closes with it), so no drive outlives its host. Each
 drive gets a UDP port of its own, so drives of concurrent runs do not meet.
 Both ends drop their own frames, which the group hands back (``EchoFreeBus``).
+
+A paced run's drive stands in for hardware, which has a CPU of its own: the child
+asks SCHED_FIFO one level below the rig's loop priority (``[realtime] priority``)
+on the first CPU this process may use (the loop takes the last: ``labbench.realtime``),
+so the machine's other load does not make it answer late. Its thread blocks on the
+bus between frames, so it never spins. Refused (no CAP_SYS_NICE, not Linux): one line
+on its stderr, and it runs as an ordinary process.
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import can
@@ -79,13 +87,18 @@ class ProcessDrive:
         self._log.close()
 
 
-def start_process_drive(rig, config: CanopenConfig, seed=None,
+def start_process_drive(rig, config: CanopenConfig, seed=None, paced: bool = False,
                         **options) -> tuple[ProcessDrive, EchoFreeBus]:
-    """A drive process for ``rig``/``config`` that answers, and the host's bus to it."""
+    """A drive process for ``rig``/``config`` that answers, and the host's bus to it;
+    ``paced``: a real-time run's drive, scheduled as hardware (module doc)."""
+    from labbench.realtime import RealtimeConfig
+
     port = _free_port()
+    rt = RealtimeConfig.from_rig(rig)
     try:
         spec = json.dumps({"rig": rig.as_dict(), "config": config.as_dict(), "seed": seed,
-                           "options": options, "port": port})
+                           "options": options, "port": port,
+                           "rt_priority": rt.priority - 1 if paced and rt.enabled else None})
     except TypeError as exc:
         raise UserError(f"sim-canopen in a process: an option cannot be passed on: {exc}") \
             from None
@@ -128,12 +141,29 @@ def spawn(argv: list[str], spec: str, port: int) -> tuple[ProcessDrive, EchoFree
     return drive, host_bus
 
 
+def _as_hardware(priority: int) -> None:
+    """SCHED_FIFO ``priority`` on the first allowed CPU for this thread and the ones it
+    starts (module doc); one line on stderr where refused."""
+    from labbench.platform import scheduling
+
+    if scheduling.kind() != "linux":
+        print("labbench drive process: no real-time scheduling on this platform", file=sys.stderr)
+        return
+    cpus, refused = scheduling.allowed_cpus(), []
+    cpu = cpus[0] if len(cpus) >= 2 else None
+    if not scheduling.set_fifo(threading.get_native_id(), cpu, priority, [], refused):
+        print(f"labbench drive process: real-time scheduling refused ({'; '.join(refused)})",
+              file=sys.stderr)
+
+
 def main() -> int:
     """The child: build the drive, say ``ready``, run until stdin closes."""
     from labbench.rig import Rig
     from labbench.sim_backend.canopen_peer import EDS_PATH, SimCanopenDrive, plant_for
 
     spec = json.loads(sys.stdin.readline())
+    if spec.get("rt_priority"):
+        _as_hardware(spec["rt_priority"])  # before the drive's thread starts: it inherits
     r = spec["rig"]
     rig = Rig(**{**r, "position_limits_m": tuple(r["position_limits_m"])})
     config = CanopenConfig(**spec["config"])

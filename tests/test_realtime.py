@@ -158,3 +158,34 @@ def test_threads_of_a_recorded_run_sit_just_below_the_loop(tmp_path):
     main = threading.current_thread().name
     assert seen[main] == (os.SCHED_FIFO, 20)
     assert seen["session-fsync"] == seen["sim-canopen-drive"] == (os.SCHED_FIFO, 19)
+
+
+def test_a_paced_process_drive_is_scheduled_as_hardware():
+    """sim-canopen's drive in its own process, paced: SCHED_FIFO one below the loop, on the
+    first CPU (the loop takes the last), for the thread that answers the bus; refused, one
+    line on its stderr. Unpaced (lock-step) it stays an ordinary process."""
+    from labbench.registry import open_device
+    from labbench.rig import rig_from_dict
+
+    def drive_threads(paced: bool):
+        rig = rig_from_dict({"canopen": {"sim_drive": "process"},
+                             "realtime": {"priority": 30}}, source="t")
+        d = open_device("sim-canopen", rig, realtime=paced)
+        try:
+            tasks = [int(t) for t in os.listdir(f"/proc/{d.peer.pid}/task")]
+            return ({t: (os.sched_getscheduler(t), os.sched_getparam(t).sched_priority,
+                         os.sched_getaffinity(t)) for t in tasks}, d.peer.stderr())
+        finally:
+            d.close()
+
+    threads, stderr = drive_threads(paced=True)
+    fifo = [s for s in threads.values() if s[0] == os.SCHED_FIFO]
+    cpus = sorted(os.sched_getaffinity(0))
+    if os.geteuid() == 0:
+        # the main thread and the drive's (started after): both at 29 on the first CPU
+        assert len(fifo) >= 2 and all(s[1] == 29 for s in fifo), threads
+        assert all(s[2] == ({cpus[0]} if len(cpus) >= 2 else set(cpus)) for s in fifo)
+    else:
+        assert not fifo and "real-time scheduling refused" in stderr
+    threads, _ = drive_threads(paced=False)
+    assert all(s[0] != os.SCHED_FIFO for s in threads.values())
