@@ -615,7 +615,8 @@ def sim_config(rig) -> CanopenConfig:
 def start_sim_drive(rig, config: CanopenConfig, seed=None,
                     **options) -> tuple[SimCanopenDrive, FaultyVirtualBus]:
     """A running simulated drive on a fresh ``virtual`` channel, and the host's bus to it."""
-    channel = f"labbench-sim-{uuid.uuid4().hex[:8]}"
+    # no trailing digits: trace writers read them as the channel number (BLF's is 16-bit)
+    channel = f"labbench-{uuid.uuid4().hex[:8]}-sim"
     plant = plant_for(rig, seed, **options)
     geo = plant.geometry  # the encoder's count direction as the signed metres per count
     peer = SimCanopenDrive(channel, config.node_id, plant, geo.sign * geo.metres_per_count,
