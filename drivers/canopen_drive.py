@@ -911,10 +911,19 @@ class CanopenDrive:
             if force_n != 0.0:
                 raise DeviceFault(self._fault or "command() outside a run (no read() yet)")
             return
+        if not self._confirmed:  # still enabling: no torque before the drive shows it is on
+            self._send_rpdos(0)
+            return
         a = self.assessment
         p = round(force_n * a.force_to_permille)
         m = a.max_permille
         self._send_rpdos(m if p > m else (-m if p < -m else p))
+
+    def holding(self) -> bool:
+        """``labbench.device.Enabling``: from ``enable()`` until a TPDO shows OPERATION
+        ENABLED, ``command()`` sends zero torque (a command in that window would be
+        recorded but not applied: the drive takes it only once enabled)."""
+        return self._enable_deadline is not None and not self._confirmed
 
     def identity(self) -> dict:
         return dict(self._identity)

@@ -89,6 +89,15 @@ class RawReading(Protocol):
 
 
 @runtime_checkable
+class Enabling(Protocol):
+    def holding(self) -> bool:
+        """True while the device holds its force at zero whatever it is commanded: after
+        ``enable()`` until it confirms the power stage on (a CiA 402 drive stepping to
+        OPERATION ENABLED over a few periods). The loop records those samples as gated, so
+        the record never shows a force the device did not apply."""
+
+
+@runtime_checkable
 class StatusReporting(Protocol):
     def status(self) -> DeviceStatus:
         """State, latched fault and link counters, from memory (no bus traffic)."""

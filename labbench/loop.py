@@ -14,7 +14,8 @@ the delay line holds, f_exo[k] - f_ve[k-n .. k], is within
 the handle stay put. Gating on u[k] alone would open at once when td > 0, the line
 still holding the zeros of the sampled model's initial state, and K x[0] would
 reach the command n samples later. Before the gate opens the command and the
-applied excitation are zero), force clamp, force-rate limit, energy observer (fades the
+applied excitation are zero; a device that applies nothing until it confirms it is
+enabled, ``labbench.device.Enabling``, keeps the gate shut until then), force clamp, force-rate limit, energy observer (fades the
 force to zero over ``energy_fade_s``, then trips). ``run_loop`` adds the watchdog
 (no sample within ``watchdog_s``, or a paced loop period longer than it: force
 zero, trip) and the stop request.
@@ -44,7 +45,7 @@ from itertools import chain
 import numpy as np
 
 from labbench import records, timing as loop_timing
-from labbench.device import DeviceFault, RawReading
+from labbench.device import DeviceFault, Enabling, RawReading
 from labbench.errors import UserError
 from labbench.safety import (
     CLAMP,
@@ -85,7 +86,7 @@ class HapticLoop:
 
     def __init__(self, ve: VirtualEnvironment, safety: SafetyConfig):
         self.ve, self.safety = ve, safety
-        self.advance, self.trip, self._state = _chain(ve, safety)
+        self.advance, self.trip, self.regate, self._state = _chain(ve, safety)
 
     def step(self, seq: int, t_s: float, position_m: float, excitation_n: float) -> float:
         """One sample through the chain; returns the force to command for step k."""
@@ -101,7 +102,10 @@ class HapticLoop:
 
 
 def _chain(ve: VirtualEnvironment, s: SafetyConfig):
-    """Closures (advance, trip, state) of one loop; see HapticLoop and the module docstring."""
+    """Closures (advance, trip, regate, state) of one loop; see HapticLoop and the module
+    docstring. ``advance(..., hold=True)`` and ``regate(row)``: the device holds this
+    sample's force at zero (still enabling), so the row is a gated one and the gate is
+    shut again (it reopens by its own rule once the device applies force)."""
     a = ve.filter_pole
     c = (1.0 - a) / ve.T
     K, B = ve.K, ve.B
@@ -134,7 +138,14 @@ def _chain(ve: VirtualEnvironment, s: SafetyConfig):
                 "gate_open": gate_open, "fading": fading, "trip_name": trip_name,
                 "trip_reason": trip_reason}
 
-    def advance(seq, t_s, x, exc):
+    def regate(row):
+        nonlocal gate_open, e_app, u_prev, flags_last
+        gate_open = False
+        e_app = u_prev = 0.0
+        flags_last = (row[7] & SEQ_GAP) | GATED
+        return row[:5] + (0.0, 0.0, flags_last)
+
+    def advance(seq, t_s, x, exc, hold=False):
         nonlocal j, xp, seqp, v, f, e_app, u_prev, flags_last, energy, energy_max
         nonlocal gate_open, fading, gain
         if xp is None:
@@ -168,10 +179,11 @@ def _chain(ve: VirtualEnvironment, s: SafetyConfig):
             e_app = u_prev = 0.0
             flags_last = flags | TRIPPED
             return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
-        if not gate_open:  # min/max over n + 1 floats, only until the gate opens
-            if exc - gate_n <= min(line) and max(line) <= exc + gate_n:
+        if not gate_open or hold:  # min/max over n + 1 floats, only until the gate opens
+            if not hold and exc - gate_n <= min(line) and max(line) <= exc + gate_n:
                 gate_open = True
             else:
+                gate_open = False
                 e_app = u_prev = 0.0
                 flags_last = flags | GATED
                 return (t_s, seq, x, v, f, 0.0, 0.0, flags_last)
@@ -199,7 +211,7 @@ def _chain(ve: VirtualEnvironment, s: SafetyConfig):
         flags_last = flags
         return (t_s, seq, x, v, f, exc, u, flags)
 
-    return advance, trip, state
+    return advance, trip, regate, state
 
 
 @dataclass
@@ -325,7 +337,8 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
 
     clock = time.perf_counter
     advance, command, stop_set, keep = loop.advance, device.command, stop.is_set, rows.append
-    enabled = False
+    holding = device.holding if isinstance(device, Enabling) else None
+    enabled = waiting = False  # waiting: enabled, the device not applying force yet
     status, reason, i = "completed", "", 0
     t_s = 0.0
     left = page_size
@@ -361,13 +374,21 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                                         f"{wd * 1e3:g} ms; simulator: recorded, run goes on")
             if d > worst[0] and i:
                 worst[:] = d, i, t_s, now - start
-            row = advance(seq, t_s, x, exc[i])
+            if waiting:
+                waiting = holding()
+                row = advance(seq, t_s, x, exc[i], waiting)
+            else:
+                row = advance(seq, t_s, x, exc[i])
             flags = row[7]
             if not enabled and not flags & (GATED | TRIPPED):
                 device.enable(timeout=wd)
                 enabled = True
                 prev = clock()  # the enable call is not a loop overrun
                 event(t_s, "enabled", f"enable gate opened at |force| = {abs(row[6]):.3g} N")
+                if holding is not None and holding():  # this command will not be applied
+                    waiting = True
+                    row = loop.regate(row)
+                    flags = row[7]
             command(row[6])
             if extra:
                 flags |= extra

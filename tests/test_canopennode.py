@@ -28,6 +28,7 @@ from labbench.errors import DeviceFault
 from labbench.records import concat_pages
 from labbench.registry import device_names, make_protocol, open_device
 from labbench.runner import run
+from labbench.safety import GATED
 from test_canopen_process import _children
 from test_canopen_vendor import FORCES, oracle_counts, run_forces
 
@@ -213,10 +214,11 @@ def test_white_noise_etfe_meets_the_exact_sampled_theory(drive):
     """Median |Z - Z_sampled| / |Z_sampled| over 2-100 rad/s below 0.1 % (20 s at 1 N:
     0.02-0.04 % on the plain quantised simulator over four seeds)."""
     r = drive()
-    result, data, _ = run_protocol(r, "etfe", duration_s=20.0, std_n=1.0, seed=1)
-    # Seed 1's first force (0.36 N) is beyond the enable gate (0.2 N): the gated samples
-    # bring the drive to READY TO SWITCH ON, so the enabling command takes effect at once.
-    assert data["command"][0] == 0.0
+    result, data, _ = run_protocol(r, "etfe", duration_s=20.0, std_n=1.0, seed=11)
+    # Seed 11's first force (0.03 N) opens the enable gate at once; the driver holds the
+    # torque at zero until a TPDO shows OPERATION ENABLED and the loop records those
+    # samples as gated (labbench.device.Enabling), so the record is what the plant felt.
+    assert data["command"][0] == 0.0 and data["flags"][0] & GATED
     assert np.array_equal(counts_of(data, r.rig), oracle(r.rig, data["command"]))
     assert result.results["deviation_vs_sampled"]["median_rel"] < 1e-3
 

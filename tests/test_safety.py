@@ -68,9 +68,11 @@ class Faulty:
         self.dev.command(u)
 
     def __getattr__(self, name):  # enable, disable, emergency_stop, close
+        target = getattr(self.dev, name)  # what the device lacks, the wrapper lacks too
+
         def call(*a, **kw):
             self.calls.append(name)
-            return getattr(self.dev, name)(*a, **kw)
+            return target(*a, **kw)
         return call
 
 
