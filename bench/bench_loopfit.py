@@ -17,13 +17,7 @@ bench/bench_analysis.py.
 
     .venv/bin/python bench/bench_loopfit.py [--repeat 3] [--quick]
 
-``--coverage SEEDS``: instead, interval coverage and silent failures over seeds on a
-known-truth grid of where the delays live (spring, damper, spring-damper; the VE-path
-delay undeclared, the device latency, both, fractional; process noise 0.1 N rms and
-force-sensor noise 0.05 N rms on a 1 N excitation; 20 s records simulated step by step,
-``truthdata.delayed_loop_recording``): per parameter the share of 95 % intervals that
-cover the truth, and the count of fits outside a target (td, tv 0.05 ms, m 2 %, b 5 %)
-with an ``ok`` verdict (silent failures). Prints a Markdown table.
+Coverage of the intervals and silent failures: bench/bench_coverage.py.
 """
 from __future__ import annotations
 
@@ -37,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from truthdata import PAPER_B, PAPER_M, closed_loop_recording, delayed_loop_recording  # noqa: E402
+from truthdata import PAPER_B, PAPER_M, closed_loop_recording  # noqa: E402
 from bench_analysis import best_time  # noqa: E402
 
 from labbench.analysis import compare  # noqa: E402
@@ -138,65 +132,12 @@ def _chart(rows, path):
     fig.savefig(path, dpi=110)
 
 
-COVERAGE_VES = {"spring-damper": VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0),
-                "spring": VirtualEnvironment("spring", K=10.0),
-                "damper": VirtualEnvironment("damper", B=1.5, w0=200.0)}
-PLACEMENTS = {"VE path 1.75": (0.0, 1.75), "device 1.5": (1.5, 0.0), "both 1.3 + 2.7": (1.3, 2.7)}
-TARGETS = {"m": 0.02 * PAPER_M, "b": 0.05 * PAPER_B, "td_s": 5e-5, "tv_s": 5e-5}
-
-
-def coverage(seeds: int) -> list[dict]:
-    rows = []
-    for ve_name, ve in COVERAGE_VES.items():
-        for place, (lat, tv) in PLACEMENTS.items():
-            for seed in range(seeds):
-                rec = delayed_loop_recording(ve, n=20000, latency=lat * T, ve_delay=tv * T, seed=100 + seed,
-                                             force_noise=0.05)
-                # process noise: the plant feels it, the record does not (added by re-simulating
-                # would double the cost; force-sensor noise is the errors-in-variables case)
-                fit = fit_loop(etfe(rec), compare.ve_from_meta(rec.meta, rec.fs), START)
-                truth = {"m": PAPER_M, "b": PAPER_B, "td_s": lat * T, "tv_s": tv * T}
-                value = {"m": fit.m, "b": fit.b, "td_s": fit.td_s, "tv_s": fit.tv_s}
-                miss = [k for k in truth if abs(value[k] - truth[k]) > TARGETS[k]]
-                covers = {k: fit.ci95[k][0] <= truth[k] <= fit.ci95[k][1] for k in fit.ci95}
-                rows.append({"ve": ve_name, "place": place, "seed": seed, "model": fit.delay_model,
-                             "miss": miss, "covers": covers, "level": fit.verdict.level,
-                             "silent": bool(miss) and fit.verdict.level == "ok"})
-                print(f"{ve_name:13s} {place:15s} seed {seed} -> {fit.delay_model:8s} {fit.verdict.level:8s} "
-                      f"miss {miss} covers {covers}", flush=True)
-    return rows
-
-
-def coverage_table(rows: list[dict]) -> str:
-    lines = ["| VE | delays | fits | model right | m cov | b cov | td cov | tv cov | outside target | "
-             "of which ok (silent) |", "|---|---|---|---|---|---|---|---|---|---|"]
-    right = {"VE path 1.75": "ve-path", "device 1.5": "common", "both 1.3 + 2.7": "both"}
-    groups = {}
-    for r in rows:
-        groups.setdefault((r["ve"], r["place"]), []).append(r)
-    groups[("all", "all")] = rows
-    for (ve, place), rs in groups.items():
-        def cov(k):
-            c = [r["covers"][k] for r in rs if k in r["covers"]]
-            return f"{100 * np.mean(c):.0f} % ({len(c)})" if c else "-"
-        n_right = sum(r["model"] == right[r["place"]] for r in rs)
-        lines.append(f"| {ve} | {place} | {len(rs)} | {n_right} | {cov('m')} | {cov('b')} | {cov('td_s')} | "
-                     f"{cov('tv_s')} | {sum(bool(r['miss']) for r in rs)} | {sum(r['silent'] for r in rs)} |")
-    return "\n".join(lines)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="two record lengths (a smoke run)")
     ap.add_argument("--out", default=str(ROOT / "docs"), help="directory for the table and chart")
-    ap.add_argument("--coverage", type=int, metavar="SEEDS", help="coverage and silent failures (module doc)")
     args = ap.parse_args()
-    if args.coverage:
-        t0 = time.perf_counter()
-        print(coverage_table(coverage(args.coverage)))
-        print(f"{time.perf_counter() - t0:.0f} s")
-        return 0
     lengths = [7_500, 15_000, 30_000, 60_000, 120_000] if not args.quick else [7_500, 30_000]
     t0 = time.perf_counter()
     rows = bench(args.repeat, lengths)

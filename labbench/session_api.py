@@ -102,10 +102,10 @@ def identify_recording(rec: Recording, model: str = "auto", method: str = "l2",
     from labbench.analysis.identify import identify
 
     plant_rec, ve = compare.plant_recording(rec)
-    res = identify(plant_rec, model=model, method=method, cutoff_hz=cutoff_hz, solver=solver,
-                   hold=force_hold)
-    source = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
     latency = device_delay.from_meta(rec.meta)
+    res = identify(plant_rec, model=model, method=method, cutoff_hz=cutoff_hz, solver=solver,
+                   hold=force_hold, response=None if ve is None else compare.loop_response(rec, ve, latency))
+    source = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
     if latency:
         source += f", as held after the device delay of {1e3 * latency:.4g} ms"
     return Identification(res, source)

@@ -18,6 +18,14 @@ OK, DOUBTFUL, FAILED = "ok", "doubtful", "failed"
 LEVELS = (OK, DOUBTFUL, FAILED)  # in order of worsening
 STRICT_EXIT = 3  # a result's verdict was "failed" under --strict (2: bad input, 1: device)
 MAX_REASONS = 20  # a verdict read from a file keeps at most this many reasons
+# A number is vouched for to an accuracy target when its 99.9 % interval lies within it:
+# the 95 % interval stretched by z(0.9995) / z(0.975) = 3.29 / 1.96. A calibrated interval
+# then misses its target unflagged in at most 0.1 % of records (at 95 % it would be up to 5 %).
+VOUCH_STRETCH = 3.2905 / 1.9600
+# A bias the interval does not hold is worth a finding beyond this many standard errors: up
+# to half of one a 95 % interval still covers 91 % (radial bias of a circular complex error,
+# non-central chi-square with 2 dof; 92 % for a real one).
+BIAS_SE = 0.5
 
 
 @dataclass(frozen=True)
@@ -39,6 +47,18 @@ class Verdict:
     def line(self) -> str:
         """``ok`` or ``doubtful: reason; reason``."""
         return self.level if not self.reasons else f"{self.level}: {'; '.join(self.reasons)}"
+
+
+def unvouched(name: str, value: float, interval: tuple[float, float], target: float,
+               unit: str = "") -> tuple[str, str]:
+    """A finding: doubtful when ``value``'s 95 % ``interval``, stretched to 99.9 %
+    (``VOUCH_STRETCH``), reaches beyond +-``target`` of it (the record cannot vouch for the
+    number to that accuracy), else ok."""
+    lo, hi = interval
+    reach = VOUCH_STRETCH * max(value - lo, hi - value)
+    return (DOUBTFUL if not reach <= target else OK,
+            f"{name} not pinned to its accuracy target +-{target:.2g}{unit}: 95 % interval "
+            f"[{lo:.4g}, {hi:.4g}], +-{reach:.2g}{unit} at 99.9 %")
 
 
 def judge(findings: Iterable[tuple[str, str]]) -> Verdict:

@@ -344,13 +344,17 @@ def test_plant_force_delays_by_fractions_of_a_sample_exactly_on_a_ramp(delay_sam
 
 
 def test_verdict_ok_on_clean_and_noisy_records_within_tolerance():
-    # known truth: where m is within 1 % and b within 2 %, nothing is wrong to say
+    # known truth: where m is within 1 % and b within 2 % and the record vouches for that (99.9 %
+    # intervals inside the targets), nothing is wrong to say; 20 s under 0.2 N cannot vouch for
+    # b to 2 % and says so
     rng = np.random.default_rng(3)
-    for rec in (chirp_recording(n=20000), with_noise(chirp_recording(n=20000), rng, force_noise=0.05)):
+    for rec in (chirp_recording(n=20000), with_noise(chirp_recording(n=30000), rng, force_noise=0.02)):
         r = identify(rec)
         assert abs(r.m / PAPER_M - 1) < 0.01 and abs(r.b / PAPER_B - 1) < 0.02
         assert r.verdict.level == "ok", r.verdict
         assert r.as_dict()["verdict"] == {"level": "ok", "reasons": []}
+    r = identify(with_noise(chirp_recording(n=20000), rng, force_noise=0.2))
+    assert r.verdict.level == "doubtful" and r.verdict.reasons[0].startswith("b not pinned"), r.verdict
 
 
 def test_verdict_names_an_unstated_device_delay():
@@ -371,7 +375,6 @@ def test_verdict_names_an_unstated_device_delay():
     assert said, r.verdict
     # it even says how large: the x''' coefficient reads the delay to a few % (truth 1 ms)
     assert abs(float(re.search(r"delay of ([0-9.]+) ms", said[0]).group(1)) - 1.0) < 0.05
-    assert any(s.startswith("b is not resolved") for s in r.verdict.reasons)
 
 
 def test_verdict_failed_when_no_mass_is_identified():
@@ -389,4 +392,76 @@ def test_no_outlier_flag_on_a_clean_record_with_friction(n):
     # force-outliers flag on a clean record with Fc = 0.2 N)
     r = identify(chirp_recording(n=n, coulomb=0.2))
     assert r.model == "mbc" and not any(f.startswith("force-outliers") for f in r.flags), r.flags
-    assert r.verdict.level == "ok" and abs(r.params["coulomb"] / 0.2 - 1) < 0.02
+    assert not any("outliers" in s for s in r.verdict.reasons) and abs(r.params["coulomb"] / 0.2 - 1) < 0.02
+
+
+def test_encoder_step_is_corrected_in_l2_and_flagged_in_l1():
+    # a 30 um encoder step reads x'' with noise that attenuates least squares' m by its share
+    # (~0.02 % here, 3x the interval): l2 removes it (corrected least squares, the noise
+    # variance known from the step), l1 cannot and says so
+    base = chirp_recording(n=30000)
+    err, hits = [], 0
+    for seed in range(10):
+        r = identify(with_noise(base, np.random.default_rng(seed), force_noise=0.01, quantum=30e-6))
+        err.append(r.m / PAPER_M - 1)
+        hits += r.ci95["m"][0] <= PAPER_M <= r.ci95["m"][1]
+        assert r.verdict.level == "ok", r.verdict
+    assert abs(np.mean(err)) < 5e-5 and hits >= 8, (np.mean(err), hits)  # uncorrected: -2.1e-4, 5 of 10
+    l1_fit = identify(with_noise(base, np.random.default_rng(0), force_noise=0.01, quantum=30e-6), method="l1")
+    assert any(f.startswith("quantised-position") and "l2 corrects it" in f for f in l1_fit.flags), l1_fit.flags
+
+
+def test_a_sampled_force_is_differentiated_to_fourth_order():
+    # a continuous chirp read at the samples: the 3-point second difference reads x'' high by
+    # (w T)^2 / 12 and m with it (+0.045 %, beyond its interval); the 5-point one does not
+    r = identify(sensor_chirp_recording(), hold="sample")
+    assert abs(r.m / PAPER_M - 1) < 1e-5 and abs(r.b / PAPER_B - 1) < 1e-5, (r.m / PAPER_M - 1, r.b / PAPER_B - 1)
+
+
+def test_friction_intervals_cover_the_fit_away_from_velocity_reversals():
+    # 0.2 N of friction under a 1 N chirp: near reversals the handle sticks and the sampled
+    # friction model is least exact, which pulls m by ~0.8 % on exact data; the intervals also
+    # cover the fit away from the reversals, so they hold the truth, and b is not vouched for
+    for n in (20000, 30000):
+        r = identify(chirp_recording(n=n, coulomb=0.2))
+        assert r.model == "mbc" and abs(r.m / PAPER_M - 1) > 0.005
+        for k, truth in (("m", PAPER_M), ("b", PAPER_B), ("coulomb", 0.2)):
+            assert r.ci95[k][0] <= truth <= r.ci95[k][1], (n, k, r.ci95[k])
+        assert r.verdict.level == "doubtful" and any(s.startswith("b not pinned") for s in r.verdict.reasons)
+
+
+def test_intervals_cover_over_seeds_and_a_vouched_result_meets_its_target():
+    # 20 records under 0.2 N of force noise: the sandwich intervals (influence function summed
+    # over blocks, Satterthwaite's dof: a chirp's damping is told by its first seconds) cover,
+    # and every record outside the targets (m 1 %, b 2 %) says it is not pinned to them
+    base = chirp_recording(n=30000)
+    hits = {"m": 0, "b": 0}
+    for seed in range(20):
+        r = identify(with_noise(base, np.random.default_rng(300 + seed), force_noise=0.2))
+        for k, truth in (("m", PAPER_M), ("b", PAPER_B)):
+            hits[k] += r.ci95[k][0] <= truth <= r.ci95[k][1]
+        outside = abs(r.m / PAPER_M - 1) > 0.01 or abs(r.b / PAPER_B - 1) > 0.02
+        assert not outside or r.verdict.level != "ok", (seed, r.m, r.b)
+    assert hits["m"] >= 17 and hits["b"] >= 17, hits
+
+
+def test_closed_loop_identification_uses_instruments_against_process_noise():
+    # 0.3 N the plant feels and the record lacks drives the motion the VE force is computed
+    # from: least squares read m 6 % low, far outside its interval; the instruments (the loop's
+    # response to the exogenous force alone) do not follow that noise
+    from truthdata import closed_loop_recording
+
+    from labbench.analysis import compare
+    from labbench.ve import VirtualEnvironment
+
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, td=0.001)
+    rec = closed_loop_recording(ve, n=30000, seed=1, process_noise=0.3)
+    plant, _ = compare.plant_recording(rec)
+    plain = identify(plant, model="mb")
+    assert plain.m < 0.97 * PAPER_M and not plain.ci95["m"][0] <= PAPER_M <= plain.ci95["m"][1]
+    iv = identify(plant, model="mb", response=compare.loop_response(rec, ve))
+    assert abs(iv.m / PAPER_M - 1) < 0.01 and iv.ci95["m"][0] <= PAPER_M <= iv.ci95["m"][1]
+    assert iv.ci95["b"][0] <= PAPER_B <= iv.ci95["b"][1]
+    assert "instrumental" in iv.selection["estimator"]
+    l1_fit = identify(plant, model="mb", method="l1", response=compare.loop_response(rec, ve))
+    assert any(f.startswith("closed-loop-l1") for f in l1_fit.flags)

@@ -17,7 +17,7 @@ from labbench import records, theory
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
-from labbench.report.blocks import Figure, PageBreak, Table
+from labbench.report.blocks import Figure, PageBreak, Table, plus_minus
 from labbench.report.content import build
 from labbench.session_format import SessionWriter
 from labbench.ve import Plant, VirtualEnvironment
@@ -73,7 +73,7 @@ def test_report_of_real_runs(tmp_path, runs):
                  "Stability boundary", "Kmax (exact sampled)", "loop delay td",
                  "Effective stiffness ES", "Flags and what to do", "short-record"):
         assert what in first, what
-    assert f"{ident['l2']['m']:.4f}" in first  # m ± its interval, on page 1
+    assert plus_minus(ident["l2"]["m"], *ident["l2"]["ci95"]["m"]) in first  # m ± its interval, on page 1
     assert "Details" not in first and "Appendix" not in first
     # the configuration comes last, in the appendix only
     appendix = next(i for i, p in enumerate(pages) if "Appendix: configuration" in p)
@@ -172,11 +172,11 @@ def test_report_cli_and_errors(tmp_path, runs, capsys):
 
 def test_numbers_in_tables():
     from labbench.report import fmt
-    from labbench.report.blocks import plus_minus
 
     assert fmt(None) == "-" and fmt(0.0940007571) == "0.094" and fmt(0.0940007571, 6) == "0.0940008"
     assert fmt([1.0, None]) == "[1, -]" and fmt(True) == "yes" and fmt(np.int64(3)) == "3"
     assert fmt(float("inf")) == "inf"
     assert plus_minus(0.0942, 0.09, 0.0984) == "0.09420 ± 0.0042"
     assert plus_minus(12.3456, 12.0, 12.7) == "12.35 ± 0.35"
+    assert plus_minus(1.0, 0.5, 3.5) == "1 (0.5 to 3.5)"  # not centred: both ends
     assert Table("t", ["a", "b"], [["x", "1.5"], ["y", "-"]]).numeric() == [False, True]

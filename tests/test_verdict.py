@@ -39,3 +39,39 @@ def test_strict_exit():
     assert verdict.strict_exit([Verdict(FAILED)], strict=True) == verdict.STRICT_EXIT == 3
     assert verdict.strict_exit([Verdict(FAILED)], strict=False) == 0
     assert verdict.strict_exit([Verdict(DOUBTFUL), None], strict=True) == 0
+
+
+def test_a_number_is_vouched_for_when_its_999_interval_is_within_the_target():
+    # 95 % half-width 1.0 -> 1.68 at 99.9 %: within a target of 2, not within 1.5
+    assert verdict.unvouched("m", 10.0, (9.0, 11.0), 2.0)[0] == OK
+    level, reason = verdict.unvouched("m", 10.0, (9.0, 11.0), 1.5, " kg")
+    assert level == DOUBTFUL and reason.startswith("m not pinned to its accuracy target +-1.5 kg")
+    # asymmetric intervals count by their longer side; a nan interval is never vouched for
+    assert verdict.unvouched("b", 1.0, (0.0, 1.1), 1.0)[0] == DOUBTFUL
+    assert verdict.unvouched("b", 1.0, (float("nan"), 1.1), 1.0)[0] == DOUBTFUL
+
+
+def test_a_subset_of_the_method_map_grid_has_no_silent_failure():
+    # bench/bench_coverage.py's own cells and definitions, two records each where the methods
+    # are pushed (force noise, friction, an unstated delay, a sharp resonance, sensor noise, a
+    # weak spring that cannot place its delays): every result outside its target says why
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_coverage as grid
+
+    rows = [grid.id_task(cell, "l2", seed) for seed in (0, 1) for cell in (
+        "chirp 30 s, force noise 0.2 N", "Coulomb 0.2 N, 0.02 N", "device one period late, unstated, 0.02 N",
+        "closed loop (spring-damper), process 0.1 N")]
+    rows += [grid.loop_task(*cell, seed) for seed in (0, 1) for cell in (
+        ("spring K 10", "both 1.3 + 2.7", "sensor 0.05 N", 20000),
+        ("damper B 1.5", "VE path 1.75", "process 0.1 N", 20000))]
+    for r in rows:
+        assert not r["miss"] or (r["level"] != "ok" and r["why"]), r
+    assert sum(bool(r["miss"]) for r in rows) >= 4  # the grid does push them past their targets
+    bands = [grid.etfe_task(ve, noise, "30 s", "lpm", seed) for seed in (0, 1) for ve, noise in (
+        ("spring K 180 (0.9 K_max)", "position 1e-5 m"), ("spring-damper K 50", "sensor 0.05 N on 0.25 N"))]
+    for r in bands:
+        assert not r["far"] or r["level"] != "ok", r
+        assert 0.85 <= r["inside"] / r["n"] <= 1.0, r  # a 95 % band, ~65 frequencies

@@ -51,7 +51,8 @@ def write_csv(rec: Recording, path, extra_meta: dict | None = None) -> None:
 
 def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PAPER_B,
                            latency: float = 0.0, ve_delay: float = 0.0, seed: int = 0,
-                           force_std: float = 1.0, force_noise: float = 0.0) -> Recording:
+                           force_std: float = 1.0, force_noise: float = 0.0,
+                           process_noise: float = 0.0) -> Recording:
     """A closed-loop white-noise record simulated step by step in the time domain, with the
     excitation reaching the plant ``latency`` [s] after its sample and the VE force
     ``latency + ve_delay`` after its own (either a fraction of a sample or not).
@@ -60,13 +61,16 @@ def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PA
     input changes, and every piece integrated exactly (``scipy.linalg.expm`` of the
     augmented plant). The VE is ``ve``'s law (K, B, w0 filter) with its td ignored: the
     metadata say td = 0, so the VE-path delay is undeclared. ``force_noise`` [N rms] is
-    added to the recorded force only (a force sensor's noise).
+    added to the recorded force only (a force sensor's noise; the metadata then leave
+    force_hold unsaid), ``process_noise`` [N rms] to the force the plant feels only (the
+    recorded force is then the command: force_hold = zoh).
     """
     from scipy.linalg import expm
 
     T = ve.T
     rng = np.random.default_rng(seed)
     f_exo = force_std * rng.standard_normal(n)
+    felt = f_exo + process_noise * rng.standard_normal(n) if process_noise else f_exo
     cuts = sorted({0.0, T, *(((d / T) % 1.0) * T for d in (latency, latency + ve_delay))})
     pieces = []  # (Phi, Gamma, exo index offset, VE index offset) per piece of a step
     A = np.array([[0.0, 1.0], [0.0, -b / m]])
@@ -90,9 +94,11 @@ def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PA
         x_prev = x[k]
         f_ve[k] = (ve.K * x[k] + ve.B * v_hat) if ve.kind != "none" else 0.0
         for Phi, G, oe, ov in pieces:
-            u = (f_exo[k + oe] if k + oe >= 0 else 0.0) - (f_ve[k + ov] if k + ov >= 0 else 0.0)
+            u = (felt[k + oe] if k + oe >= 0 else 0.0) - (f_ve[k + ov] if k + ov >= 0 else 0.0)
             state = Phi @ state + G * u
     meta = {"fs": 1.0 / T, "ve": ve.kind, "K": ve.K, "B": ve.B,
             "w0": ve.w0 if math.isfinite(ve.w0) else "none", "td": 0.0}
+    if not force_noise:
+        meta["force_hold"] = "zoh"
     recorded = f_exo + force_noise * rng.standard_normal(n)
     return recording_from_arrays(np.arange(n) * T, recorded, x, meta, "<delayed-loop truth>")

@@ -101,7 +101,26 @@ def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "
     """m, b from a closed-loop record (see module doc; ``latency``: the rig's extra delay)."""
     u = plant_force(rec, ve, latency)
     return identify(recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source),
-                    model="mb", method=method)
+                    model="mb", method=method, response=loop_response(rec, ve, latency))
+
+
+def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
+    """``(m, b) ->`` the position the closed loop of ``ve`` (the device delay ``latency``)
+    would have on the record's exogenous force alone: its exact sampled response
+    1 / (jw Z) (``theory.z_sampled``, fractional delays too) through the FFT. The
+    identification's instruments (``identify``'s ``response``): any function of the
+    exogenous force is uncorrelated with the noise; the FFT's wrap-around at the record's
+    ends only makes the instruments weaker there."""
+    f = np.asarray(rec.force, float)
+    w = 2 * np.pi * np.fft.rfftfreq(len(f), rec.T)
+    F = np.fft.rfft(f)
+
+    def response(m: float, b: float) -> np.ndarray:
+        H = np.zeros(len(w), complex)  # DC left out: the derivatives do not see it
+        Z = theory.z_sampled(Plant(m, b), ve.with_(td=0.0), w[1:], latency, ve_delay=ve.td)
+        H[1:] = 1.0 / (1j * w[1:] * Z)
+        return np.fft.irfft(F * H, len(f))
+    return response
 
 
 def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> dict:

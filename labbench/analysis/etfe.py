@@ -24,15 +24,16 @@ low-coherence mask. Flags name the failure modes seen in the data.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import fft, signal
+from scipy import fft, signal, special
 
 from labbench.analysis.dataio import Recording, position_quantum
 from labbench.effective import effective_impedances, measured_ws_star
 from labbench.errors import UserError
-from labbench.verdict import DOUBTFUL, Verdict, judge
+from labbench.verdict import BIAS_SE, DOUBTFUL, Verdict, judge
 
 ESTIMATORS = ("lpm", "h1-log", "h1-welch", "paper")
 DEFAULT_ESTIMATOR = "lpm"
@@ -42,6 +43,9 @@ REL_BAND = 0.05  # half-width of a band relative to its centre frequency
 MIN_HALF_BINS, MAX_HALF_BINS = 6, 100
 LPM_ORDER = 2
 LPM_GROUPS = (12, 40)  # half-width limits (bins) of the groups of bands fitted together
+LPM_BIAS_SCREEN = 0.1  # a band is tested for bias when its estimated bias could exceed this x se
+LPM_NARROWING = 4  # each Lepski step divides the half-width by this (4: two steps from 100 bins to 6)
+CURVATURE_SIGNIFICANT = float(np.log(1e4))  # 1e-4 false alarms per band
 WELCH_SEGMENT = 2**14
 LOW_COHERENCE = 0.8
 # near a sharp resonance Z changes by more than its own band from bin to bin and a local
@@ -52,7 +56,6 @@ W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
 LITTLE_EXCITATION = 1e-3  # force power relative to its in-band median
 QUANT_SNR = 0.01  # quantisation noise power relative to position power
 LEAKAGE = 0.1  # edge-leakage amplitude relative to |X| that counts as drift
-R95 = float(np.sqrt(np.log(20.0)))  # 95 % radius of a circular complex Gaussian, in sigmas
 
 
 @dataclass
@@ -62,11 +65,21 @@ class EtfeResult:
     Z: np.ndarray  # N s/m, complex
     coherence: np.ndarray
     Z_err: np.ndarray  # 95 % radius |dZ|
+    Z_se: np.ndarray  # standard error sqrt(E |dZ|^2) (Z_err in these: ``radius95``)
     low_coherence: np.ndarray  # bool
     flags: list = field(default_factory=list)
     window: int | None = None
     force_power: np.ndarray | None = field(default=None, repr=False)  # mean |F_k|^2 near each w
     verdict: Verdict = field(default_factory=Verdict)
+    # () -> complex correlation of the errors of G = 1 / (jw Z) between the frequencies
+    # (neighbouring bands share DFT bins); None: the estimator does not know it
+    error_corr: Callable[[], np.ndarray] | None = field(default=None, repr=False)
+    # frequencies whose band may hold a bias it does not show (a local model that cannot
+    # follow a sharp resonance even at the narrowest band); None: the estimator cannot tell
+    unresolved: np.ndarray | None = field(default=None, repr=False)
+    # relative upward bias of Z that force-sensor noise could cause, (1 - g^2) / g^2, per
+    # frequency; 0 where the record's force is the command itself (``force_is_command``)
+    eiv_bound: np.ndarray | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         eff = effective_impedances(self.w, self.Z)
@@ -113,9 +126,19 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> Etf
             res = _h1_log(F, X, dw)
         else:
             res = _lpm(F, X, dw)
+    coh = np.clip(res.coherence, 1e-12, 1.0)
+    res.eiv_bound = np.zeros_like(coh) if force_is_command(rec.meta) else (1 - coh) / coh
     res.flags = _flags(res, rec, F, X)
     res.verdict = _verdict(res)
     return res
+
+
+def force_is_command(meta: dict) -> bool:
+    """Whether the record's force is the command itself (``force_hold`` = zoh: a bench's
+    held command, docs/analysis.md), so no sensor noise sits on it; else (a force sensor's
+    reading, or unknown) noise on it biases every estimate of Z up by S_nn / S_ff
+    (errors in the variables), at most (1 - g^2) / g^2 when all the incoherence is that noise."""
+    return meta.get("force_hold") == "zoh"
 
 
 # ----------------------------------------------------------------------------- estimators
@@ -133,15 +156,29 @@ def _paper(F, X, dw, window) -> EtfeResult:
     Sfx = signal.oaconvolve(np.conj(F[k]) * X[k], h, mode="same")
     coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
     n_eff = h.sum() ** 2 / np.sum(h**2)
-    err = _h1_err(Z, coh, n_eff)
-    return EtfeResult("paper", w, Z, coh, err, coh < LOW_COHERENCE, window=window)
+    se, err = _h1_err(Z, coh, n_eff)
+    return EtfeResult("paper", w, Z, coh, err, se, coh < LOW_COHERENCE, window=window)
+
+
+def radius95(dof) -> np.ndarray:
+    """95 % radius of a complex estimate in its standard errors when the error variance is
+    itself estimated with ``dof`` complex degrees of freedom: |dZ|^2 / se^2 ~ F(2, 2 dof)
+    (the complex form of Student's t: Goodman 1965, the confidence regions of frequency
+    response functions). sqrt(ln 20) = 1.73 for dof -> infinity, 1.93 for dof = 7 (the
+    narrowest LPM band), whose plug-in 1.73 covers 92 %."""
+    dof = np.maximum(np.asarray(dof, float), 1.0)
+    return np.sqrt(special.fdtri(2, 2 * dof, 0.95))
 
 
 def _h1_err(Z, coh, n_avg):
-    """95 % radius of Z from H1 statistics: |dG|/|G| ~ sqrt((1 - g^2) / (n g^2))
-    (Bendat & Piersol, Random Data, eq. 9.52, per real component -> circular)."""
-    rel = np.sqrt(np.maximum(1 - coh, 0) / (np.maximum(coh, 1e-12) * np.maximum(n_avg, 1)))
-    return R95 * np.abs(Z) * rel
+    """(standard error, 95 % radius) of Z from H1 statistics over n averaged bins or
+    segments: a one-parameter complex least-squares fit, so |dG|^2 / |G|^2 has the scale
+    (1 - g^2) / (g^2 (n - 1)) and n - 1 degrees of freedom (Bendat & Piersol, Random Data,
+    eq. 9.52 with the estimated noise's own dof; ``radius95``)."""
+    n = np.maximum(np.asarray(n_avg, float), 2.0)
+    rel = np.sqrt(np.maximum(1 - coh, 0) / (np.maximum(coh, 1e-12) * (n - 1)))
+    se = np.abs(Z) * rel
+    return se, radius95(n - 1) * se
 
 
 def _h1_welch(f, x, fs) -> EtfeResult:
@@ -155,7 +192,8 @@ def _h1_welch(f, x, fs) -> EtfeResult:
     Z = Sff[k] / (1j * w * Sfx[k])
     coh = np.clip(np.abs(Sfx[k]) ** 2 / (Sff[k] * Sxx[k]), 0, 1)
     n_seg = max(1, 2 * len(f) // nper - 1)
-    return EtfeResult("h1-welch", w, Z, coh, _h1_err(Z, coh, n_seg), coh < LOW_COHERENCE)
+    se, err = _h1_err(Z, coh, n_seg)
+    return EtfeResult("h1-welch", w, Z, coh, err, se, coh < LOW_COHERENCE)
 
 
 @functools.lru_cache(maxsize=8)
@@ -185,29 +223,117 @@ def _h1_log(F, X, dw) -> EtfeResult:
     Sfx = _band_sum(np.conj(F) * X, k, half)
     Z = Sff / (1j * w * Sfx)
     coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
-    return EtfeResult("h1-log", w, Z, coh, _h1_err(Z, coh, 2 * half + 1), coh < LOW_COHERENCE,
-                      force_power=Sff / (2 * half + 1))
+    se, err = _h1_err(Z, coh, 2 * half + 1)
+    return EtfeResult("h1-log", w, Z, coh, err, se, coh < LOW_COHERENCE, force_power=Sff / (2 * half + 1))
 
 
 def _lpm(F, X, dw) -> EtfeResult:
     k, half = _grid(len(F))
+    half = half.copy()  # narrowed below; the grid is cached
     w = k * dw
-    # bands of similar width are fitted together, so narrow ones are not padded to the widest
-    group = np.searchsorted(LPM_GROUPS, half)
-    parts = [_lpm_fit(F, X, k[group == g], half[group == g]) for g in np.unique(group)]
-    G, sG, s2, Pf = (np.concatenate(p) for p in zip(*parts))
+    fit = _lpm_bands(F, X, k, half)
+    # Where the band is wider than G is smooth (a sharp resonance: a quadratic cannot follow
+    # a peak a few bins wide), the local model's bias is not in its band. Test such a band
+    # against the same fit over a narrower band (LPM_NARROWING; Lepski's method, Goldenshluger
+    # & Nemirovski 1997): the nested estimates differ by noise of variance se_narrow^2 -
+    # se_wide^2 when both are unbiased; a larger difference (95 %) means the wide band is
+    # biased, so the narrow one replaces it and is tested the same way, down to
+    # MIN_HALF_BINS. Only bands whose own quadratic term says the bias could matter are
+    # tested (the cost of a second pass): near a pole the Taylor terms of G grow
+    # geometrically, |g4| ~ |g2|^2 / |g0|, and a quadratic fit leaves about 3/35 of the
+    # quartic term in g0 (Legendre projection of r^4).
+    todo = np.flatnonzero((half > MIN_HALF_BINS) & _may_be_biased(fit, LPM_BIAS_SCREEN))
+    steps = []  # (bands, narrower half-widths) per step, all fitted in one batch (cheaper)
+    bands, h = todo, half[todo]
+    while bands.size:
+        h = np.maximum(h // LPM_NARROWING, MIN_HALF_BINS)
+        steps.append((bands, h))
+        bands, h = bands[h > MIN_HALF_BINS], h[h > MIN_HALF_BINS]
+    if steps:
+        cand = _lpm_bands(F, X, np.concatenate([k[b] for b, _ in steps]),
+                          np.concatenate([h for _, h in steps]))
+        live = np.zeros(len(k), bool)  # still narrowing: every step so far found a bias
+        live[todo] = True
+        start = 0
+        for bands, h in steps:
+            part = [c[start:start + len(bands)] for c in cand]
+            start += len(bands)
+            spread = np.sqrt(np.maximum(part[1] ** 2 - fit[1][bands] ** 2, 0.0))
+            biased = live[bands] & (np.abs(part[0] - fit[0][bands]) > radius95(part[4]) * spread)
+            for mine, theirs in zip(fit, part):
+                mine[bands[biased]] = theirs[biased]
+            half[bands[biased]] = h[biased]
+            live[bands[~biased]] = False
+    G, sG, s2, Pf, dof = fit[:5]
+    # at the narrowest band a sharp resonance can still bend G more than a quadratic follows
+    unresolved = (half == MIN_HALF_BINS) & _may_be_biased(fit, BIAS_SE) & _curved(fit)
     Z = 1.0 / (1j * w * G)
     # coherence: share of the output (transient removed) that G F explains
     explained = np.abs(G) ** 2 * Pf
     coh = np.clip(explained / (explained + s2), 0, 1)
-    err = R95 * np.abs(Z) * sG / np.abs(G)
-    return EtfeResult("lpm", w, Z, coh, err, coh < LOW_COHERENCE, force_power=Pf)
+    se = np.abs(Z) * sG / np.abs(G)  # first order: |dZ| / |Z| = |dG| / |G|
+    return EtfeResult("lpm", w, Z, coh, radius95(dof) * se, se, coh < LOW_COHERENCE, force_power=Pf,
+                      error_corr=lambda: _lpm_correlation(F, X, k, half), unresolved=unresolved)
 
 
-def _lpm_fit(F, X, k, half):
+def _may_be_biased(fit, share: float) -> np.ndarray:
+    """Bands whose estimated local-model bias, 3/35 |g2|^2 / |g0| (``_lpm``), exceeds ``share``
+    of G's standard error."""
+    G, sG, curv2 = fit[0], fit[1], fit[5]
+    return 3 / 35 * curv2 / np.abs(G) > share * sG
+
+
+def _curved(fit) -> np.ndarray:
+    """Bands whose quadratic term is real, not noise: |g2|^2 beyond CURVATURE_SIGNIFICANT times
+    its noise variance (exceeded by a circular complex noise with probability e^-x)."""
+    return fit[5] > CURVATURE_SIGNIFICANT * fit[6]
+
+
+def _lpm_correlation(F, X, k, half) -> np.ndarray:
+    """Correlation of the errors of the local estimates G_i = sum_j a_ij X_j (``_lpm_fit``'s
+    weights a): E[dG_i conj(dG_l)] = s^2 sum_j a_ij conj(a_lj) for DFT bins j carrying
+    independent noise of a common local variance s^2, normalised to 1 on the diagonal."""
+    from scipy import sparse
+
+    rows, cols, vals = [], [], []
+    group = np.searchsorted(LPM_GROUPS, half)
+    for g in np.unique(group):
+        sel = np.flatnonzero(group == g)
+        a, idx = _lpm_fit(F, X, k[sel], half[sel], weights=True)
+        inside = a != 0
+        rows.append(np.broadcast_to(sel[:, None], a.shape)[inside])
+        cols.append(idx[inside])
+        vals.append(a[inside])
+    A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(len(k), len(F)))
+    C = (A @ A.conj().T).toarray()
+    d = np.sqrt(np.real(np.diag(C)))
+    return C / np.outer(d, d)
+
+
+def _lpm_bands(F, X, k, half) -> list[np.ndarray]:
+    """``_lpm_fit`` over bands of any widths: bands of similar width are fitted together, so
+    narrow ones are not padded to the widest."""
+    group = np.searchsorted(LPM_GROUPS, half)
+    out = None
+    for g in np.unique(group):
+        sel = group == g
+        part = _lpm_fit(F, X, k[sel], half[sel])
+        if out is None:
+            out = [np.empty(len(k), p.dtype) for p in part]
+        for o, p in zip(out, part):
+            o[sel] = p
+    return out
+
+
+def _lpm_fit(F, X, k, half, weights: bool = False):
     """Local fits for bands centred on bins k with half-widths half.
 
-    Returns G, its standard error, the residual variance per bin and the mean |F|^2.
+    Returns G, its standard error, the residual variance per bin, the mean |F|^2, the
+    residual's degrees of freedom (bins less the 2 (LPM_ORDER + 1) complex parameters) and
+    |g2|^2, the squared size of G's quadratic term over the band, and its noise variance.
+    With ``weights``: instead (a, bins),
+    G = sum_j a[:, j] X[bins[:, j]] (a is 0 outside each band).
     """
     q = LPM_ORDER + 1
     H = int(half.max())
@@ -216,39 +342,42 @@ def _lpm_fit(F, X, k, half):
     idx = np.clip(k[:, None] + offs[None, :], 0, len(F) - 1)
     Fw = np.where(inside, F[idx], 0)
     Xw = np.where(inside, X[idx], 0)
-    r = np.where(inside, offs[None, :] / half[:, None], 0.0)
-    rp = np.empty(r.shape + (2 * q - 1,))  # r^0 .. r^(2q-2), zero outside the band
-    rp[:, :, 0] = inside
-    for m in range(1, 2 * q - 1):
-        np.multiply(rp[:, :, m - 1], r, out=rp[:, :, m])
-    # Normal equations of X_j = sum_p g_p r^p F_j + sum_p t_p r^p from weighted moments
-    # (regressors F r^p for G, r^p for the transient T; masked outside the band).
-    mom_ff = _moments(np.abs(Fw) ** 2, rp)
-    mom_f = _moments(Fw, rp)
-    mom_1 = _moments(inside.astype(float), rp)
+    # Normal equations of X_j = sum_p g_p r^p F_j + sum_p t_p r^p, r = offset / half, from
+    # weighted moments sum_j w_j r_j^p (regressors F r^p for G, r^p for the transient T;
+    # weights zero outside the band) with the weights |F|^2, F, 1, conj(F) X, X (complex ones
+    # split) and |X|^2: r^p = offset^p / half^p, so one real matmul with offset^p serves all.
+    FX = np.conj(Fw) * Xw
+    W = np.stack([np.abs(Fw) ** 2, Fw.real, Fw.imag, inside, FX.real, FX.imag, Xw.real, Xw.imag,
+                  np.abs(Xw) ** 2], axis=1)
+    powers = np.arange(2 * q - 1)
+    mom = (W.reshape(-1, len(offs)) @ (offs[:, None].astype(float) ** powers)).reshape(len(k), 9, -1)
+    mom /= half[:, None, None].astype(float) ** powers  # (band, row, power)
+    mom_ff, mom_1, xx = mom[:, 0], mom[:, 3], mom[:, 8, 0]
+    mom_f = mom[:, 1] + 1j * mom[:, 2]
     hank = np.add.outer(np.arange(q), np.arange(q))  # p + p'
     M = np.empty((len(k), 2 * q, 2 * q), complex)
     M[:, :q, :q] = mom_ff[:, hank]
     M[:, :q, q:] = np.conj(mom_f[:, hank])
     M[:, q:, :q] = mom_f[:, hank]
     M[:, q:, q:] = mom_1[:, hank]
-    rhs = np.concatenate([_moments(np.conj(Fw) * Xw, rp[:, :, :q]), _moments(Xw, rp[:, :, :q])], axis=1)
+    rhs = np.concatenate([mom[:, 4, :q] + 1j * mom[:, 5, :q], mom[:, 6, :q] + 1j * mom[:, 7, :q]], axis=1)
     Minv = np.linalg.inv(M)
+    if weights:  # G = e0' M^-1 Phi^H X: a_j = conj(F_j) P1(r_j) + P2(r_j)
+        r = np.where(inside, offs[None, :] / half[:, None], 0.0)
+        rp = r[:, :, None] ** np.arange(q)
+        P1 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, :q])
+        P2 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, q:])
+        return np.where(inside, np.conj(Fw) * P1 + P2, 0), idx
     theta = np.einsum("gab,gb->ga", Minv, rhs)
-    rss = np.sum(np.abs(Xw) ** 2, axis=1) - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
+    rss = xx - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
     n_in = inside.sum(axis=1)
-    s2 = np.maximum(rss, 0) / np.maximum(n_in - 2 * q, 1)
+    dof = np.maximum(n_in - 2 * q, 1)
+    s2 = np.maximum(rss, 0) / dof
     var_g = s2 * np.real(Minv[:, 0, 0])
     # a negative variance is round-off of a near-singular band (nothing excited): no bound
     sG = np.where(var_g >= 0, np.sqrt(np.abs(var_g)), np.inf)
-    return theta[:, 0], sG, s2, mom_ff[:, 0] / n_in
-
-
-def _moments(weights, rp):
-    """sum_j weights[g, j] * rp[g, j, m] as batched real matmuls (complex weights split)."""
-    if np.iscomplexobj(weights):
-        return _moments(weights.real, rp) + 1j * _moments(weights.imag, rp)
-    return (weights[:, None, :] @ rp)[:, 0, :]
+    return (theta[:, 0], sG, s2, mom_ff[:, 0] / n_in, dof, np.abs(theta[:, 2]) ** 2,
+            s2 * np.abs(np.real(Minv[:, 2, 2])))
 
 
 def _flags(res: EtfeResult, rec: Recording, F: np.ndarray, X: np.ndarray) -> list[str]:
@@ -300,15 +429,27 @@ def _verdict(res: EtfeResult) -> Verdict:
     resonance). Nothing here makes Z failed: each frequency carries its own band."""
     findings = [(DOUBTFUL, f) for f in res.flags]
     w, Z = res.w, res.Z
-    if len(w) >= 3:
-        step = np.abs(np.gradient(Z)) / np.maximum(np.abs(Z), 1e-300)
-        band = (w >= W_BAND[0]) & (w <= W_BAND[1])
+    band = (w >= W_BAND[0]) & (w <= W_BAND[1])
+    if res.eiv_bound is not None:
+        biased = band & (res.eiv_bound * np.abs(Z) > BIAS_SE * res.Z_se)
+        if biased.any():
+            most = 100 * float(np.max(res.eiv_bound[biased]))
+            findings.append((DOUBTFUL, f"force-noise: at {_spans(w, biased)} rad/s the coherence allows noise "
+                             f"on the recorded force that would bias |Z| up by as much as {most:.2g} %, beyond "
+                             "what the band holds; state force_hold = zoh if the recorded force is the "
+                             "command (no sensor)"))
+    if res.unresolved is not None:
+        sharp = band & res.unresolved
+        how = ("G bends more than the local model follows even at its narrowest band (a sharp "
+               "resonance, or the lowest bins of a short record)")
+    else:  # no bias estimate: Z moving by more than its band from bin to bin at low coherence
+        step = np.abs(np.gradient(Z)) / np.maximum(np.abs(Z), 1e-300) if len(w) >= 3 else np.zeros(len(w))
         sharp = band & (res.coherence < RESONANCE_COHERENCE) & (step > res.Z_err / np.maximum(np.abs(Z), 1e-300))
-        if sharp.any():
-            findings.append((DOUBTFUL, f"narrow-band: at {_spans(w, sharp)} rad/s Z changes by more than its "
-                             f"95 % band between neighbouring frequencies and gamma^2 < {RESONANCE_COHERENCE:g} "
-                             "(a sharp resonance): the band there may not hold the truth; a longer record "
-                             "or more excitation narrows the bins"))
+        how = (f"Z changes by more than its 95 % band between neighbouring frequencies and "
+               f"gamma^2 < {RESONANCE_COHERENCE:g} (a sharp resonance)")
+    if sharp.any():
+        findings.append((DOUBTFUL, f"narrow-band: at {_spans(w, sharp)} rad/s {how}: the band there may "
+                         "not hold the truth; a longer record narrows the bins"))
     return judge(findings)
 
 

@@ -188,5 +188,5 @@ class LiveEtfe:
             Z = sff / (1j * w * sfx)
             coh = np.clip(np.abs(sfx) ** 2 / (sff * sxx), 0, 1)
         n_avg = level.count * (2 * half + 1) / HANN_ENBW_BINS
-        return EtfeResult(NAME, w, Z, coh, _h1_err(Z, coh, n_avg), coh < LOW_COHERENCE,
-                          force_power=sff / (2 * half + 1))
+        se, err = _h1_err(Z, coh, n_avg)
+        return EtfeResult(NAME, w, Z, coh, err, se, coh < LOW_COHERENCE, force_power=sff / (2 * half + 1))

@@ -113,8 +113,10 @@ def interval(lo, hi, digits: int = 4) -> str:
 
 
 def plus_minus(value, lo, hi) -> str:
-    """``value ± half-width`` of a symmetric interval (the jackknife's), the half-width to
-    2 digits and the value to the same decimal place (at least 4 significant digits)."""
+    """``value ± half-width`` of a symmetric interval, the half-width to 2 digits and the
+    value to the same decimal place (at least 4 significant digits); ``value (lo to hi)``
+    when the interval is not centred on the value (it also covers a second credible fit:
+    ``labbench.analysis.identify``, ``loopfit``)."""
     if value is None:
         return "-"
     if lo is None or hi is None:
@@ -122,6 +124,8 @@ def plus_minus(value, lo, hi) -> str:
     half = (hi - lo) / 2
     if not half > 0:
         return f"{fmt(value, 6)} ± 0"
+    if abs(value - (lo + hi) / 2) > 0.05 * half:
+        return f"{fmt(value, 6)} ({interval(lo, hi)})"
     decimals = max(0, 1 - math.floor(math.log10(half)))
     if abs(value) > 0:
         decimals = max(decimals, 3 - math.floor(math.log10(abs(value))))
