@@ -258,7 +258,8 @@ def _levels(rows):
 
 def _reasons(rows, top=3):
     c = Counter(w for r in rows for w in set(r["why"]))
-    return "; ".join(f"{k} ({v})" for k, v in c.most_common(top)) or "-"
+    ranked = sorted(c.items(), key=lambda kv: (-kv[1], kv[0]))[:top]  # ties by name: a rerun diffs clean
+    return "; ".join(f"{k} ({v})" for k, v in ranked) or "-"
 
 
 def id_table(rows):
