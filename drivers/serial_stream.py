@@ -369,9 +369,15 @@ class SerialStream:
             # A lock-step board's time is virtual: a caller's wall-time timeout (the
             # loop's watchdog) means nothing there; the board's own stale limit rules.
             timeout = max(timeout, self._stale_s)
-        now = self._clock()
-        deadline = now + timeout
+        deadline = self._clock() + timeout
         while not self._ready:
+            # What is waiting is read before silence is judged: a host held off the
+            # CPU past the limit finds the board's samples queued; the stall is the
+            # host's (the loop's watchdog counts it), not the board's.
+            self._ingest(self._read_chunk())
+            if self._ready:
+                break
+            now = self._clock()
             if self._enabled and now - self._last_arrival >= self._stale_s:
                 self.stale_trips += 1
                 self._trip(
@@ -384,8 +390,6 @@ class SerialStream:
                         f"no serial sample within the read timeout of {timeout * 1e3:.1f} ms"
                     )
                 raise TimeoutError(f"no serial sample within {timeout:g} s")
-            self._ingest(self._read_chunk())
-            now = self._clock()
         if not self._enabled:
             while len(self._ready) > 1:
                 self._ready.popleft()

@@ -6,6 +6,7 @@ The whole chain runs: real driver on a pty, labbench.runner, labbench.loop.
 """
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -135,6 +136,24 @@ def test_stale_limit_is_within_three_periods_on_a_fake_clock():
         )
         assert silent <= 3.25 * rig.sample_time_s
         assert "force zeroed" in str(exc.value) and drv.commanded_force_n == 0.0
+
+
+def test_a_host_stalled_past_the_stale_limit_reads_what_the_board_sent_and_goes_on():
+    """The stall is the host's: the board's next sample waits in the port; reading it
+    is no stale trip (the same rule as the CANopen driver's late SYNC)."""
+    rig = make_rig()
+    drv, peer = connect_sim_serial(rig, seed=4, lockstep_timeout_s=4.0)  # host stale: 2 s
+    with drv:
+        drv.enable(0.5)
+        for _ in range(5):
+            drv.read(0.5)
+            drv.command(0.1)
+        time.sleep(2.3)  # a host held off the CPU past its stale limit
+        seqs = []
+        for _ in range(5):
+            seqs.append(drv.read(0.5).seq)
+            drv.command(0.1)
+        assert drv.stale_trips == 0 and np.all(np.diff(seqs) == 1)
 
 
 def test_realtime_board_stall_trips_the_host_and_the_host_freeze_trips_the_board():
