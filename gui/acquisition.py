@@ -17,10 +17,10 @@ waits for the other):
   page arrays pickled by multiprocessing, progress, results, errors as the one
   line ``labbench.gui.worker.describe_error`` makes), forwarded into the GUI's mailbox by
   a reader thread on the GUI side;
-* E-STOP: a shared ``multiprocessing.Event``; a thread of the child blocks on it
+* E-STOP: a shared flag (``SharedFlag``); a thread of the child polls it every 2 ms
   and, the moment it is set, calls ``device.emergency_stop()`` and sets the
   run's stop event (the GUI never waits for the child to notice);
-* Stop: a second shared event, passed on to the run's stop event by the same thread;
+* Stop: a second shared flag, passed on to the run's stop event by the same thread;
 * timing: the loop's overruns and worst stall so far, 4 times a second, for the status bar;
 * watchdog: a child thread waits on the parent's process sentinel; if the GUI
   process dies the device is emergency-stopped, the run ends (its session
@@ -43,6 +43,7 @@ from multiprocessing.connection import wait as wait_handles
 
 from labbench.device import StatusReporting
 from labbench.interrupts import StopRequest, handle_signals, interrupt_reason
+from labbench.records import START
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,37 @@ def device_health(device) -> dict:
     if st.link:
         out["link"] = ", ".join(f"{k} {v}" for k, v in st.link.items() if v) or "all zero"
     return out
+
+
+class SharedFlag:
+    """A flag both processes see (one shared byte): set, clear and read never block.
+
+    Not ``multiprocessing.Event``: its ``set()`` waits until every process waiting on it
+    has woken, and a waiter that cannot wake (a daemon thread of a child that is exiting:
+    Python freezes those) blocks it for ever; seen as a window whose close never returned,
+    on a machine loaded enough that the child's exit outlasted the grace period."""
+
+    def __init__(self, ctx):
+        self._value = ctx.RawValue("b", 0)
+
+    def set(self) -> None:
+        self._value.value = 1
+
+    def clear(self) -> None:
+        self._value.value = 0
+
+    def is_set(self) -> bool:
+        return bool(self._value.value)
+
+    def wait(self, timeout: float, poll_s: float = 0.002) -> bool:
+        """True as soon as the flag is set (checked every ``poll_s``), False after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while not self.is_set():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            time.sleep(min(poll_s, left))
+        return True
 
 
 # ----- the child process ---------------------------------------------------------------------
@@ -100,7 +132,7 @@ class _Child:
                         self.post("warning", f"device emergency_stop raised: {_describe(exc)}")
                 self.post("estopped", dev is not None)
                 while self.estop.is_set():  # latched until the GUI clears it (reconnect)
-                    threading.Event().wait(0.05)
+                    time.sleep(0.05)
             elif self.stop.is_set():
                 self.run_stop.set()
 
@@ -204,7 +236,8 @@ class _Child:
     def do_disable(self, timeout):
         self._dev().disable(timeout)
 
-    def do_run(self, protocol_name, settings, rig, session_dir, start_extra, simulated):
+    def do_run(self, protocol_name, settings, rig, session_dir, start_extra, simulated,
+               skip_commissioning=False):
         from labbench.realtime import RealtimeConfig
         from labbench.registry import make_protocol
         from labbench.runner import run_recorded
@@ -219,10 +252,15 @@ class _Child:
         try:
             protocol = make_protocol(protocol_name, **settings)
             # close=False: the device stays connected in the window for the next run
+            def forward(rec):  # the window sees the start record as it is written
+                self.post("record", {**rec, **start_extra} if start_extra and rec["kind"] == START
+                          else rec)
+
             return run_recorded(
-                device, protocol, session_dir, [lambda rec: self.post("record", rec)],
+                device, protocol, session_dir, [forward],
                 start_extra=start_extra, on_session=lambda path: self.post("session", path),
                 stop=self.run_stop, rig=rig, close=False, simulated=simulated,
+                skip_commissioning=skip_commissioning,
                 realtime=RealtimeConfig.from_rig(rig),
                 progress=lambda frac, text: self.post("progress", (frac, text)),
                 live_timing=self.post_timing,
@@ -257,8 +295,8 @@ class Acquisition:
         self.mailbox = mailbox
         ctx = mp.get_context("spawn")
         self._ctx = ctx
-        self.estop = ctx.Event()
-        self.stop = ctx.Event()
+        self.estop = SharedFlag(ctx)
+        self.stop = SharedFlag(ctx)
         self._commands = ctx.Queue()
         self._messages = ctx.Queue()
         self.process = None
@@ -268,28 +306,44 @@ class Acquisition:
     def _ensure_started(self) -> None:
         if self.process is not None and self.process.is_alive():
             return
+        if self.process is not None:  # it died: its pipes may hold half a message
+            self._close_queues()
+            self._commands, self._messages = self._ctx.Queue(), self._ctx.Queue()
         self.process = self._ctx.Process(target=_child_main, name="labbench-acquisition", daemon=True,
                                          args=(self._commands, self._messages, self.estop, self.stop))
         with _main_module_hidden():
             self.process.start()
-        self._reader = threading.Thread(target=self._forward, args=(self.process,),
+        self._reader = threading.Thread(target=self._forward, args=(self.process, self._messages),
                                         name="labbench-acq-reader", daemon=True)
         self._reader.start()
+        threading.Thread(target=self._watch, args=(self.process, self._reader),
+                         name="labbench-acq-watch", daemon=True).start()
 
-    def _forward(self, process) -> None:
-        """Child messages -> the GUI's mailbox; says so if the child dies."""
+    def _close_queues(self) -> None:
+        for q in (self._commands, self._messages):
+            q.close()
+            q.cancel_join_thread()
+
+    def _forward(self, process, messages) -> None:
+        """Child messages -> the GUI's mailbox, until the child has ended and sent all."""
         while True:
             try:
-                kind, payload = self._messages.get(timeout=0.2)
+                kind, payload = messages.get(timeout=0.2)
             except queue.Empty:
                 if not process.is_alive():
-                    if not self._closing:
-                        self.mailbox.put("acquisition died", process.exitcode)
                     return
                 continue
-            except (EOFError, OSError):
+            except (EOFError, OSError, ValueError):  # ValueError: closed by shutdown
                 return
             self.mailbox.put(kind, payload)
+
+    def _watch(self, process, reader) -> None:
+        """Says so when the child ends unasked: from its process handle, not from its pipe (a
+        child killed in the middle of a message leaves the reader waiting for the rest)."""
+        wait_handles([process.sentinel])
+        reader.join(1.0)  # what it sent before it ended comes first
+        if not self._closing:
+            self.mailbox.put("acquisition died", process.exitcode)
 
     def send(self, *cmd) -> None:
         self._ensure_started()
@@ -302,12 +356,14 @@ class Acquisition:
         self.send("connect", opener, rig, options)
 
     def run(self, protocol_name: str, settings: dict, rig, session_dir, start_extra: dict | None,
-            simulated: bool):
+            simulated: bool, skip_commissioning: bool = False):
         """``simulated``: the device is a simulator (``labbench.runner.run``: its watchdog
-        records a host stall and the run goes on)."""
+        records a host stall and the run goes on); ``skip_commissioning``: as the CLI's option
+        (``labbench.commissioning.gate``)."""
         self.stop.clear()
         self.send("run", protocol_name, settings, rig,
-                  None if session_dir is None else str(session_dir), start_extra, simulated)
+                  None if session_dir is None else str(session_dir), start_extra, simulated,
+                  skip_commissioning)
 
     def request_stop(self) -> None:
         self.stop.set()
@@ -330,9 +386,7 @@ class Acquisition:
             self.process.join(1.0)
             self.process.terminate()
             self.process.join(1.0)
-        for q in (self._commands, self._messages):
-            q.close()
-            q.cancel_join_thread()
+        self._close_queues()
 
 
 class _main_module_hidden:

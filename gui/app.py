@@ -5,9 +5,10 @@ import logging
 import sys
 from pathlib import Path
 
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.main_window import MainWindow
+from labbench.interrupts import handle_signals
 from labbench.gui.screenshot import ShotWhen
 
 log = logging.getLogger(__name__)
@@ -42,13 +43,15 @@ def demo_finished(win: MainWindow) -> bool:
 
 def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None,
             timeout_s: float = 180.0, demo_settings: dict | None = None, realtime: bool = True,
-            settings=None) -> int:
+            settings=None, units=None, skip_commissioning: bool = False) -> int:
     """Open the window (and with ``demo`` start the demo); returns the exit code.
-    ``settings``: the QSettings the window restores and saves its state with (None: none)."""
+    ``settings``: the QSettings the window restores and saves its state with (None: none);
+    ``units``, ``skip_commissioning``: as ``MainWindow``'s."""
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("labbench")
     tune_interpreter()
-    win = MainWindow(rig, session_dir, realtime=realtime, settings=settings)
+    win = MainWindow(rig, session_dir, realtime=realtime, settings=settings, units=units,
+                     skip_commissioning=skip_commissioning)
     previous_hook = sys.excepthook
 
     def hook(kind, exc, tb):  # a last resort: report in the window, keep running
@@ -73,8 +76,14 @@ def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None
 
         ready = (lambda: demo_finished(win)) if demo else (lambda: True)
         ShotWhen(win, screenshot, ready, done, timeout_s=timeout_s)
+    def on_signal(signum):  # Ctrl-C, a logout: close as the window's close button does
+        result["code"] = result["code"] or 128 + signum
+        QtCore.QTimer.singleShot(0, win.close)
+
     try:
-        code = app.exec()
+        # Python runs the handler at the window's next timer tick (30 Hz)
+        with handle_signals(on_signal):
+            code = app.exec()
     finally:
         sys.excepthook = previous_hook
     return result["code"] or code

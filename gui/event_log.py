@@ -5,6 +5,7 @@ it stays there until they scroll back to the bottom)."""
 from __future__ import annotations
 
 import time
+from html import escape
 
 from PySide6 import QtGui, QtWidgets
 
@@ -32,7 +33,7 @@ class EventLog(QtWidgets.QPlainTextEdit):
             width = max(len(label) for label, _ in rows)
             lines += [f"    {label.ljust(width)}  {value}" for label, value in rows]
         following = self.following()
-        safe = "<br>".join(_escape(line).replace("  ", "&nbsp;&nbsp;") for line in lines)
+        safe = "<br>".join(escape(line, quote=False).replace("  ", "&nbsp;&nbsp;") for line in lines)
         self.appendHtml(f'<span style="color:{colour}">{safe}</span>')
         if following:
             bar = self.verticalScrollBar()
@@ -46,6 +47,3 @@ class EventLog(QtWidgets.QPlainTextEdit):
     def texts(self, level: str | None = None) -> list[str]:
         return [t for _, lv, t in self.entries if level is None or lv == level]
 
-
-def _escape(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

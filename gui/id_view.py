@@ -3,38 +3,55 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
-from labbench.gui.live_plots import COLOURS
+from labbench.gui.live_plots import COLOURS, DecadeAxis
+from labbench.gui.verdict_view import VerdictLabel
 from labbench.numfmt import fmt
-
-
 
 
 def model_force(t, force, position, fit: dict, hold: str = "zoh"):
     """(t, measured, model) force on the samples an identification used.
 
-    The model force is f = m x'' + b x' [+ Fc sign(x')] [+ f0] (paper sec. 4.1)
+    The model force is f = m x'' + b x' [+ Fc L sign(x')] [+ f0] (paper sec. 4.1)
     with the derivatives of ``labbench.analysis.derivatives`` at the fit's own
-    cut-off. As in ``labbench.analysis.identify``, a zero-order-held force is
-    compared as the mean of the two holds around each sample (the central
-    second difference spans both). The force is not low-passed here, so for a
-    broadband force the difference shown can exceed the fit's own residual.
+    cut-off. As ``labbench.analysis.identify`` does: a force with power the
+    derivatives do not see (a broadband one) is low-passed the same way, the
+    sign term too (L), and a zero-order-held force is compared as the mean of
+    the two holds around each sample (the central second difference spans both);
+    so the difference shown is the fit's own residual.
     """
-    from labbench.analysis.derivatives import differentiate
+    from labbench.analysis.derivatives import CUTOFF_FACTOR, differentiate, force_band, lowpass
 
     t = np.asarray(t, float)
     f = np.asarray(force, float)
+    fs = (len(t) - 1) / (t[-1] - t[0])
+    cutoff = float(fit["cutoff_hz"])
+    if force_band(f, fs) > cutoff / CUTOFF_FACTOR:
+        f = lowpass(f, fs, cutoff)
     if hold == "zoh":
         f = np.concatenate([f[:1], 0.5 * (f[1:] + f[:-1])])
-    fs = (len(t) - 1) / (t[-1] - t[0])
-    d = differentiate(np.asarray(position, float), fs, float(fit["cutoff_hz"]))
+    d = differentiate(np.asarray(position, float), fs, cutoff)
     model = (fit["m"] or 0.0) * d.a + (fit["b"] or 0.0) * d.v
     if fit.get("coulomb") is not None:
-        model = model + fit["coulomb"] * np.sign(d.v)
+        model = model + fit["coulomb"] * lowpass(np.sign(d.v_all), fs, cutoff)[d.keep]
     if fit.get("offset") is not None:
         model = model + fit["offset"]
     return t[d.keep], f[d.keep], model
+
+
+def plant_data(data: dict, meta: dict) -> dict:
+    """The record as the plant felt it: the command force after the device's own delay
+    (``labbench.device_delay``; ``compare.plant_force``, as chirp-ID's analysis fits it)."""
+    from labbench.analysis.compare import plant_force
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.device_delay import from_meta
+
+    latency = from_meta(meta)
+    if not latency:
+        return data
+    rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
+    return {**data, "command": plant_force(rec, None, latency)}
 
 
 # table rows: result key -> (label, unit)
@@ -44,7 +61,7 @@ ROWS = (("m", "mass m", "kg"), ("m_ci", "m, 95 % interval", "kg"),
         ("offset", "force offset f0", "N"), ("offset_ci", "f0, 95 % interval", "N"),
         ("rms_residual", "rms force residual", "N"), ("explained", "force variance explained", "%"),
         ("n_used", "samples used", ""), ("cutoff_hz", "derivative cut-off", "Hz"),
-        ("model", "model", ""), ("warnings", "warnings", ""))
+        ("model", "model", ""), ("warnings", "warnings", ""), ("verdict", "verdict", ""))
 # the open-loop impedance is shown up to this fraction of Nyquist (where the ZOH plant
 # model and the ETFE both hold and the chirp still excites)
 W_MAX_NYQUIST = 0.3
@@ -70,17 +87,87 @@ def open_loop_impedance(t, force, position, fits: dict):
     return w, np.asarray(est.Z)[keep], models
 
 
+# the closed-loop fit's rows: key -> (label, unit, scale from SI)
+FIT_ROWS = (("m", "mass m", "kg", 1.0), ("b", "damping b", "N s/m", 1.0),
+            ("td_s", "device latency td", "ms", 1e3), ("tv_s", "VE-path delay tv", "ms", 1e3),
+            ("K", "rendered K", "N/m", 1.0), ("B", "rendered B", "N s/m", 1.0))
+
+
+def loop_fit_rows(fit: dict, units=None) -> list[tuple[str, str, str]]:
+    """(label with unit, value, 95 % interval) of a loop fit (``LoopFit.as_dict()``), as
+    ``labbench analyze etfe --fit`` prints it; the band in the display unit of frequency."""
+    from labbench.units import SI
+
+    units = units or SI
+    ci = fit.get("ci95") or {}
+    rows = []
+    for key, label, unit, scale in FIT_ROWS:
+        if fit.get(key) is None:
+            continue
+        interval = ci.get(key)
+        rows.append((f"{label} ({unit})", fmt(scale * fit[key], 5),
+                     f"{fmt(scale * interval[0], 5)} to {fmt(scale * interval[1], 5)}" if interval
+                     else "held (not fitted)"))
+    sel = fit.get("selection") or {}
+    why = sel.get("reason") or sel.get("criterion") or ""
+    if why == "given":  # the protocol's own analysis: it rendered the VE, so tv is known
+        why = "given: the run's VE delay is known, the device latency is fitted"
+    rows.append(("delay model", str(fit.get("delay_model")), why))
+    if fit.get("loop_delay_s") is not None:
+        rows.append(("loop delay tv + td (ms)", fmt(1e3 * fit["loop_delay_s"], 5), ""))
+    band = fit.get("band_rad_s") or []
+    if len(band) == 2:
+        f = units.frequency_of
+        rows.append((f"band ({units.frequency})", f"{fmt(f(band[0]))} to {fmt(f(band[1]))}",
+                     f"{fit.get('n_freq')} coherent frequencies"))
+    rows.append(("chi2/dof", fmt(fit.get("chi2_dof"), 3), "1 when the model fits to the noise"))
+    if fit.get("residual_rms") is not None:
+        rows.append(("residual rms (% of |Z|)", fmt(100 * fit["residual_rms"], 3), ""))
+    return rows
+
+
+def _table(table: QtWidgets.QTableWidget, header: list[str], rows: list[tuple[str, ...]]) -> None:
+    """Fill ``table``: row labels from the first cell of each row, the rest as columns."""
+    table.clear()
+    table.setRowCount(len(rows))
+    table.setColumnCount(len(header))
+    table.setHorizontalHeaderLabels(header)
+    table.setVerticalHeaderLabels([r[0] for r in rows])
+    for i, row in enumerate(rows):
+        for j, text in enumerate(row[1:]):
+            table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
+    table.resizeColumnsToContents()
+    table.setVisible(True)
+    # all rows at once (the side panel scrolls), and room for a horizontal scroll bar
+    table.setFixedHeight(table.horizontalHeader().sizeHint().height() + 2 * table.frameWidth()
+                         + sum(table.rowHeight(r) for r in range(table.rowCount()))
+                         + table.horizontalScrollBar().sizeHint().height())
+
+
+def cells(table: QtWidgets.QTableWidget) -> dict[str, list[str]]:
+    """row label -> the texts of its cells (what a person reads; for tests)."""
+    out = {}
+    for r in range(table.rowCount()):
+        head = table.verticalHeaderItem(r)
+        out[head.text() if head else str(r)] = [table.item(r, c).text() if table.item(r, c) else ""
+                                               for c in range(table.columnCount())]
+    return out
+
+
 class IdView(QtWidgets.QWidget):
     """What an identification is judged by: the open-loop impedance of the record against
-    the identified model, the force residual of the fit, and the fits with units."""
+    the identified model, the force residual of the fit, and the fits with units and
+    verdicts; the plant the theory overlay uses, with where it came from; and the
+    closed-loop fit of an ETFE session."""
 
     def __init__(self, parent=None):
         super().__init__(parent)
+        from labbench.units import SI
+
         plots = pg.GraphicsLayoutWidget()
-        self.impedance = plots.addPlot(row=0, col=0)
+        self.impedance = plots.addPlot(row=0, col=0, axisItems={"bottom": DecadeAxis("bottom")})
         self.impedance.setLogMode(x=True, y=True)
         self.impedance.setLabel("left", "|Z| = |F / (jω X)|", units="N s/m")
-        self.impedance.setLabel("bottom", "frequency", units="rad/s")
         self.impedance.showGrid(x=True, y=True, alpha=0.3)
         self.impedance.addLegend(offset=(10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.z_measured = self.impedance.plot(pen=None, symbol="o", symbolSize=5,
@@ -97,52 +184,101 @@ class IdView(QtWidgets.QWidget):
         self.residual = self.residual_plot.plot(pen=pg.mkPen(COLOURS["measured"], width=1))
         plots.ci.layout.setRowStretchFactor(0, 3)
         plots.ci.layout.setRowStretchFactor(1, 2)
-        self.chosen = QtWidgets.QLabel("no identification yet: run chirp-ID, or open a session and press Re-analyse")
-        self.chosen.setWordWrap(True)
+
+        def label(text=""):
+            lab = QtWidgets.QLabel(text)
+            lab.setWordWrap(True)
+            lab.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+            return lab
+
+        self.overlay = label("theory overlay plant: -")
+        self.overlay.setStyleSheet("QLabel { background: #eef3fa; padding: 4px; }")
+        self.source = label("no identification yet: run chirp-ID, or open a session and press Re-analyse")
+        self.chosen = label()
         self.table = QtWidgets.QTableWidget(0, 0)
-        self.flags = QtWidgets.QLabel("")
-        self.flags.setWordWrap(True)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.verdicts = VerdictLabel()
+        self.flags = label()
+        self.fit_source = label("closed-loop fit: none yet (an ETFE run, a replayed ETFE session, "
+                                "or Re-analyse of one)")
+        self.fit_table = QtWidgets.QTableWidget(0, 0)
+        self.fit_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.fit_verdict = VerdictLabel()
+        for table in (self.table, self.fit_table):
+            table.verticalHeader().setDefaultSectionSize(22)
+            table.setVerticalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+            table.setVisible(False)  # until there is something to show
         self.splitter = QtWidgets.QSplitter()
         self.splitter.addWidget(plots)
         side = QtWidgets.QWidget()
         lay = QtWidgets.QVBoxLayout(side)
-        lay.addWidget(self.chosen)
-        lay.addWidget(self.table, 1)
+        lay.addWidget(self.overlay)
+        heading = label("<b>Identification (open loop, paper sec. 4.1)</b>")
+        lay.addWidget(heading)
+        for w in (self.source, self.chosen):
+            lay.addWidget(w)
+        lay.addWidget(self.table)
+        lay.addWidget(self.verdicts)
         lay.addWidget(self.flags)
-        self.splitter.addWidget(side)
-        self.splitter.setSizes([700, 420])
+        lay.addWidget(label("<b>Closed-loop fit of an ETFE session (exact sampled model)</b>"))
+        lay.addWidget(self.fit_source)
+        lay.addWidget(self.fit_table)
+        lay.addWidget(self.fit_verdict)
+        lay.addStretch(1)
+        scroll = QtWidgets.QScrollArea()  # the tables at their full height; the side scrolls
+        scroll.setWidgetResizable(True)
+        scroll.setWidget(side)
+        self.splitter.addWidget(scroll)
+        self.splitter.setSizes([600, 520])
         QtWidgets.QVBoxLayout(self).addWidget(self.splitter)
         self.results: dict = {}
+        self.loop_fit: dict = {}
+        self._data: dict | None = None
+        self.set_units(SI)
 
-    def show_results(self, results: dict[str, dict], data: dict | None = None) -> None:
+    def set_units(self, units) -> None:
+        """Display unit of frequency on the impedance plot and in the fit's band."""
+        self.units = units
+        freq = "f" if units.frequency == "Hz" else "ω"
+        self.impedance.setLabel("bottom", f"frequency {freq}", units=units.frequency)
+        self.impedance.getAxis("bottom").enableAutoSIPrefix(False)
+        if self.results and self._data is not None:
+            self._show_data(self.results, self._data)
+        if self.loop_fit:
+            self.show_loop_fit(self.loop_fit, self.fit_source.text())
+
+    def show_overlay(self, text: str) -> None:
+        """The plant the theory overlay uses and where it came from."""
+        self.overlay.setText(f"theory overlay plant: {text}")
+
+    def show_results(self, results: dict[str, dict], data: dict | None = None, source: str = "",
+                     used: str | None = None) -> None:
         """``results``: method name -> ``IdResult.as_dict()``, one table column each;
-        ``data``: the record they were fitted on (t, command force, position)."""
+        ``data``: the record they were fitted on (t, command force, position); ``source``:
+        where they come from (a session, this run); ``used``: the method whose m, b the
+        theory overlay takes, if any."""
         self.results = results
-        cells = {}
+        cells_ = {}
         for method, res in results.items():
             for k in ("m", "b", "coulomb", "offset"):
                 if res.get(k) is not None:
-                    cells.setdefault(k, {})[method] = fmt(res[k], 5)
+                    cells_.setdefault(k, {})[method] = fmt(res[k], 5)
                     ci = (res.get("ci95") or {}).get(k)
                     if ci:
-                        cells.setdefault(f"{k}_ci", {})[method] = f"{fmt(ci[0], 5)} to {fmt(ci[1], 5)}"
+                        cells_.setdefault(f"{k}_ci", {})[method] = f"{fmt(ci[0], 5)} to {fmt(ci[1], 5)}"
             for k in ("rms_residual", "n_used", "cutoff_hz", "model"):
                 if k in res:
-                    cells.setdefault(k, {})[method] = fmt(res[k], 4)
+                    cells_.setdefault(k, {})[method] = fmt(res[k], 4)
             if "explained" in res:
-                cells.setdefault("explained", {})[method] = f"{100 * res['explained']:.4f}"
-            cells.setdefault("warnings", {})[method] = str(len(res.get("flags") or []))
-        rows = [(key, f"{label} ({unit})" if unit else label) for key, label, unit in ROWS
-                if key in cells]
-        self.table.setRowCount(len(rows))
-        self.table.setColumnCount(len(results))
-        self.table.setHorizontalHeaderLabels([f"{m} fit" for m in results])
-        self.table.setVerticalHeaderLabels([label for _, label in rows])
-        for c, method in enumerate(results):
-            for r, (key, _) in enumerate(rows):
-                self.table.setItem(r, c, QtWidgets.QTableWidgetItem(cells[key].get(method, "")))
-        self.table.resizeColumnsToContents()
+                cells_.setdefault("explained", {})[method] = f"{100 * res['explained']:.4f}"
+            cells_.setdefault("warnings", {})[method] = str(len(res.get("flags") or []))
+            if isinstance(res.get("verdict"), dict):
+                cells_.setdefault("verdict", {})[method] = str(res["verdict"].get("level"))
+        rows = [(f"{label} ({unit})" if unit else label,
+                 *(cells_[key].get(m, "") for m in results))
+                for key, label, unit in ROWS if key in cells_]
+        _table(self.table, [f"{m} fit" + (" (overlay)" if m == used else "") for m in results], rows)
+        self.verdicts.show_verdicts([(f"{m} fit", res.get("verdict")) for m, res in results.items()])
         self.flags.setText("<br>".join(f"<b>{m}</b>: {f}" for m, res in results.items()
                                        for f in res.get("flags") or []))
         first = next(iter(results.values()))
@@ -153,16 +289,30 @@ class IdView(QtWidgets.QWidget):
             terms += " + Fc sign(x')"
         if first.get("offset") is not None:
             terms += " + f0"
+        self.source.setText(source or "identification of this run")
         self.chosen.setText(f"model chosen: {first.get('model')} ({terms})"
                             + (f"; selection: {why}" if why else ""))
+        self._data = data
         if data is not None:
             self._show_data(results, data)
+
+    def show_loop_fit(self, fit: dict, source: str) -> None:
+        """The closed-loop fit of an ETFE record (``LoopFit.as_dict()``, or {"error": why})."""
+        self.loop_fit = fit
+        self.fit_source.setText(source)
+        if "error" in fit:
+            _table(self.fit_table, ["value", "95 % interval"], [("no fit", str(fit["error"]), "")])
+            self.fit_verdict.show_verdicts([])
+            return
+        _table(self.fit_table, ["value", "95 % interval"], loop_fit_rows(fit, self.units))
+        self.fit_verdict.show_verdicts([("closed-loop fit", fit.get("verdict"))])
 
     def _show_data(self, results: dict, data: dict) -> None:
         fit = results.get("l2") or next(iter(results.values()))
         t, measured, model = model_force(data["t"], data["command"], data["position"], fit)
         self.residual.setData(t, measured - model)
         w, Z, models = open_loop_impedance(data["t"], data["command"], data["position"], results)
-        self.z_measured.setData(w, np.abs(Z))
+        fx = self.units.frequency_of(1.0)
+        self.z_measured.setData(w * fx, np.abs(Z))
         primary = "l2" if "l2" in models else next(iter(models), None)
-        self.z_model.setData(w, np.abs(models[primary]) if primary else [])
+        self.z_model.setData(w * fx, np.abs(models[primary]) if primary else [])

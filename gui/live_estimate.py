@@ -174,11 +174,13 @@ class LiveEstimator:
     def busy(self) -> bool:
         return self._future is not None and not self._future.done()
 
-    def submit(self, data, meta, ve, plant, window: int = 200, estimator: str | None = None) -> bool:
-        """Start an estimate unless one is running; True if started."""
+    def submit(self, data, meta, ve, plant, window: int = 200, estimator: str | None = None,
+               plant_source: str = "given") -> bool:
+        """Start an estimate unless one is running; True if started. ``plant_source``: where
+        a given ``plant`` came from, in words (shown with it)."""
         if self.busy:
             return False
-        source = "given"
+        source = plant_source
         n = len(data["t"])
         if plant is None and self._identified and n < 2 * self._identified[1]:
             plant, source = self._identified[0], "identified (l2)"

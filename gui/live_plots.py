@@ -97,6 +97,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         for i, (key, title, unit) in enumerate(rows):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
+            p.getAxis("left").enableAutoSIPrefix(False)  # the display unit chosen (set_units)
             p.enableAutoRange(x=False, y=False)
             _plot_options_off(p)
             if i:
@@ -115,6 +116,16 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             legend.addItem(self.curves[name], name)
         _cheap_repaint(self)
         self.frames = 0
+        self.set_units(SI)
+
+    def set_units(self, units) -> None:
+        """Length unit of the position and velocity axes (``labbench.units.DisplayUnits``):
+        the axes scale their ticks, the data stay SI."""
+        self.units = units
+        for key, title, per in (("position", "position", ""), ("velocity", "velocity estimate", "/s")):
+            axis = self.plots[key].getAxis("left")
+            axis.setScale(units.length_of(1.0))
+            self.plots[key].setLabel("left", title, units=units.length + per)
 
     def clear_data(self) -> None:
         self._buffer = None
@@ -225,7 +236,6 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")  # one legend serves all rows
         legend.addItem(self.curves["ES_theory"], "theory")
-        self.plots["EM"].setLabel("bottom", "frequency w", units="rad/s")
         for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.85)):
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
                                    label="", labelOpts={"position": at, "color": "#222222"})
@@ -234,9 +244,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.marks[key] = line
         self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
-        self._setup(self.bode_plots["phase"], "phase of Z", "deg")
+        self._setup(self.bode_plots["phase"], "phase of Z", "rad")
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
-        self.bode_plots["phase"].setLabel("bottom", "frequency w", units="rad/s")
         for k, p in self.bode_plots.items():
             log = (True, k == "mag")
             self.curves["bode_" + k] = _add_curve(p, pg.mkPen(COLOURS["measured"], width=3), log)
@@ -245,10 +254,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         _cheap_repaint(self.effective)
         _cheap_repaint(self.bode)
         self.last: Estimate | None = None
-        self.units = SI  # of the numbers in labels (the axes stay SI)
         self._theory_shown = None
         self._bode_shown = None
         self.updates = 0
+        self.set_units(SI)
         self.currentChanged.connect(lambda *_: self._draw_bode())
 
     @staticmethod
@@ -275,7 +284,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         # beyond it the sampled loop's ED and EM swing by orders of magnitude and
         # would set the scale of the whole plot.
         ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
-        w = est.w[ok]
+        fx = self.units.frequency_of(1.0)  # the x axis in the display unit of frequency
+        w = est.w[ok] * fx
         lw = np.log10(w)  # view x coordinates on a log axis
         # ES reads as stiffness where Im Z < 0, EM as mass where Im Z > 0 (paper Figure 2).
         shown = {"ES": np.where(est.Z.imag[ok] < 0, est.ES[ok], np.nan),
@@ -293,7 +303,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 if th:
                     keep = {"ES": th["Z"].imag < 0, "EM": th["Z"].imag > 0}.get(key, True)
                     keep = keep & (th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
-                    self.curves[key + "_theory"].setData(th["w"], np.where(keep, th[key], np.nan),
+                    self.curves[key + "_theory"].setData(th["w"] * fx, np.where(keep, th[key], np.nan),
                                                          connect="finite")
                 else:
                     self.curves[key + "_theory"].setData([], [])
@@ -304,18 +314,20 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             line = self.marks[key]
             if value:
                 line.setVisible(True)  # first: a hidden label ignores new text
-                if line.value() != np.log10(value):  # moving it re-lays out its label
-                    line.setValue(np.log10(value))  # view coordinates are log10 on a log axis
+                if line.value() != np.log10(value * fx):  # moving it re-lays out its label
+                    line.setValue(np.log10(value * fx))  # view coordinates are log10 on a log axis
                 # measured, then the one prediction (labbench.predictions: exact sampled
                 # model with the device delay, the paper's closed form labelled beside it)
-                text = predictions.label(key, value, est.predicted, self.units)
+                # two lines: the prediction under the measurement (one line ran off the plot)
+                text = predictions.label(key, value, est.predicted, self.units).replace(" (", "\n(", 1)
                 if text != line.label.format:  # new text: a re-layout of the label on the next paint
                     line.label.setFormat(text)
             else:
                 line.setVisible(False)
-        plant = (f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m ({est.plant_source})"
+        plant = (f"theory: m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m ({est.plant_source})"
                  if est.plant else "plant unknown: no theory overlay")
-        title = f"effective impedances from {est.n_samples} samples; {plant}"
+        # two lines: one long line set the plot column's minimum width past the window's
+        title = f"effective impedances from {est.n_samples} samples<br>{plant}"
         if title != self.title.text:  # a new text re-lays out the whole plot column
             self.title.setText(title)
         self.last = est
@@ -323,8 +335,14 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self._draw_bode()
 
     def set_units(self, units) -> None:
-        """Display units of the labels (``labbench.units.DisplayUnits``); redrawn at once."""
+        """Display units (``labbench.units.DisplayUnits``) of the frequency axes, the marks'
+        labels and the phase; redrawn at once."""
         self.units = units
+        freq = "f" if units.frequency == "Hz" else "w"
+        for p in (self.plots["EM"], self.bode_plots["phase"]):
+            p.setLabel("bottom", f"frequency {freq}", units=units.frequency)
+        self.bode_plots["phase"].setLabel("left", "phase of Z", units=units.angle)
+        self._theory_shown = self._bode_shown = None  # every curve again, in the new unit
         if self.last is not None:
             self.show_estimate(self.last)
 
@@ -351,15 +369,16 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         if est is None or self.currentWidget() is not self.bode or est is self._bode_shown:
             return
         ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
-        self.curves["bode_mag"].setData(est.w[ok], np.abs(est.Z[ok]), connect="finite")
-        self.curves["bode_phase"].setData(est.w[ok], np.degrees(np.unwrap(np.angle(est.Z[ok]))),
+        fx, u = self.units.frequency_of(1.0), self.units
+        self.curves["bode_mag"].setData(est.w[ok] * fx, np.abs(est.Z[ok]), connect="finite")
+        self.curves["bode_phase"].setData(est.w[ok] * fx, u.angle_of(np.unwrap(np.angle(est.Z[ok]))),
                                           connect="finite")
         th = est.theory
         if th:
             shown = th["w"] <= W_SHOWN_OF_NYQUIST * est.w_nyquist
-            wt, Zt = th["w"][shown], th["Z"][shown]
+            wt, Zt = th["w"][shown] * fx, th["Z"][shown]
             self.curves["bode_mag_theory"].setData(wt, np.abs(Zt), connect="finite")
-            self.curves["bode_phase_theory"].setData(wt, np.degrees(np.unwrap(np.angle(Zt))),
+            self.curves["bode_phase_theory"].setData(wt, u.angle_of(np.unwrap(np.angle(Zt))),
                                                      connect="finite")
         else:
             self.curves["bode_mag_theory"].setData([], [])

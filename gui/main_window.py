@@ -21,9 +21,10 @@ from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
 from labbench.gui.buffers import StreamBuffer
+from labbench.gui.commission_view import CommissionView
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.event_log import EventLog
-from labbench.gui.id_view import IdView
+from labbench.gui.id_view import IdView, plant_data
 # While a run streams, the estimate is updated with the new samples only (constant cost,
 # labbench.analysis.etfe_live); once it has ended, the run's own estimator on all data.
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
@@ -33,12 +34,16 @@ from labbench.gui.protocol_panel import ProtocolPanel, settings_rows
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.exports import export_in_child
+from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
+from labbench.gui.verdict_view import VerdictLabel, verdicts_of
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.records import EVENT, STOP
 from labbench.predictions import recorded_plant
+from labbench.session_catalogue import OWN_PLANT
 from labbench.safety import OVERRUN, SEQ_GAP
 from labbench.analysis.compare import ve_from_meta
+from labbench.numfmt import fmt
 from labbench.ve import Plant
 
 log = logging.getLogger(__name__)
@@ -94,11 +99,19 @@ def _collect_garbage_in_gui_thread() -> None:
 
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, rig, session_dir, backend: str | None = None, redraw_hz: float = 30.0,
-                 estimate_period_s: float = 0.5, realtime: bool = True, settings=None):
+                 estimate_period_s: float = 0.5, realtime: bool = True, settings=None,
+                 units=None, skip_commissioning: bool = False):
         """``settings``: a QSettings (``labbench.gui.settings.open_settings``) the window
-        restores its state from and saves it to on close; None: it remembers nothing."""
+        restores its state from and saves it to on close; None: it remembers nothing.
+        ``units``: display units (``labbench.units.DisplayUnits``) instead of the remembered
+        ones; ``skip_commissioning``: render springs on real hardware before the rig passed
+        its direction check (``labbench.commissioning.gate``), as the CLI's option."""
         super().__init__()
         self.settings = settings
+        self.skip_commissioning = skip_commissioning
+        self.identified: dict | None = None  # the newest chirp-ID of this rig: the plant runs use
+        self._plant_from: dict | None = None  # ... and the one the run under way uses
+        self._id_session_shown: str | None = None  # whose identification the tab shows
         self._protocol_shown: str | None = None  # whose settings the tree holds
         _collect_garbage_in_gui_thread()
         self.rig = rig
@@ -127,12 +140,16 @@ class MainWindow(QtWidgets.QMainWindow):
         self._progress_shown = 0.0  # monotonic time of the last progress shown
         self._progress = 0.0  # the fraction of the run or replay done
         self._halted = ""  # Stop or E-STOP pressed: what the progress line says until the end
+        self._run_protocol: str | None = None  # the protocol of the run under way (or last)
+        self._replay_path: str | None = None
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
         remembered = settings.value("device/backend", "", type=str) if settings else ""
         self._build(backend or remembered or default_backend(rig))
         self._restore_state()
+        if units is not None:
+            self.units_choice.set_units(units)
 
         self.redraw_timer = QtCore.QTimer(self)
         self.redraw_timer.setInterval(max(int(1000 / min(redraw_hz, 30.0)), 33))  # <= 30 Hz
@@ -151,7 +168,9 @@ class MainWindow(QtWidgets.QMainWindow):
             sc = QtGui.QShortcut(QtGui.QKeySequence(key), self)
             sc.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
             sc.activated.connect(self.emergency_stop)
+        QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
         self.log.add("info", f"rig: {rig.name} ({rig.source}); sessions in {self.session_dir}")
+        self._show_overlay()  # the rig's nominal until the sessions folder is read
         self.refresh_sessions()
 
     # ----- layout -------------------------------------------------------------------------
@@ -167,6 +186,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
                                      "its analysis and report use), or l2 identified on its data")
         self.id_view = IdView()
+        self.commission = CommissionView()
+        self.units_choice = UnitsChoice()
+        self.result_verdicts = VerdictLabel()  # the verdicts of the result on the Live tab
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
         self.sweeps = SweepView(self.session_dir)  # a re-run point's session goes with the runs
         self.log = EventLog()
@@ -195,6 +217,7 @@ class MainWindow(QtWidgets.QMainWindow):
         row.addWidget(self.theory_plant)
         row.addStretch(1)
         lv.addLayout(row)
+        lv.addWidget(self.result_verdicts)
         split = QtWidgets.QSplitter()
         split.addWidget(self.traces)
         split.addWidget(self.impedance)
@@ -205,8 +228,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")
         self.tabs.addTab(self.id_view, "Identification")
+        self.tabs.addTab(self.commission, "Commissioning")
         self.tabs.addTab(self.sessions, "Sessions")
         self.tabs.addTab(self.sweeps, "Sweeps")
+        self.tabs.setCornerWidget(self.units_choice, QtCore.Qt.Corner.TopRightCorner)
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         right.addWidget(self.tabs)
         right.addWidget(self.log)
@@ -244,8 +269,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.export_requested.connect(self.export)
         self.sweeps.session_requested.connect(lambda path: self.replay(path, None))
         self.theory_plant.currentTextChanged.connect(lambda *_: self._invalidate_estimate())
+        self.units_choice.changed.connect(self.set_units)
+        self.commission.run_requested.connect(self.start_commissioning)
+        self.commission.write_requested.connect(self.write_rig_file)
+        self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
 
         self.select_protocol(self.protocol_panel.choice.currentText())
+        self._rig_changed()
 
     @staticmethod
     def _estimators() -> list[str]:
@@ -319,6 +349,7 @@ class MainWindow(QtWidgets.QMainWindow):
         dev = self.device
         self.estop.set_latched(dev is not None)
         self.device_panel.set_enabled(False)
+        self.device_panel.enable_button.setEnabled(False)  # until a reconnect clears the latch
         if self.mode != "idle":
             self._halt(f"E-STOP: force zeroed, {self._activity} stopped at {100 * self._progress:.0f} %")
         self._sync_buttons()
@@ -382,6 +413,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if isinstance(value, QtCore.QByteArray):
                 splitter.restoreState(value)
         self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
+        self.units_choice.set_units(parse_or_si(s.value("display/units", "", type=str)))
         protocol = s.value("protocol/current", "", type=str)
         if protocol and self.protocol_panel.choice.findText(protocol) >= 0:
             self.protocol_panel.choice.setCurrentText(protocol)  # its settings follow
@@ -396,6 +428,7 @@ class MainWindow(QtWidgets.QMainWindow):
         for name, splitter in self.splitters.items():
             s.setValue(f"splitters/{name}", splitter.saveState())
         s.setValue("window/tab", self.tabs.currentIndex())
+        s.setValue("display/units", units_text(self.units_choice.units()))
         s.setValue("device/backend", self.device_panel.backend.currentText())
         s.setValue("protocol/current", self.protocol_panel.choice.currentText())
         self._remember_protocol()
@@ -404,17 +437,42 @@ class MainWindow(QtWidgets.QMainWindow):
         s.setValue("sessions/folder", str(Path(self.sessions.directory).resolve()))
         s.sync()
 
+    def protocol_values(self) -> tuple[dict, dict | None]:
+        """The settings of the protocol shown, and the identification they take their plant
+        from: as ``labbench run --plant-from last-id``, a protocol with plant fields left
+        empty uses the newest chirp-ID of this rig in the sessions folder (None: the rig's
+        nominal, or the plant given)."""
+        values = self.protocol_panel.values()
+        found = self.identified
+        if (found is None or self.protocol_panel.choice.currentText() in OWN_PLANT
+                or "plant_m_kg" not in values
+                or values.get("plant_m_kg") is not None or values.get("plant_b") is not None):
+            return values, None
+        return {**values, "plant_m_kg": found["m"], "plant_b": found["b"]}, found
+
     def make_protocol(self):
         from labbench.registry import make_protocol
 
-        return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_panel.values())
+        return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_values()[0])
+
+    @property
+    def simulated(self) -> bool:
+        """The device connected (or, before a connection, the backend chosen) is a simulator."""
+        backend = self._backend_connected if self.device is not None else \
+            self.device_panel.backend.currentText()
+        return backend in SIM_BACKENDS
 
     def checked_protocol(self):
-        """The configured protocol and its pre-check report; UserError when refused."""
+        """The configured protocol and its pre-check report; UserError when refused: bad
+        settings, an unstable VE, or a spring or damper on real hardware before the rig
+        passed its direction check (``labbench.commissioning.gate``: the CLI's one line)."""
+        from labbench.commissioning import gate
         from labbench.protocol import precheck
 
         protocol = self.make_protocol()
-        return protocol, precheck(protocol, protocol.plant(self.rig), self.rig)
+        plant = protocol.plant(self.rig)
+        gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning)
+        return protocol, precheck(protocol, plant, self.rig)
 
     def update_precheck(self):
         """Boundary and margin of the configured VE, shown before Start."""
@@ -426,7 +484,15 @@ class MainWindow(QtWidgets.QMainWindow):
         except Exception as exc:  # noqa: BLE001 - shown beside Start, never raised into Qt
             self.protocol_panel.set_precheck(f"pre-check failed: {describe_error(exc)}", False)
             return
-        self.protocol_panel.set_precheck(precheck_text(rep), bool(rep.get("stable", True)))
+        plant = rep.get("plant") or {}
+        text = precheck_text(rep)
+        if "m" in plant and "b" in plant:  # the plant it was checked on, and whence
+            values, found = self.protocol_values()
+            source = (f"identified in {session_label(found['session'])}" if found else
+                      "given in the settings" if values.get("plant_m_kg") is not None
+                      or values.get("plant_b") is not None else "the rig's nominal model")
+            text += f" (plant m = {fmt(plant['m'])} kg, b = {fmt(plant['b'])} N s/m, {source})"
+        self.protocol_panel.set_precheck(text, bool(rep.get("stable", True)))
 
     @guarded
     def start_protocol(self):
@@ -446,22 +512,77 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.device is None:
             self._pending_start = True
             self.connect_device(backend)
+            self.protocol_panel.set_progress(0.0, f"connecting to {backend} ...")
+            self._sync_buttons()  # no second Start while the first waits for the device
             return
         self._reset_view()
         self.stop_event = threading.Event()
         self._device_used = True
         self.mode = "running"
+        self._run_protocol, self.session_path = protocol.name, None
         self._progress, self._halted = 0.0, ""
         self._live_timing = False
         self._run_started = time.monotonic()
         self.protocol_panel.set_running(True)
         self.protocol_panel.set_progress(0.0, "starting ...")
+        values, self._plant_from = self.protocol_values()
+        if self._plant_from:
+            found = self._plant_from
+            self.log.add("info", f"using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
+                                 f"identified in {found['session']}")
         self.log.add("info", f"start {protocol.name} with these settings:",
                      rows=settings_rows(protocol.config.as_dict()))
-        self.acquisition.run(self.protocol_panel.choice.currentText(), self.protocol_panel.values(),
-                             self.rig, self.session_dir,
-                             start_extra={"gui_settings": self.protocol_panel.state()},
-                             simulated=self._backend_connected in SIM_BACKENDS)
+        extra = {"gui_settings": self.protocol_panel.state()}
+        if self._plant_from:
+            extra["plant_from"] = self._plant_from  # as labbench run records it
+        if protocol.name == "commission":
+            self.commission.set_running(True, "commissioning ...")
+        self.acquisition.run(self.protocol_panel.choice.currentText(), values, self.rig,
+                             self.session_dir, start_extra=extra, simulated=self.simulated,
+                             skip_commissioning=self.skip_commissioning)
+
+    @guarded
+    def start_commissioning(self):
+        """The commissioning page's Run: the ``commission`` protocol, as its settings stand
+        in the protocol panel, through the same Start as any run."""
+        self.protocol_panel.choice.setCurrentText("commission")
+        self.start_protocol()
+
+    @guarded
+    def write_rig_file(self):
+        """``--write-rig``: the measured values of the last commissioning into the rig file
+        (tomlkit, comments kept, FILE.bak first); the rig is read again, and a connected
+        device is closed so that the next run opens it with the new file."""
+        from labbench.commissioning import write_rig
+        from labbench.rig import load_rig
+
+        self._new_action()
+        if self.mode != "idle":
+            raise UserError(f"a {self.mode} is in progress; write the rig file after it")
+        fields = dict(self.commission.fields)
+        if not fields:
+            raise UserError("nothing to write: run commissioning first")
+        path = str(self.rig.source)
+        backup = write_rig(path, fields)
+        self.rig = load_rig(path)
+        text = (f"{path}: wrote {', '.join(fields)} (old file {backup})" if backup
+                else f"{path}: nothing to change")
+        self.commission.show_written(text)
+        self.log.add("info", text)
+        if self.device is not None:
+            self.disconnect_device()
+            self.log.add("info", "the device is opened again with the new rig file at the next run")
+        self._rig_changed()
+
+    def _rig_changed(self) -> None:
+        """The rig, or whether it is simulated, changed: the gate and the page follow."""
+        self.commission.set_rig(self.rig, self.simulated)
+        self.update_precheck()
+
+    def set_units(self, units) -> None:
+        """Display units (``labbench.units.DisplayUnits``) of every plot and label at once."""
+        for view in (self.traces, self.impedance, self.id_view):
+            view.set_units(units)
 
     @guarded
     def stop_run(self):
@@ -476,6 +597,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estimator.reset()
         self.traces.clear_data()
         self.impedance.clear_data()
+        self.result_verdicts.show_verdicts([])
         self._drawn_version = self._estimated_version = -1
         self._estimator_error_shown = None
         self._rate = (time.monotonic(), 0)
@@ -491,6 +613,7 @@ class MainWindow(QtWidgets.QMainWindow):
             est = self.estimator.poll()
             if est is not None:
                 self.impedance.show_estimate(est)
+                self._show_overlay()
             err = self.estimator.last_error
             if err and err != self._estimator_error_shown:
                 self._estimator_error_shown = err
@@ -521,7 +644,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self._progress_shown = now
             elapsed = now - self._run_started
             left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
-            self.protocol_panel.set_progress(frac, f"{text}: {100 * frac:.0f} %  {left}".strip())
+            line = f"{text}: {100 * frac:.0f} %  {left}".strip()
+            self.protocol_panel.set_progress(frac, line)
+            if self._run_protocol == "commission":
+                self.commission.set_running(True, line)
         elif kind == "timing":
             self._live_timing = True
             self._show_timing(payload, live=True)
@@ -548,6 +674,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._pending_start = False
             if self.mode == "running":
                 self._run_finished("run ended: the acquisition process died")
+            self._sync_buttons()
             self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
                             "reconnect the device")
 
@@ -555,6 +682,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if tag == "connect":
             self.device_panel.set_connected(None)
             self._pending_start = False
+            self._sync_buttons()
         if tag in ("run", "replay"):
             self._run_finished(f"{tag} failed: {message}")
         self.show_error(f"{tag}: {message}")
@@ -563,6 +691,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device = desc
         self._device_used = False
         self.device_panel.set_connected(desc)
+        self._rig_changed()
         self.log.add("info", f"connected: {desc.name} ({desc.kind})")
         if self._pending_start:
             self._pending_start = False
@@ -587,7 +716,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if status not in ("success", "completed", "aborted"):
             self.show_error(f"run {status}: {reason}")
         self._show_timing(getattr(result, "timing", {}) or {})
-        self._show_results(getattr(result, "results", {}) or {})
+        self._show_results(getattr(result, "results", {}) or {}, self.session_path, self._run_protocol,
+                           ran_here=status == "success")
         done = f"{100 * self._progress:.0f} %" if status != "success" else "100 %"
         self._run_finished(f"run {status} at {done}" + (f": {reason}" if status != "success" else ""))
         self.refresh_sessions()
@@ -595,7 +725,13 @@ class MainWindow(QtWidgets.QMainWindow):
             self.sessions.select_path(self.session_path)
 
     def _on_replay_done(self, status):
+        from labbench.records import protocol_name
+
         self.log.add("info", f"replay {status}")
+        results = (self.buffer.stop or {}).get("results")
+        if isinstance(results, dict) and self.buffer.start:
+            self._show_results(results, self._replay_path, protocol_name(self.buffer.start),
+                               replayed=True)
         self._run_finished(f"replay {status}")
 
     def _run_finished(self, state: str):
@@ -604,6 +740,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._halted = ""
         self.protocol_panel.set_running(False)
         self.protocol_panel.set_progress(self._progress, state)
+        self.commission.set_running(False, state if self._run_protocol == "commission" else "")
         self._sync_buttons()
         self._invalidate_estimate()  # the final estimate, with the run's own estimator
 
@@ -620,26 +757,91 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _sync_buttons(self) -> None:
         """Start only when idle and no E-STOP is latched (its tooltip says why not)."""
-        idle = self.mode == "idle"
-        start = self.protocol_panel.start_button
-        start.setEnabled(idle and not self.estop.latched)
-        start.setToolTip("E-STOP is latched: disconnect and reconnect the device to clear it"
-                         if self.estop.latched else "")
+        idle = self.mode == "idle" and not self._pending_start
+        why = "E-STOP is latched: disconnect and reconnect the device to clear it" \
+            if self.estop.latched else ""
+        for start in (self.protocol_panel.start_button, self.commission.run_button):
+            start.setEnabled(idle and not self.estop.latched)
+            start.setToolTip(why)
 
     def _on_reanalyse_done(self, value):
-        est, id_results, data = value
+        est, id_results, data, again = value
+        name = Path(again["path"]).name
+        if self.mode == "idle":  # what the Live tab showed was another record's
+            self._reset_view()
         if est is not None:
             self.impedance.show_estimate(est)
+            self._show_overlay()
         if id_results:
-            self._show_id(id_results, data)
+            self.id_view.show_results(id_results, data, source=f"re-analysis of {name}: l2 and l1 "
+                                      "on the command force")
+            self._id_session_shown = None
+        if again.get("fit"):
+            self.id_view.show_loop_fit(again["fit"], f"labbench analyze etfe --fit {again['options']}"
+                                       f"{name}: the delay model chosen by cross-validation")
+        verdicts = [(w, v) for w, v in again.get("verdicts", [])]
+        verdicts += [(f"identification ({m})", r.get("verdict")) for m, r in (id_results or {}).items()]
+        self.result_verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>")
         self.tabs.setCurrentIndex(0)
         self.log.add("info", "re-analysis done")
 
     def _on_export_done(self, paths):
         self.info("exported: " + ", ".join(str(p) for p in paths))
 
-    def _on_sessions_done(self, summaries):
+    def _on_sessions_done(self, value):
+        summaries, found = value
         self.sessions.set_sessions(summaries)
+        self._set_identified(found)
+
+    def _identified_here(self, results: dict, session: str) -> None:
+        """A chirp-ID run of this window: the next run takes its plant at once (the sessions
+        folder, read in the background, names the same one as ``last_identified``)."""
+        try:
+            plant = Plant(results.get("m"), results.get("b"))
+        except (UserError, TypeError):
+            return  # not a plant last_identified would take either
+        self._set_identified({"m": plant.m, "b": plant.b, "session": session})
+
+    def _set_identified(self, found: dict | None) -> None:
+        """The newest chirp-ID of this rig (the plant the next runs' theory takes): the
+        pre-check follows it, the Identification tab shows it."""
+        changed = (found or {}).get("session") != (self.identified or {}).get("session")
+        self.identified = found
+        if changed:
+            self.update_precheck()
+        if found and found["session"] != self._id_session_shown:
+            self._id_session_shown = found["session"]
+            run_in_background(self.mailbox, "identified", load_identification, found["session"])
+        self._show_overlay()
+
+    def _show_overlay(self) -> None:
+        """The Identification tab says which plant the theory overlay uses, and whence."""
+        est = self.impedance.last
+        if est is not None and est.theory:
+            text = f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m, {est.plant_source}"
+        elif est is not None and est.plant is None:
+            text = "none: the plant could not be identified on this record"
+        elif est is not None:
+            text = "none for this record (no VE); " + self._next_plant_text()
+        else:
+            text = self._next_plant_text()
+        self.id_view.show_overlay(text)
+
+    def _next_plant_text(self) -> str:
+        """The plant the next run's theory will use, and where it comes from."""
+        if self.identified:
+            f = self.identified
+            return (f"m = {fmt(f['m'])} kg, b = {fmt(f['b'])} N s/m, identified in "
+                    f"{session_label(f['session'])} (the next run's, unless its settings give m, b)")
+        p = self.rig.nominal_plant
+        return f"m = {fmt(p.m)} kg, b = {fmt(p.b)} N s/m, the rig's nominal model (the next run's)"
+
+    def _on_identified_done(self, value):
+        ident, data, path = value
+        if path != self._id_session_shown or not ident:
+            return  # a newer one was asked for meanwhile
+        self.id_view.show_results(ident, data, source=f"chirp-ID {Path(path).name}: the "
+                                  "identification the theory overlay uses", used=_used_method(ident))
 
     # ----- live estimate -------------------------------------------------------------------------
     def _invalidate_estimate(self):
@@ -650,9 +852,9 @@ class MainWindow(QtWidgets.QMainWindow):
         buf = self.buffer
         if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
             return
-        ve, plant, meta = self._estimate_inputs(buf)
+        ve, plant, meta, source = self._estimate_inputs(buf)
         data = buf.snapshot(("t", "excitation", "position", "command"))
-        if self.estimator.submit(data, meta, ve, plant, **self._etfe_options(buf)):
+        if self.estimator.submit(data, meta, ve, plant, plant_source=source, **self._etfe_options(buf)):
             self._estimated_version = buf.version
 
     def _etfe_options(self, buf) -> dict:
@@ -669,15 +871,17 @@ class MainWindow(QtWidgets.QMainWindow):
         return opts
 
     def _estimate_inputs(self, buf):
+        """(VE, plant or None to identify it, analysis metadata, where the plant came from)."""
         from labbench.session_content import analysis_meta
 
         meta = analysis_meta(buf.start, buf.descriptor or {})
         ve = ve_from_meta(meta)
-        plant = None
+        plant, source = None, "identified (l2)"
         if self.theory_plant.currentIndex() == RUN_PLANT:
             plant = recorded_plant(buf.start, (buf.stop or {}).get("results"))
+            source = plant_source(buf.start) if plant else "the window's rig nominal model"
             plant = plant or self.rig.nominal_plant
-        return ve, plant, meta
+        return ve, plant, meta, source
 
     # ----- results -------------------------------------------------------------------------
     def _show_timing(self, timing: dict, live: bool = False):
@@ -705,32 +909,55 @@ class MainWindow(QtWidgets.QMainWindow):
             self._rate = (now, self.buffer.n)
         self.status["mode"].setText(f"mode: {self.mode}")
 
-    def _show_results(self, results: dict):
+    def _show_results(self, results: dict, session: str | None, protocol: str | None,
+                      ran_here: bool = False, replayed: bool = False):
+        """A run's (or a replayed session's) results wherever the window shows a result:
+        their verdicts on the Live tab, an identification and a closed-loop fit on the
+        Identification tab, a commissioning on its page (``ran_here``: a run of this window
+        on this rig, whose measured values may be written into the rig file)."""
         if results.get("error"):
             self.show_error(str(results["error"]))
-        summary = scalar_summary(results)
-        if summary:
-            self.log.add("info", "results: " + summary)
+        rows = scalar_rows(results)
+        if rows:
+            self.log.add("info", "results:", rows=rows)
+        name = Path(session).name if session else "this run (not recorded)"
+        self.result_verdicts.show_verdicts(verdicts_of(results), prefix=f"<b>{protocol}, {name}</b>")
         ident = results.get("identification")
         if isinstance(ident, dict) and ident:
-            data = self.buffer.snapshot()
-            self._show_id(ident, data)
-            self.tabs.setCurrentWidget(self.id_view)
+            from labbench.session_content import analysis_meta
 
-    def _show_id(self, ident: dict, data: dict):
-        """``ident``: method -> IdResult dict, fitted on ``data`` (command force, position)."""
-        self.id_view.show_results(ident, data)
+            meta = analysis_meta(self.buffer.start or {}, self.buffer.descriptor or {})
+            self.id_view.show_results(ident, plant_data(self.buffer.snapshot(), meta),
+                                      source=f"chirp-ID {name}", used=_used_method(ident))
+            self._id_session_shown = session
+            self.tabs.setCurrentWidget(self.id_view)
+        if ran_here and protocol == "chirp-id" and session:
+            self._identified_here(results, session)
+        fit = results.get("loop_fit")
+        if isinstance(fit, dict) and fit:
+            self.id_view.show_loop_fit(fit, f"the run's own analysis of {name}, as its report: the "
+                                       "run renders its VE, so the VE-path delay tv is its td; the "
+                                       "device latency td is fitted")
+        if protocol == "commission":
+            from datetime import datetime, timezone
+
+            from labbench.commissioning import changes_to_write
+
+            fields = {}
+            if ran_here and session and "error" not in results:
+                fields = changes_to_write(results, session,
+                                          datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+            self.commission.show_result(results, session or "", fields)
+            if replayed:
+                self.commission.state.setText(f"replayed: {name} (a run of this window, on this "
+                                              "rig, writes the rig file; a replay does not)")
+            self.tabs.setCurrentWidget(self.commission)
 
     # ----- sessions -------------------------------------------------------------------------
     @guarded
     def refresh_sessions(self):
-        from labbench.session_catalogue import list_sessions
-
-        d = self.sessions.directory
-        if not d.exists():
-            self.sessions.set_sessions([])
-            return
-        run_in_background(self.mailbox, "sessions", list_sessions, d)
+        run_in_background(self.mailbox, "sessions", catalogue, self.sessions.directory,
+                          self.session_dir, self.rig.name)
 
     @guarded
     def replay(self, path: str, speed):
@@ -744,6 +971,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._reset_view()
         self.stop_event = threading.Event()
         self.mode = "replay"
+        self._replay_path, self._run_protocol = path, None
         self.tabs.setCurrentIndex(0)
         self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
         self._replay = start_replay(self.mailbox, path, speed, self.stop_event)
@@ -761,6 +989,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._new_action()
         out_dir = self.session_dir / "exports"
         out_dir.mkdir(parents=True, exist_ok=True)
+        self.log.add("info", f"exporting {Path(path).name} as {fmt} ...")
         run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
 
     # ----- shutdown -------------------------------------------------------------------------
@@ -778,17 +1007,16 @@ class MainWindow(QtWidgets.QMainWindow):
         super().closeEvent(event)
 
 
-def scalar_summary(results: dict, prefix: str = "", depth: int = 2) -> str:
-    """``key value`` pairs of the numbers and words in a results dict (arrays and lists left out)."""
-    parts = []
+def scalar_rows(results: dict, prefix: str = "", depth: int = 2) -> list[tuple[str, str]]:
+    """(key, value) of the numbers and words in a results dict, nested keys dotted (arrays,
+    lists, verdicts and the big tables left out: the window shows those itself)."""
+    rows = []
     for k, v in results.items():
-        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory"):
-            parts.append(scalar_summary(v, f"{prefix}{k}.", depth - 1))
-        elif isinstance(v, float):
-            parts.append(f"{prefix}{k} {v:.4g}")
-        elif isinstance(v, (int, str)) or v is None:
-            parts.append(f"{prefix}{k} {v}")
-    return ", ".join(p for p in parts if p)
+        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory", "verdict"):
+            rows += scalar_rows(v, f"{prefix}{k}.", depth - 1)
+        elif isinstance(v, (bool, int, float, str)) or v is None:
+            rows.append((f"{prefix}{k}", fmt(v)))
+    return rows
 
 
 def precheck_text(rep: dict) -> str:
@@ -804,6 +1032,22 @@ def precheck_text(rep: dict) -> str:
     return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
 
 
+def plant_source(start: dict) -> str:
+    """Where the plant of a run's theory came from, in words (from its start record)."""
+    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
+    if isinstance(found.get("session"), str):
+        return f"identified in {session_label(found['session'])}"
+    config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
+    if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
+        return "given in the run's settings"
+    return "the rig's nominal model"
+
+
+def session_label(path) -> str:
+    """A session's file name less its uid: ``20261203-063850_chirp-id`` (when and what)."""
+    return Path(path).stem.rsplit("_", 1)[0]
+
+
 def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None):
     """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker.
     ``run_plant`` given: the theory uses the session's own plant (``recorded_plant``), this
@@ -815,19 +1059,68 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None)
     meta = arrays["meta"]
     data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
             "command": ch["command"]}
-    plant = None
+    plant, source = None, "identified (l2)"
     if run_plant is not None:
-        plant = recorded_plant(start, (stop or {}).get("results")) or run_plant
-    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator)
-    return est, identify_all(data, meta), data
+        plant = recorded_plant(start, (stop or {}).get("results"))
+        source = plant_source(start) if plant else "the window's rig nominal model"
+        plant = plant or run_plant
+    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source)
+    return est, identify_all(data, meta), plant_data(data, meta), analyze_etfe(path, estimator, meta)
+
+
+def analyze_etfe(path: str, estimator: str | None, meta: dict) -> dict:
+    """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
+    (``Session.etfe(fit=True)``): the ETFE's verdict and the closed-loop fit (or why none);
+    for a session without a VE only its path."""
+    from labbench.session_api import load
+
+    out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "verdicts": []}
+    if ve_from_meta(meta) is None:
+        return out
+    try:
+        fr = load(path).etfe(estimator=estimator, fit=True)
+    except UserError as exc:
+        out["fit"] = {"error": str(exc)}
+        return out
+    d = fr.as_dict()
+    out["fit"] = d["fit"]
+    out["verdicts"] = [("ETFE", d.get("verdict")), ("closed-loop fit", d["fit"].get("verdict"))]
+    return out
+
+
+def catalogue(folder, session_dir, rig_name: str):
+    """(the sessions in ``folder``, the newest chirp-ID of ``rig_name`` in ``session_dir``):
+    the Sessions tab's rows and the plant the next runs take (``last_identified``)."""
+    from labbench.session_catalogue import last_identified, list_sessions
+
+    summaries = list_sessions(folder) if Path(folder).is_dir() else []
+    return summaries, last_identified(session_dir, rig_name, on_skip=lambda *_: None)
+
+
+def load_identification(path: str):
+    """(the identification a chirp-ID session recorded, its data as the plant felt them,
+    ``path``)."""
+    from labbench.session_content import analysis_meta, load_session
+
+    start, desc, ch, _ev, stop, _problem = load_session(path)
+    ident = ((stop or {}).get("results") or {}).get("identification")
+    data = {k: ch[k] for k in ("t", "command", "position") if k in ch}
+    return (ident if isinstance(ident, dict) else {}), plant_data(data, analysis_meta(start, desc)), path
+
+
+def _used_method(ident: dict) -> str | None:
+    """The fit whose m, b a chirp-ID gives as its result (``protocols.chirp_id``: l2 first)."""
+    return "l2" if "l2" in ident else next(iter(ident), None)
 
 
 def identify_all(data: dict, meta: dict) -> dict:
-    """l2 and l1 fits of the net force on the device (the ``command`` channel)."""
+    """l2 and l1 fits of the net force on the device (the ``command`` channel, after the
+    device's own delay: as chirp-ID's analysis fits it)."""
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.identify import identify
 
-    rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
+    felt = plant_data(data, meta)
+    rec = recording_from_arrays(felt["t"], felt["command"], felt["position"], meta)
     out = {}
     for method in ("l2", "l1"):
         out[method] = identify(rec, model="auto", method=method).as_dict()

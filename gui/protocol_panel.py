@@ -9,6 +9,7 @@ validates the values itself when Start is pressed.
 from __future__ import annotations
 
 import math
+from html import escape
 
 from pyqtgraph.parametertree import Parameter, ParameterTree
 from PySide6 import QtCore, QtWidgets
@@ -209,7 +210,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
 
     def set_precheck(self, text: str, ok: bool | None) -> None:
         colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]
-        self.precheck.setText(f'<span style="color:{colour}">{text}</span>')
+        self.precheck.setText(f'<span style="color:{colour}">{escape(text, quote=False)}</span>')
 
     def set_running(self, running: bool) -> None:
         self.start_button.setEnabled(not running)

@@ -59,8 +59,27 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, poll_ms: int = 20) ->
     return bool(cond())
 
 
+# what docs/gui.md shows, in the order docs_screenshots makes them
+SHOTS = ("demo-etfe.png", "bode.png", "identification.png", "units-hz.png", "sessions.png",
+         "refused-unstable.png", "refused-uncommissioned.png", "commissioning.png",
+         "commissioning-fixed.png")
+# the lying rig of the commissioning pictures: its encoder counts the other way and the
+# device has 2 samples of delay the file does not state
+LYING_RIG = """# bench 3 by the window (comments stay when the window writes this file)
+[rig]
+name = "bench 3"
+
+[sim]
+sign = -1
+extra_delay_samples = 2
+"""
+
+
 def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> list[Path]:
-    """The screenshots of docs/gui.md: live ETFE, Bode tab, identification, sessions, a refusal.
+    """The screenshots of docs/gui.md (``SHOTS``), made from the current build as a person
+    would click: chirp-ID, then the paper's ETFE (live view, Bode, identification with the
+    closed-loop fit, display units in Hz), the sessions, two refusals, and commissioning a
+    rig file that lies (then written and run again).
 
     Runs real protocols on the simulator (``python -m labbench.gui.screenshot DIR``; under
     Xvfb for a real X server's rendering). Not paced by default: on a shared,
@@ -71,53 +90,90 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
 
     from labbench.gui.app import demo_finished, start_demo, tune_interpreter
     from labbench.gui.main_window import MainWindow
-    from labbench.rig import Rig
+    from labbench.rig import Rig, load_rig
+    from labbench.units import SI, DisplayUnits
 
     tune_interpreter()
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])
     app.setApplicationName("labbench")
     out = Path(out_dir)
-    win = MainWindow(Rig(), Path(tempfile.mkdtemp(prefix="labbench-shots-")), realtime=realtime)
-    win.show()
+    work = Path(tempfile.mkdtemp(prefix="labbench-shots-"))
     shots = []
 
-    def settle_and_grab(name):
+    def settle_and_grab(win, name, shows: bool = True):
+        """Grab ``name`` once ``shows`` holds (what the docs say the picture shows)."""
+        if not shows:
+            raise RuntimeError(f"{name}: the window does not show what the docs say; log: "
+                               + " | ".join(win.log.texts()[-8:]))
         wait_until(lambda: False, 0.5)
         shots.append(grab(win, out / name))
 
+    def run(win, protocol, timeout_s=200.0, **settings):
+        win.last_run = None
+        win.protocol_panel.choice.setCurrentText(protocol)
+        for key, value in settings.items():
+            win.protocol_panel.set_value((key,), value)
+        win.start_protocol()
+        if not wait_until(lambda: win.last_run is not None and win.mode == "idle", timeout_s):
+            raise RuntimeError(f"{protocol} did not finish; log: " + " | ".join(win.log.texts()))
+
+    win = MainWindow(Rig(), work / "sessions", realtime=realtime)
+    win.show()
+    run(win, "chirp-id", f0_hz=0.2, duration_s=20.0)  # the plant the ETFE's theory then takes
+    win.tabs.setCurrentIndex(0)
+    win.last_run = None
     start_demo(win, {"duration_s": seconds, "seed": 1})
     if realtime:  # a mid-run picture needs a paced run
         if not wait_until(lambda: win.impedance.updates >= 2 and win.buffer.n > seconds * 400,
                           4 * seconds):
             raise RuntimeError("live estimate did not appear; log: " + " | ".join(win.log.texts()))
-        settle_and_grab("live-etfe-running.png")
+        settle_and_grab(win, "live-etfe-running.png")
     if not wait_until(lambda: demo_finished(win), 4 * seconds + 60):
         raise RuntimeError("demo run did not finish; log: " + " | ".join(win.log.texts()))
-    settle_and_grab("demo-etfe.png")
+    settle_and_grab(win, "demo-etfe.png", win.result_verdicts.isVisible()
+                    and "identified in" in win.impedance.title.text)
     win.impedance.setCurrentIndex(1)
-    settle_and_grab("bode.png")
+    settle_and_grab(win, "bode.png")
     win.impedance.setCurrentIndex(0)
-
-    win.last_run = None
-    win.protocol_panel.choice.setCurrentText("chirp-id")
-    win.protocol_panel.set_value(("f0_hz",), 0.2)
-    win.protocol_panel.set_value(("duration_s",), 20.0)
-    win.start_protocol()
-    if not wait_until(lambda: win.last_run is not None and win.mode == "idle", 200):
-        raise RuntimeError("chirp-id run did not finish")
     win.tabs.setCurrentWidget(win.id_view)
-    settle_and_grab("identification.png")
+    settle_and_grab(win, "identification.png", win.id_view.table.isVisible()
+                    and win.id_view.fit_table.isVisible())
+    win.tabs.setCurrentIndex(0)
+    win.units_choice.set_units(DisplayUnits.parse("mm,deg,Hz"))
+    settle_and_grab(win, "units-hz.png", "Hz" in win.impedance.marks["ws"].label.format)
+    win.units_choice.set_units(SI)
 
     win.tabs.setCurrentWidget(win.sessions)
-    wait_until(lambda: len(win.sessions.paths) >= 2, 10)
-    settle_and_grab("sessions.png")
+    settle_and_grab(win, "sessions.png", wait_until(lambda: len(win.sessions.paths) >= 2, 10))
 
     win.tabs.setCurrentIndex(0)
     win.protocol_panel.choice.setCurrentText("etfe")
     win.protocol_panel.set_value(("ve",), "spring")
     win.protocol_panel.set_value(("K",), 5000.0)
     win.start_protocol()
-    settle_and_grab("refused-unstable.png")
+    settle_and_grab(win, "refused-unstable.png", "refusing unstable" in win.banner.text())
+    win.protocol_panel.set_value(("K",), 50.0)
+    win.disconnect_device()
+    win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
+    win.start_protocol()
+    settle_and_grab(win, "refused-uncommissioned.png", "labbench run commission" in win.banner.text())
+    win.close()
+
+    rig_file = work / "bench3.toml"
+    rig_file.write_text(LYING_RIG)
+    win = MainWindow(load_rig(rig_file), work / "bench3-sessions", realtime=realtime)
+    win.show()
+    win.tabs.setCurrentWidget(win.commission)
+    # the lie named and written, then the rig run again: every check passes
+    for name, levels in (("commissioning.png", ["failed", "failed", "ok", "ok", "ok"]),
+                         ("commissioning-fixed.png", ["ok"] * 5)):
+        win.commission.run_button.click()
+        if not wait_until(lambda: win.last_run is not None and win.mode == "idle", 200):
+            raise RuntimeError("commissioning did not finish; log: " + " | ".join(win.log.texts()))
+        shown = [cells[0] for cells in win.commission.check_rows().values()]
+        win.commission.write_button.click()
+        settle_and_grab(win, name, shown == levels)
+        win.last_run = None
     win.close()
     return shots
 

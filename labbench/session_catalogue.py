@@ -72,3 +72,36 @@ def list_sessions(directory, on_skip=None) -> list[SessionSummary]:
             else:
                 on_skip(p, reason)
     return sorted(found, key=lambda s: (s.time or 0.0, str(s.path)))
+
+
+# protocols whose theory needs no plant identified beforehand: their own analysis is the
+# identification (chirp-ID), or they check the rig's nominal model itself (commissioning)
+OWN_PLANT = ("chirp-id", "commission")
+
+
+def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
+    """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
+    ``{"m", "b", "session"}``, or None (no folder, no such session). The plant a run uses
+    when none is given (``labbench run --plant-from last-id``, the window): what it was
+    identified as, and where."""
+    from labbench.ve import Plant
+
+    if not Path(directory).is_dir():
+        return None
+    for s in reversed(list_sessions(directory, on_skip=on_skip)):
+        if s.protocol != "chirp-id" or s.status != "success" or s.rig_name != rig_name:
+            continue
+        try:
+            with SessionReader(s.path, decode_pages=False) as reader:
+                stop = next((r for r in reader if r.get("kind") == records.STOP), {})
+        except (LabbenchError, OSError, ValueError) as exc:
+            if on_skip is not None:
+                on_skip(s.path, str(exc) or type(exc).__name__)
+            continue
+        res = stop.get("results") if isinstance(stop.get("results"), dict) else {}
+        try:
+            plant = Plant(res.get("m"), res.get("b"))  # a number within the physical range, or not used
+        except (UserError, TypeError):
+            continue
+        return {"m": plant.m, "b": plant.b, "session": str(s.path)}
+    return None

@@ -184,8 +184,13 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
                                         plus_minus)
     from labbench.report.content import analysis_flags, nyquist_band, overlay_color
 
+    from labbench.session_content import analysis_meta
+
     plant = session.plant or protocol.plant()
-    full = protocol.analyze(session.ch, {"plant": {"m": plant.m, "b": plant.b}})
+    # the session's own metadata: its device delay is the run's theory too (the run's
+    # results and the window give w_b* with it; without it the report's was another)
+    full = protocol.analyze(session.ch, {**analysis_meta(session.start, session.desc),
+                                         "plant": {"m": plant.m, "b": plant.b}})
     e, th, dev, bw = full["etfe"], full["theory"], full["deviation_vs_sampled"], full["bandwidths"]
     ve = protocol.ve
     w = np.asarray(e["w"])

@@ -54,3 +54,9 @@ class StallingDevice(FaultyDevice):
 def open_stalling(rig, at: int, stall_s: float, **_options) -> StallingDevice:
     """An opener for ``MainWindow.connect_device`` (module-level: it pickles)."""
     return StallingDevice(rig, at, stall_s)
+
+
+def wait_on(flag, ready, timeout_s: float = 60.0) -> None:
+    """A process that says it is ready, then waits on ``flag`` (a SharedFlag) until killed."""
+    ready.set()
+    flag.wait(timeout_s)

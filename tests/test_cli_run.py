@@ -172,6 +172,7 @@ def test_etfe_uses_the_last_identified_plant_of_the_rig(tmp_path, capsys):
     assert etfe["results"]["plant"] == {"m": chirp["results"]["m"], "b": chirp["results"]["b"]}
     start = next(iter(read_session(etfe["session"])))
     assert start["plant"]["m"] == chirp["results"]["m"]
+    assert start["plant_from"]["session"] == chirp["session"]  # where it came from, on record
     code, nominal = _json(capsys, ["run", "etfe", "--rig", str(rig), "--duration-s", "10",
                                    "--seed", "2", "--out", out, "--json", "--plant-from", "nominal"])
     assert nominal["results"]["plant"] == {"m": 0.094, "b": 0.10}

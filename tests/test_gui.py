@@ -412,6 +412,33 @@ def test_acquisition_process_stops_the_run_when_the_gui_process_dies(qtbot, tmp_
     assert len(ch["t"]) < 60_000
 
 
+def test_acquisition_flags_never_block_on_a_process_that_died_waiting():
+    """The E-STOP and Stop flags shared with the acquisition process: setting them returns at
+    once even when a process was killed in the middle of waiting on them. (A
+    multiprocessing.Event's set() waits for every waiter to wake; a waiter that cannot, a
+    daemon thread frozen in a child's exit, blocked the window's close for ever.)"""
+    import multiprocessing as mp
+    import signal
+    import threading
+
+    from gui_faulty_device import wait_on
+    from labbench.gui.acquisition import SharedFlag
+
+    ctx = mp.get_context("spawn")
+    flag, ready = SharedFlag(ctx), SharedFlag(ctx)
+    waiter = ctx.Process(target=wait_on, args=(flag, ready), daemon=True)
+    waiter.start()
+    assert ready.wait(30.0)
+    os.kill(waiter.pid, signal.SIGKILL)
+    waiter.join(10.0)
+    assert not waiter.is_alive()
+    done = threading.Event()
+    threading.Thread(target=lambda: (flag.set(), done.set()), daemon=True).start()
+    assert done.wait(5.0) and flag.is_set()
+    flag.clear()
+    assert not flag.is_set() and not flag.wait(0.01)
+
+
 def test_window_remembers_its_state_after_a_restart(qtbot, tmp_path):
     """Geometry, splitters, tab, backend, protocol and its settings, rig file and sessions
     folder come back in a new window (a temporary settings file)."""

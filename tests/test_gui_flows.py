@@ -6,12 +6,15 @@ os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
 import csv  # noqa: E402
 import functools  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
-from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow  # noqa: E402
+from labbench.gui.id_view import cells  # noqa: E402
+from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow, session_label  # noqa: E402
+from labbench.numfmt import fmt  # noqa: E402
 from labbench.gui.settings import open_settings  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.session_content import load_session  # noqa: E402
@@ -127,6 +130,10 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     qtbot.waitUntil(lambda: win.mode == "idle" and win.buffer.stop is not None, timeout=20_000)
     assert panel.time_left.text().startswith("replay ")
     np.testing.assert_array_equal(win.buffer.channel("position"), recorded["position"])
+    results = load_session(win.session_path)[4]["results"]  # its verdicts, as recorded
+    verdicts = {"ETFE": results["etfe"].get("verdict"), "closed-loop fit": results["loop_fit"].get("verdict")}
+    assert win.result_verdicts.levels() == {k: v["level"] for k, v in verdicts.items() if v}
+    assert "ETFE" in win.result_verdicts.levels()
 
     # re-analyse: the identification tab fills from the session
     win.sessions.buttons["Re-analyse"].click()
@@ -190,4 +197,194 @@ def test_the_log_follows_its_newest_line_unless_scrolled_up(qtbot, tmp_path):
     bar.setValue(bar.maximum())  # back at the bottom: it follows again
     win.log.add("warning", "another")
     assert bar.value() == bar.maximum() and win.log.following()
+    win.close()
+
+
+def _run(qtbot, win, protocol: str, **settings):
+    """Choose ``protocol``, edit its fields, press Start, wait for the run's end."""
+    win.last_run = None
+    win.protocol_panel.choice.setCurrentText(protocol)
+    for name, value in settings.items():
+        win.protocol_panel.set_value((name,), value)
+    win.protocol_panel.start_button.click()
+    _done(qtbot, win)
+    assert win.last_run.status == "success", win.last_run.reason
+    return win.last_run
+
+
+def _final_estimate(qtbot, win):
+    qtbot.waitUntil(lambda: win.impedance.last is not None and win.mode == "idle"
+                    and win.impedance.last.n_samples == win.buffer.n
+                    and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_MS)
+    return win.impedance.last
+
+
+def _interval(ci, scale=1.0) -> str:
+    return f"{fmt(scale * ci[0], 5)} to {fmt(scale * ci[1], 5)}"
+
+
+def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_path):
+    folder = tmp_path / "sessions"
+    win = _window(qtbot, folder, realtime=False)
+    view = win.id_view
+    assert "the rig's nominal model" in view.overlay.text()  # nothing identified yet
+    assert view.table.isHidden() and view.fit_table.isHidden()
+
+    # chirp-ID: its fits, the session they come from, the verdict of each
+    chirp = _run(qtbot, win, "chirp-id", f0_hz=0.2, duration_s=20.0)
+    chirp_path = win.session_path
+    assert win.tabs.currentWidget() is view
+    assert Path(chirp_path).name in view.source.text()
+    fits = chirp.results["identification"]
+    table = cells(view.table)
+    assert table["mass m (kg)"] == [fmt(fits["l2"]["m"], 5), fmt(fits["l1"]["m"], 5)]
+    assert table["verdict"] == [fits["l2"]["verdict"]["level"], fits["l1"]["verdict"]["level"]]
+    assert view.verdicts.levels() == {f"{m} fit": fits[m]["verdict"]["level"] for m in ("l2", "l1")}
+    assert [view.table.horizontalHeaderItem(c).text() for c in range(2)] == ["l2 fit (overlay)", "l1 fit"]
+
+    # the next ETFE takes that identification, says so before Start, and records where from
+    qtbot.waitUntil(lambda: (win.identified or {}).get("session") == chirp_path, timeout=10_000)
+    win.protocol_panel.choice.setCurrentText("etfe")
+    label = session_label(chirp_path)
+    assert f"identified in {label}" in win.protocol_panel.precheck.text()
+    etfe = _run(qtbot, win, "etfe", duration_s=8.0, seed=2)
+    est = _final_estimate(qtbot, win)
+    assert est.plant_source == f"identified in {label}"
+    assert (est.plant.m, est.plant.b) == (fits["l2"]["m"], fits["l2"]["b"])
+    assert f"m = {fmt(est.plant.m)} kg" in view.overlay.text() and label in view.overlay.text()
+    assert load_session(win.session_path)[0]["plant_from"]["session"] == chirp_path
+
+    # its closed-loop fit: m, b, td, tv with intervals, the delay model, the verdict
+    lf = etfe.results["loop_fit"]
+    rows = cells(view.fit_table)
+    assert rows["mass m (kg)"] == [fmt(lf["m"], 5), _interval(lf["ci95"]["m"])]
+    assert rows["damping b (N s/m)"] == [fmt(lf["b"], 5), _interval(lf["ci95"]["b"])]
+    assert rows["device latency td (ms)"] == [fmt(1e3 * lf["td_s"], 5), _interval(lf["ci95"]["td_s"], 1e3)]
+    assert rows["VE-path delay tv (ms)"] == [fmt(1e3 * lf["tv_s"], 5), "held (not fitted)"]
+    assert rows["delay model"][0] == lf["delay_model"] == "common"
+    assert view.fit_verdict.levels() == {"closed-loop fit": lf["verdict"]["level"]}
+    assert win.result_verdicts.levels() == {"ETFE": etfe.results["etfe"]["verdict"]["level"],
+                                            "closed-loop fit": lf["verdict"]["level"]}
+    etfe_path = win.session_path
+    win.close()
+
+    # a new window: the tab shows the identification the overlay will use, not "none yet"
+    again = _window(qtbot, folder, realtime=False)
+    qtbot.waitUntil(lambda: not again.id_view.table.isHidden(), timeout=20_000)
+    assert Path(chirp_path).name in again.id_view.source.text()
+    assert cells(again.id_view.table)["mass m (kg)"] == table["mass m (kg)"]
+    assert f"identified in {label}" in again.id_view.overlay.text()
+
+    # Re-analyse the ETFE session: labbench analyze etfe --fit's numbers (CV-chosen delays)
+    from labbench.session_api import load
+
+    again.sessions.select_path(etfe_path)
+    again.sessions.estimator.setCurrentText("h1-welch")
+    again.sessions.buttons["Re-analyse"].click()
+    qtbot.waitUntil(lambda: "labbench analyze etfe --fit" in again.id_view.fit_source.text(),
+                    timeout=RUN_MS)
+    fit = load(etfe_path).etfe(estimator="h1-welch", fit=True).fit.as_dict()
+    rows = cells(again.id_view.fit_table)
+    assert rows["mass m (kg)"] == [fmt(fit["m"], 5), _interval(fit["ci95"]["m"])]
+    assert rows["delay model"][0] == fit["delay_model"]
+    assert again.result_verdicts.levels()["closed-loop fit"] == fit["verdict"]["level"]
+    assert again.buffer.n == 0  # the Live tab no longer shows another record's traces
+    again.close()
+
+
+def test_display_units_follow_the_choice_and_are_remembered(qtbot, tmp_path):
+    from labbench import predictions
+    from labbench.units import SI, DisplayUnits
+
+    ini, folder = tmp_path / "settings.ini", tmp_path / "sessions"
+    win = _window(qtbot, folder, open_settings(ini), realtime=False)
+    _run(qtbot, win, "etfe", duration_s=8.0, seed=3)
+    est = _final_estimate(qtbot, win)
+    ws_si = win.impedance.marks["ws"].label.format
+
+    # a person picks mm, deg and Hz from the drop-down lists
+    for kind, unit in (("length", "mm"), ("angle", "deg"), ("frequency", "Hz")):
+        win.units_choice.combos[kind].setCurrentText(unit)
+    chosen = DisplayUnits("mm", "deg", "Hz")
+    assert win.units_choice.units() == chosen
+    label = win.impedance.marks["ws"].label.format
+    assert label.replace("\n", " ") == predictions.label("ws", est.ws_measured, est.predicted, chosen)
+    assert label != ws_si and " Hz" in label
+    assert 10 ** win.impedance.marks["ws"].value() == pytest.approx(est.ws_measured / (2 * np.pi))
+    x, _ = win.impedance.curves["ED"].getOriginalDataset()
+    assert x[0] == pytest.approx(est.w[est.w > 0][0] / (2 * np.pi))
+    assert win.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
+    assert win.traces.plots["position"].getAxis("left").labelUnits == "mm"
+    assert win.traces.plots["position"].getAxis("left").scale == 1e3
+    win.impedance.setCurrentIndex(1)  # Bode: phase in degrees
+    _, phase = win.impedance.curves["bode_phase"].getOriginalDataset()
+    ok = (est.w > 0) & (est.w <= est.w_nyquist / 3)
+    np.testing.assert_allclose(phase, np.degrees(np.unwrap(np.angle(est.Z[ok]))))
+    win.close()
+
+    again = _window(qtbot, folder, open_settings(ini), realtime=False)
+    assert again.units_choice.units() == chosen  # remembered
+    assert again.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
+    again.close()
+    # `labbench gui --units ...` wins over what was remembered
+    given = MainWindow(Rig(), folder, realtime=False, settings=open_settings(ini), units=SI)
+    qtbot.addWidget(given)
+    assert given.units_choice.units() == SI
+    assert given.traces.plots["position"].getAxis("left").labelUnits == "m"
+    given.close()
+
+
+def test_a_safety_trip_shows_at_once(qtbot, tmp_path):
+    from labbench.rig import rig_from_dict
+
+    narrow = rig_from_dict({"rig": {"position_limits_m": [-0.002, 0.002]}})  # a 4 mm window
+    win = MainWindow(narrow, tmp_path / "sessions", realtime=False)
+    qtbot.addWidget(win)
+    win.show()
+    panel = win.protocol_panel
+    panel.choice.setCurrentText("etfe")
+    panel.set_value(("duration_s",), 5.0)
+    panel.start_button.click()
+    _done(qtbot, win)  # the frame that handled the run's end: all of it says so
+    assert win.last_run.status == "failed" and "position" in win.last_run.reason
+    assert panel.time_left.text().startswith("run failed at ") and "outside the window" in panel.time_left.text()
+    assert win.banner.isVisible() and "outside the window" in win.banner.text()
+    assert panel.start_button.isEnabled() and not panel.stop_button.isEnabled()
+    assert any("position_limit" in t or "outside the window" in t for t in win.log.texts("event"))
+    assert win.log.following()
+    assert win.device_panel.enable_button.text() == "Enable"  # the run disabled the device
+    win.close()
+
+
+def test_disconnect_is_refused_mid_run_and_a_lost_acquisition_process_shows_at_once(qtbot, tmp_path):
+    import signal
+
+    win = _window(qtbot, tmp_path / "sessions")  # paced: the run lasts
+    panel, dev = win.protocol_panel, win.device_panel
+    panel.choice.setCurrentText("etfe")
+    panel.set_value(("duration_s",), 60.0)
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: win.mode == "running" and win.buffer.n > 500, timeout=30_000)
+    dev.connect_button.click()  # Disconnect, mid-run
+    assert win.banner.isVisible() and win.banner.text() == "stop the run before disconnecting"
+    assert win.mode == "running" and panel.stop_button.isEnabled()
+    assert dev.connect_button.text() == "Disconnect"
+
+    # the device's process is lost (killed): the window says so within the frame that hears it
+    os.kill(win.acquisition.process.pid, signal.SIGKILL)
+    qtbot.waitUntil(lambda: win.mode == "idle", timeout=10_000)
+    assert panel.time_left.text() == "run ended: the acquisition process died"
+    assert win.banner.isVisible() and "acquisition process ended unexpectedly" in win.banner.text()
+    assert dev.connect_button.text() == "Connect" and dev.name_label.text() == "not connected"
+    assert panel.start_button.isEnabled() and not panel.stop_button.isEnabled()
+    assert win.commission.run_button.isEnabled()
+
+    # and it can be started again: Start reconnects
+    panel.set_value(("duration_s",), 2.0)
+    win.last_run = None
+    panel.start_button.click()
+    assert not panel.start_button.isEnabled()  # waiting for the device: no second Start
+    assert panel.time_left.text().startswith("connecting to")
+    _done(qtbot, win)
+    assert win.last_run.status == "success"
     win.close()

@@ -4,14 +4,17 @@ import os
 os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
 import re  # noqa: E402
+from decimal import Decimal  # noqa: E402
 
 import pytest  # noqa: E402
 
+from labbench.gui.id_view import cells  # noqa: E402
 from labbench.gui.main_window import LIVE_ESTIMATOR, RUN_PLANT, MainWindow  # noqa: E402
 from labbench.numfmt import fmt  # noqa: E402
+from labbench.report.blocks import Table  # noqa: E402
 from labbench.report.content import build  # noqa: E402
 from labbench.report.render_html import render_html  # noqa: E402
-from labbench.rig import Rig  # noqa: E402
+from labbench.rig import Rig, rig_from_dict  # noqa: E402
 
 RUN_TIMEOUT_MS = 60_000
 
@@ -21,8 +24,30 @@ def _report_html(path) -> str:
     return render_html(report.title, report.subtitle, report.blocks)
 
 
-def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path):
-    win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
+def _same_number(shown: str, reported: str) -> bool:
+    """Two renderings of one number: they differ by less than half a unit in the last
+    place of the coarser (the window and the report choose their digits each)."""
+    a, b = Decimal(shown), Decimal(reported)
+    ulp = max(Decimal(1).scaleb(a.as_tuple().exponent), Decimal(1).scaleb(b.as_tuple().exponent))
+    return abs(a - b) <= ulp / 2
+
+
+def _report_loop_fit(path) -> dict[str, str]:
+    """name -> value of the report's closed-loop fit table (its "value ± 95 %" cells)."""
+    table = next(b for b in build([path]).blocks
+                 if isinstance(b, Table) and b.title.startswith("Closed-loop fit"))
+    return {row[0]: row[1].split(" ± ")[0] for row in table.rows}
+
+
+# the default rig, and one whose device has 2 samples of delay that its file states
+RIGS = {"no device delay": Rig(),
+        "a stated device delay": rig_from_dict({"rig": {"measured_td_s": 0.002},
+                                                "sim": {"extra_delay_samples": 2}})}
+
+
+@pytest.mark.parametrize("rig", list(RIGS))
+def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, rig):
+    win = MainWindow(RIGS[rig], tmp_path / "sessions", realtime=False)
     qtbot.addWidget(win)
     win.show()
     assert win.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
@@ -39,7 +64,7 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path):
     plant = win.last_run.results["plant"]
 
     # the marks: measured, the sampled theory, the paper's closed form, as the report's table
-    ws, wb = (win.impedance.marks[k].label.format for k in ("ws", "wb"))
+    ws, wb = (win.impedance.marks[k].label.format.replace("\n", " ") for k in ("ws", "wb"))
     numbers = {k: fmt(bw[k]) for k in bw}
     assert ws == (f"w_s* = {numbers['ws_star_measured']} rad/s (sampled theory "
                   f"{numbers['ws_star_predicted']} rad/s; paper eq. 5: {numbers['ws_star_eq5']})")
@@ -57,4 +82,10 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path):
     m, b = fmt(plant["m"]), fmt(plant["b"])
     assert f"m = {m} kg, b = {b} N s/m" in title
     assert re.search(rf"m = {re.escape(m)} kg, b = {re.escape(b)} N s/m", html)
+
+    # the closed-loop fit on the Identification tab is the report's
+    report, shown = _report_loop_fit(win.session_path), cells(win.id_view.fit_table)
+    for name, row in (("m", "mass m (kg)"), ("b", "damping b (N s/m)"),
+                      ("extra delay td", "device latency td (ms)")):
+        assert _same_number(shown[row][0], report[name]), (name, shown[row][0], report[name])
     win.close()

@@ -25,6 +25,9 @@ def register(subparsers) -> None:
                         "(with --demo: after the live estimate of the whole run shows)")
     p.add_argument("--timeout", type=float, default=180.0, metavar="S",
                    help="with --screenshot: give up after S seconds (exit 1)")
+    p.add_argument("--skip-commissioning", action="store_true",
+                   help="render a spring or damper on real hardware before the rig passed "
+                        "`labbench run commission` (for people who know their rig)")
     p.set_defaults(func=run, own_signals=True)  # Qt's loop; its acquisition process has its own
 
 
@@ -60,5 +63,9 @@ def run(args) -> int:
 
     from labbench.gui.app import run_app
 
+    from labbench.units import SI
+
+    # --units given: the window starts with them (else with the ones it remembers)
+    units = None if getattr(args, "units", SI) is SI else args.units
     return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout,
-                   settings=settings)
+                   settings=settings, units=units, skip_commissioning=args.skip_commissioning)

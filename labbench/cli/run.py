@@ -21,7 +21,6 @@ from labbench.cli.progress import ProgressBar
 from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
 from labbench.safe_write import output_path
-from labbench.ve import Plant
 
 # Config fields the CLI sets itself (from the rig).
 _HIDDEN = ("sample_time_s",)
@@ -142,29 +141,12 @@ def _options(args) -> dict:
 
 def last_identified(directory, rig) -> dict | None:
     """m, b of the newest successful chirp-ID session of this rig in ``directory`` (or None)."""
-    from labbench import records
-    from labbench.session_catalogue import list_sessions
-    from labbench.session_format import SessionReader
-
-    if not Path(directory).is_dir():
-        return None
+    from labbench.session_catalogue import last_identified as newest
 
     def skipped(path, reason):
         print(f"labbench run: warning: skipped {path}: {reason}", file=sys.stderr)
 
-    for s in reversed(list_sessions(directory, on_skip=skipped)):
-        if s.protocol != "chirp-id" or s.status != "success" or s.rig_name != rig.name:
-            continue
-        with SessionReader(s.path, decode_pages=False) as reader:
-            stop = next((r for r in reader if r.get("kind") == records.STOP), {})
-        res = stop.get("results") or {}
-        m, b = res.get("m"), res.get("b")
-        try:
-            plant = Plant(m, b)  # a number within the physical range, or not used
-        except (UserError, TypeError):
-            continue
-        return {"m": plant.m, "b": plant.b, "session": str(s.path)}
-    return None
+    return newest(directory, rig.name, on_skip=skipped)
 
 
 def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
@@ -172,12 +154,15 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     from labbench.realtime import RealtimeConfig
     from labbench.runner import run_recorded
     from labbench.registry import make_protocol
+    from labbench.session_catalogue import OWN_PLANT
 
     # commissioning checks the rig's nominal model itself: never an identified one
-    if (getattr(args, "plant_from", "nominal") == "last-id" and name not in ("chirp-id", "commission")
+    plant_from = None
+    if (getattr(args, "plant_from", "nominal") == "last-id" and name not in OWN_PLANT
             and options.get("plant_m_kg") is None and options.get("plant_b") is None):
         found = last_identified(args.out, rig)
         if found is not None:
+            plant_from = found
             options = {**options, "plant_m_kg": found["m"], "plant_b": found["b"]}
             print(f"labbench run: using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
                   f"identified in {found['session']}", file=sys.stderr)
@@ -203,9 +188,11 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     device = open_device(args.device, rig, **dev_opts)
     _print_device_notes(device.describe().details)
     with ProgressBar(name) as bar:
+        # the start record says where the plant came from (the window shows it)
         return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
                             simulated=args.device.startswith("sim"), realtime=rt,
-                            skip_commissioning=args.skip_commissioning)
+                            skip_commissioning=args.skip_commissioning,
+                            start_extra={"plant_from": plant_from} if plant_from else None)
 
 
 def _print_device_notes(details: dict) -> None:
