@@ -378,9 +378,9 @@ class MainWindow(QtWidgets.QMainWindow):
         from labbench.registry import make_protocol
 
         self._remember_protocol()
-        self.protocol_panel.set_config(make_protocol(name).config.as_dict())
+        built = self.protocol_panel.show_protocol(name, make_protocol(name).config.as_dict())
         self._protocol_shown = name
-        if self.settings is not None:
+        if built and self.settings is not None:  # later, the tree holds the user's edits
             from labbench.gui.settings import load_protocol
 
             self.protocol_panel.apply_values(load_protocol(self.settings, name))

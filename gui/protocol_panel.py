@@ -141,10 +141,18 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         super().__init__("Protocol", parent)
         self.choice = QtWidgets.QComboBox()
         self.choice.addItems(list(names))
+        # one tree per protocol, built once and never cleared: clearing a ParameterTree
+        # deletes its QTreeWidgetItems in C++ while PySide still maps their addresses to the
+        # Python wrappers until a GC pass frees them, and a QMenu made at such an address
+        # came back as a QTreeWidgetItem (pyqtgraph's PlotItem then failed, and the process
+        # crashed at exit), seen after many protocol switches on a loaded machine
+        self.trees = QtWidgets.QStackedWidget()
+        self.trees.setMinimumHeight(220)
+        self.built: dict[str, tuple[ParameterTree, Parameter]] = {}
         self.tree = ParameterTree(showHeader=False)
-        self.tree.setMinimumHeight(220)
         self.params = Parameter.create(name="settings", type="group", children=[])
         self.tree.setParameters(self.params, showTop=False)
+        self.trees.addWidget(self.tree)
         self.precheck = QtWidgets.QLabel("pre-check: -")
         self.precheck.setWordWrap(True)
         self.precheck.setTextFormat(QtCore.Qt.TextFormat.RichText)
@@ -158,7 +166,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
 
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(self.choice)
-        lay.addWidget(self.tree, 1)
+        lay.addWidget(self.trees, 1)
         lay.addWidget(self.precheck)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.start_button)
@@ -171,11 +179,20 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.start_button.clicked.connect(self.start_requested)
         self.stop_button.clicked.connect(self.stop_requested)
 
-    def set_config(self, config: dict) -> None:
-        """Rebuild the tree for a protocol's default config."""
-        self.params = Parameter.create(name="settings", type="group", children=params_from_config(config))
-        self.tree.setParameters(self.params, showTop=False)
-        self.params.sigTreeStateChanged.connect(lambda *a: self.settings_changed.emit())
+    def show_protocol(self, name: str, config: dict) -> bool:
+        """Show the settings of protocol ``name``: its tree as the user left it, or, the first
+        time, one built from its default ``config`` (returns True then)."""
+        new = name not in self.built
+        if new:
+            params = Parameter.create(name="settings", type="group", children=params_from_config(config))
+            tree = ParameterTree(showHeader=False)
+            tree.setParameters(params, showTop=False)
+            params.sigTreeStateChanged.connect(lambda *a: self.settings_changed.emit())
+            self.trees.addWidget(tree)
+            self.built[name] = (tree, params)
+        self.tree, self.params = self.built[name]
+        self.trees.setCurrentWidget(self.tree)
+        return new
 
     def values(self) -> dict:
         return values_of(self.params)
@@ -216,7 +233,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.start_button.setEnabled(not running)
         self.stop_button.setEnabled(running)
         self.choice.setEnabled(not running)
-        self.tree.setEnabled(not running)
+        self.trees.setEnabled(not running)
 
     def set_progress(self, frac: float, text: str = "") -> None:
         self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))
