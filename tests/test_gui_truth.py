@@ -33,10 +33,11 @@ def _same_number(shown: str, reported: str) -> bool:
 
 
 def _report_loop_fit(path) -> dict[str, str]:
-    """name -> value of the report's closed-loop fit table (its "value ± 95 %" cells)."""
+    """name -> value of the report's closed-loop fit table (its "value ± 95 %" cells, or
+    "value (lo to hi)" where the interval is not centred: ``report.blocks.plus_minus``)."""
     table = next(b for b in build([path]).blocks
                  if isinstance(b, Table) and b.title.startswith("Closed-loop fit"))
-    return {row[0]: row[1].split(" ± ")[0] for row in table.rows}
+    return {row[0]: re.split(r" ± | \(", row[1])[0] for row in table.rows}
 
 
 # the default rig, and one whose device has 2 samples of delay that its file states
