@@ -272,6 +272,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.units_choice.changed.connect(self.set_units)
         self.commission.run_requested.connect(self.start_commissioning)
         self.commission.write_requested.connect(self.write_rig_file)
+        self.tabs.currentChanged.connect(self._tab_shown)
         self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
 
         self.select_protocol(self.protocol_panel.choice.currentText())
@@ -540,6 +541,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.acquisition.run(self.protocol_panel.choice.currentText(), values, self.rig,
                              self.session_dir, start_extra=extra, simulated=self.simulated,
                              skip_commissioning=self.skip_commissioning)
+
+    def _tab_shown(self, _index: int) -> None:
+        """The commissioning page runs the ``commission`` protocol with the settings on the
+        left: shown with it, so a person reads those before pressing Run (the panel showed
+        whatever protocol came last), unless a run holds the panel."""
+        if self.tabs.currentWidget() is self.commission and self.mode == "idle":
+            self.protocol_panel.choice.setCurrentText("commission")
 
     @guarded
     def start_commissioning(self):

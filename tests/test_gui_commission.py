@@ -44,6 +44,7 @@ def _commission(qtbot, win) -> dict[str, list[str]]:
     """Run commissioning from its page as a person does; the rows it then shows."""
     page = win.commission
     win.tabs.setCurrentWidget(page)
+    assert win.protocol_panel.choice.currentText() == "commission"  # its settings, on the left
     win.last_run = None
     page.run_button.click()
     assert not page.run_button.isEnabled() and not page.write_button.isEnabled()
