@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 import pyqtgraph as pg
-import shiboken6
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench import predictions
@@ -60,26 +59,6 @@ def _cheap_repaint(layout: pg.GraphicsLayoutWidget) -> None:
         if isinstance(item, (pg.AxisItem, QtWidgets.QGraphicsTextItem, pg.ItemSample)):
             item.setCacheMode(cache)
     layout.viewport().setAttribute(QtCore.Qt.WidgetAttribute.WA_OpaquePaintEvent)
-
-
-def delete_plot_menus(root: QtWidgets.QWidget) -> None:
-    """Delete the context menus of every pyqtgraph plot under ``root`` now, ``root`` closing.
-
-    pyqtgraph makes them without a Qt parent, so Python owns them: otherwise each is deleted
-    by the cyclic garbage collector when it frees the plot's wrapper, after Qt deleted the
-    plot, with the menu's child wrappers torn down in the same pass; PySide then crashed in
-    releaseWrapper (a segfault in gc.collect, seen in the GUI tests beside a loaded machine).
-    Deleted here, outside any collection, each child's wrapper is live and simply invalidated."""
-    for view in root.findChildren(pg.GraphicsView):
-        for item in view.items():
-            menus = []
-            if isinstance(item, pg.ViewBox):
-                menus.append(item.menu)
-            elif isinstance(item, pg.PlotItem):
-                menus.append(item.ctrlMenu)
-            for menu in menus:
-                if menu is not None and shiboken6.isValid(menu):
-                    shiboken6.delete(menu)
 
 
 def _plot_options_off(p: pg.PlotItem) -> None:

@@ -29,7 +29,7 @@ from labbench.gui.id_view import IdView, plant_data
 # labbench.analysis.etfe_live); once it has ended, the run's own estimator on all data.
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
 from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
-from labbench.gui.live_plots import ImpedancePlots, TimeTraces, delete_plot_menus
+from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.protocol_panel import ProtocolPanel, settings_rows
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
@@ -1012,7 +1012,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.acquisition.shutdown(timeout=5.0)
         self.device = None
         self.estimator.shutdown()
-        delete_plot_menus(self)
         super().closeEvent(event)
 
 

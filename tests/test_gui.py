@@ -513,11 +513,11 @@ def test_live_axes_follow_the_trusted_estimate(qtbot):
     from labbench import theory
     from labbench.effective import effective_impedances
     from labbench.gui.live_estimate import Estimate
-    from labbench.gui.live_plots import ImpedancePlots, delete_plot_menus
+    from labbench.gui.live_plots import ImpedancePlots
     from labbench.ve import VirtualEnvironment
 
     plots = ImpedancePlots()
-    qtbot.addWidget(plots, before_close_func=delete_plot_menus)
+    qtbot.addWidget(plots)
     ve = VirtualEnvironment("spring-damper", 50.0, 1.0, 125.0, 0.001, 0.0)
     w = np.geomspace(1.0, 1000.0, 200)
     Z = theory.z_sampled(TRUTH, ve, w)

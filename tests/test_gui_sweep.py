@@ -9,7 +9,6 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
-from labbench.gui.live_plots import delete_plot_menus  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.gui.sweep_view import SweepView  # noqa: E402
 from labbench.numfmt import fmt  # noqa: E402
@@ -41,7 +40,7 @@ def small_table(tmp_path_factory):
 @pytest.fixture
 def view(qtbot, tmp_path):
     v = SweepView(tmp_path / "sessions")
-    qtbot.addWidget(v, before_close_func=delete_plot_menus)  # as the window does at close
+    qtbot.addWidget(v)
     v.resize(1200, 700)
     v.show()
     return v
