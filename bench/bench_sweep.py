@@ -310,17 +310,19 @@ def big(n: int, tmp: Path) -> dict:
     sample = random.Random(0).sample(range(final.num_rows), 20)
     d = spec.as_dict()
     rows = final.to_pylist()
-    same = 0
+    same, differ = 0, set()
     for i in sample:
         r = rows[i]
         again = compute_row(d, {"index": r["index"], **json.loads(r["params_json"])})
-        same += all(again.get(k) == v for k, v in r.items() if k not in TIME_COLUMNS)
+        cols = {k for k, v in r.items() if k not in TIME_COLUMNS and again.get(k) != v}
+        same += not cols
+        differ |= cols
     statuses = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
     return {"n": n, "runs": runs, "rows": final.num_rows, "unique": len(set(got)),
             "missing": len(keys - set(got)), "extra": len(set(got) - keys), "same": same,
-            "sampled": len(sample), "statuses": statuses,
+            "sampled": len(sample), "differ": sorted(differ), "statuses": statuses,
             "lost": [r["summary"]["already"] + r["summary"]["computed"] - r["rows_after"]
                      for r in runs]}
 
@@ -336,7 +338,7 @@ def write_docs(res: dict, path_md: Path) -> None:
     if t:
         rounds = t["rounds"]
         lines += [f"## Throughput: 200 points of `docs/examples/etfe-near-k-max.toml` "
-                  f"({t['date']})", "",
+                  f"({t['date']}, at {t.get('commit', '?')})", "",
                   "Each point a 2-minute simulated ETFE run and its analysis; a LocalCluster "
                   "of 1 worker against 2, alternated, cluster start and shutdown included. "
                   "Wall time = CPU / cores got, so the ratio is (cores 2 workers got / cores 1 "
@@ -363,11 +365,13 @@ def write_docs(res: dict, path_md: Path) -> None:
                   f"of {span('load', '{:.1f}')}: the machine gave 2 workers {span('got')}x the "
                   f"CPU of 1; with two free cores {span('free')}x. Rows of every table "
                   f"bit-identical (times aside): {'yes' if t['identical'] else 'NO'}.", "",
-                  f"The sweep's answer: {t['answer']}.", "",
+                  f"The sweep's answer (its rows and map at {t.get('answer_at', t.get('commit', '?'))})"
+                  f": {t['answer']}.", "",
                   "![ETFE near K_max: worst error of Z over 2-100 rad/s](etfe-near-k-max.png)",
                   ""]
     if b:
-        lines += [f"## {b['n']} points, stopped twice and resumed ({b['date']})", "",
+        lines += [f"## {b['n']} points, stopped twice and resumed ({b['date']}, at "
+                  f"{b.get('commit', '?')})", "",
                   "One-second ETFE runs (100 stiffnesses x seeds) by `labbench sweep --workers 2`."
                   " Peak RSS is each process's VmHWM (for a complete run it includes the end: "
                   "the compaction reads the finished table); the driver's RSS is read when a "
@@ -384,7 +388,8 @@ def write_docs(res: dict, path_md: Path) -> None:
         lines += ["", f"Final table: {b['rows']} rows, {b['unique']} distinct keys, "
                   f"{b['missing']} of the spec's keys missing, {b['extra']} not the spec's; "
                   f"statuses {b['statuses']}; {b['same']} of {b['sampled']} rows recomputed in "
-                  "one process equal the table's (times aside).", ""]
+                  "one process equal the table's (times aside; columns differing: "
+                  f"{', '.join(b.get('differ', [])) or 'none'}).", ""]
     path_md.write_text("\n".join(lines))
 
 
@@ -404,6 +409,8 @@ def main() -> int:
     res = json.loads(saved.read_text()) if saved.is_file() else {}
     spec = load_spec(SPEC)
     today = time.strftime("%Y-%m-%d")
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True, timeout=30).stdout.strip()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         if not args.no_throughput:
@@ -412,7 +419,7 @@ def main() -> int:
             identical = all(rows_without_times(a["table"]) == first for a in arms[1:])
             cols = charts.columns(tables.read_table(last))
             charts.write(cols, spec.charts[0], out / spec.charts[0]["file"], force=True)
-            res["throughput"] = t = {"date": today, "rounds": round_ratios(arms),
+            res["throughput"] = t = {"date": today, "commit": commit, "rounds": round_ratios(arms),
                                      "identical": identical,
                                      "answer": near_k_max_answer(tables.read_table(last)
                                                                  .to_pylist())}
@@ -424,9 +431,10 @@ def main() -> int:
             print(f"answer: {t['answer']}")
             save(res, out)
         if not args.no_big:
-            res["big"] = b = {"date": today, **big(args.big, tmp)}
+            res["big"] = b = {"date": today, "commit": commit, **big(args.big, tmp)}
             print(f"big sweep: {b['rows']} rows, {b['unique']} keys, missing {b['missing']}, "
-                  f"lost at the stops {b['lost']}, recomputed equal {b['same']}/{b['sampled']}, "
+                  f"lost at the stops {b['lost']}, recomputed equal {b['same']}/{b['sampled']} "
+                  f"(columns differing: {b['differ'] or 'none'}), "
                   f"statuses {b['statuses']}")
     save(res, out)
     return 0
