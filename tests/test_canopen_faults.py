@@ -39,8 +39,10 @@ def run_with_fault(drive, inject, n=N, at=FAULT_AT):
     return outcome, events
 
 
-def assert_force_zero(peer, timeout=2.0):
-    """The drive applies no torque (polled: its own timers may be what removes it)."""
+def assert_force_zero(peer, timeout=10.0):
+    """The drive applies no torque (polled: its own timers may be what removes it; the
+    bound is far above them because a loaded machine can hold the drive's thread off the
+    CPU for seconds: seen at load 9)."""
     deadline = time.monotonic() + timeout
     while peer.torque_permille != 0 or peer.state is State.OPERATION_ENABLED:
         assert time.monotonic() < deadline, (peer.torque_permille, peer.state, peer.events)
