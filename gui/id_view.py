@@ -6,6 +6,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.live_plots import COLOURS, DecadeAxis
+from labbench.gui.keep_alive import keep_plots
 from labbench.gui.verdict_view import VerdictLabel
 from labbench.numfmt import fmt
 
@@ -184,6 +185,7 @@ class IdView(QtWidgets.QWidget):
         self.residual = self.residual_plot.plot(pen=pg.mkPen(COLOURS["measured"], width=1))
         plots.ci.layout.setRowStretchFactor(0, 3)
         plots.ci.layout.setRowStretchFactor(1, 2)
+        keep_plots(plots)
 
         def label(text=""):
             lab = QtWidgets.QLabel(text)

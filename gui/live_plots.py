@@ -14,6 +14,7 @@ from labbench import predictions
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.live_estimate import Estimate
 from labbench.gui.path_curve import PathCurve, column_spans
+from labbench.gui.keep_alive import keep_plots
 from labbench.numfmt import fmt
 from labbench.units import SI
 
@@ -115,6 +116,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         for name in ("excitation", "command"):
             legend.addItem(self.curves[name], name)
         _cheap_repaint(self)
+        keep_plots(self)
         self.frames = 0
         self.set_units(SI)
 
@@ -253,6 +255,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 p, _pen("theory", QtCore.Qt.PenStyle.DashLine), log)
         _cheap_repaint(self.effective)
         _cheap_repaint(self.bode)
+        keep_plots(self.effective, self.bode)
         self.last: Estimate | None = None
         self._theory_shown = None
         self._bode_shown = None

@@ -20,6 +20,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from labbench.gui.keep_alive import keep_plots
 from labbench.gui.worker import Mailbox, describe_error, run_in_background
 from labbench.numfmt import fmt
 
@@ -116,6 +117,7 @@ class SweepView(QtWidgets.QWidget):
         self.points.sigHovered.connect(self._on_hover)
         self.points.sigClicked.connect(self._on_click)
         self.plot.addItem(self.points)
+        keep_plots(self.plot)
         self.legend = QtWidgets.QLabel()
         self.legend.setWordWrap(True)
 
