@@ -197,6 +197,7 @@ def test_silent_drive_at_bring_up(sim_parts):
     assert time.monotonic() - t < 3.0 + 2 * FAST["sdo_timeout_s"] + 2.0
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")  # the injected crash
 def test_dead_receive_thread_in_service_phase(drive):
     """The Notifier thread dies: the next SDO exchange reports its exception."""
     class Crashing(can.Listener):
