@@ -5,8 +5,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from labbench.gui.live_plots import COLOURS, DecadeAxis
 from labbench.gui.keep_alive import keep_plots
+from labbench.gui.live_plots import COLOURS, DecadeAxis
 from labbench.gui.verdict_view import VerdictLabel
 from labbench.numfmt import fmt
 

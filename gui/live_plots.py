@@ -12,9 +12,9 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench import predictions
 from labbench.gui.buffers import StreamBuffer
+from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_estimate import Estimate
 from labbench.gui.path_curve import PathCurve, column_spans
-from labbench.gui.keep_alive import keep_plots
 from labbench.numfmt import fmt
 from labbench.units import SI
 

@@ -7,9 +7,10 @@ basis row j with |xi_j| > 1 lowers the objective at rate |xi_j| - 1 (less
 |X_i u| for every other zero residual: a tie, e.g. from quantised data), and
 the best step along the steepest such ray is the weighted median of the
 breakpoints r_i / (X_i u) with weights |X_i u|: a simplex step with exact line
-search, as in Barrodale & Roberts (1973, SIAM J. Numer. Anal. 10:839). Every
-step lowers the objective, so no basis comes back (no cycling): residuals within
-rounding of zero count as ties, and a basis that comes back ends the steps. At a tied
+search, as in Barrodale & Roberts (1973, SIAM J. Numer. Anal. 10:839). In exact
+arithmetic every step lowers the objective, so no basis comes back (no cycling);
+in floating point, residuals within rounding of zero count as ties, and a basis
+that does come back ends the steps. At a tied
 (degenerate) vertex where no edge descends, a small LP over the tied rows
 decides optimality.
 
@@ -48,11 +49,12 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.nd
     theta = np.linalg.lstsq(X, y, rcond=None)[0] if theta0 is None else np.asarray(theta0, float)
     theta = _irls(X, y, theta, IRLS_STEPS)
     B = _initial_basis(X, np.abs(y - X @ theta))
-    return _simplex(X, y, B, polish_lp=True)
+    theta = _simplex(X, y, B)
+    return _full_lp(X, y) if theta is None else theta
 
 
-def _simplex(X, y, B, polish_lp):
-    """Descent steps from basis B to the certified optimum (module doc); the LP if they stall."""
+def _simplex(X, y, B):
+    """Descent steps from basis B to the certified optimum (module doc); None if they stall."""
     seen: set[tuple[int, ...]] = set()
     peak = np.max(np.abs(y)), np.max(np.abs(X), axis=0)
     for _ in range(MAX_STEPS):
@@ -89,7 +91,7 @@ def _simplex(X, y, B, polish_lp):
             break  # no breakpoint ahead: the basis solve overflowed (inf/nan residuals)
         B = B.copy()
         B[j] = i_new
-    return _full_lp(X, y) if polish_lp else None
+    return None
 
 
 def _zero_rounding(r, X, y, theta, peak):
@@ -235,7 +237,7 @@ def _full_lp(X, y):
     theta_lp = -np.asarray(res.eqlin.marginals, float) * ys / xs
     absr = np.abs(y - X @ theta_lp)
     absr[np.abs(res.x) >= 1.0 - 1e-7] = np.inf  # |d_i| = 1: not a zero residual, last in the order
-    theta = _simplex(X, y, _initial_basis(X, absr), polish_lp=False)
+    theta = _simplex(X, y, _initial_basis(X, absr))
     if theta is None or not np.all(np.isfinite(theta)) or objective(X, y, theta) > objective(X, y, theta_lp):
         return theta_lp
     return theta
