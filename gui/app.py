@@ -30,7 +30,7 @@ def start_demo(win: MainWindow, settings: dict | None = None) -> None:
     """Select the demo protocol with short settings and press Start (connects the simulator)."""
     win.protocol_panel.choice.setCurrentText(DEMO_PROTOCOL)
     for name, value in (settings or DEMO_SETTINGS).items():
-        win.protocol_panel.set_value((name,), value)
+        win.protocol_panel.set_value(name, value)
     win.start_protocol()
 
 

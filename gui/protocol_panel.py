@@ -1,6 +1,6 @@
-"""Protocol panel: choice of protocol, its settings in a ParameterTree, pre-check, Start/Stop, progress.
+"""Protocol panel: choice of protocol, its settings in a form, pre-check, Start/Stop, progress.
 
-The tree is built from the protocol's own validated config (``config.as_dict()``
+The form is built from the protocol's own validated config (``config.as_dict()``
 of ``labbench.protocols.make_protocol(name)``), so new settings appear without GUI
 changes; units and limits come from the name suffix convention of the project
 (``_s``, ``_hz``, ``_n``, ``_m``...) and from the VE's fields. The protocol
@@ -8,10 +8,8 @@ validates the values itself when Start is pressed.
 """
 from __future__ import annotations
 
-import math
 from html import escape
 
-from pyqtgraph.parametertree import Parameter, ParameterTree
 from PySide6 import QtCore, QtWidgets
 
 from labbench.errors import UserError
@@ -26,9 +24,10 @@ UNITS = {
 }
 def choices() -> dict[str, list[str]]:
     """Text fields with a fixed set of values: shown as drop-down lists."""
-    from labbench.analysis.identify import MODEL_CHOICES
     from labbench.protocols.excitation import SWEEPS
     from labbench.protocols.stability_probe import PROBE_KINDS, VARIABLES
+
+    from labbench.analysis.identify import MODEL_CHOICES
 
     out = {"ve": list(dict.fromkeys([*VE_KINDS, *PROBE_KINDS])), "sweep": list(SWEEPS),
            "variable": list(VARIABLES), "model": list(MODEL_CHOICES)}
@@ -50,43 +49,156 @@ def _unit(name: str):
     return ("", None, name.replace("_", " "))
 
 
-def params_from_config(config: dict, choice_lists: dict | None = None) -> list[dict]:
-    """ParameterTree children for a (nested) config dict of numbers, bools, strings and lists."""
-    lists = choices() if choice_lists is None else choice_lists
-    children = []
-    for name, value in config.items():
-        unit, low, label = _unit(name)
-        item = {"name": name, "title": f"{label} [{unit}]" if unit else label, "tip": name}
-        if isinstance(value, dict):
-            item.update(type="group", children=params_from_config(value, lists))
-        elif isinstance(value, bool):
-            item.update(type="bool", value=value)
-        elif isinstance(value, int):
-            # 64-bit limits: a 32-bit limit showed a seed drawn above 2^31 as 2147483648
-            item.update(type="int", value=value, limits=(int(low) if low is not None else -2**63,
-                                                         2**63 - 1))
-        elif isinstance(value, float):
-            item.update(type="float", value=value, dec=True, step=1.0, minStep=1e-9,
-                        limits=(low if low is not None else -math.inf, math.inf))
+class Field:
+    """One setting shown as a plain Qt widget: ``get`` parses what is shown (UserError on a
+    bad number), ``set`` shows a value as ``get`` returns it (TypeError/ValueError when the
+    field cannot hold it), ``shown`` is what a person sees (text, tick, choice)."""
+
+    def __init__(self, name: str, value, lists: dict):
+        self.name = name
+        self.unit, self.low, label = _unit(name)
+        self.label = f"{label} [{self.unit}]" if self.unit else label
+        if isinstance(value, bool):
+            self.kind, self.widget = "bool", QtWidgets.QCheckBox()
         elif name in lists and (value is None or isinstance(value, str)):
-            # "" stands for None: the protocol's default
-            options = {v: v for v in lists[name]}
-            if value is None:
-                options = {"(default)": "", **options}
-            item.update(type="list", limits=options, value="" if value is None else value,
-                        optional_choice=value is None)
-        elif value is None:  # optional number: empty text = the protocol's default / none
-            item.update(type="str", value="", optional_number=True,
-                        tip="empty: not set (default, or no filter for w0)")
-            item["title"] += " (opt.)"
-        elif isinstance(value, str):
-            item.update(type="str", value=value)
-        elif isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) for v in value):
-            item.update(type="str", value=", ".join(f"{v:g}" for v in value), list_of_numbers=True)
+            self.kind, self.widget = "choice", QtWidgets.QComboBox()
+            if value is None:  # the protocol's default, kept as None
+                self.widget.addItem("(default)", None)
+            for option in lists[name]:
+                self.widget.addItem(option, option)
         else:
-            continue  # not editable here (the protocol keeps its default)
-        children.append(item)
-    return children
+            self.kind = ("int" if isinstance(value, int) else "float" if isinstance(value, float)
+                         else "optional" if value is None else "text" if isinstance(value, str)
+                         else "numbers")
+            self.widget = QtWidgets.QLineEdit()
+            if self.kind == "optional":
+                self.label += " (opt.)"
+                self.widget.setPlaceholderText("default")
+            self.widget.textChanged.connect(self._mark)
+        self.widget.setToolTip(name if self.kind != "optional"
+                               else f"{name}: empty = not set (default, or no filter for w0)")
+        self.set(value)
+
+    @staticmethod
+    def editable(value) -> bool:
+        """Whether a config value has a field."""
+        return (value is None or isinstance(value, (bool, int, float, str))
+                or (isinstance(value, (list, tuple))
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)))
+
+    def signal(self):
+        """The widget's signal for an edit."""
+        if self.kind == "bool":
+            return self.widget.toggled
+        return self.widget.currentIndexChanged if self.kind == "choice" else self.widget.textChanged
+
+    def shown(self):
+        if self.kind == "bool":
+            return self.widget.isChecked()
+        return self.widget.currentText() if self.kind == "choice" else self.widget.text()
+
+    def get(self):
+        if self.kind == "bool":
+            return self.widget.isChecked()
+        if self.kind == "choice":
+            return self.widget.currentData()
+        text = self.widget.text().strip()
+        if self.kind == "text":
+            return text
+        if self.kind == "numbers":
+            return [self._number(v.strip()) for v in text.split(",") if v.strip()]
+        if self.kind == "optional" and not text:
+            return None
+        return self._number(text)
+
+    def set(self, value) -> None:
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise TypeError(f"{self.name}: {value!r} is not true or false")
+            self.widget.setChecked(value)
+        elif self.kind == "choice":
+            index = self.widget.findData(value)
+            if index < 0:
+                raise ValueError(f"{self.name}: {value!r} is not one of its choices")
+            self.widget.setCurrentIndex(index)
+        elif self.kind == "text":
+            if not isinstance(value, str):
+                raise TypeError(f"{self.name}: {value!r} is not text")
+            self.widget.setText(value)
+        elif self.kind == "numbers":
+            if not (isinstance(value, (list, tuple)) and all(_is_number(v) for v in value)):
+                raise TypeError(f"{self.name}: {value!r} is not a list of numbers")
+            self.widget.setText(", ".join(_number_text(v) for v in value))
+        elif value is None and self.kind == "optional":
+            self.widget.setText("")
+        elif not _is_number(value) or (self.kind == "int" and not float(value).is_integer()):
+            raise TypeError(f"{self.name}: {value!r} is not a {'whole ' * (self.kind == 'int')}number")
+        else:
+            self.widget.setText(_number_text(int(value) if self.kind == "int" else value))
+
+    def _number(self, text: str):
+        try:
+            value = int(text) if self.kind == "int" else float(text)
+        except ValueError:
+            whole = "whole " if self.kind == "int" else ""
+            raise UserError(f"{self.name}: {text!r} is not a {whole}number") from None
+        if self.low is not None and value < self.low:
+            raise UserError(f"{self.name}: {text} is below {self.low:g} {self.unit}")
+        return value
+
+    def _mark(self) -> None:
+        """A red frame while the text is not a value the field takes."""
+        try:
+            self.get()
+            bad = False
+        except UserError:
+            bad = True
+        self.widget.setStyleSheet("QLineEdit { border: 2px solid #b00020; }" if bad else "")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _number_text(value) -> str:
+    """A number as typed back: whole numbers in full (a 64-bit seed), others to 12 digits."""
+    return str(value) if isinstance(value, int) else f"{value:.12g}"
+
+
+class SettingsForm(QtWidgets.QWidget):
+    """The settings of one protocol, from its validated config (``config.as_dict()``), as a
+    form of plain Qt fields; a value of another shape (a list of words) keeps its default."""
+
+    changed = QtCore.Signal()
+
+    def __init__(self, config: dict, parent=None):
+        super().__init__(parent)
+        lists = choices()
+        self.fields = {name: Field(name, value, lists) for name, value in config.items()
+                       if Field.editable(value)}
+        form = QtWidgets.QFormLayout(self)
+        form.setFieldGrowthPolicy(QtWidgets.QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+        for field in self.fields.values():
+            field.signal().connect(lambda *_: self.changed.emit())
+            form.addRow(field.label, field.widget)
+
+    def values(self) -> dict:
+        """Plain values (UserError names the first field that does not parse)."""
+        return {name: field.get() for name, field in self.fields.items()}
+
+    def shown(self) -> dict:
+        """What each field shows, as a person reads it."""
+        return {name: field.shown() for name, field in self.fields.items()}
+
+    def apply(self, values: dict) -> None:
+        """Show remembered ``values`` (as ``values()`` gave them); names the protocol no
+        longer has, and values a field cannot hold, are left out."""
+        for name, value in values.items():
+            if name in self.fields:
+                try:
+                    self.fields[name].set(value)
+                except (TypeError, ValueError):
+                    continue  # a value of another type than the field now has
 
 
 def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
@@ -105,32 +217,6 @@ def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
     return rows
 
 
-def values_of(param: Parameter) -> dict:
-    """Nested plain values of a tree built by ``params_from_config`` (lists parsed back)."""
-    out = {}
-    for child in param.children():
-        if child.type() == "group":
-            out[child.name()] = values_of(child)
-        elif child.opts.get("list_of_numbers"):
-            out[child.name()] = [_number(child.name(), v) for v in str(child.value()).split(",")
-                                 if v.strip()]
-        elif child.opts.get("optional_choice"):
-            out[child.name()] = child.value() or None
-        elif child.opts.get("optional_number"):
-            text = str(child.value()).strip()
-            out[child.name()] = _number(child.name(), text) if text else None
-        else:
-            out[child.name()] = child.value()
-    return out
-
-
-def _number(name: str, text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise UserError(f"{name}: {text!r} is not a number") from None
-
-
 class ProtocolPanel(QtWidgets.QGroupBox):
     start_requested = QtCore.Signal()
     stop_requested = QtCore.Signal()
@@ -141,18 +227,15 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         super().__init__("Protocol", parent)
         self.choice = QtWidgets.QComboBox()
         self.choice.addItems(list(names))
-        # one tree per protocol, built once and never cleared: clearing a ParameterTree
-        # deletes its QTreeWidgetItems in C++ while PySide still maps their addresses to the
-        # Python wrappers until a GC pass frees them, and a QMenu made at such an address
-        # came back as a QTreeWidgetItem (pyqtgraph's PlotItem then failed, and the process
-        # crashed at exit), seen after many protocol switches on a loaded machine
-        self.trees = QtWidgets.QStackedWidget()
-        self.trees.setMinimumHeight(220)
-        self.built: dict[str, tuple[ParameterTree, Parameter]] = {}
-        self.tree = ParameterTree(showHeader=False)
-        self.params = Parameter.create(name="settings", type="group", children=[])
-        self.tree.setParameters(self.params, showTop=False)
-        self.trees.addWidget(self.tree)
+        # one form per protocol, built once and kept: switching back shows the user's edits.
+        # Plain Qt widgets, not pyqtgraph's ParameterTree: its items are Python subclasses of
+        # QTreeWidgetItem (not QObjects), and PySide 6.11 crashed in releaseWrapper deleting
+        # such an item whose wrapper it had already dropped, when a closed window was deleted
+        self.forms = QtWidgets.QStackedWidget()
+        self.forms.setMinimumHeight(220)
+        self.built: dict[str, tuple[QtWidgets.QScrollArea, SettingsForm]] = {}
+        self.form = SettingsForm({})
+        self.forms.addWidget(self.form)
         self.precheck = QtWidgets.QLabel("pre-check: -")
         self.precheck.setWordWrap(True)
         self.precheck.setTextFormat(QtCore.Qt.TextFormat.RichText)
@@ -166,7 +249,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
 
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(self.choice)
-        lay.addWidget(self.trees, 1)
+        lay.addWidget(self.forms, 1)
         lay.addWidget(self.precheck)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.start_button)
@@ -180,50 +263,34 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.stop_button.clicked.connect(self.stop_requested)
 
     def show_protocol(self, name: str, config: dict) -> bool:
-        """Show the settings of protocol ``name``: its tree as the user left it, or, the first
+        """Show the settings of protocol ``name``: its form as the user left it, or, the first
         time, one built from its default ``config`` (returns True then)."""
         new = name not in self.built
         if new:
-            params = Parameter.create(name="settings", type="group", children=params_from_config(config))
-            tree = ParameterTree(showHeader=False)
-            tree.setParameters(params, showTop=False)
-            params.sigTreeStateChanged.connect(lambda *a: self.settings_changed.emit())
-            self.trees.addWidget(tree)
-            self.built[name] = (tree, params)
-        self.tree, self.params = self.built[name]
-        self.trees.setCurrentWidget(self.tree)
+            form = SettingsForm(config)
+            form.changed.connect(self.settings_changed)
+            scroll = QtWidgets.QScrollArea()
+            scroll.setWidgetResizable(True)
+            scroll.setWidget(form)
+            self.forms.addWidget(scroll)
+            self.built[name] = (scroll, form)
+        page, self.form = self.built[name]
+        self.forms.setCurrentWidget(page)
         return new
 
     def values(self) -> dict:
-        return values_of(self.params)
+        return self.form.values()
 
     def state(self) -> dict:
-        """The tree's ``saveState()`` (goes into the run's start record)."""
-        return self.params.saveState(filter="user")
+        """What the form shows, field by field (goes into the run's start record)."""
+        return self.form.shown()
 
-    def set_value(self, path: tuple[str, ...], value) -> None:
-        self.params.child(*path).setValue(value)
+    def set_value(self, name: str, value) -> None:
+        self.form.fields[name].set(value)
 
-    def apply_values(self, values: dict, parent: Parameter | None = None) -> None:
-        """Put remembered ``values`` (as ``values()`` gave them) back into the tree; names
-        the protocol no longer has, and values a field refuses, are left out."""
-        parent = self.params if parent is None else parent
-        for child in parent.children():
-            if child.name() not in values:
-                continue
-            value = values[child.name()]
-            if child.type() == "group":
-                if isinstance(value, dict):
-                    self.apply_values(value, child)
-                continue
-            if child.opts.get("list_of_numbers") and isinstance(value, list):
-                value = ", ".join(f"{v:g}" for v in value)
-            elif child.opts.get("optional_choice") or child.opts.get("optional_number"):
-                value = "" if value is None else (value if isinstance(value, str) else f"{value:g}")
-            try:
-                child.setValue(value)
-            except (TypeError, ValueError):
-                continue  # a value of another type than the field now has
+    def apply_values(self, values: dict) -> None:
+        """Put remembered ``values`` (as ``values()`` gave them) back into the form."""
+        self.form.apply(values)
 
     def set_precheck(self, text: str, ok: bool | None) -> None:
         colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]
@@ -233,7 +300,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.start_button.setEnabled(not running)
         self.stop_button.setEnabled(running)
         self.choice.setEnabled(not running)
-        self.trees.setEnabled(not running)
+        self.forms.setEnabled(not running)
 
     def set_progress(self, frac: float, text: str = "") -> None:
         self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))

@@ -112,7 +112,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
         win.last_run = None
         win.protocol_panel.choice.setCurrentText(protocol)
         for key, value in settings.items():
-            win.protocol_panel.set_value((key,), value)
+            win.protocol_panel.set_value(key, value)
         win.start_protocol()
         if not wait_until(lambda: win.last_run is not None and win.mode == "idle", timeout_s):
             raise RuntimeError(f"{protocol} did not finish; log: " + " | ".join(win.log.texts()))
@@ -148,11 +148,11 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
 
     win.tabs.setCurrentIndex(0)
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("ve",), "spring")
-    win.protocol_panel.set_value(("K",), 5000.0)
+    win.protocol_panel.set_value("ve", "spring")
+    win.protocol_panel.set_value("K", 5000.0)
     win.start_protocol()
     settle_and_grab(win, "refused-unstable.png", "refusing unstable" in win.banner.text())
-    win.protocol_panel.set_value(("K",), 50.0)
+    win.protocol_panel.set_value("K", 50.0)
     win.disconnect_device()
     win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
     win.start_protocol()

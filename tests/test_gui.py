@@ -40,7 +40,7 @@ def make_window(qtbot, tmp_path):
 def start(win, protocol, **settings):
     win.protocol_panel.choice.setCurrentText(protocol)
     for name, value in settings.items():
-        win.protocol_panel.set_value((name,), value)
+        win.protocol_panel.set_value(name, value)
     win.start_protocol()
 
 
@@ -78,12 +78,12 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
         assert y.min() == raw.min() and y.max() == raw.max()
         assert x[0] < t[0] - t[-1] + 0.02 and x[-1] > -0.02
 
-    # the session on disk holds the same stream, plus the ParameterTree state
+    # the session on disk holds the same stream, plus what the settings form showed
     summaries = list_sessions(win.session_dir)
     assert len(summaries) == 1 and summaries[0].n_samples == 6000
     start_rec, desc, ch, _events, stop, problem = load_session(summaries[0].path)
     assert problem is None and stop["status"] == "success"
-    assert start_rec["gui_settings"]["children"]["K"]["value"] == 50.0
+    assert start_rec["gui_settings"]["K"] == "50"  # as the form showed it
     np.testing.assert_array_equal(ch["position"], win.buffer.channel("position"))
 
     # the drawn estimate is the ETFE of the recorded data, with the theory for the identified plant
@@ -232,8 +232,8 @@ def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
 def test_unstable_settings_are_refused_with_a_message(qtbot, make_window):
     win = make_window()
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("ve",), "spring")
-    win.protocol_panel.set_value(("K",), 5000.0)
+    win.protocol_panel.set_value("ve", "spring")
+    win.protocol_panel.set_value("K", 5000.0)
     assert "refusing unstable" in win.protocol_panel.precheck.text()
     win.start_protocol()
     qtbot.waitUntil(lambda: win.banner.isVisible(), timeout=10_000)
@@ -241,6 +241,38 @@ def test_unstable_settings_are_refused_with_a_message(qtbot, make_window):
     assert any("refusing unstable" in t for t in win.log.texts("error"))
     assert win.mode == "idle" and win.protocol_panel.start_button.isEnabled()
     assert not list(win.session_dir.glob("*.lbsession"))
+
+
+def test_typed_settings_are_parsed_and_a_bad_one_is_named(qtbot, make_window):
+    """The settings form as a person types into it: numbers as text, empty = default."""
+    win = make_window()
+    panel = win.protocol_panel
+    panel.choice.setCurrentText("etfe")
+    fields = panel.form.fields
+    for name, text in (("K", "1.5e2"), ("seed", "3000000017"), ("band_hi_hz", "40")):
+        fields[name].widget.clear()
+        qtbot.keyClicks(fields[name].widget, text)
+    fields["estimator"].widget.setCurrentText("(default)")
+    values = panel.values()
+    assert (values["K"], values["seed"], values["band_hi_hz"]) == (150.0, 3_000_000_017, 40.0)
+    assert values["estimator"] is None and values["plant_m_kg"] is None
+    assert win.make_protocol().seed == 3_000_000_017
+    # a word where a number goes: framed red, named in the pre-check, Start refused
+    fields["B"].widget.clear()
+    qtbot.keyClicks(fields["B"].widget, "1,5")
+    assert "B: '1,5' is not a number" in panel.precheck.text()
+    assert "b00020" in fields["B"].widget.styleSheet() and not fields["K"].widget.styleSheet()
+    win.start_protocol()
+    assert "B: '1,5' is not a number" in win.banner.text() and win.mode == "idle"
+    # below the unit's lower limit, and a fraction for a whole number
+    fields["B"].widget.setText("-1")
+    assert "B: -1 is below 0 N s/m" in panel.precheck.text()
+    fields["B"].widget.setText("1")
+    fields["window"].widget.setText("200.5")
+    assert "window: '200.5' is not a whole number" in panel.precheck.text()
+    fields["window"].widget.setText("256")
+    assert panel.values()["window"] == 256 and not fields["B"].widget.styleSheet()
+    assert "refusing" not in panel.precheck.text() and "not a" not in panel.precheck.text()
 
 
 def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
@@ -462,10 +494,10 @@ def test_window_remembers_its_state_after_a_restart(qtbot, tmp_path):
     win.tabs.setCurrentIndex(2)
     win.device_panel.backend.setCurrentText("sim-serial")
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("K",), 77.0)
-    win.protocol_panel.set_value(("duration_s",), 33.0)
+    win.protocol_panel.set_value("K", 77.0)
+    win.protocol_panel.set_value("duration_s", 33.0)
     win.protocol_panel.choice.setCurrentText("chirp-id")  # etfe's settings are kept
-    win.protocol_panel.set_value(("f1_hz",), 12.5)
+    win.protocol_panel.set_value("f1_hz", 12.5)
     live_sizes = win.splitters["live"].sizes()
     win.close()
 
@@ -502,7 +534,7 @@ def test_window_without_settings_remembers_nothing(qtbot, make_window):
 def test_a_large_seed_is_shown_as_it_is(qtbot, make_window):
     win = make_window()
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("seed",), 3_000_000_017)  # above 2^31: was clamped
+    win.protocol_panel.set_value("seed", 3_000_000_017)  # above 2^31: was clamped
     assert win.protocol_panel.values()["seed"] == 3_000_000_017
     assert win.make_protocol().seed == 3_000_000_017
 

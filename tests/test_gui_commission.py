@@ -174,7 +174,7 @@ def test_real_hardware_renders_no_spring_until_commissioned(qtbot, tmp_path):
     win, path = _window(qtbot, tmp_path)
     panel = win.protocol_panel
     panel.choice.setCurrentText("etfe")
-    panel.set_value(("duration_s",), 2.0)
+    panel.set_value("duration_s", 2.0)
     assert "stable spring-damper" in panel.precheck.text()  # the simulator: no gate
     win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
     line = _cli_refusal(win.rig)
@@ -209,7 +209,7 @@ def test_skip_commissioning_renders_on_an_unchecked_rig(qtbot, tmp_path):
     win.connect_device("canopen", opener=SIM_AS_HARDWARE)
     qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("duration_s",), 2.0)
+    win.protocol_panel.set_value("duration_s", 2.0)
     win.protocol_panel.start_button.click()
     qtbot.waitUntil(lambda: win.mode == "idle" and win.last_run is not None, timeout=RUN_MS)
     assert win.last_run.status == "success"

@@ -56,13 +56,13 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
 
     # choose a protocol, edit a field: the pre-check follows the edit
     panel.choice.setCurrentText("etfe")
-    panel.set_value(("K",), 80.0)
+    panel.set_value("K", 80.0)
     assert "stable spring-damper" in panel.precheck.text() and "K_max/K" in panel.precheck.text()
     before = panel.precheck.text()
-    panel.set_value(("K",), 60.0)
+    panel.set_value("K", 60.0)
     assert panel.precheck.text() != before
-    panel.set_value(("duration_s",), 40.0)
-    panel.set_value(("seed",), 4)
+    panel.set_value("duration_s", 40.0)
+    panel.set_value("seed", 4)
 
     # start: the settings as a table in the log, Start off, Stop on, the live view updates
     panel.start_button.click()
@@ -100,7 +100,7 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     assert not win.estop.latched and panel.start_button.isEnabled()
     dev.connect_button.click()
     qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
-    panel.set_value(("duration_s",), 3.0)
+    panel.set_value("duration_s", 3.0)
     panel.start_button.click()
     qtbot.waitUntil(lambda: win.buffer.n > 500, timeout=20_000)
     panel.stop_button.click()
@@ -111,7 +111,7 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     assert panel.start_button.isEnabled()
 
     # a whole short run: the Sessions table lists all three, newest selected
-    panel.set_value(("duration_s",), 2.5)
+    panel.set_value("duration_s", 2.5)
     win.last_run = None
     panel.start_button.click()
     _done(qtbot, win)
@@ -170,7 +170,7 @@ def test_a_fault_shows_at_once_and_its_banner_goes_with_the_next_action(qtbot, t
     win.connect_device("sim", opener=functools.partial(open_faulty, n_ok=1500))
     qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("duration_s",), 5.0)
+    win.protocol_panel.set_value("duration_s", 5.0)
     win.start_protocol()
     _done(qtbot, win)
     panel = win.protocol_panel
@@ -205,7 +205,7 @@ def _run(qtbot, win, protocol: str, **settings):
     win.last_run = None
     win.protocol_panel.choice.setCurrentText(protocol)
     for name, value in settings.items():
-        win.protocol_panel.set_value((name,), value)
+        win.protocol_panel.set_value(name, value)
     win.protocol_panel.start_button.click()
     _done(qtbot, win)
     assert win.last_run.status == "success", win.last_run.reason
@@ -343,7 +343,7 @@ def test_a_safety_trip_shows_at_once(qtbot, tmp_path):
     win.show()
     panel = win.protocol_panel
     panel.choice.setCurrentText("etfe")
-    panel.set_value(("duration_s",), 5.0)
+    panel.set_value("duration_s", 5.0)
     panel.start_button.click()
     _done(qtbot, win)  # the frame that handled the run's end: all of it says so
     assert win.last_run.status == "failed" and "position" in win.last_run.reason
@@ -362,7 +362,7 @@ def test_disconnect_is_refused_mid_run_and_a_lost_acquisition_process_shows_at_o
     win = _window(qtbot, tmp_path / "sessions")  # paced: the run lasts
     panel, dev = win.protocol_panel, win.device_panel
     panel.choice.setCurrentText("etfe")
-    panel.set_value(("duration_s",), 60.0)
+    panel.set_value("duration_s", 60.0)
     panel.start_button.click()
     qtbot.waitUntil(lambda: win.mode == "running" and win.buffer.n > 500, timeout=30_000)
     dev.connect_button.click()  # Disconnect, mid-run
@@ -380,7 +380,7 @@ def test_disconnect_is_refused_mid_run_and_a_lost_acquisition_process_shows_at_o
     assert win.commission.run_button.isEnabled()
 
     # and it can be started again: Start reconnects
-    panel.set_value(("duration_s",), 2.0)
+    panel.set_value("duration_s", 2.0)
     win.last_run = None
     panel.start_button.click()
     assert not panel.start_button.isEnabled()  # waiting for the device: no second Start

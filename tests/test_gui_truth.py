@@ -53,8 +53,8 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
     win.show()
     assert win.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("duration_s",), 8.0)
-    win.protocol_panel.set_value(("seed",), 2)
+    win.protocol_panel.set_value("duration_s", 8.0)
+    win.protocol_panel.set_value("seed", 2)
     win.start_protocol()
     qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
     assert win.last_run.status == "success", win.last_run.reason
