@@ -7,6 +7,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtWidgets
 
+from labbench.gui.gc_policy import GuiThreadCollection
 from labbench.gui.main_window import MainWindow
 from labbench.interrupts import handle_signals
 from labbench.gui.screenshot import ShotWhen
@@ -50,6 +51,7 @@ def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("labbench")
     tune_interpreter()
+    collection = GuiThreadCollection()
     win = MainWindow(rig, session_dir, realtime=realtime, settings=settings, units=units,
                      skip_commissioning=skip_commissioning)
     previous_hook = sys.excepthook
@@ -86,4 +88,5 @@ def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None
             code = app.exec()
     finally:
         sys.excepthook = previous_hook
+        collection.close()
     return result["code"] or code

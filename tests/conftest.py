@@ -54,3 +54,18 @@ def avr_toolchain():
 
     if (why := problem()) is not None:
         pytest.fail(f"avr-sim cannot run here: {why}")
+
+
+@pytest.fixture(autouse=True)
+def _gui_thread_collection(request):
+    """A test with windows collects Python's garbage as the application does: in the GUI
+    thread only (labbench.gui.gc_policy); automatic collection comes back after it."""
+    if "qtbot" not in request.fixturenames:
+        yield
+        return
+    request.getfixturevalue("qapp")
+    from labbench.gui.gc_policy import GuiThreadCollection
+
+    collection = GuiThreadCollection()
+    yield
+    collection.close()

@@ -565,3 +565,36 @@ def test_live_axes_follow_the_trusted_estimate(qtbot):
     assert np.abs(eff.ES[wild]).max() > 1e5  # the wild points are there ...
     assert hi < 1.2 * trusted_es.max() and lo > -0.2 * trusted_es.max()  # ... and ignored
     assert hi >= trusted_es.max()  # the trusted estimate fills the axis
+
+
+def test_garbage_of_worker_threads_is_collected_in_the_gui_thread(qtbot):
+    """labbench.gui.gc_policy: cycles made and dropped by a worker thread are freed by the GUI
+    thread's timer, never by the worker; automatic collection comes back at close."""
+    import gc
+    import threading
+    import weakref
+
+    from labbench.gui.gc_policy import GuiThreadCollection
+
+    # this test's own collection (the conftest already holds one for qtbot tests)
+    collection = GuiThreadCollection(interval_s=0.05)
+    assert not gc.isenabled()
+    freed_in = []
+
+    class Node:
+        pass
+
+    def work():
+        for _ in range(20_000):  # far past the gen-0 threshold (700)
+            a, b = Node(), Node()
+            a.other, b.other = b, a
+            weakref.finalize(a, lambda: freed_in.append(threading.current_thread().name))
+
+    worker = threading.Thread(target=work, name="worker")
+    worker.start()
+    worker.join()
+    assert freed_in == []  # with automatic collection, the worker freed most of them
+    qtbot.waitUntil(lambda: len(freed_in) == 20_000, timeout=10_000)
+    assert set(freed_in) == {threading.main_thread().name}
+    collection.close()
+    assert not gc.isenabled()  # the conftest's collection still holds
