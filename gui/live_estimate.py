@@ -60,7 +60,8 @@ class Estimate:
         scale = {"ES": self.w, "ED": np.ones_like(self.w), "EM": 1.0 / self.w}[name]
         mid = getattr(self, name)
         half = np.abs(self.Z_err) * scale
-        return mid - half, mid + half
+        with np.errstate(invalid="ignore"):  # an infinite estimate has no band: NaN, a gap drawn
+            return mid - half, mid + half
 
 
 def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,

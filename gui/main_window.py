@@ -1034,7 +1034,9 @@ def precheck_text(rep: dict) -> str:
         ve = c["ve"]
         km = c.get("k_max")
         margin = (f", margin K_max/K = {km / ve['K']:.1f}x" if km and ve.get("K") else "")
-        bound = f"K_max = {km:.4g} N/m" if km else "no K bound"
+        # K_max depends on the VE's damping: say which (commissioning's is for B = 0)
+        at_b = f" at B = {fmt(ve['B'])} N s/m" if ve.get("B") is not None else ""
+        bound = f"K_max = {km:.4g} N/m{at_b}" if km else "no K bound"
         lines.append(f"{'stable' if c['stable'] else 'UNSTABLE'} {ve['kind']}: spectral radius "
                      f"{c['spectral_radius']:.4f}; {bound}{margin}")
     return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")

@@ -172,5 +172,6 @@ def check_numbers(r: dict) -> dict[str, str]:
                  f"b = {fmt(s.get('b'), 5)} N s/m",
         "friction": f"model {fr.get('model')}" + (", " + ", ".join(terms) if terms else
                                                   ": no Coulomb friction or offset"),
-        "k_max": f"{fmt(k.get('k_max_n_m'), 5)} N/m (exact sampled, measured m, b, delay)",
+        "k_max": f"{fmt(k.get('k_max_n_m'), 5)} N/m for a pure spring, B = 0 "
+                 "(exact sampled, measured m, b, delay)",
     }

@@ -80,6 +80,7 @@ def test_a_flipped_sign_is_named_written_and_then_passes(qtbot, tmp_path):
     applied = int(re.fullmatch(r"0 of (\d+) pulses moved with the force", rows[DIRECTION][1]).group(1))
     assert applied >= 3  # of 4: the first starts at full force, before the enable gate opens
     assert "set [rig] position_sign = -1" in rows[DIRECTION][2]
+    assert "N/m for a pure spring, B = 0" in rows[KMAX][1]  # the etfe pre-check's is at its B
     assert "commissioning: failed" in page.overall.text() and "direction" in page.overall.text()
     assert "position_sign = -1" in page.changes.text() and "direction_checked" not in page.changes.text()
 

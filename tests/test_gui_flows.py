@@ -58,6 +58,7 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     panel.choice.setCurrentText("etfe")
     panel.set_value("K", 80.0)
     assert "stable spring-damper" in panel.precheck.text() and "K_max/K" in panel.precheck.text()
+    assert "N/m at B = 1 N s/m" in panel.precheck.text()  # commissioning's K_max is for B = 0
     before = panel.precheck.text()
     panel.set_value("K", 60.0)
     assert panel.precheck.text() != before

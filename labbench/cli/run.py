@@ -309,7 +309,8 @@ def summary_lines(name: str, results: dict) -> list[str]:
             lines.append(f"{check}: {v.get('level')}" + "".join(f"; {r}" for r in v.get("reasons", [])))
         d, s, k = results.get("delay", {}), results.get("scale", {}), results.get("k_max", {})
         lines.append(f"delay {fmt(d.get('delay_samples'))} samples, m = {fmt(s.get('m'))} kg, "
-                     f"b = {fmt(s.get('b'))} N s/m, K_max = {fmt(k.get('k_max_n_m'))} N/m")
+                     f"b = {fmt(s.get('b'))} N s/m, K_max = {fmt(k.get('k_max_n_m'))} N/m "
+                     "(a pure spring, B = 0)")
         lines.append(f"rig changes: {results.get('changes') or 'none'}")
     elif name == "stability":
         unit = "N/m" if results.get("variable") == "K" else "s"
