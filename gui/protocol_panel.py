@@ -117,7 +117,7 @@ class Field:
                 raise TypeError(f"{self.name}: {value!r} is not true or false")
             self.widget.setChecked(value)
         elif self.kind == "choice":
-            index = self.widget.findData(value)
+            index = self.widget.findData(value) if value is None or isinstance(value, str) else -1
             if index < 0:
                 raise ValueError(f"{self.name}: {value!r} is not one of its choices")
             self.widget.setCurrentIndex(index)
@@ -131,10 +131,16 @@ class Field:
             self.widget.setText(", ".join(_number_text(v) for v in value))
         elif value is None and self.kind == "optional":
             self.widget.setText("")
-        elif not _is_number(value) or (self.kind == "int" and not float(value).is_integer()):
-            raise TypeError(f"{self.name}: {value!r} is not a {'whole ' * (self.kind == 'int')}number")
+        elif not _is_number(value):
+            raise TypeError(f"{self.name}: {value!r} is not a number")
         else:
-            self.widget.setText(_number_text(int(value) if self.kind == "int" else value))
+            try:
+                number = float(value)
+            except OverflowError:
+                raise ValueError(f"{self.name}: {value} is out of range") from None
+            if self.kind == "int" and not number.is_integer():
+                raise TypeError(f"{self.name}: {value!r} is not a whole number")
+            self.widget.setText(_number_text(int(value) if self.kind == "int" else number))
 
     def _number(self, text: str):
         try:
@@ -161,8 +167,12 @@ def _is_number(value) -> bool:
 
 
 def _number_text(value) -> str:
-    """A number as typed back: whole numbers in full (a 64-bit seed), others to 12 digits."""
-    return str(value) if isinstance(value, int) else f"{value:.12g}"
+    """A number as a person types it, read back to the same value: whole numbers in full
+    (a 64-bit seed), others in 12 digits when they hold it, else all of them."""
+    if isinstance(value, int):
+        return str(value)
+    short = f"{value:.12g}"
+    return short if float(short) == value else repr(value)
 
 
 class SettingsForm(QtWidgets.QWidget):

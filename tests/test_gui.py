@@ -11,6 +11,8 @@ import sys  # noqa: E402
 import h5py  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 
 from PySide6 import QtCore  # noqa: E402
 
@@ -598,3 +600,33 @@ def test_garbage_of_worker_threads_is_collected_in_the_gui_thread(qtbot):
     assert set(freed_in) == {threading.main_thread().name}
     collection.close()
     assert not gc.isenabled()  # the conftest's collection still holds
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(remembered=st.dictionaries(
+    st.sampled_from(["K", "seed", "window", "estimator", "band_hi_hz", "ve", "allow_unstable",
+                     "std_n", "duration_s", "plant_m_kg", "gone"]),
+    st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                 lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner,
+                                                                             max_size=3),
+                 max_leaves=6)))
+def test_hostile_remembered_settings_are_left_out_or_named(qapp, remembered):
+    """Remembered settings are a file a person or a crash can spoil: every JSON value a
+    field cannot hold leaves its default, and what is shown parses or names its field."""
+    from labbench.errors import UserError
+    from labbench.gui.protocol_panel import SettingsForm
+    from labbench.registry import make_protocol
+
+    config = make_protocol("etfe").config.as_dict()
+    form = SettingsForm(config)
+    form.apply(remembered)
+    try:
+        values = form.values()
+    except UserError as exc:  # a number the field shows but does not take, named
+        assert str(exc).split(":")[0] in remembered
+        return
+    def same(a, b):
+        return a == b or (isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b))
+
+    for name, value in values.items():  # as remembered, exactly, or else the default
+        assert same(value, remembered.get(name, config[name])) or same(value, config[name])
