@@ -83,8 +83,7 @@ class Field:
     def editable(value) -> bool:
         """Whether a config value has a field."""
         return (value is None or isinstance(value, (bool, int, float, str))
-                or (isinstance(value, (list, tuple))
-                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)))
+                or (isinstance(value, (list, tuple)) and all(_is_number(v) for v in value)))
 
     def signal(self):
         """The widget's signal for an edit."""
