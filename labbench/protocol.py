@@ -13,13 +13,13 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Generator
-from dataclasses import asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
 from labbench.errors import UserError
-from labbench.ve import DEFAULT_PLANT, Plant, VirtualEnvironment
+from labbench.ve import DEFAULT_PLANT, VE_KINDS, Plant, VirtualEnvironment
 
 # Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
 MAX_DURATION_S = 1800.0
@@ -28,6 +28,72 @@ MAX_SAMPLES = 10_000_000
 SAMPLE_TIME_RANGE_S = (1e-5, 1.0)  # 100 kHz .. 1 Hz
 MAX_FORCE_N = 1000.0  # largest excitation force a protocol may ask for (no bench exceeds it)
 
+
+
+# --------------------------------------------------------------------- what each setting means
+# Fields many protocols share, described once: (meaning, SI unit, choices). A protocol's own
+# fields describe themselves with ``setting(...)``, which also overrides an entry here.
+SHARED_FIELDS = {
+    "ve": ("the virtual environment rendered", "", VE_KINDS),
+    "K": ("virtual stiffness", "N/m", None),
+    "B": ("virtual damping", "N s/m", None),
+    "w0_rad_s": ("cut-off of the first-order low-pass on the velocity estimate that the "
+                 "virtual damping acts on; none: no filter", "rad/s", None),
+    "td_s": ("extra delay of the VE force beyond the sample-and-hold, a whole number of "
+             "sample times", "s", None),
+    "sample_time_s": ("sample time of the haptic loop (the rig's; the CLI sets it)", "s", None),
+    "plant_m_kg": ("device mass for the stability precheck and the theory overlay; none: "
+                   "an identified one (the CLI's --plant-from) or the rig's nominal", "kg", None),
+    "plant_b": ("device damping for the precheck and the theory overlay; none: as for "
+                "plant_m_kg", "N s/m", None),
+    "allow_unstable": ("render a VE the precheck finds unstable (simulated devices only)", "",
+                       None),
+}
+
+
+def setting(default, help: str, unit: str = "", choices=None):
+    """A config field with its description: ``help`` (what it means, and what none means
+    where none is allowed), its SI ``unit``, ``choices`` (a tuple, or a function returning
+    one where the list lives in a module imported late). ``field_help`` turns it into the
+    CLI's --help and the GUI's tooltips, so each description is written once."""
+    return field(default=default, metadata={"help": help, "unit": unit, "choices": choices})
+
+
+def _description(f) -> tuple[str, str, tuple | None]:
+    if "help" in f.metadata:
+        meaning, unit, options = f.metadata["help"], f.metadata["unit"], f.metadata["choices"]
+    else:
+        meaning, unit, options = SHARED_FIELDS.get(f.name, ("", "", None))
+    return meaning, unit, options() if callable(options) else options
+
+
+def field_choices(config_cls) -> dict[str, tuple]:
+    """Field name -> its allowed values, for the fields that have a fixed set."""
+    return {f.name: c for f in fields(config_cls) if (c := _description(f)[2])}
+
+
+def field_help(config_cls) -> dict[str, str]:
+    """Field name -> one line for a person: meaning [unit]; its choices; its default
+    (the CLI's --help, the GUI's tooltips). An undescribed field reads as ""."""
+    from labbench.numfmt import fmt
+
+    out = {}
+    for f in fields(config_cls):
+        meaning, unit, options = _description(f)
+        if not meaning:
+            out[f.name] = ""
+            continue
+        head, sep, rest = meaning.partition(";")  # the unit after the meaning's first clause
+        parts = [head + (f" [{unit}]" if unit else "") + sep + rest]
+        if options:
+            parts.append("one of " + ", ".join(options))
+        if f.default is not MISSING:
+            d = f.default
+            shown = ("on" if d else "off") if isinstance(d, bool) else (
+                "none" if d is None else ",".join(map(str, d)) if isinstance(d, tuple) else fmt(d, 6))
+            parts.append(f"default {shown}")
+        out[f.name] = "; ".join(parts)
+    return out
 
 
 def number(name: str, value, unit: str, lo: float | None = None, hi: float | None = None,

@@ -27,28 +27,43 @@ from labbench.protocol import (
     check_plant_fields,
     choice,
     number,
+    setting,
 )
 from labbench.theory import zoh_matrices
 
 METHODS = ("l2", "l1")
 
 
+def _model_choices() -> tuple:
+    from labbench.analysis.identify import MODEL_CHOICES
+
+    return MODEL_CHOICES
+
+
 @dataclass(frozen=True)
 class ChirpIdConfig(Config):
     """Chirp identification: VE off, chirp force f0-f1 Hz, l2/l1 fit of m, b (sec. 4.1)."""
 
-    f0_hz: float = 0.1
-    f1_hz: float = 25.0
-    sweep: str = "log"
-    amplitude_n: float = 1.0  # peak force cap
-    x_max_m: float = 0.02  # steady-state displacement cap of the envelope
-    duration_s: float = 60.0
-    fade_s: float = 1.0  # raised-cosine fade in and out
-    model: str = "auto"  # passed to labbench.analysis.identify
-    methods: tuple = METHODS  # fits to run: "l2" (least squares), "l1" (least absolute)
+    f0_hz: float = setting(0.1, "start frequency of the chirp", "Hz")
+    f1_hz: float = setting(25.0, "end frequency of the chirp, below Nyquist", "Hz")
+    sweep: str = setting("log", "how the frequency moves from f0_hz to f1_hz",
+                         choices=excitation.SWEEPS)
+    amplitude_n: float = setting(1.0, "peak force of the chirp (lowered where the handle "
+                                 "would move more than x_max_m)", "N")
+    x_max_m: float = setting(0.02, "largest steady displacement the chirp may cause, by the "
+                             "nominal plant", "m")
+    duration_s: float = setting(60.0, f"length of the chirp, at most {MAX_DURATION_S:g} s", "s")
+    fade_s: float = setting(1.0, "raised-cosine fade in and out", "s")
+    model: str = setting("auto", "model fitted: mb (mass, damping), mbc (+ Coulomb "
+                         "friction), mbco (+ force offset), auto (chosen by cross-validation)",
+                         choices=_model_choices)
+    methods: tuple = setting(METHODS, "fits to run, comma-separated: l2 (least squares), l1 "
+                             "(least absolute deviations)", choices=METHODS)
     sample_time_s: float = 0.001
-    plant_m_kg: float | None = None  # nominal plant for the envelope (None: the rig's)
-    plant_b: float | None = None
+    plant_m_kg: float | None = setting(None, "nominal device mass that shapes the chirp's "
+                                       "envelope; none: the rig's", "kg")
+    plant_b: float | None = setting(None, "nominal device damping for the envelope; none: "
+                                    "the rig's", "N s/m")
 
     def check(self):
         self._set("f0_hz", number("f0_hz", self.f0_hz, "Hz", lo=0, lo_open=True))

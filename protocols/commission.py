@@ -13,7 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from labbench.errors import UserError
-from labbench.protocol import Config, ProtocolBase, Segment, check_plant_fields, integer, number
+from labbench.protocol import (
+    Config,
+    ProtocolBase,
+    Segment,
+    check_plant_fields,
+    integer,
+    number,
+    setting,
+)
 from labbench.protocols import excitation
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -27,18 +35,20 @@ SERIAL_KINDS = ("serial", "sim-serial", "avr-sim")
 class CommissionConfig(Config):
     """Commissioning: doublets and a short chirp, VE off; checks the rig file (issue 20)."""
 
-    pulse_n: float = 0.5  # doublet amplitude
-    pulse_s: float = 0.02  # each half of a doublet
-    pulses: int = 4  # doublets, alternating in sign
-    rest_s: float = 0.3  # after each doublet
-    chirp_s: float = 20.0
-    f0_hz: float = 0.2
-    f1_hz: float = 20.0
-    amplitude_n: float = 1.0  # the chirp's peak force cap
-    x_max_m: float = 0.01  # the chirp's displacement cap
+    pulse_n: float = setting(0.5, "force of each half of a doublet", "N")
+    pulse_s: float = setting(0.02, "duration of each half of a doublet", "s")
+    pulses: int = setting(4, "doublets, alternating in sign (2 to 100)")
+    rest_s: float = setting(0.3, "rest after each doublet", "s")
+    chirp_s: float = setting(20.0, "length of the chirp", "s")
+    f0_hz: float = setting(0.2, "start frequency of the chirp", "Hz")
+    f1_hz: float = setting(20.0, "end frequency of the chirp (below 0.45 / sample time)", "Hz")
+    amplitude_n: float = setting(1.0, "peak force of the chirp", "N")
+    x_max_m: float = setting(0.01, "largest steady displacement the chirp may cause", "m")
     sample_time_s: float = 0.001
-    plant_m_kg: float | None = None  # nominal plant (None: the rig's)
-    plant_b: float | None = None
+    plant_m_kg: float | None = setting(None, "nominal device mass for the chirp's envelope; "
+                                       "none: the rig's", "kg")
+    plant_b: float | None = setting(None, "nominal device damping for the envelope; none: the "
+                                    "rig's", "N s/m")
 
     def check(self):
         self._set("pulse_n", number("pulse_n", self.pulse_n, "N", lo=0, lo_open=True, hi=1000))

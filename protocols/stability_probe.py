@@ -34,6 +34,7 @@ from labbench.protocol import (
     integer,
     make_ve,
     number,
+    setting,
 )
 
 VARIABLES = ("K", "td")
@@ -46,21 +47,27 @@ PROBE_KINDS = ("spring", "spring-damper")
 class StabilityConfig(Config):
     """Stability probe: step K (or td) up until growth or a trip; vs exact boundary."""
 
-    ve: str = "spring"
-    K: float = 20.0  # N/m: first K (variable K) or the fixed K (variable td)
+    ve: str = setting("spring", "the virtual environment probed", choices=PROBE_KINDS)
+    K: float = setting(20.0, "virtual stiffness: the first step's (variable K) or every "
+                       "step's (variable td)", "N/m")
     B: float = 0.0
     w0_rad_s: float | None = None
-    td_s: float = 0.0  # first td (variable td) or the fixed td (variable K)
-    variable: str = "K"
-    ratio: float = 1.1  # K step factor
-    K_stop: float | None = None  # None: max_over x the exact boundary
-    td_stop_s: float = 0.02
-    max_over: float = 1.5
-    cycles: float = 15.0  # oscillation periods per step (sqrt(K/m))
-    min_step_s: float = 1.0
-    max_step_s: float = 10.0
-    pulse_n: float = 0.5
-    pulse_s: float = 0.02
+    td_s: float = setting(0.0, "extra delay of the VE force, whole sample times: the first "
+                          "step's (variable td) or every step's (variable K)", "s")
+    variable: str = setting("K", "what grows from step to step", choices=VARIABLES)
+    ratio: float = setting(1.1, "factor from one step's K to the next's (above 1, at most 10)")
+    K_stop: float | None = setting(None, "last K tried; none: max_over times the exact "
+                                   "boundary K_max", "N/m")
+    td_stop_s: float = setting(0.02, "last td tried (variable td)", "s")
+    max_over: float = setting(1.5, "highest K tried as a multiple of the exact boundary K_max "
+                              "(above 1)")
+    cycles: float = setting(15.0, "length of a step in oscillation periods 2 pi sqrt(m/K), "
+                            "at least 2, within min_step_s to max_step_s")
+    min_step_s: float = setting(1.0, "shortest step", "s")
+    max_step_s: float = setting(10.0, "longest step (at most 60 s)", "s")
+    pulse_n: float = setting(0.5, "peak of the half-sine force pulse that starts each step",
+                             "N")
+    pulse_s: float = setting(0.02, "duration of that pulse", "s")
     sample_time_s: float = 0.001
     plant_m_kg: float | None = None
     plant_b: float | None = None

@@ -31,6 +31,7 @@ from labbench.protocol import (
     integer,
     make_ve,
     number,
+    setting,
 )
 
 # Summary figures stop at this fraction of Nyquist: above, the sampled loop's ED and EM
@@ -40,26 +41,38 @@ SUMMARY_W_MAX_NYQUIST = 0.1
 DEVIATION_BAND_RAD_S = (2.0, 100.0)
 
 
+def _estimators() -> tuple:
+    from labbench.analysis.etfe import ESTIMATORS
+
+    return ESTIMATORS
+
+
 @dataclass(frozen=True)
 class EtfeConfig(Config):
     """White-noise ETFE of the closed loop with a chosen VE (sec. 4.2), theory overlay."""
 
     ve: str = "spring-damper"
-    K: float = 50.0  # N/m
-    B: float = 1.0  # N s/m
-    w0_rad_s: float | None = 125.0  # velocity low-pass; None = no filter
-    td_s: float = 0.0  # external delay, whole samples
-    std_n: float = 0.5  # white-noise force standard deviation
-    band_lo_hz: float = 0.0
-    band_hi_hz: float | None = None  # None: up to Nyquist (unfiltered white noise)
-    duration_s: float = 120.0
-    seed: int | None = None  # None: drawn at random and recorded
-    window: int = 200  # ETFE smoothing window (points)
-    estimator: str | None = None  # labbench.analysis.etfe estimator (None: its default)
+    K: float = 50.0
+    B: float = 1.0
+    w0_rad_s: float | None = 125.0
+    td_s: float = 0.0
+    std_n: float = setting(0.5, "standard deviation of the white-noise excitation force", "N")
+    band_lo_hz: float = setting(0.0, "lower edge of the excitation's band (0, with band_hi_hz "
+                                "none: unfiltered white noise)", "Hz")
+    band_hi_hz: float | None = setting(None, "upper edge of the excitation's band; none: up "
+                                       "to the Nyquist frequency", "Hz")
+    duration_s: float = setting(120.0, f"length of the record, 1 to {MAX_DURATION_S:g} s "
+                                "(longer: narrower frequency bins)", "s")
+    seed: int | None = setting(None, "seed of the noise; none: drawn at random and recorded "
+                               "in the session")
+    window: int = setting(200, "Hamming window of the paper estimator, in frequency bins "
+                          "(its smoothing)")
+    estimator: str | None = setting(None, "the ETFE estimator (labbench.analysis.etfe); none: "
+                                    "its default", choices=_estimators)
     sample_time_s: float = 0.001
-    plant_m_kg: float | None = None  # overlay/precheck plant (None: the rig's nominal)
+    plant_m_kg: float | None = None
     plant_b: float | None = None
-    allow_unstable: bool = False  # simulator only (the runner enforces it)
+    allow_unstable: bool = False  # the runner allows it on simulators only
 
     def check(self):
         choice("ve", self.ve, VE_KINDS)

@@ -22,7 +22,7 @@ def register(subparsers) -> None:
 
     q = sub.add_parser("id", help="fit f = m x'' + b x' [+ Fc sign(x')] [+ f0]",
                        description="Identify mass, damping (and friction, offset) with 95 % intervals.")
-    q.add_argument("file", metavar="FILE")
+    q.add_argument("file", metavar="FILE", help="a CSV record (# key=value lines, then t, force, position) or a recorded session")
     q.add_argument("--model", choices=MODEL_CHOICES, default="auto",
                    help="mb, mbc (+Coulomb), mbco (+offset), auto (blocked cross-validation; default)")
     q.add_argument("--method", choices=METHODS, default="l2", help="l2 least squares or l1 (exact LAD)")
@@ -41,9 +41,10 @@ def register(subparsers) -> None:
 
     e = sub.add_parser("etfe", help="closed-loop impedance Z = F/(jw X) and effective impedances",
                        description="Empirical transfer-function estimate with coherence and a 95 % band.")
-    e.add_argument("file", metavar="FILE")
+    e.add_argument("file", metavar="FILE", help="a CSV record (# key=value lines, then t, force, position) or a recorded session")
     e.add_argument("--estimator", choices=ESTIMATORS, default=DEFAULT_ESTIMATOR,
-                   help=f"default {DEFAULT_ESTIMATOR}; paper = the paper's method exactly")
+                   help=f"how Z is estimated (docs/analysis.md; paper: the paper's method "
+                        f"exactly); default {DEFAULT_ESTIMATOR}")
     e.add_argument("--window", type=int, default=200, metavar="N",
                    help="Hamming window length in bins for --estimator paper (default 200)")
     e.add_argument("--m", type=float, metavar="KG", help="device mass for the theory overlay")

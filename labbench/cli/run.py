@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import MISSING, fields
+from dataclasses import fields
 from pathlib import Path
 
 from labbench.jsonutil import json_safe
@@ -77,27 +77,31 @@ def _common(sp) -> None:
 
 
 def _config_options(sp, config_cls) -> None:
-    """One option per config field, typed from its annotation."""
+    """One option per config field, typed from its annotation, its help the field's own
+    description (``labbench.protocol.field_help``)."""
+    from labbench.protocol import field_help
+
+    described = field_help(config_cls)
     for f in fields(config_cls):
         if f.name in _HIDDEN:
             continue
         flag = "--" + f.name.replace("_", "-")
         ann = str(f.type)
-        default = None if f.default is MISSING else f.default
+        text = described[f.name].replace("%", "%%")
         if ann == "bool":
             sp.add_argument(flag, dest=f.name, action="store_true", default=argparse.SUPPRESS,
-                            help=f"(default {default})")
+                            help=text)
             continue
         if ann.startswith("tuple"):
-            kind = _words
+            kind, metavar = _words, "A,B"
         elif ann.startswith("float"):
-            kind = _number
+            kind, metavar = _number, "X"
         elif ann.startswith("int"):
-            kind = _whole
+            kind, metavar = _whole, "N"
         else:
-            kind = _text
-        sp.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, metavar="X",
-                        help=f"(default {','.join(default) if isinstance(default, tuple) else default})")
+            kind, metavar = _text, "NAME"
+        sp.add_argument(flag, dest=f.name, type=kind, default=argparse.SUPPRESS, metavar=metavar,
+                        help=text)
 
 
 def _none(text: str) -> bool:

@@ -34,9 +34,10 @@ def register(subparsers) -> None:
     p.add_argument("--csv", metavar="FILE", help="also write the table as CSV")
     p.add_argument("--charts", metavar="DIR", help="folder of the spec's charts (default: the table)")
     p.add_argument("--chart", metavar="FILE", help="one more chart: a map of --x, --y [--color]")
-    p.add_argument("--x", metavar="COLUMN")
-    p.add_argument("--y", metavar="COLUMN")
-    p.add_argument("--color", metavar="COLUMN")
+    p.add_argument("--x", metavar="COLUMN", help="with --chart: the table column across")
+    p.add_argument("--y", metavar="COLUMN", help="with --chart: the table column up")
+    p.add_argument("--color", metavar="COLUMN", help="with --chart: the column that colours "
+                   "the points (default: none)")
     p.add_argument("--force", action="store_true", help="replace existing CSV and chart files")
     p.add_argument("--strict", action="store_true",
                    help=f"exit {EXIT_STRICT} when a point failed (status not ok, or verdict failed)")
