@@ -7,11 +7,12 @@ simulators need no gate; ``--skip-commissioning`` is for people who know their r
 
 ``write_rig`` puts a commissioning result's ``changes`` into the rig file with
 ``tomlkit``, which keeps the user's comments and layout, after copying the old file
-to ``<name>.bak`` (an existing backup is replaced: it is the file as it was just now).
+to ``<name>.bak`` (an existing backup is replaced: it is the file as it was just now),
+both through ``labbench.safe_write.edit_text`` (never through a planted link, mode and
+line breaks kept).
 """
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from labbench.errors import UserError
@@ -45,29 +46,28 @@ def changes_to_write(results: dict, session: str, when: str) -> dict:
 
 
 def write_rig(path, fields: dict) -> Path | None:
-    """Set ``fields`` in the ``[rig]`` table of the rig file ``path`` (comments and layout
-    kept); the old file is copied to ``<path>.bak`` first. Returns the backup's path, or
-    None when nothing changed."""
+    """Set ``fields`` in the ``[rig]`` table of the rig file ``path`` (comments, layout,
+    line breaks and mode kept; a link is edited at its real path, as an editor does); the
+    old file goes to ``<real name>.bak`` first (``labbench.safe_write.edit_text``). Returns
+    the backup's path, or None when nothing changed. One UserError when the file cannot be
+    read or written safely (read-only, a read-only folder, a full disk)."""
     import tomlkit
 
-    p = Path(path)
-    try:
-        doc = tomlkit.parse(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{p}: cannot read the rig file: {exc}") from None
-    except tomlkit.exceptions.ParseError as exc:
-        raise UserError(f"{p}: not valid TOML: {exc}") from None
-    table = doc.get("rig")
-    if table is None:
-        table = tomlkit.table()
-        doc["rig"] = table
-    if not fields or all(table.get(k) == v for k, v in fields.items()):
-        return None
-    for k, v in fields.items():
-        table[k] = v
-    backup = p.with_name(p.name + ".bak")
-    shutil.copy2(p, backup)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(tomlkit.dumps(doc), encoding="utf-8")
-    tmp.replace(p)
-    return backup
+    from labbench.safe_write import edit_text
+
+    def change(text: str) -> str | None:
+        try:
+            doc = tomlkit.parse(text)
+        except tomlkit.exceptions.ParseError as exc:
+            raise UserError(f"{path}: not valid TOML: {exc}") from None
+        table = doc.get("rig")
+        if table is None:
+            table = tomlkit.table()
+            doc["rig"] = table
+        if not fields or all(table.get(k) == v for k, v in fields.items()):
+            return None
+        for k, v in fields.items():
+            table[k] = v
+        return tomlkit.dumps(doc)
+
+    return edit_text(path, change, "rig file").backup

@@ -25,6 +25,11 @@ class MissingExtraError(UserError):
     """A feature needs an optional package that is not installed (the message says which)."""
 
 
+class RecordingError(LabbenchError):
+    """A session could not be written on (full disk, size limit, permission, read-only): the
+    message says what was kept. The run stops (the device first) and fails."""
+
+
 class DeviceError(LabbenchError):
     """A device did not do what it was asked: root of the device errors."""
 

@@ -115,11 +115,8 @@ def export_csv(session_path, out_path, force: bool = False) -> Path:
     cols = np.column_stack([np.asarray(table[c], dtype=float) for c in CSV_COLUMNS])
     fmt = ["%d" if np.asarray(table[c]).dtype.kind in "iub" else "%.17g" for c in CSV_COLUMNS]
     header = "".join(f"# {k}={one_line(v)}\n" for k, v in meta.items()) + ",".join(CSV_COLUMNS)
-    with replacing(out, [session_path], force) as tmp:
-        try:
-            np.savetxt(tmp, cols, delimiter=",", fmt=fmt, header=header, comments="")
-        except OSError as exc:
-            raise UserError(f"cannot write {out}: {exc.strerror}") from None
+    with replacing(out, [session_path], force) as tmp:  # a refused write: one UserError
+        np.savetxt(tmp, cols, delimiter=",", fmt=fmt, header=header, comments="")
     return out
 
 
@@ -156,8 +153,5 @@ def export_frequency_response(fr, out_path, inputs=(), force: bool = False) -> P
     fmt = ["%d" if n == "low_coherence" else "%.17g" for n in names]
     header = "".join(f"# {k}={one_line(v)}\n" for k, v in meta.items()) + ",".join(names)
     with replacing(out, inputs, force) as tmp:
-        try:
-            np.savetxt(tmp, table, delimiter=",", fmt=fmt, header=header, comments="")
-        except OSError as exc:
-            raise UserError(f"cannot write {out}: {exc.strerror}") from None
+        np.savetxt(tmp, table, delimiter=",", fmt=fmt, header=header, comments="")
     return out

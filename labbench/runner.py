@@ -29,13 +29,14 @@ import numpy as np
 from labbench import commissioning, device_delay, records, timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.device import StatusReporting
-from labbench.errors import UserError
+from labbench.errors import DeviceError, RecordingError, UserError
 from labbench.realtime import RealtimeConfig, acquire
 from labbench.rig import Rig
 from labbench.protocol import ProtocolBase, SegmentOutcome, precheck
 
 # run_loop outcome -> stop-record status (a trip a protocol expects is not a failure).
 _FAILED = ("tripped", "fault")
+_CAUSE = {"tripped": "safety", "fault": "device"}  # the failed stop record's ``cause``
 
 
 @dataclass
@@ -48,6 +49,7 @@ class RunResult:
     timing: dict = field(default_factory=dict)
     uid: str | None = None
     n_samples: int = 0
+    cause: str | None = None  # of a failed run: "device", "safety", "recording", "error"
 
 
 def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
@@ -62,7 +64,7 @@ def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
     from labbench.session_format import SessionWriter
 
     sinks = list(consumers)
-    try:
+    try:  # the folder is checked for writing here, before the device is enabled
         writer = SessionWriter(session_dir) if session_dir is not None else None
     except BaseException:
         _stop_device(device, close=options.get("close", True))
@@ -73,12 +75,16 @@ def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
 
         sinks.insert(0, record)
     try:
-        return run(device, protocol, sinks, **options), writer.path if writer else None
+        result = run(device, protocol, sinks, **options)
     finally:
         if writer is not None:
             writer.close()
             if writer.path is not None and on_session is not None:
                 on_session(str(writer.path))
+    if writer is not None and writer.error is not None and result.cause != "recording":
+        # refused at the last flush: the run is done but its session may not be whole
+        result = replace(result, status="failed", reason=writer.failure(), cause="recording")
+    return result, writer.path if writer else None
 
 
 def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
@@ -159,13 +165,17 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     except KeyboardInterrupt as exc:
         _stop_device(device, close=False)
         return run_state.finish("aborted", str(exc) or "interrupted (Ctrl-C)")
+    except RecordingError as exc:  # the session cannot be written on: the device first
+        _stop_device(device, close=False)
+        return run_state.finish("failed", str(exc), "recording")
     except UserError as exc:
         _stop_device(device, close=False)
         run_state.finish("failed", str(exc))
         raise
     except Exception as exc:
         _stop_device(device, close=False)
-        run_state.finish("failed", f"{type(exc).__name__}: {exc}")
+        run_state.finish("failed", f"{type(exc).__name__}: {exc}",
+                         "device" if isinstance(exc, DeviceError) else "error")
         raise
     finally:
         _stop_device(device, close=close)
@@ -245,7 +255,8 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
                 return meta
             if outcome.status in _FAILED and not (outcome.status == "tripped"
                                                    and segment.trip_expected):
-                run_state.finish("failed", f"{outcome.status}: {outcome.reason}")
+                run_state.finish("failed", f"{outcome.status}: {outcome.reason}",
+                                 _CAUSE[outcome.status])
                 return meta
             try:
                 segment = gen.send(SegmentOutcome(outcome.status, outcome.reason,
@@ -308,15 +319,16 @@ class _Run(records.RecordRouter):
             out["realtime"] = self.realtime
         return json_safe(out)
 
-    def finish(self, status: str, reason: str) -> RunResult:
+    def finish(self, status: str, reason: str, cause: str | None = None) -> RunResult:
         if self.finished is None:
             timing = self.timing()
             if self.started:  # no stream without its start record (e.g. Ctrl-C in the precheck)
                 self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
                                               timing=timing, results=summarize(self.results),
-                                              device_counters=self.counters()))
+                                              device_counters=self.counters(),
+                                              **({"cause": cause} if cause else {})))
             self.finished = RunResult(status, reason, self.results, timing, self.uid,
-                                      self.n_samples)
+                                      self.n_samples, cause)
         return self.finished
 
 

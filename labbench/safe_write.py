@@ -1,4 +1,5 @@
-"""Every file labbench writes (exports, reports, figures) goes through here.
+"""Every file labbench writes goes through here: exports, reports, figures, sweep tables and
+charts, sessions (``labbench.session_format``) and rig edits (``edit_text``).
 
 Rules, checked before any work and again at the moment of writing:
 
@@ -8,22 +9,50 @@ Rules, checked before any work and again at the moment of writing:
   the GUI picks a free name instead (``free_name``);
 * the folder holding the output must exist: no folder is created that the
   user did not name (``output_folder`` creates exactly the one named, never
-  its parents);
-* the data go to a temporary file in the same folder that is renamed into
-  place when complete, so an interrupted write leaves the old file (or no
-  file), never a truncated one. A symlink at the output name is replaced as
-  a link, never followed, so nothing outside the folder is written.
+  its parents; ``new_folder`` also removes it again when what was to go into it failed);
+* the data go to a new file in the same folder that is renamed into place when
+  complete, so an interrupted write leaves the old file (or no file), never a
+  truncated one;
+* a file the tool creates is created exclusively (``O_CREAT | O_EXCL | O_NOFOLLOW``)
+  under a random name (``create_new``): a link planted at any name is never
+  followed. A symlink at the output name is replaced as a link, so nothing
+  outside the folder is written;
+* a new file has the user's umask (0666 less the umask, as any program's files:
+  ``tempfile.mkstemp``'s 0600 kept a supervisor logged in as another user from
+  reading a report); a replaced one keeps its mode;
+* what cannot be done safely is refused in one line (``UserError``): a read-only
+  file or folder to edit, a folder that refuses a new file, a write the disk refused.
 """
+
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import secrets
 import stat
-import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from labbench.errors import UserError
+
+# O_NOFOLLOW: the last component is never a link; O_BINARY (Windows): no newline translation
+_CREATE = (os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+           | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
+# what a person is told a refused write means (errno -> words)
+_WHY = {errno.ENOSPC: "the disk is full",
+        getattr(errno, "EDQUOT", -1): "the disk quota is used up",
+        errno.EFBIG: "the file size limit was reached", errno.EROFS: "the file system is read-only",
+        errno.EACCES: "permission denied", errno.EPERM: "operation not permitted",
+        errno.EIO: "a disk input/output error"}
+
+
+def why(exc: OSError) -> str:
+    """A refused write in words: ``the disk is full (No space left on device)``."""
+    text = exc.strerror or str(exc)
+    words = _WHY.get(exc.errno)
+    return f"{words} ({text})" if words and words.lower() != text.lower() else text
 
 
 def _same_file(a: os.stat_result, path) -> bool:
@@ -74,7 +103,38 @@ def output_folder(path) -> Path:
         raise UserError(f"cannot create output folder {d}: {d.parent} does not exist "
                         "(labbench creates no folders you did not name)") from None
     except OSError as exc:
-        raise UserError(f"cannot create output folder {d}: {exc.strerror}") from None
+        raise UserError(f"cannot create output folder {d}: {why(exc)}") from None
+    return d
+
+
+@contextlib.contextmanager
+def new_folder(path) -> Iterator[Path]:
+    """``output_folder(path)`` for the block; a folder this made is removed again when the
+    block fails and left it empty (a report on a full disk left an empty folder behind)."""
+    made = not os.path.lexists(path)
+    d = output_folder(path)
+    try:
+        yield d
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only when empty
+        raise
+
+
+def writable_folder(path, what: str = "folder") -> Path:
+    """``path`` once a new file can be made in it (one is made and removed); else one
+    UserError saying why (no permission, read-only, no space for its entry)."""
+    d = Path(path)
+    try:
+        fd, probe = create_new(d, ".labbench-probe-", "")
+    except FileNotFoundError:
+        raise UserError(f"{what} {d} does not exist") from None
+    except OSError as exc:
+        raise UserError(f"cannot write into {what} {d}: {why(exc)}") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        probe.unlink()
     return d
 
 
@@ -88,34 +148,112 @@ def free_name(path) -> Path:
     return p
 
 
+def _token() -> str:
+    return secrets.token_hex(6)
+
+
+def create_new(folder, prefix: str, suffix: str, mode: int | None = None) -> tuple[int, Path]:
+    """A new empty file ``<prefix><random><suffix>`` in ``folder``, created exclusively and
+    never through a link (a name taken, by a file or a planted link, is passed over):
+    ``(descriptor, path)``. Its mode: the umask's (``tempfile.mkstemp`` would give 0600),
+    or ``mode``."""
+    for _ in range(100):
+        p = Path(folder) / f"{prefix}{_token()}{suffix}"
+        try:
+            fd = os.open(p, _CREATE, 0o666)
+        except FileExistsError:
+            continue
+        if mode is not None:
+            try:
+                (os.fchmod(fd, mode) if hasattr(os, "fchmod") else os.chmod(p, mode))
+            except BaseException:
+                os.close(fd)
+                p.unlink()
+                raise
+        return fd, p
+    raise FileExistsError(errno.EEXIST, "no free name", str(folder))
+
+
+def _mode_of(path: Path) -> int | None:
+    """The permission bits of the regular file at ``path`` (not through a link), else None."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return stat.S_IMODE(st.st_mode) & 0o777 if stat.S_ISREG(st.st_mode) else None
+
+
 @contextlib.contextmanager
 def replacing(path, inputs: Iterable = (), force: bool = False) -> Iterator[Path]:
-    """Write ``path`` atomically: yields a temporary path (same folder, same suffix, so
+    """Write ``path`` atomically: yields a new file's path (same folder, same suffix, so
     writers that go by the suffix pick the right format) that becomes ``path`` when the
-    block ends without an exception; otherwise it is removed."""
+    block ends without an exception; otherwise it is removed. A write the system refuses
+    (full disk, size limit, permission) is one UserError."""
     inputs = list(inputs)
     out = output_path(path, inputs, force)
-    try:
-        fd, name = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.",
-                                    suffix=f".part{out.suffix}")
-    except OSError as exc:
-        raise UserError(f"cannot write into {out.parent}: {exc.strerror}") from None
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        _fsync(tmp)
+
+    def publish(tmp: Path) -> None:
         output_path(out, inputs, force)  # again: the folder may have changed meanwhile
         _publish(tmp, out, force)
-    except BaseException:
+
+    with _staged(out.parent, f".{out.name}.", f".part{out.suffix}", _mode_of(out), out,
+                 publish) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def new_output(folder, prefix: str, suffix: str) -> Iterator[Path]:
+    """Like ``replacing`` for a file whose name only has to be new (``<prefix><random>
+    <suffix>``, e.g. a sweep's part files): never replaces anything. Yields the new file's
+    path; the block's result is published under the final name when it ends."""
+    d = Path(folder)
+
+    def publish(tmp: Path) -> None:
+        for _ in range(100):
+            name = d / f"{prefix}{_token()}{suffix}"
+            try:
+                os.link(tmp, name)  # fails on any name taken, a planted link included
+                return
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EXDEV):
+                    raise
+                if not os.path.lexists(name):  # a file system without hard links
+                    os.replace(tmp, name)
+                    return
+        raise FileExistsError(errno.EEXIST, "no free name", str(d))
+
+    with _staged(d, f".{prefix}", f".part{suffix}", None, d, publish) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def _staged(folder: Path, prefix: str, suffix: str, mode: int | None, what: Path,
+            publish: Callable[[Path], None]) -> Iterator[Path]:
+    """A new file in ``folder`` for the block to fill, flushed and ``publish``ed when the
+    block ends, removed in any case (``publish`` links or renames it); a refused write is
+    one UserError naming ``what``."""
+    try:
+        fd, tmp = create_new(folder, prefix, suffix, mode)
+    except OSError as exc:
+        raise UserError(f"cannot write into {folder}: {why(exc)}") from None
+    os.close(fd)
+    try:
+        try:
+            yield tmp
+            _fsync(tmp)
+            publish(tmp)
+        except OSError as exc:
+            raise UserError(f"cannot write {what}: {why(exc)}") from None
+    finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        raise
 
 
 def _fsync(path: Path) -> None:
     # Writable: Windows' fsync (_commit) refuses a read-only descriptor.
-    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+    fd = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0) | getattr(os, "O_NOFOLLOW", 0))
     try:
         os.fsync(fd)
     finally:
@@ -132,5 +270,89 @@ def _publish(tmp: Path, out: Path, force: bool) -> None:
         raise UserError(f"output {out} exists; give --force to replace it") from None
     except OSError:  # a file system without hard links: the check above stands
         os.replace(tmp, out)
-        return
-    tmp.unlink()
+
+
+def write_file(path, data: bytes, mode: int | None = None) -> Path:
+    """``data`` as the whole of ``path``: a new file written, flushed and renamed onto it (a
+    link at ``path`` is replaced, never followed). Mode: ``mode``, else the old file's, else
+    the umask's. OSError when the system refuses."""
+    out = Path(path)
+    mode = _mode_of(out) if mode is None else mode
+    fd, tmp = create_new(out.parent, f".{out.name}.", ".tmp", mode)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    return out
+
+
+@dataclass(frozen=True)
+class Edit:
+    """What ``edit_text`` did: the file named, the file written (its real path when the name
+    is a link), the backup of its old content (None when nothing changed)."""
+
+    path: Path
+    real: Path
+    backup: Path | None
+
+    @property
+    def through_link(self) -> bool:
+        return self.real != Path(os.path.abspath(self.path))
+
+
+def editable(path, what: str = "file") -> Path:
+    """The real path of ``path`` (a link followed, as an editor writes through one) once it
+    can be edited safely: a regular file its owner may write, in a folder that takes a new
+    file. Else one UserError saying why."""
+    p = Path(path)
+    try:
+        real = Path(os.path.realpath(p, strict=True))
+        st = os.stat(real)
+    except FileNotFoundError:
+        raise UserError(f"{what} {p} does not exist" + (" (a link to a missing file)"
+                                                         if p.is_symlink() else "")) from None
+    except OSError as exc:
+        raise UserError(f"cannot use {what} {p}: {why(exc)}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise UserError(f"{what} {p} is not a regular file")
+    writable_folder(real.parent, f"the folder of {what} {p},")  # the new file and the backup
+    if not st.st_mode & stat.S_IWUSR or not os.access(real, os.W_OK):
+        raise UserError(f"{what} {p} is read-only: make it writable to let labbench change it")
+    return real
+
+
+def edit_text(path, change: Callable[[str], str | None], what: str = "file",
+              backup_suffix: str = ".bak") -> Edit:
+    """Change a UTF-8 text file in place, safely (``editable``): ``change(text)`` gets the
+    text with LF line breaks and returns the new text (None: no change). The file keeps its
+    mode and its line breaks (CRLF stays CRLF); its old content goes first to
+    ``<real name><backup_suffix>`` beside it, written the same way (a link there is
+    replaced, not followed). One UserError when reading or writing is refused."""
+    real = editable(path, what)
+    try:
+        raw = real.read_bytes()
+    except OSError as exc:
+        raise UserError(f"cannot read {what} {path}: {why(exc)}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
+    crlf = raw.count(b"\r\n") * 2 > raw.count(b"\n")
+    new = change(text.replace("\r\n", "\n") if crlf else text)
+    if new is None:
+        return Edit(Path(path), real, None)
+    data = (new.replace("\n", "\r\n") if crlf else new).encode("utf-8")
+    mode = _mode_of(real)
+    backup = real.with_name(real.name + backup_suffix)
+    try:
+        write_file(backup, raw, mode)
+        write_file(real, data, mode)
+    except OSError as exc:
+        raise UserError(f"cannot write {what} {path}: {why(exc)}; it is unchanged") from None
+    return Edit(Path(path), real, backup)

@@ -22,6 +22,7 @@ stops at the first short, corrupt or out-of-sequence chunk and says so in
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from labbench import records
-from labbench.errors import UserError
+from labbench.errors import RecordingError, UserError
 from labbench.input_files import open_regular
 
 MAGIC = b"LBSESSION 1\n"
@@ -134,7 +135,8 @@ _FIELDS = {
     records.DESCRIPTOR: {"sample_time_s": (_NUMBER,), "channels": (dict,)},
     records.PAGE: {"index": (_INT,)},
     records.EVENT: {"t": (_NUMBER, _NONE), "name": (str,), "reason": (str, _NONE)},
-    records.STOP: {"status": (str,), "reason": (str, _NONE), "time": (_NUMBER,), "n_samples": (_INT,),
+    records.STOP: {"status": (str,), "reason": (str, _NONE), "cause": (str, _NONE),
+                   "time": (_NUMBER,), "n_samples": (_INT,),
                    "results": (dict,), "timing": (dict, _NONE)},
 }
 _RANGES = {"time": (0.0, 1e11), "sample_time_s": (1e-9, 1.0), "t": (-1e11, 1e11),
@@ -317,32 +319,61 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9-]+", "-", str(text)).strip("-") or "run"
 
 
+# what stopped a recording, in words (errno -> "... recorded up to <words>")
+_UP_TO = {errno.ENOSPC: "the disk filling",
+          getattr(errno, "EDQUOT", -1): "the disk quota running out",
+          errno.EFBIG: "the file size limit", errno.EROFS: "the file system turning read-only",
+          errno.EACCES: "permission being refused", errno.EPERM: "permission being refused",
+          errno.EIO: "a disk input/output error"}
+
+
+def session_folder(directory) -> Path:
+    """The sessions folder (created with its parents if missing) once a new file can be made
+    in it; else one UserError. Checked before a device is enabled: a read-only folder gave
+    a traceback at the end of the run."""
+    from labbench.safe_write import writable_folder, why
+
+    if not str(directory).strip():
+        raise UserError("empty session folder name")
+    d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise UserError(f"session directory {d} is a file")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create session directory {d}: {why(exc)}") from None
+    return writable_folder(d, "sessions folder")
+
+
 class SessionWriter:
     """Record consumer that writes one session file per run.
 
     The file is created when the start record arrives, in ``directory`` (made if
-    missing), named ``<YYYYmmdd-HHMMSS>_<protocol>_<uid8>.lbsession`` unless
-    ``name`` is given; ``path`` is ``None`` until then. ``close()`` is idempotent;
-    use as a context manager. Safe to call from the acquisition thread: a record
-    costs one ``os.write``; ``fsync`` runs on a helper thread every
-    ``fsync_interval_s``.
+    missing, checked for writing at once: ``session_folder``), named
+    ``<YYYYmmdd-HHMMSS>_<protocol>_<uid8>.lbsession`` unless ``name`` is given; ``path``
+    is ``None`` until then. It is created exclusively (never through a link at its name)
+    with the user's umask. ``close()`` is idempotent; use as a context manager. Safe to
+    call from the acquisition thread: a record costs one ``os.write``; ``fsync`` runs on a
+    helper thread every ``fsync_interval_s``.
+
+    A write the system refuses (full disk, file size limit, permission, read-only) raises
+    ``RecordingError`` once, saying how much was recorded; the file is cut back to its
+    last whole record (readable, without a stop record: incomplete) and later records
+    are dropped. ``error`` keeps the OSError.
     """
 
     def __init__(self, directory, name: str | None = None, fsync_interval_s: float = 0.5):
-        if not str(directory).strip():
-            raise UserError("empty session folder name")
-        self.directory = Path(directory)
-        if self.directory.exists() and not self.directory.is_dir():
-            raise UserError(f"session directory {self.directory} is a file")
-        try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"cannot create session directory {self.directory}: "
-                            f"{exc.strerror}") from None
+        self.directory = session_folder(directory)
         self.name = name
         self.path: Path | None = None
+        self.error: OSError | None = None
+        self._reported = False  # the RecordingError was raised
+        self._attempt: Path | None = None  # the file name tried
         self._fd: int | None = None
         self._seq = 0
+        self._good = 0  # bytes of whole records in the file
+        self._samples = 0  # samples in the pages written whole
+        self._T: float | None = None
         self._closed = False
         self._dirty = False
         self._lock = threading.Lock()
@@ -365,17 +396,15 @@ class SessionWriter:
     def _open(self, start: dict) -> None:
         if start.get("kind") != records.START:
             raise ValueError(f"a session begins with a start record, got {start.get('kind')!r}")
-        path = self.directory / self._file_name(start)
-        try:
-            # O_BINARY (Windows): no newline translation in the records' bytes
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
-                               0o644)
-        except FileExistsError:
-            raise UserError(f"session file already exists: {path}") from None
-        except OSError as exc:
-            raise UserError(f"cannot create session file {path}: {exc.strerror}") from None
+        path = self._attempt = self.directory / self._file_name(start)
+        # 0o666 less the umask, as any program's file; O_EXCL | O_NOFOLLOW: never through a
+        # link planted at the name (an existing name is refused); O_BINARY (Windows): no
+        # newline translation
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+                           | getattr(os, "O_BINARY", 0), 0o666)
         self.path = path
         self._write(MAGIC)
+        self._good = len(MAGIC)
 
     def _write(self, buf: bytes) -> None:
         view = memoryview(buf)
@@ -387,21 +416,61 @@ class SessionWriter:
         while not self._stop_flush.wait(self._interval):
             if self._dirty:
                 self._dirty = False
-                os.fsync(self._fd)
+                try:
+                    os.fsync(self._fd)
+                except OSError as exc:  # the next record says so (__call__)
+                    self.error = self.error or exc
 
     def __call__(self, record: dict) -> None:
         with self._lock:
             if self._closed:
                 raise RuntimeError("session writer is closed")
-            if self._fd is None:
-                self._open(record)
-            chunk = encode_record(record, self._seq)
-            self._write(chunk)
+            if self.error is not None:
+                if self._reported:
+                    return  # said once: what follows is dropped (the run is stopping)
+                raise self._failed(self.error)
+            try:
+                if self._fd is None:
+                    self._open(record)
+                self._write(encode_record(record, self._seq))
+            except OSError as exc:
+                raise self._failed(exc) from None
             self._seq += 1
+            self._good = os.lseek(self._fd, 0, os.SEEK_CUR)
             self._dirty = True
+            kind = record.get("kind")
+            if kind == records.DESCRIPTOR:
+                self._T = record.get("sample_time_s")
+            elif kind == records.PAGE:
+                self._samples += len(record["data"]["t"])
+
+    def _failed(self, exc: OSError) -> RecordingError:
+        """The one error of a refused write: the file cut back to its whole records."""
+        self.error, self._reported = exc, True
+        if self._fd is not None:
+            try:
+                os.ftruncate(self._fd, self._good)  # a shorter file needs no space
+            except OSError:
+                pass  # the reader stops at the torn record just as well
+        return RecordingError(self.failure())
+
+    def failure(self) -> str | None:
+        """What a refused write left, in one line (None while all is well)."""
+        if self.error is None:
+            return None
+        from labbench.safe_write import why
+
+        if self.path is None:
+            return (f"nothing recorded: cannot create session file {self._attempt}: "
+                    f"{why(self.error)}")
+        kept = (f"{self._samples * self._T:.1f} s" if self._T else f"{self._samples} samples")
+        words = _UP_TO.get(self.error.errno, f"a write error ({self.error.strerror or self.error})")
+        return (f"{kept} recorded up to {words}; the session {self.path} is readable, "
+                "marked incomplete")
 
     def close(self) -> None:
-        """Flush to disk and close; safe to call more than once."""
+        """Flush to disk and close; safe to call more than once. A refused flush is kept in
+        ``error`` (``failure()``), not raised."""
         with self._lock:
             if self._closed:
                 return
@@ -411,6 +480,8 @@ class SessionWriter:
         if self._fd is not None:
             try:
                 os.fsync(self._fd)
+            except OSError as exc:
+                self.error = self.error or exc
             finally:
                 os.close(self._fd)
                 self._fd = None

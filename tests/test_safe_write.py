@@ -6,7 +6,9 @@ drive the real commands (``labbench export``, ``report``, ``theory --plot``,
 """
 from __future__ import annotations
 
+import itertools
 import os
+import stat
 
 import pytest
 from session_recorder import synthetic_stream
@@ -162,3 +164,57 @@ def test_replacing_and_free_name(tmp_path):
     assert free_name(target) == tmp_path / "a-3.txt"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a-2.txt", "a.txt"]
     assert target.read_text() == "one"
+
+
+RIG_CRLF = b"# my bench\r\n[rig]\r\nname = \"bench\"\r\n\r\n[sim]\r\nsign = 1\r\n"
+
+
+def test_a_rig_edit_goes_to_the_real_file_keeping_mode_and_line_breaks(tmp_path, monkeypatch):
+    """A rig that is a link is edited where it lives (an editor writes through a link); the
+    file keeps its mode and CRLF; links planted at the backup's and the new file's names
+    are replaced or passed over, never followed."""
+    from labbench import safe_write
+    from labbench.commissioning import write_rig
+
+    real = tmp_path / "shared" / "rig.toml"
+    real.parent.mkdir()
+    real.write_bytes(RIG_CRLF)
+    real.chmod(0o640)
+    link = tmp_path / "rig.toml"
+    link.symlink_to(real)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    tokens = itertools.chain(["a"] * 10, map(str, itertools.count()))  # "a" is taken
+    monkeypatch.setattr(safe_write, "_token", lambda: next(tokens))
+    for name in ("rig.toml.bak", ".rig.toml.bak.a.tmp", ".rig.toml.a.tmp"):
+        (real.parent / name).symlink_to(victim)
+    backup = write_rig(link, {"measured_td_s": 0.001})
+    assert victim.read_text() == "precious\n"
+    assert link.is_symlink() and link.resolve() == real
+    assert backup == real.with_name("rig.toml.bak") and not backup.is_symlink()
+    assert backup.read_bytes() == RIG_CRLF
+    data = real.read_bytes()
+    assert b"measured_td_s = 0.001\r\n" in data and data.count(b"\r\n") == data.count(b"\n")
+    assert data.startswith(b"# my bench\r\n")
+    assert stat.S_IMODE(real.stat().st_mode) == stat.S_IMODE(backup.stat().st_mode) == 0o640
+    assert write_rig(link, {"measured_td_s": 0.001}) is None  # nothing to change: untouched
+    assert real.read_bytes() == data
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o002, 0o077])
+def test_new_files_get_the_umask_replaced_ones_keep_their_mode(session, tmp_path, umask):
+    """tempfile.mkstemp's 0600 made reports and sweep parts unreadable to a supervisor
+    logged in as another user; a session was 0644 whatever the umask."""
+    old = os.umask(umask)
+    try:
+        assert main(["report", str(session), "-o", str(tmp_path / "rep")]) == 0
+        csv = tmp_path / "run.csv"
+        assert main(["export", str(session), "--csv", str(csv)]) == 0
+        new_session = _write_session(tmp_path / "s2")
+    finally:
+        os.umask(old)
+    for p in [*(tmp_path / "rep").iterdir(), csv, new_session]:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask, p
+    csv.chmod(0o600)
+    assert main(["export", str(session), "--csv", str(csv), "--force"]) == 0
+    assert stat.S_IMODE(csv.stat().st_mode) == 0o600

@@ -9,7 +9,7 @@ import pytest
 from session_recorder import VE, synthetic_stream
 
 from labbench import records
-from labbench.errors import UserError
+from labbench.errors import RecordingError, UserError
 from labbench.session_catalogue import list_sessions
 from labbench.session_content import load_analysis_arrays
 from labbench.session_format import MAGIC, SessionWriter, encode_record, looks_like_session, read_session
@@ -143,7 +143,7 @@ def test_writer_contract(tmp_path):
     w.close()
     with pytest.raises(RuntimeError, match="closed"):
         w(stream[-1])
-    with pytest.raises(UserError, match="already exists"):
+    with pytest.raises(RecordingError, match="nothing recorded: cannot create session file .*mine"):
         _write(tmp_path / "new" / "dir", stream, name="mine")
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -20,7 +21,7 @@ from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
 from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
-from labbench.safe_write import output_path
+from labbench.safe_write import editable, output_path
 
 # Config fields the CLI sets itself (from the rig).
 _HIDDEN = ("sample_time_s",)
@@ -159,6 +160,7 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     from labbench.runner import run_recorded
     from labbench.registry import make_protocol
     from labbench.session_catalogue import OWN_PLANT
+    from labbench.session_format import session_folder
 
     # commissioning checks the rig's nominal model itself: never an identified one
     plant_from = None
@@ -189,6 +191,7 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
         dev_opts["port"] = args.port
     rt = RealtimeConfig.from_rig(rig, enabled=getattr(args, "rt", None),
                                  priority=getattr(args, "rt_priority", None))
+    session_folder(args.out)  # a folder that takes no new file: refused before the device opens
     device = open_device(args.device, rig, **dev_opts)
     _print_device_notes(device.describe().details)
     with ProgressBar(name) as bar:
@@ -212,28 +215,63 @@ def _print_device_notes(details: dict) -> None:
 
 def cmd_run(args) -> int:
     rig = load_rig(args.rig)
-    if getattr(args, "write_rig", False) and not args.rig:
-        raise UserError("--write-rig writes the rig file: give it with --rig FILE")
+    write = getattr(args, "write_rig", False)
+    if write:
+        if not args.rig:
+            raise UserError("--write-rig writes the rig file: give it with --rig FILE")
+        editable(args.rig, "rig file")  # before the device opens: not after the whole run
     stop = StopRequest()
     with stopping(stop):  # SIGINT/SIGTERM/SIGHUP: zero force, session closed "aborted"
         result, path = _run_one(args, rig, args.protocol, _options(args), stop)
     out = {"protocol": args.protocol, "status": result.status, "reason": result.reason,
+           "cause": result.cause,
            "sessions": [str(path)] if path else [], "session": str(path) if path else None,
            "results": result.results,
            "timing": result.timing}
-    if getattr(args, "write_rig", False) and result.status == "success" and "error" not in result.results:
-        from datetime import datetime, timezone
-
-        from labbench.commissioning import changes_to_write, write_rig
-
-        fields = changes_to_write(result.results, str(path),
-                                  datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
-        backup = write_rig(args.rig, fields)
-        out["rig_written"] = {"fields": fields, "backup": str(backup) if backup else None}
-        print(f"labbench run: {args.rig}: " + (f"wrote {', '.join(fields)} (old file {backup})"
-                                               if backup else "nothing to change"), file=sys.stderr)
+    _say_failure(result, path, rig.sample_time_s)
+    code = stop.exit_code or _EXIT.get(result.status, 1)
+    if write and result.status == "success" and "error" not in result.results:
+        code = _write_rig(args.rig, result, path, out) or code
     _print(args, out, [(args.protocol, result, path)])
-    return stop.exit_code or _EXIT.get(result.status, 1)
+    return code
+
+
+def _say_failure(result, path, T: float) -> None:
+    """One line on stderr when the device or the recording ended the run (the summary on
+    stdout, or the JSON, follows as for any run)."""
+    if result.cause == "recording":
+        print(f"labbench run: error: {result.reason}", file=sys.stderr)
+    elif result.cause == "device":
+        what = result.reason.removeprefix("fault: ").removeprefix("device fault: ")
+        kept = f"the session {path} holds the run up to it" if path else "no session kept"
+        print(f"labbench run: error: device fault after {result.n_samples * T:.1f} s: {what}; "
+              f"force zeroed, {kept}", file=sys.stderr)
+
+
+def _write_rig(rig_file: str, result, path, out: dict) -> int | None:
+    """``--write-rig``: the measured values into the rig file; a refusal (read-only since
+    the check, a full disk) is one line and exit 2, the JSON summary printed all the same."""
+    from datetime import datetime, timezone
+
+    from labbench.commissioning import changes_to_write, write_rig
+
+    fields = changes_to_write(result.results, str(path),
+                              datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+    try:
+        backup = write_rig(rig_file, fields)
+    except UserError as exc:
+        out["rig_written"] = {"fields": fields, "backup": None, "error": str(exc)}
+        print(f"labbench run: error: {exc}; the measured values are in the session {path}",
+              file=sys.stderr)
+        return 2
+    real = os.path.realpath(rig_file)
+    out["rig_written"] = {"fields": fields, "backup": str(backup) if backup else None,
+                          "file": real}
+    link = f" (a link: its real file {real} edited)" if os.path.islink(rig_file) else ""
+    print(f"labbench run: {rig_file}{link}: " + (f"wrote {', '.join(fields)} (old file {backup})"
+                                                 if backup else "nothing to change"),
+          file=sys.stderr)
+    return None
 
 
 def cmd_demo(args) -> int:
@@ -247,6 +285,7 @@ def cmd_demo(args) -> int:
     with stopping(stop):
         chirp, chirp_path = _run_one(args, rig, "chirp-id",
                                      {"duration_s": args.chirp_duration_s}, stop)
+    _say_failure(chirp, chirp_path, rig.sample_time_s)
     runs.append(("chirp-id", chirp, chirp_path))
     out = {"protocol": "demo", "sessions": [str(chirp_path)], "results": {"chirp-id": chirp.results}}
     m, b = chirp.results.get("m"), chirp.results.get("b")
@@ -259,6 +298,7 @@ def cmd_demo(args) -> int:
             "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
             "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m,
             "plant_b": b}, stop)
+    _say_failure(etfe, etfe_path, rig.sample_time_s)
     runs.append(("etfe", etfe, etfe_path))
     out["sessions"].append(str(etfe_path))
     out["results"]["etfe"] = etfe.results
@@ -266,7 +306,13 @@ def cmd_demo(args) -> int:
     if etfe.status == "success" and not args.no_report:
         from labbench.report import write_report
 
-        html, pdf = write_report([chirp_path, etfe_path], args.out)
+        try:
+            html, pdf = write_report([chirp_path, etfe_path], args.out)
+        except UserError as exc:  # e.g. a full disk: the sessions are kept, the summary said
+            out["report"] = {"error": str(exc)}
+            print(f"labbench run: error: {exc}", file=sys.stderr)
+            _print(args, out, runs)
+            return stop.exit_code or 2
         out["report"] = {"html": str(html), "pdf": str(pdf)}
     _print(args, out, runs)
     return stop.exit_code or _EXIT.get(out["status"], 1)
@@ -280,7 +326,7 @@ def _print(args, out: dict, runs) -> None:
         print(f"{name}: {result.status} ({result.reason}); session {path}")
         for line in summary_lines(name, result.results):
             print("  " + line)
-    if out.get("report"):
+    if out.get("report", {}).get("html"):
         print(f"report: {out['report']['html']}  {out['report']['pdf']}")
     sys.stdout.flush()
 

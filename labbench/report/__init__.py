@@ -27,7 +27,7 @@ def write_report(session_path, out_dir, force: bool = False) -> tuple[Path, Path
     from labbench.report.content import build
     from labbench.report.render_html import render_html
     from labbench.report.render_pdf import render_pdf
-    from labbench.safe_write import output_folder, output_path, replacing
+    from labbench.safe_write import new_folder, output_path, replacing
 
     paths = [session_path] if isinstance(session_path, (str, Path)) else list(session_path)
     if not paths:
@@ -44,13 +44,10 @@ def write_report(session_path, out_dir, force: bool = False) -> tuple[Path, Path
         raise UserError(f"cannot create output folder {out}: {out.parent} does not exist "
                         "(labbench creates no folders you did not name)")
     report = build(paths)
-    output_folder(out)
-    try:
-        with replacing(html_path, paths, force) as tmp:
+    with new_folder(out):  # removed again if it was made for this report and stays empty
+        with replacing(html_path, paths, force) as tmp:  # a refused write: one UserError
             tmp.write_text(render_html(report.title, report.subtitle, report.blocks),
                            encoding="utf-8")
         with replacing(pdf_path, paths, force) as tmp:
             render_pdf(report.title, report.subtitle, report.blocks, tmp)
-    except OSError as exc:
-        raise UserError(f"cannot write report into {out}: {exc.strerror or exc}") from None
     return html_path, pdf_path
