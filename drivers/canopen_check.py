@@ -16,12 +16,14 @@ The optional objects and their fallbacks are the table ``OPTIONAL``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import re
+from dataclasses import dataclass, field, replace
 
-from labbench.drivers.canopen_config import CanopenConfig
-from labbench.drivers.canopen_objects import (STANDARD, TYPE_FMT, Dictionary, object_name,
-                                              read_eds)
-from labbench.drivers.canopen_pdo import PdoPlan, bus_load, plan_pdos
+from labbench.drivers.canopen_config import (POSITION_ACTUAL, TARGET_TORQUE, UNITS,
+                                             VELOCITY_ACTUAL, CanopenConfig, Mode, ref_text,
+                                             type_name)
+from labbench.drivers.canopen_objects import STANDARD, TYPE_FMT, Dictionary, read_eds
+from labbench.drivers.canopen_pdo import PdoPlan, bus_load, needs, plan_pdos
 from labbench.drivers.canopen_sdo import hexval, where
 from labbench.errors import UserError
 
@@ -65,21 +67,34 @@ class Assessment:
     warnings: list = field(default_factory=list)
     capabilities: dict = field(default_factory=dict)
     modes: list = field(default_factory=list)  # usable torque modes, in the order to try
-    rated_mnm: float = 0.0
+    rated_mnm: float = 0.0  # the motor's rated torque (unit of 0x6071/0x6072/0x6077), 0: unknown
+    command: tuple = TARGET_TORQUE  # the set point object of the modes (index, sub)
+    unit: str = "permille"  # of the set point (canopen_config.UNITS)
     watchdog: str | None = None  # how the drive watches the host: heartbeat, guarding
     nmt_by: str | None = None  # how the host sees the drive's NMT state
     plan: PdoPlan = field(default_factory=PdoPlan)
     writes: list = field(default_factory=list)  # safety objects: (index, sub, fmt, value)
-    max_permille: int = 0
-    force_to_permille: float = 0.0
+    max_permille: int = 0  # 0x6072 written (per-mille of the rated torque; 0: not written)
+    force_to_command: float = 0.0  # set point units per newton at the handle
+    max_command: int = 0  # the host's clamp, in set point units
     has: dict = field(default_factory=dict)  # optional object present? by (index, sub)
+    rig_lines: list = field(default_factory=list)  # TOML lines that would make it usable
+    lever_m: float = 0.1  # the rig's lever arm (handle force = joint torque / lever)
 
     def refuse(self) -> None:
-        """One ``UserError`` listing every obstacle (nothing if there is none)."""
+        """One ``UserError`` listing every obstacle (nothing if there is none), and the rig
+        lines that would make the drive usable when there are such lines."""
         if self.obstacles:
             items = "; ".join(f"({k}) {o}" for k, o in enumerate(self.obstacles, 1))
+            hint = (f"; rig lines that would make it usable: {one_line(self.rig_lines)}"
+                    if self.rig_lines else "")
             raise UserError(f"node {self.node_id} ({self.source}): cannot be used, "
-                            f"{len(self.obstacles)} obstacle(s): {items}")
+                            f"{len(self.obstacles)} obstacle(s): {items}{hint}")
+
+    @property
+    def torque_per_permille_n(self) -> float:
+        """Newtons at the handle per per-mille of the rated torque (0x6077), 0 if unknown."""
+        return self.rated_mnm * 1e-6 / self.lever_m if self.rated_mnm else 0.0
 
     def traffic(self, config: CanopenConfig, sample_time_s: float) -> list:
         out = self.plan.traffic(sample_time_s)
@@ -107,8 +122,20 @@ def _missing(a: Assessment, index: int, sub: int, present: bool) -> bool:
     return not present
 
 
-def _what(index: int, sub: int = 0) -> str:
-    return f"{where(index, sub)} ({object_name(index)})"
+def _what(index: int, sub: int = 0, d: Dictionary | None = None) -> str:
+    name = d.name(index, sub) if d is not None else Dictionary().name(index, sub)
+    return f"{where(index, sub)} ({name or 'vendor object'})"
+
+
+def one_line(lines: list[str]) -> str:
+    """TOML lines (each table's header first) in one line: '[t] a = 1, b = 2; [u] c = 3'."""
+    tables: list[list[str]] = []
+    for line in lines:
+        if line.startswith("["):
+            tables.append([line])
+        else:
+            tables[-1].append(line)
+    return "; ".join(f"{t[0]} {', '.join(t[1:])}" for t in tables)
 
 
 def _fmt(d: Dictionary, index: int, sub: int) -> str:
@@ -122,11 +149,11 @@ def _writable(a: Assessment, d: Dictionary, index: int, sub: int, required: bool
     e = d.get(index, sub)
     if e is None:
         if required:
-            a.obstacles.append(f"{_what(index, sub)} {d.gone(index, sub)}")
+            a.obstacles.append(f"{_what(index, sub, d)} {d.gone(index, sub)}")
         return False
     if not e.writable:
         (a.obstacles if required else a.warnings).append(
-            f"{_what(index, sub)} is {e.access}" + ("" if required else ": not written"))
+            f"{_what(index, sub, d)} is {e.access}" + ("" if required else ": not written"))
         return False
     return True
 
@@ -136,7 +163,7 @@ def _in_range(a: Assessment, d: Dictionary, index: int, sub: int, value: int) ->
     lo, hi = (e.low, e.high) if e is not None else (None, None)
     if (lo is not None and value < lo) or (hi is not None and value > hi):
         fmt = _fmt(d, index, sub)
-        a.obstacles.append(f"{hexval(value, fmt)} for {_what(index, sub)} is outside its range "
+        a.obstacles.append(f"{hexval(value, fmt)} for {_what(index, sub, d)} is outside its range "
                            f"[{hexval(lo, fmt) if lo is not None else '-'}, "
                            f"{hexval(hi, fmt) if hi is not None else '-'}]")
         return False
@@ -168,6 +195,10 @@ def _modes(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
         _missing(a, 0x6502, 0, False)
         a.warnings.append(f"0x6502:00 {state} (supported drive modes): the modes are tried in "
                           "order and confirmed by the drive")
+    # The modes whose set point the dictionary has first; then only those sharing the
+    # first one's set point (one object is mapped).
+    a.modes.sort(key=lambda m: not d.has(*m.command))
+    a.modes = [m for m in a.modes if m.command == a.modes[0].command]
     if a.modes:
         a.capabilities["torque mode"] = " then ".join(m.text for m in a.modes)
     else:
@@ -177,9 +208,77 @@ def _modes(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
                            + "; ".join(why))
 
 
-def _torque_scale(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
+def _rig_key(config: CanopenConfig, m: Mode | None, role: str) -> str:
+    """The rig line that named a vendor object ("" for CiA 402's own object)."""
+    if role == "command":
+        return "" if m is None or m.command == TARGET_TORQUE else \
+            f'[canopen.modes.{m.name}] command = "{ref_text(m.command)}"'
+    value = getattr(config, role)
+    default = ref_text(POSITION_ACTUAL if role == "position" else VELOCITY_ACTUAL)
+    return "" if value == default else f'[canopen] {role} = "{value}"'
+
+
+def _command(a: Assessment, d: Dictionary, config: CanopenConfig) -> bool:
+    """The set point object of the modes: there, writable, a signed integer of the rig's
+    declared type. A rig line that the dictionary contradicts is named beside it."""
+    m = a.modes[0] if a.modes else (config.torque_modes() or [None])[0]
+    a.command = m.command if m is not None else TARGET_TORQUE
+    a.unit = m.unit if m is not None else "permille"
+    index, sub = a.command
+    key = _rig_key(config, m, "command")
+    said = f"the rig's {key} but in {d.source} " if key else ""
+    before = len(a.obstacles)
+    e = d.get(index, sub)
+    if e is None or not e.writable:
+        if key:
+            a.obstacles.append(f"{said}{_what(index, sub, d)} is "
+                               + (d.gone(index, sub) if e is None else e.access))
+        else:
+            _writable(a, d, index, sub, True)
+    elif m is not None and m.data_type is not None and e.data_type != m.data_type:
+        a.obstacles.append(f"{said}{_what(index, sub, d)} is {type_name(e.data_type)}, not "
+                           f"the rig's type = {type_name(m.data_type)}")
+    elif e.fmt not in ("b", "h", "i"):
+        a.obstacles.append(f"{_what(index, sub, d)} is {type_name(e.data_type)}: a set point "
+                           "must be a signed integer of 8, 16 or 32 bit")
+    ok = len(a.obstacles) == before
+    shown = f"{ref_text(a.command)} {d.name(index, sub) or 'vendor object'}"
+    a.capabilities["torque object"] = (f"{shown} ({'per-mille of the rated torque' if a.unit == 'permille' else a.unit})"
+                                       if ok else "none")
+    return ok
+
+
+def _scale(a: Assessment, d: Dictionary, config: CanopenConfig) -> float:
+    """Joint torque [N m] per unit of the set point (0: no scale, an obstacle): per-mille of
+    the rated torque (``_torque_scale``), or the rig's unit (x the torque constant for a
+    current)."""
+    if a.unit == "permille":
+        _torque_scale(a, d, config, required=True)
+        return a.rated_mnm * 1e-6
+    _torque_scale(a, d, config, required=False)  # 0x6072 and 0x6077 use it when known
+    factor, per = UNITS[a.unit]
+    kt = config.torque_constant_nm_per_a
+    if per == "A" and not kt:
+        a.capabilities["torque scale"] = "none"
+        a.obstacles.append(f"no torque scale: the set point {ref_text(a.command)} is a current "
+                           f"in {a.unit}; set [canopen] torque_constant_nm_per_a (the motor's)")
+        return 0.0
+    a.capabilities["torque scale"] = (f"{ref_text(a.command)} in {a.unit}" + (
+        f" x torque constant {kt:g} N m/A" if per == "A" else ""))
+    return factor * (kt if per == "A" else 1.0)
+
+
+def _torque_scale(a: Assessment, d: Dictionary, config: CanopenConfig,
+                  required: bool = True) -> None:
+    """The rated torque (``a.rated_mnm``): 0x6076, else the rig's; without it an obstacle
+    (``required``: the set point is per-mille of it) or nothing."""
     drive = d.value(0x6076)
     rig_value = config.rated_torque_mnm
+    if not required:
+        current = d.value(0x6075) or config.rated_current_ma
+        a.rated_mnm = float(drive or rig_value or config.torque_constant_nm_per_a * current)
+        a.has[(0x6076, 0)] = bool(drive)
+        return
     if drive:
         a.rated_mnm, a.has[(0x6076, 0)] = float(drive), True
         a.capabilities["torque scale"] = f"0x6076 motor rated torque = {drive} mN m (drive)"
@@ -243,9 +342,23 @@ def _watch(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
     a.capabilities["NMT state from"] = a.nmt_by or "nothing"
 
 
-def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
-    """Everything that stands in the way of ``d`` on ``rig``, and what the driver will do."""
-    a = Assessment(config.node_id, d.source, warnings=list(d.warnings))
+def assess(d: Dictionary, config: CanopenConfig, rig, file: Dictionary | None = None
+           ) -> Assessment:
+    """Everything that stands in the way of ``d`` on ``rig``, and what the driver will do;
+    for a refused drive, the rig lines that would make it usable (``suggest``; ``file``:
+    the drive's EDS/DCF, whose vendor objects a survey of the drive does not read)."""
+    a = _assess(d, config, rig)
+    if a.obstacles:
+        if file is not None:
+            vendor = {k: e for k, e in file.entries.items()
+                      if 0x2000 <= k[0] < 0x6000 and k not in d.entries}
+            d = replace(d, entries={**d.entries, **vendor})
+        a.rig_lines = suggest(d, config, rig, a)
+    return a
+
+
+def _assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
+    a = Assessment(config.node_id, d.source, warnings=list(d.warnings), lever_m=rig.lever_arm_m)
     # Capabilities.
     device_type = d.value(0x1000)
     if device_type is None and d.has(0x1000, 0):
@@ -263,45 +376,72 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
     else:
         a.capabilities["CiA 402"] = f"yes (device type 0x{device_type:08X})"
     _modes(a, d, config)
-    has_target = _writable(a, d, 0x6071, 0, True)
-    a.capabilities["torque object"] = "0x6071 target torque" if has_target else "none"
-    _torque_scale(a, d, config)
+    has_command = _command(a, d, config)
+    nm_per_unit = _scale(a, d, config)
     _watch(a, d, config)
     # Objects the loop cannot do without, of the size it decodes.
     _writable(a, d, 0x6040, 0, True)
-    for index in (0x6041, 0x6064):
-        if not d.has(index, 0):
-            a.obstacles.append(f"{_what(index)} {d.gone(index)}")
-    for index, bits in ((0x6040, 16), (0x6041, 16), (0x6064, 32)):
-        e = d.get(index, 0)
+    position = config.position_ref
+    for index, sub in ((0x6041, 0), position):
+        if not d.has(index, sub):
+            key = _rig_key(config, None, "position") if (index, sub) == position else ""
+            said = f"the rig's {key} but in {d.source} " if key else ""
+            a.obstacles.append(f"{said}{_what(index, sub, d)} {d.gone(index, sub)}")
+    for (index, sub), bits in (((0x6040, 0), 16), ((0x6041, 0), 16), (position, 32)):
+        e = d.get(index, sub)
         if e is not None and e.bits and e.bits != bits:
-            a.obstacles.append(f"{_what(index)} is {e.bits} bit (data type 0x{e.data_type:04X})"
-                               f", CiA 402 makes it {bits}")
+            a.obstacles.append(f"{_what(index, sub, d)} is {e.bits} bit (data type "
+                               f"0x{e.data_type:04X}), CiA 402 makes it {bits}")
+    velocity = config.velocity_ref
+    if velocity != VELOCITY_ACTUAL and not d.has(*velocity):
+        a.obstacles.append(f"the rig's {_rig_key(config, None, 'velocity')} but in {d.source} "
+                           f"{_what(*velocity, d)} {d.gone(*velocity)}")
     # PDOs.
-    a.plan = plan_pdos(d, config.node_id, config.rpdo_timeout_ms, config.velocity_tpdo_every)
-    a.obstacles += a.plan.obstacles
+    a.plan = plan_pdos(d, config.node_id, config.rpdo_timeout_ms, config.velocity_tpdo_every,
+                       needs(a.command, position, velocity, torque_actual=bool(a.rated_mnm)))
+    for text in a.plan.obstacles:  # name the rig line beside a vendor object it refuses
+        for ref, key in ((a.command, _rig_key(config, a.modes[0] if a.modes else None,
+                                              "command")),
+                         (position, _rig_key(config, None, "position"))):
+            if key and text.startswith(f"0x{ref[0]:04X}" + (f":{ref[1]:02X}" if ref[1] else "")
+                                       + " "):
+                text = f"the rig's {key} but in {d.source} {text}"
+        a.obstacles.append(text)
     a.warnings += a.plan.warnings
     a.capabilities["PDOs"] = (f"{len(a.plan.rpdos)} RPDO(s), {len(a.plan.tpdos)} TPDO(s)")
     if not any(p.event_timer_ms for p in a.plan.rpdos):
         _missing(a, 0x1400, 5, False)
     if any(p.event_timer_ms is None for p in a.plan.tpdos):
         _missing(a, 0x1800, 5, False)
-    for index, role in ((0x6077, "torque"), (0x606C, "velocity")):
-        if not a.plan.carries(role, tx=True):
-            _missing(a, index, 0, False)
+    if not a.plan.carries("torque", tx=True):
+        if d.has(0x6077, 0) and not a.rated_mnm:
+            a.warnings.append("0x6077:00 (torque actual value) not recorded: its unit, the "
+                              "motor's rated torque, is not known")
+        else:
+            _missing(a, 0x6077, 0, False)
+    if not a.plan.carries("velocity", tx=True):
+        _missing(a, *velocity, False)
     # Optional objects and the safety values written.
     for key in ((0x1018, 2), (0x1018, 3), (0x1018, 4), (0x603F, 0), (0x6061, 0)):
         _missing(a, *key, d.has(*key))
+    if nm_per_unit:
+        a.force_to_command = rig.lever_arm_m / nm_per_unit
+        e = d.get(*a.command)
+        top = (1 << (e.bits - 1)) - 1 if e is not None and e.bits else 32767
+        a.max_command = min(top, max(1, round(rig.force_limit_n * a.force_to_command)))
     if a.rated_mnm:
-        a.force_to_permille = rig.lever_arm_m / (a.rated_mnm * 1e-3) * 1000.0
-        limit = round(rig.force_limit_n * a.force_to_permille)
+        limit = round(rig.force_limit_n * rig.lever_arm_m / (a.rated_mnm * 1e-6))
         a.max_permille = min(32767, max(1, limit))
+    elif d.has(0x6072, 0):
+        a.warnings.append("0x6072:00 (max torque) not written: its unit, the motor's rated "
+                          "torque, is not known; the host clamps the set point")
     mpc = rig.position_per_count  # signed: a flipped position_sign mirrors the window
     lo, hi = sorted(x / mpc for x in rig.position_limits_m)
-    wanted = [(0x6072, 0, a.max_permille), (0x607D, 1, math.floor(lo)),
-              (0x607D, 2, math.ceil(hi)), (0x605A, 0, config.quick_stop_option),
-              (0x605E, 0, config.fault_reaction_option),
+    wanted = [(0x607D, 1, math.floor(lo)), (0x607D, 2, math.ceil(hi)),
+              (0x605A, 0, config.quick_stop_option), (0x605E, 0, config.fault_reaction_option),
               (0x6007, 0, config.abort_connection_option)]
+    if a.max_permille or not d.has(0x6072, 0):
+        wanted.insert(0, (0x6072, 0, a.max_permille))
     for index, sub, value in wanted:
         if _missing(a, index, 1 if index == 0x607D else sub, d.has(index, sub)):
             continue
@@ -315,12 +455,96 @@ def assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
             value = e.high
         if _in_range(a, d, index, sub, value):
             a.writes.append((index, sub, _fmt(d, index, sub), value))
-    if has_target:
-        a.writes.append((0x6071, 0, _fmt(d, 0x6071, 0), 0))
+    if has_command:
+        a.writes.append((*a.command, _fmt(d, *a.command), 0))
     for index, sub, value in _timing_values(a, config):
         if d.has(index, sub):
             _in_range(a, d, index, sub, value)
     return a
+
+
+# Names of vendor objects that may be a torque or current set point, or a position (a
+# hint only: the rig lines it leads to are checked like any others).
+_SET_POINT = re.compile(r"current|torque", re.IGNORECASE)
+_POSITION = re.compile(r"position", re.IGNORECASE)
+_NOT_SET_POINT = re.compile(r"actual|limit|max|min|offset|gain|constant|rated|peak|contin|"
+                            r"filter|slope|window|display|average|demand|time", re.IGNORECASE)
+_NOT_POSITION = re.compile(r"limit|target|demand|window|offset|set|follow|home|factor|range",
+                           re.IGNORECASE)
+PLACEHOLDER_RE = re.compile(r"<[^>]*>")  # what the person fills in (values the file lacks)
+
+
+def _candidates(d: Dictionary, standard: tuple, want, avoid, writable: bool) -> list:
+    """CiA 402's object when mappable, then vendor objects (0x2000-0x5FFF) named so."""
+    out = []
+    e = d.get(*standard)
+    if e is not None and e.mappable is not False and (e.writable or not writable):
+        out.append((standard, e))
+    for key, e in sorted(d.entries.items()):
+        if (0x2000 <= key[0] < 0x6000 and e.mappable and (e.writable if writable else
+                                                            e.readable)
+                and want.search(e.name) and not avoid.search(e.name)):
+            out.append((key, e))
+    return out
+
+
+def suggest(d: Dictionary, config: CanopenConfig, rig, a: Assessment) -> list[str]:
+    """TOML lines of ``[canopen]`` that would make the refused drive ``d`` usable, or [].
+
+    Tried in order: the rig's own set point and position, then each mappable torque or
+    current set point of the dictionary with each mappable position (CiA 402's object,
+    then vendor objects whose names say so), each with a torque scale when one is
+    missing; the first whose assessment has no obstacle is the answer. What the file
+    cannot tell (the vendor mode's 0x6060 value, the unit, the motor's constants) is a
+    ``<placeholder>`` to fill in from the drive's and the motor's manuals.
+    """
+    e6060 = d.get(0x6060, 0)
+    lo = e6060.low if e6060 is not None and e6060.low is not None else -128
+    hi = e6060.high if e6060 is not None and e6060.high is not None else 127
+    name = next(n for n in ("vendor", "vendor2", "vendor3") if n not in config.modes)
+    commands = [None] + [c for c in _candidates(d, TARGET_TORQUE, _SET_POINT, _NOT_SET_POINT,
+                                                 True) if c[1].fmt in ("b", "h", "i")]
+    positions = [None] + [p for p in _candidates(d, POSITION_ACTUAL, _POSITION, _NOT_POSITION,
+                                                  False) if p[1].bits == 32]
+    for command in commands:
+        for position in positions:
+            changes, canopen, modes = {}, [], []
+            if command is not None:
+                (index, sub), e = command
+                current = _SET_POINT.search(e.name) and "current" in e.name.lower()
+                unit = "permille" if (index, sub) == TARGET_TORQUE else "mA" if current else "mNm"
+                changes.update(mode=name, modes={**config.modes, name: {
+                    "code": max(lo, min(hi, -3)), "bit": None, "command": ref_text((index, sub)),
+                    "unit": unit, "type": type_name(e.data_type)}})
+                canopen.append(f'mode = "{name}"')
+                what = (f"the 0x6060 value that makes {ref_text((index, sub))} the set point "
+                        "(its manual; CiA 402: 10 or 4)" if unit == "permille" else
+                        f"the 0x6060 value of the mode whose set point is "
+                        f"{ref_text((index, sub))} (its manual)")
+                fields = [f"code = <{what}>"]
+                if unit != "permille":
+                    units = '"mA" or "A"' if unit == "mA" else '"mNm", "Nm" or "permille"'
+                    fields += [f'command = "{ref_text((index, sub))}"',
+                               f'type = "{type_name(e.data_type)}"', f"unit = <{units}>"]
+                modes.append(f"{name} = {{{', '.join(fields)}}}")
+            if position is not None and position[0] != config.position_ref:
+                changes["position"] = ref_text(position[0])
+                canopen.append(f'position = "{ref_text(position[0])}"')
+            trial = replace(config, **changes)
+            t = _assess(d, trial, rig)
+            if any(o.startswith("no torque scale") for o in t.obstacles):
+                if UNITS[t.unit] is not None and UNITS[t.unit][1] == "A":
+                    trial = replace(trial, torque_constant_nm_per_a=1.0)
+                    canopen.append("torque_constant_nm_per_a = <the motor's torque constant, "
+                                   "N m/A>")
+                else:
+                    trial = replace(trial, rated_torque_mnm=100.0)
+                    canopen.append("rated_torque_mnm = <the motor's rated torque, mN m>")
+                t = _assess(d, trial, rig)
+            if not t.obstacles and (canopen or modes):
+                return (["[canopen]", *canopen] if canopen else []) + (
+                    ["[canopen.modes]", *modes] if modes else [])
+    return []
 
 
 def _timing_values(a: Assessment, config: CanopenConfig) -> list[tuple[int, int, int]]:

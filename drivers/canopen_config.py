@@ -10,13 +10,19 @@ python-can's own configuration (``~/.canrc``, ``CAN_INTERFACE``,
 
 Vendor modes: ``[canopen.modes]`` maps a name to ``{code = -3, bit = 16}``:
 the value written to 0x6060 and, if the drive advertises it, its bit in
-0x6502. ``mode = "auto"`` tries CST, then profile torque, then the table in
-order.
+0x6502; a mode whose set point is not 0x6071 names it, ``command =
+"0x2030:00"``, with its unit (``unit = "mA"``: mA, A, mNm, Nm, or permille of
+the motor's rated torque, CiA 402's unit and the default) and optionally its
+data type (``type = "INTEGER16"``, checked against the drive's dictionary).
+``mode = "auto"`` tries CST, then profile torque, then the table in order.
+``position`` and ``velocity`` name the objects the drive reports them in
+(default 0x6064:00 and 0x606C:00), in encoder counts.
 """
 from __future__ import annotations
 
 import difflib
 import math
+import re
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -26,16 +32,48 @@ from labbench.errors import UserError
 MODE_CST, MODE_PT = 10, 4
 STANDARD_MODES = {"cst": (MODE_CST, 9, "cyclic synchronous torque"),
                   "pt": (MODE_PT, 3, "profile torque")}
+TARGET_TORQUE, POSITION_ACTUAL, VELOCITY_ACTUAL = (0x6071, 0), (0x6064, 0), (0x606C, 0)
+# Set point units: joint torque [N m] per unit, "A": per ampere (x the torque constant);
+# "permille": of the motor's rated torque (CiA 402's unit of 0x6071), resolved by the check.
+UNITS = {"permille": None, "mNm": (1e-3, ""), "Nm": (1.0, ""), "mA": (1e-3, "A"),
+         "A": (1.0, "A")}
+# CiA 301 integer data type names (the ones a set point or a position can have).
+TYPE_NAMES = {"INTEGER8": 0x2, "INTEGER16": 0x3, "INTEGER32": 0x4, "UNSIGNED8": 0x5,
+              "UNSIGNED16": 0x6, "UNSIGNED32": 0x7}
+
+
+def type_name(code: int) -> str:
+    return next((n for n, c in TYPE_NAMES.items() if c == code), f"data type 0x{code:04X}")
+
+
+_REF = re.compile(r"^0[xX]([0-9a-fA-F]{4})(?::(?:0[xX])?([0-9a-fA-F]{1,2}))?$")
+
+
+def ref(text: str) -> tuple[int, int]:
+    """``"0x2030:00"`` (or ``"0x2030"``, sub-index 0) -> ``(0x2030, 0)``; ValueError if not
+    (hex, as an EDS writes them)."""
+    m = _REF.match(str(text))
+    if m is None:
+        raise ValueError(text)
+    return int(m.group(1), 16), int(m.group(2) or "0", 16)
+
+
+def ref_text(r: tuple[int, int]) -> str:
+    return f"0x{r[0]:04X}:{r[1]:02X}"
 
 
 @dataclass(frozen=True)
 class Mode:
-    """A torque mode: 0x6060 code, its 0x6502 bit (None: not advertised) and a name."""
+    """A torque mode: 0x6060 code, its 0x6502 bit (None: not advertised), a name, its set
+    point object and unit, and the data type the rig declares for it (None: not declared)."""
 
     name: str
     code: int
     bit: int | None
     text: str
+    command: tuple[int, int] = TARGET_TORQUE
+    unit: str = "permille"
+    data_type: int | None = None
 
 
 @dataclass(frozen=True)
@@ -48,7 +86,9 @@ class CanopenConfig:
     node_id: int = 1
     eds: str = ""  # the drive's EDS/DCF (relative to the rig file)
     mode: str = "auto"  # "cst", "pt", "auto" or a name of [canopen.modes]
-    modes: dict = field(default_factory=dict)  # vendor torque modes: name -> {code, bit}
+    modes: dict = field(default_factory=dict)  # vendor modes: name -> {code, bit, command...}
+    position: str = ref_text(POSITION_ACTUAL)  # object of the position, in counts
+    velocity: str = ref_text(VELOCITY_ACTUAL)  # object of the velocity (optional, recorded)
     watchdog: str = "auto"  # how the drive watches the host: heartbeat, guarding or auto
     host_node_id: int = 127  # heartbeat id of this host, watched by the drive (0x1016)
     host_heartbeat_ms: int = 20
@@ -102,6 +142,9 @@ class CanopenConfig:
             if name == "modes":
                 values[name] = _modes(value, where)
                 continue
+            if name in ("position", "velocity"):
+                values[name] = _object(value, where)
+                continue
             default = known[name].default
             if isinstance(default, str):
                 if not isinstance(value, str):
@@ -141,9 +184,19 @@ class CanopenConfig:
     def torque_modes(self) -> list[Mode]:
         """The modes to try, in order (one unless ``mode = "auto"``)."""
         table = [Mode(n, c, b, t) for n, (c, b, t) in STANDARD_MODES.items()] + [
-            Mode(n, m["code"], m.get("bit"), f"vendor mode {n} ({m['code']})")
+            Mode(n, m["code"], m.get("bit"), f"vendor mode {n} ({m['code']})",
+                 ref(m.get("command") or ref_text(TARGET_TORQUE)), m.get("unit") or "permille",
+                 TYPE_NAMES.get(m.get("type")))
             for n, m in self.modes.items()]
         return table if self.mode == "auto" else [m for m in table if m.name == self.mode]
+
+    @property
+    def position_ref(self) -> tuple[int, int]:
+        return ref(self.position)
+
+    @property
+    def velocity_ref(self) -> tuple[int, int]:
+        return ref(self.velocity)
 
     def bus_kwargs(self) -> dict:
         """Keyword arguments of ``can.Bus``: only what the rig names."""
@@ -157,7 +210,20 @@ class CanopenConfig:
         return asdict(self)
 
 
+_MODE_KEYS = ("code", "bit", "command", "unit", "type")
+
+
+def _object(value, where: str) -> str:
+    """An object reference of the rig, normalised to ``0xIIII:SS``."""
+    try:
+        return ref_text(ref(value))
+    except (ValueError, TypeError):
+        raise UserError(f'{where} must name an object as "0xINDEX:SUB" (e.g. "0x2030:00"), '
+                        f"got {value!r}") from None
+
+
 def _modes(table, where: str) -> dict:
+    """``[canopen.modes]``, each entry normalised (JSON-able: the drive process gets it)."""
     if not isinstance(table, dict):
         raise UserError(f"{where} must be a table of name = {{code = ..., bit = ...}}")
     out = {}
@@ -165,15 +231,24 @@ def _modes(table, where: str) -> dict:
         at = f"{where}.{name}"
         if name in ("auto", *STANDARD_MODES):
             raise UserError(f"{at}: {name} is a built-in mode name")
-        if not isinstance(entry, dict) or set(entry) - {"code", "bit"} or "code" not in entry:
-            raise UserError(f"{at} must be {{code = <0x6060 value>, bit = <0x6502 bit>}}")
+        if not isinstance(entry, dict) or set(entry) - set(_MODE_KEYS) or "code" not in entry:
+            raise UserError(f'{at} must be {{code = <0x6060 value>, bit = <0x6502 bit>, command '
+                            f'= "0xINDEX:SUB", unit = "mA", type = "INTEGER16"}} (code alone '
+                            "at least)")
         code, bit = entry["code"], entry.get("bit")
         if not isinstance(code, int) or isinstance(code, bool) or not -128 <= code <= 127:
             raise UserError(f"{at}.code must be an integer in [-128, 127] (0x6060 is INTEGER8)")
         if bit is not None and (not isinstance(bit, int) or isinstance(bit, bool)
                                 or not 0 <= bit <= 31):
             raise UserError(f"{at}.bit must be an integer in [0, 31] (a bit of 0x6502)")
-        out[name] = {"code": code, "bit": bit}
+        unit = entry.get("unit", "permille")
+        if unit not in UNITS:
+            raise UserError(f"{at}.unit must be one of {', '.join(UNITS)}, got {unit!r}")
+        dtype = entry.get("type")
+        if dtype is not None and dtype not in TYPE_NAMES:
+            raise UserError(f"{at}.type must be one of {', '.join(TYPE_NAMES)}, got {dtype!r}")
+        command = _object(entry.get("command", ref_text(TARGET_TORQUE)), f"{at}.command")
+        out[name] = {"code": code, "bit": bit, "command": command, "unit": unit, "type": dtype}
     return out
 
 

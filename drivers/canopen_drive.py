@@ -37,9 +37,12 @@ raises ``DeviceFault`` with the explanation; the latch clears only through
 ``reset_fault()`` (an operator action), which takes the drive out of FAULT to
 SWITCH ON DISABLED and no further.
 
-Units: position 0x6064 in encoder counts (``Rig.metres_per_count``); torque
-0x6071/0x6077/0x6072 in per-mille of the motor rated torque (0x6076 in mN m
-from the drive, else from the rig), force = torque / ``Rig.lever_arm_m``.
+Units: position 0x6064 (or the rig's ``position`` object) in encoder counts
+(``Rig.metres_per_count``); the set point 0x6071 in per-mille of the motor rated
+torque (0x6076 in mN m from the drive, else from the rig), or a vendor mode's
+own object in its unit (``[canopen.modes]``: mA x the torque constant, ...);
+force at the handle = joint torque / ``Rig.lever_arm_m``. The record is SI at
+the handle whatever the set point's unit.
 """
 from __future__ import annotations
 
@@ -193,16 +196,24 @@ class CanopenDrive:
         ``wake`` (bring-up only): a node that does not answer may be STOPPED,
         which answers no SDO: NMT pre-operational and one more try.
         """
+        extra = self._rig_objects()
         try:
-            d = survey(self._sdo, self._file)
+            d = survey(self._sdo, self._file, extra)
         except DeviceConnectionError:
             if not wake:
                 raise
             self._nmt(NMT_PRE_OPERATIONAL)
-            d = survey(self._sdo, self._file)
+            d = survey(self._sdo, self._file, extra)
         self.dictionary = d
-        self.assessment = assess(d, self.config, self.rig)
+        self.assessment = assess(d, self.config, self.rig, self._file)
         return self.assessment
+
+    def _rig_objects(self) -> list[tuple[int, int, int | None]]:
+        """(index, sub, the rig's data type or None) of the objects the rig names: the set
+        points of its modes, the position and velocity objects."""
+        cfg = self.config
+        out = [(*m.command, m.data_type) for m in cfg.torque_modes()]
+        return out + [(*cfg.position_ref, None), (*cfg.velocity_ref, None)]
 
     def probe(self, wait_s: float = 0.3) -> dict:
         """Read-only capability report: identity, device type, modes, 402 state, NMT
@@ -217,7 +228,8 @@ class CanopenDrive:
                 "capabilities": dict(a.capabilities), "plan": a.plan.lines(),
                 "bus_load": a.bus_load(self.config, self.T),
                 "error_history": self._error_history(),
-                "obstacles": list(a.obstacles), "warnings": list(a.warnings)}
+                "obstacles": list(a.obstacles), "warnings": list(a.warnings),
+                "rig_lines": list(a.rig_lines)}
         if d.has(0x6041, 0):
             state = self.drive_state()
             info["state"] = state.value
@@ -526,14 +538,16 @@ class CanopenDrive:
     # ------------------------------------------------------------------ Device
     def describe(self) -> DeviceDescription:
         a = self.assessment
-        ftp = a.force_to_permille if a is not None else 0.0
-        limit = a.max_permille / ftp if ftp else self.rig.force_limit_n
+        ftc = a.force_to_command if a is not None else 0.0
+        limit = a.max_command / ftc if ftc else self.rig.force_limit_n
         details = {"config": self.config.as_dict(), "identity": dict(self._identity),
                    "mode": self._mode.text if self._mode else "", "paced": self.realtime,
                    "counters": dict(self.counters)}
         if a is not None:
             details.update(
                 rated_torque_mnm=a.rated_mnm, torque_scale=a.capabilities.get("torque scale"),
+                set_point=a.capabilities.get("torque object"), max_set_point=a.max_command,
+                position_object=self.config.position,
                 max_torque_permille=a.max_permille, watchdog=a.capabilities.get("watched by"),
                 pdo_plan=a.plan.lines(), bus_load=a.bus_load(self.config, self.T)["load_nominal"],
                 warnings=list(a.warnings), dictionary=a.source)
@@ -703,10 +717,10 @@ class CanopenDrive:
         self._zero_force(Command.DISABLE_VOLTAGE)
         self._latch("emergency stop")
 
-    def _send_rpdos(self, permille: int) -> None:
+    def _send_rpdos(self, set_point: int) -> None:
         cw = self._controlword
         for msg, st, roles in self._rpdos:
-            msg.data = st.pack(*[permille if r == "torque" else cw for r in roles])
+            msg.data = st.pack(*[set_point if r == "torque" else cw for r in roles])
             self._send(msg)
 
     def _zero_force(self, cmd: Command) -> None:
@@ -718,8 +732,10 @@ class CanopenDrive:
                     msg.data = st.pack(*[0 if r == "torque" else cw for r in roles])
                     self._bus.send(msg)
             elif self._sdo is not None and self._network.notifier is not None and not self._fault:
-                if self.dictionary is None or self.dictionary.has(0x6071, 0):
-                    self._sdo.client.download(0x6071, 0, struct.pack("<h", 0))
+                index, sub = self.assessment.command if self.assessment else (0x6071, 0)
+                if self.dictionary is None or self.dictionary.has(index, sub):
+                    size = self.dictionary.get(index, sub).bits // 8 if self.dictionary else 2
+                    self._sdo.client.download(index, sub, bytes(size or 2))
                 self._sdo.client.download(0x6040, 0, struct.pack("<H", self._controlword))
         except Exception:  # the bus may be what failed; the drive's timers take over
             pass
@@ -852,7 +868,7 @@ class CanopenDrive:
                        "software position limit 0x607D)")
         self._seq += 1
         if "torque" in vals:
-            self.torque_actual_n = vals["torque"] / self.assessment.force_to_permille
+            self.torque_actual_n = vals["torque"] * self.assessment.torque_per_permille_n
         if "velocity" in vals:
             self.velocity_m_s = vals["velocity"] * self._mpc
         flags = (FLAG_WARNING if status & cia402.SW_WARNING else 0) | (
@@ -915,8 +931,8 @@ class CanopenDrive:
             self._send_rpdos(0)
             return
         a = self.assessment
-        p = round(force_n * a.force_to_permille)
-        m = a.max_permille
+        p = round(force_n * a.force_to_command)
+        m = a.max_command
         self._send_rpdos(m if p > m else (-m if p < -m else p))
 
     def holding(self) -> bool:

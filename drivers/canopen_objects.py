@@ -96,6 +96,7 @@ class Entry:
     high: int | None = None
     value: int | None = None  # the drive's, else a DCF's ParameterValue, else the default
     from_dcf: bool = False
+    name: str = ""  # the file's ParameterName ("" when surveyed without a file)
 
     @property
     def fmt(self) -> str | None:
@@ -149,6 +150,11 @@ class Dictionary:
 
     def subs(self, index: int) -> list[int]:
         return sorted(s for i, s in self.entries if i == index)
+
+    def name(self, index: int, sub: int = 0) -> str:
+        """What the object is: CiA's name of a standard object, else the file's name."""
+        e = self.entries.get((index, sub))
+        return object_name(index) or (e.name if e is not None else "")
 
 
 # ------------------------------------------------------------------ EDS / DCF
@@ -279,7 +285,7 @@ def read_eds(path: str, node_id: int) -> Dictionary:
             d.entries[(v.index, v.subindex)] = Entry(
                 v.index, v.subindex, v.data_type, v.access_type, bool(v.pdo_mappable),
                 v.min, v.max, value if isinstance(value, int) else None,
-                from_dcf=v.value is not None)
+                from_dcf=v.value is not None, name=v.name)
             if value is None:
                 unset.append(where(v.index, v.subindex))
     if unset:
@@ -314,10 +320,11 @@ def _pdo_indices(d: Dictionary | None, comm_base: int, sdo, out: Dictionary) -> 
     return found
 
 
-def _wanted(d: Dictionary | None, sdo, out: Dictionary):
-    """(index, sub, data type) of everything to read from the drive, device type first
-    (PDOs are found as they are read)."""
+def _wanted(d: Dictionary | None, sdo, out: Dictionary, extra=()):
+    """(index, sub, data type) of everything to read from the drive, device type first,
+    then ``extra`` (the rig's vendor objects; PDOs are found as they are read)."""
     yield from ((i, s, t) for i, (_, subs) in STANDARD.items() for s, t in subs.items())
+    yield from ((i, s, t) for i, s, t in extra if i not in STANDARD)
     for comm, mapping in ((RPDO_COMM, RPDO_MAP), (TPDO_COMM, TPDO_MAP)):
         for n in _pdo_indices(d, comm, sdo, out):
             yield from ((comm + n, s, t) for s, t in _PDO_COMM_TYPES.items())
@@ -325,18 +332,20 @@ def _wanted(d: Dictionary | None, sdo, out: Dictionary):
             yield from ((mapping + n, s, U8 if s == 0 else U32) for s in subs)
 
 
-def survey(sdo, d: Dictionary | None = None) -> Dictionary:
+def survey(sdo, d: Dictionary | None = None, extra=()) -> Dictionary:
     """Read-only: what the drive has and holds, as a ``Dictionary`` (a new one).
 
     With ``d`` (from the drive's file) every object it lists is confirmed on the
     drive; one the drive says does not exist is dropped with a warning. Without,
     mapping slots are probed up to the first missing subindex. No refused read
-    stops it (module doc); only a drive that does not answer does.
+    stops it (module doc); only a drive that does not answer does. ``extra``:
+    (index, sub, data type) of vendor objects the rig names (without a file, the
+    rig's type, else the signed type of the answer's size).
     """
     out = Dictionary(source=d.source if d else "drive", warnings=list(d.warnings) if d else [],
                      od=d.od if d else None, from_file=d is not None)
     gone_mapping = set()
-    for index, sub, dtype in _wanted(d, sdo, out):
+    for index, sub, dtype in _wanted(d, sdo, out, extra):
         known = d.get(index, sub) if d is not None else None
         if d is not None and known is None:
             continue
@@ -347,7 +356,7 @@ def survey(sdo, d: Dictionary | None = None) -> Dictionary:
             continue  # write-only: known to exist, never read
         raw, code = _attempt(sdo, out, index, sub)
         if code == WRITE_ONLY:  # the drive says what its file did not
-            out.entries[(index, sub)] = replace(known or Entry(index, sub, dtype),
+            out.entries[(index, sub)] = replace(known or Entry(index, sub, dtype or I32),
                                                 access="wo", value=None)
             continue
         if raw is None:
@@ -357,6 +366,8 @@ def survey(sdo, d: Dictionary | None = None) -> Dictionary:
             if (index & 0xFF00) in (RPDO_MAP, TPDO_MAP) and sub > 0:
                 gone_mapping.add(index)  # slots are contiguous: stop at the first gap
             continue
+        if known is None and dtype is None:  # a vendor object without a file or a rig type
+            dtype = {1: I8, 2: I16}.get(len(raw), I32)
         entry = replace(known) if known is not None else Entry(index, sub, dtype)
         fmt = entry.fmt
         if fmt and len(raw) >= 1:

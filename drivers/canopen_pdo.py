@@ -34,11 +34,19 @@ class Need:
     index: int
     role: str
     required: bool
+    sub: int = 0
 
 
-RX_NEEDS = (Need(0x6071, "torque", True), Need(0x6040, "control", True))
-TX_NEEDS = (Need(0x6064, "position", True), Need(0x6041, "status", True),
-            Need(0x6077, "torque", False), Need(0x606C, "velocity", False))
+def needs(command=(0x6071, 0), position=(0x6064, 0), velocity=(0x606C, 0),
+          torque_actual: bool = True) -> tuple[tuple, tuple]:
+    """(RPDO, TPDO) entries the loop needs, in the order they are placed: the set point
+    (0x6071 or the rig's vendor object), the controlword; the position (0x6064 or the
+    rig's), the statusword, then if there is room torque actual and the velocity."""
+    rx = (Need(command[0], "torque", True, command[1]), Need(0x6040, "control", True))
+    tx = (Need(position[0], "position", True, position[1]), Need(0x6041, "status", True),
+          *((Need(0x6077, "torque", False),) if torque_actual else ()),
+          Need(velocity[0], "velocity", False, velocity[1]))
+    return rx, tx
 
 
 @dataclass
@@ -48,6 +56,7 @@ class Mapped:
     bits: int
     role: str | None  # None: carried but unused (or a dummy entry)
     signed: bool = False
+    name: str = ""  # what the object is (the dictionary's name)
 
     @property
     def code(self) -> int:
@@ -63,8 +72,9 @@ class Mapped:
     def text(self) -> str:
         if 1 <= self.index <= 7:
             return f"dummy ({self.bits} bit)"
-        name = object_name(self.index)
-        return f"0x{self.index:04X} {name} ({self.bits} bit)" + ("" if self.role else ", unused")
+        name = self.name or object_name(self.index)
+        at = f"0x{self.index:04X}" + (f":{self.sub:02X}" if self.sub else "")
+        return f"{at} {name} ({self.bits} bit)" + ("" if self.role else ", unused")
 
 
 @dataclass
@@ -193,7 +203,7 @@ def _mapped(d: Dictionary, code: int, role: str | None) -> Mapped:
     index, sub, bits = code >> 16, code >> 8 & 0xFF, code & 0xFF
     e = d.get(index, sub)
     signed = e is not None and e.fmt in ("b", "h", "i")
-    return Mapped(index, sub, bits, role, signed)
+    return Mapped(index, sub, bits, role, signed, d.name(index, sub))
 
 
 def _sync_ok(p: _Pdo, want: int) -> bool:
@@ -202,20 +212,21 @@ def _sync_ok(p: _Pdo, want: int) -> bool:
 
 
 def plan_pdos(d: Dictionary, node_id: int, rpdo_timeout_ms: int,
-              velocity_every: int = 1) -> PdoPlan:
-    """The PDO layout for drive ``d`` (see the module docstring)."""
+              velocity_every: int = 1, wanted: tuple | None = None) -> PdoPlan:
+    """The PDO layout for drive ``d`` (see the module docstring); ``wanted``: the (RPDO,
+    TPDO) ``needs`` (default: CiA 402's objects)."""
     plan = PdoPlan()
-    for tx, needs in ((False, RX_NEEDS), (True, TX_NEEDS)):
+    for tx, needed in zip((False, True), wanted or needs()):
         pdos = _available(d, tx, node_id)
         planned: list[PlannedPdo] = []
-        claimed: set[int] = set()
+        claimed: set[tuple[int, int]] = set()
         owners: dict[int, _Pdo] = {}
         # 1. fixed or DCF mappings, used as they are.
         for p in pdos:
             if not (p.fixed or p.dcf) or not p.current or not p.cob_id:
                 continue
-            roles = {need.index: need.role for need in needs if need.index not in claimed}
-            entries = [_mapped(d, c, roles.get(c >> 16)) for c in p.current]
+            roles = {(n.index, n.sub): n.role for n in needed if (n.index, n.sub) not in claimed}
+            entries = [_mapped(d, c, roles.get((c >> 16, c >> 8 & 0xFF))) for c in p.current]
             if not any(e.role for e in entries):
                 continue
             foreign = [e for e in entries if e.role is None and not 1 <= e.index <= 7]
@@ -234,18 +245,19 @@ def plan_pdos(d: Dictionary, node_id: int, rpdo_timeout_ms: int,
             pp.entries = entries
             planned.append(pp)
             owners[id(pp)] = p
-            claimed |= {e.index for e in entries if e.role}
+            claimed |= {(e.index, e.sub) for e in entries if e.role}
         # 2. the rest, first-fit into configurable PDOs.
         free = [p for p in pdos if not p.fixed and p.cob_id and p.slots
                 and not any(owners.get(id(q)) is p for q in planned)
                 and (not tx or _sync_ok(p, 1))]
-        for need in needs:
-            if need.index in claimed:
+        for need in needed:
+            if (need.index, need.sub) in claimed:
                 continue
-            e = d.get(need.index, 0)
+            e = d.get(need.index, need.sub)
             if e is None:
                 continue  # an absent object is the capability check's to report
-            what = f"0x{need.index:04X} ({object_name(need.index)})"
+            at = f"0x{need.index:04X}" + (f":{need.sub:02X}" if need.sub else "")
+            what = f"{at} ({d.name(need.index, need.sub)})"
             problem = None
             if e.mappable is False:
                 problem = f"{what} is not PDO-mappable"
@@ -275,9 +287,9 @@ def plan_pdos(d: Dictionary, node_id: int, rpdo_timeout_ms: int,
                 (plan.obstacles if need.required else plan.warnings).append(
                     text + ("" if need.required else ": not recorded"))
                 continue
-            target.entries.append(Mapped(need.index, 0, e.bits, need.role,
-                                         e.fmt in ("b", "h", "i")))
-            claimed.add(need.index)
+            target.entries.append(Mapped(need.index, need.sub, e.bits, need.role,
+                                         e.fmt in ("b", "h", "i"), d.name(need.index, need.sub)))
+            claimed.add((need.index, need.sub))
         if tx:
             plan.tpdos = planned
             used = {owners[id(q)].n for q in planned}

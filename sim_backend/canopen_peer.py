@@ -56,7 +56,8 @@ from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
 from labbench.drivers import cia402, eds_values, emcy
-from labbench.drivers.canopen_config import STANDARD_MODES, CanopenConfig
+from labbench.drivers.canopen_config import (STANDARD_MODES, TARGET_TORQUE, UNITS, CanopenConfig,
+                                             ref)
 from labbench.drivers.canopen_drive import CanopenDrive, probe_drive
 from labbench.drivers.canopen_objects import (RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP, TYPE_FMT,
                                               read_eds)
@@ -171,8 +172,15 @@ class SimCanopenDrive:
         self.nmt_state = 127
         self.state = State.SWITCH_ON_DISABLED
         self.controlword = 0
-        self.target_permille = 0
-        self.torque_permille = 0  # applied now (0 unless the power stage is enabled)
+        # Set point objects by mode (0x6060 code -> (index, sub), unit): 0x6071 per-mille of
+        # the rated torque in CiA 402's modes, the rig's vendor objects in theirs.
+        self._set_point = {c: (TARGET_TORQUE, "permille") for c, _, _ in STANDARD_MODES.values()}
+        self._set_point.update({m["code"]: (ref(m["command"]), m["unit"])
+                                for m in self.config.modes.values()})
+        self.targets = {obj: 0 for obj, _ in self._set_point.values()}  # last value of each
+        self.applied = 0  # the set point applied now (0 unless the power stage is enabled)
+        self._position = {(0x6064, 0), ref(self.config.position)}
+        self._velocity = {(0x606C, 0), ref(self.config.velocity)}
         self.error_code = 0
         self.history: list[int] = []  # error history 0x1003, newest first
         self.mode = 0
@@ -180,8 +188,7 @@ class SimCanopenDrive:
         self.sync_count = 0
         self.events: list[str] = []  # what the drive did on its own, for tests and docs
         self.emcy_sent: list[int] = []  # error codes of the EMCYs it sent
-        self._torque_modes = {c for c, _, _ in STANDARD_MODES.values()} | {
-            m["code"] for m in self.config.modes.values()}
+        self._torque_modes = set(self._set_point)
         self._hb_next = math.inf
         self._host_hb_last: float | None = None
         self._guard_last: float | None = None  # last guarding request (life guarding)
@@ -225,30 +232,50 @@ class SimCanopenDrive:
             self._params[key] = value if value is not None else 0
         return self._params[key]
 
+    @property
+    def torque_permille(self) -> int:
+        """The set point applied now, in its mode's unit (per-mille of the rated torque in
+        CiA 402's torque modes)."""
+        return self.applied
+
     def rated_mnm(self) -> float:
         """The torque unit: 0x6076, else what the rig declares (as the driver resolves it)."""
         cfg = self.config
         return (self._get(0x6076, 0, 0) or cfg.rated_torque_mnm
                 or cfg.torque_constant_nm_per_a * (self._get(0x6075, 0, 0) or cfg.rated_current_ma))
 
+    def _mode_set_point(self) -> tuple[tuple[int, int], str]:
+        """The set point object of the mode in force, and its unit."""
+        return self._set_point.get(self.mode, (TARGET_TORQUE, "permille"))
+
+    def torque_nm(self) -> float:
+        """The joint torque applied now: the set point in its unit (module doc)."""
+        unit = self._mode_set_point()[1]
+        if unit == "permille":
+            return self.applied * self.rated_mnm() * 1e-6
+        factor, per = UNITS[unit]
+        return self.applied * factor * (self.config.torque_constant_nm_per_a if per else 1.0)
+
     def _live(self, index: int, sub: int) -> int | None:
         """Process values (None for stored parameters)."""
-        if index == 0x6064:
+        if (index, sub) in self._position:
             return round(self.plant.x / self.mpc)
         if index == 0x6041:
             return self._statusword()
         if index == 0x6077:
-            return self.torque_permille
-        if index == 0x606C:
+            rated = self.rated_mnm()
+            return round(self.torque_nm() / (rated * 1e-6)) if rated else 0
+        if (index, sub) in self._velocity:
             return round(self.plant.v / self.mpc)
+        if (index, sub) in self.targets:
+            return self.targets[(index, sub)]
         if index == 0x1003:
             if sub > len(self.history):
                 raise SdoAbortedError(ABORT_NO_DATA)  # CANopenNode's answer above the count
             return len(self.history) if sub == 0 else self.history[sub - 1]
         if index == 0x1001:
             return 0x01 if self.state is State.FAULT else 0
-        return {0x6061: self.mode, 0x603F: self.error_code, 0x6071: self.target_permille,
-                0x6040: self.controlword}.get(index)
+        return {0x6061: self.mode, 0x603F: self.error_code, 0x6040: self.controlword}.get(index)
 
     def _on_sdo_read(self, index, subindex, od):
         if (index, subindex) in self.node.read_aborted:
@@ -275,8 +302,8 @@ class SimCanopenDrive:
         self._params[(index, subindex)] = value
         if index == 0x6040:
             self._controlword(value)
-        elif index == 0x6071:
-            self.target_permille = value
+        elif (index, subindex) in self.targets:
+            self.targets[(index, subindex)] = value
             self._apply_torque()
         elif index == 0x1017:
             self._hb_next = time.monotonic() + value * 1e-3 if value else math.inf
@@ -331,8 +358,8 @@ class SimCanopenDrive:
         extra = cia402.SW_REMOTE
         if self.state in cia402.TORQUE_STATES or self.state is State.SWITCHED_ON:
             extra |= cia402.SW_VOLTAGE_ENABLED
-        if (self.state is State.OPERATION_ENABLED
-                and abs(self.target_permille) > self._get(0x6072, 0, 32767)):
+        if (self.state is State.OPERATION_ENABLED and self._mode_set_point()[1] == "permille"
+                and abs(self.targets[TARGET_TORQUE]) > self._get(0x6072, 0, 32767)):
             extra |= cia402.SW_INTERNAL_LIMIT
         return cia402.encode_status(self.state, extra)
 
@@ -351,15 +378,18 @@ class SimCanopenDrive:
         self._apply_torque()
 
     def _apply_torque(self) -> None:
+        """The mode's set point on the motor when enabled: 0x6072 clamps a per-mille set
+        point (a vendor mode's own limits are not simulated)."""
         if self.state is State.OPERATION_ENABLED:
-            lim = self._get(0x6072, 0, 32767)
-            self.torque_permille = max(-lim, min(lim, self.target_permille))
+            obj, unit = self._mode_set_point()
+            lim = self._get(0x6072, 0, 32767) if unit == "permille" else 1 << 31
+            self.applied = max(-lim, min(lim, self.targets[obj]))
         else:
-            self.torque_permille = 0
+            self.applied = 0
 
     def _fault(self, code: int, why: str) -> None:
         """Fault reaction (instantaneous here): torque off, FAULT, EMCY, error history."""
-        self.torque_permille = 0
+        self.applied = 0
         self.state = State.FAULT
         self.error_code = code
         self.history.insert(0, code)
@@ -388,7 +418,7 @@ class SimCanopenDrive:
             self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
 
     def _pdo_layout(self, mapping: int) -> tuple[list, struct.Struct]:
-        """Mapped indices (None for dummies) and the frame layout of one PDO."""
+        """Mapped objects (index, sub) and the frame layout of one PDO (dummies skipped)."""
         indices, fmt = [], "<"
         for s in range(1, self._get(mapping, 0, 0) + 1):
             entry = self._get(mapping, s, 0)
@@ -396,7 +426,7 @@ class SimCanopenDrive:
             if _is_dummy(index):
                 fmt += f"{bits // 8}x"
                 continue
-            indices.append(index)
+            indices.append((index, sub))
             fmt += TYPE_FMT[self.dictionary.get(index, sub).data_type]
         return indices, struct.Struct(fmt)
 
@@ -447,7 +477,7 @@ class SimCanopenDrive:
             return
         # SYNC k samples x[k]; from the second SYNC on the plant first advances one
         # period under the torque held over it (as sim_backend.sim_device).
-        self.plant.command(self.torque_permille * 1e-3 * self.rated_mnm() * 1e-3 / self.lever)
+        self.plant.command(self.torque_nm() / self.lever)
         self.plant.read_raw(1.0)
         # Synchronous RPDOs received since the last SYNC take effect now: held from here.
         for values in self._pending:
@@ -461,13 +491,13 @@ class SimCanopenDrive:
                 self._fault(0x8612, f"position {counts} counts outside 0x607D [{lo}, {hi}]")
         for cob_id, every, indices, st in self._tpdos:
             if self.sync_count % every == 0:
-                self._send(cob_id, st.pack(*[self._live(i, 0) for i in indices]))
+                self._send(cob_id, st.pack(*[self._live(*i) for i in indices]))
 
     def _take(self, values: dict) -> None:
-        if 0x6071 in values:
-            self.target_permille = values[0x6071]
-        if 0x6040 in values:
-            self._controlword(values[0x6040])  # also applies the torque
+        for obj in self.targets.keys() & values.keys():
+            self.targets[obj] = values[obj]
+        if (0x6040, 0) in values:
+            self._controlword(values[(0x6040, 0)])  # also applies the torque
         else:
             self._apply_torque()
 

@@ -78,17 +78,19 @@ def _pdos(tx: bool, count: int, slots: int, timer: bool, fixed: dict) -> list:
 
 def eds_text(*, drop=(), access=None, mappable=None, default=None, limits=None,
              rpdos: int = 1, tpdos: int = 2, slots: int = 4, timers: bool = True,
-             fixed_rpdo=None, fixed_tpdo=None, dcf_values=None, extra_lines: str = "") -> str:
+             fixed_rpdo=None, fixed_tpdo=None, dcf_values=None, objects=(),
+             extra_lines: str = "") -> str:
     """EDS (or, with ``dcf_values``, DCF) text of one variant.
 
     ``drop``: indices or (index, sub) to leave out; ``access``/``mappable``/
     ``default``: by index or (index, sub); ``limits``: index -> (low, high);
-    ``dcf_values``: (index, sub) -> ParameterValue; ``extra_lines`` is
-    appended as it is (to plant defects).
+    ``dcf_values``: (index, sub) -> ParameterValue; ``objects``: more rows as
+    in ``BASE`` (a vendor's own objects); ``extra_lines`` is appended as it is
+    (to plant defects).
     """
     access, mappable, default = access or {}, mappable or {}, default or {}
     limits, dcf_values = limits or {}, dcf_values or {}
-    rows = BASE + _pdos(False, rpdos, slots, timers, fixed_rpdo or {}) + _pdos(
+    rows = BASE + list(objects) + _pdos(False, rpdos, slots, timers, fixed_rpdo or {}) + _pdos(
         True, tpdos, slots, timers, fixed_tpdo or {})
     rows = [r for r in rows if r[0] not in drop and (r[0], r[1] or 0) not in drop]
 
@@ -157,6 +159,28 @@ WRITE_ONLY_MODE = dict(access={0x6060: "wo"})
 NO_6502 = dict(drop=[0x6502])
 NODEID_FORMS = dict(default={(0x1800, 1): "0x180 + $NODEID", (0x1400, 1): "$NODEID+512",
                              (0x1801, 1): "0x280+$nodeid"})
+# A drive whose torque path is its own current mode (as maxon's EPOS2): no 0x6071, 0x6072,
+# 0x6076, 0x6077; 0x6502 lists position/velocity modes only; a vendor set point in mA
+# (INTEGER16, mappable) and current actual values. Values are ours.
+CURRENT_MODE = dict(drop=[0x6071, 0x6072, 0x6076, 0x6077], default={0x6502: "0x00000065"},
+                    limits={0x6060: (-6, 8)},
+                    objects=[(0x2030, None, "Current mode setting value", I16, "rw", "0", 1),
+                             (0x2027, None, "Current actual value averaged", I16, "ro", "0", 1),
+                             (0x6078, None, "Current actual value", I16, "ro", "0", 1)])
+CURRENT_MODE_RIG = {"mode": "current", "torque_constant_nm_per_a": 0.03, "modes": {
+    "current": {"code": -3, "command": "0x2030:00", "type": "INTEGER16", "unit": "mA"}}}
+# 0x6071 there and mappable, but 0x6502 advertises no torque mode (as Technosoft's iPOS):
+# a vendor mode number (from the manual) makes 0x6071 the set point.
+TORQUE_UNADVERTISED = dict(default={0x6502: "0x00000065"}, limits={0x6060: (-5, 10)})
+TORQUE_UNADVERTISED_RIG = {"mode": "torque", "modes": {"torque": {"code": -5}}}
+# 0x6064 not PDO-mappable, a vendor position object that is (as Faulhaber's MCDC).
+POSITION_VENDOR = dict(mappable={0x6064: 0},
+                       objects=[(0x3064, None, "Actual position (internal)", I32, "ro", "0", 1)])
+POSITION_VENDOR_RIG = {"position": "0x3064:00"}
+# Refused whatever the rig says: a position-only drive (profile position alone, no torque
+# or current set point), and a current mode whose set point cannot be mapped.
+POSITION_ONLY = dict(drop=[0x6071, 0x6072, 0x6076, 0x6077], default={0x6502: "0x00000001"})
+CURRENT_NOT_MAPPABLE = dict(CURRENT_MODE, mappable={0x2030: 0})
 # name -> (variant, extra [canopen] fields the rig needs, obstacle words or None: rehearses)
 FAMILY = {
     "BASE": ({}, {}, None),
@@ -176,4 +200,10 @@ FAMILY = {
     "NODEID_FORMS": (NODEID_FORMS, {}, None),
     "VENDOR_MODES": (VENDOR_MODES, {"modes": {"current": {"code": -3, "bit": 16}}}, None),
     "NOT_402": (NOT_402, {}, "not a CiA 402 drive"),
+    "CURRENT_MODE": (CURRENT_MODE, CURRENT_MODE_RIG, None),
+    "TORQUE_UNADVERTISED": (TORQUE_UNADVERTISED, TORQUE_UNADVERTISED_RIG, None),
+    "POSITION_VENDOR": (POSITION_VENDOR, POSITION_VENDOR_RIG, None),
+    "POSITION_ONLY": (POSITION_ONLY, {}, "no torque mode"),
+    "CURRENT_NOT_MAPPABLE": (CURRENT_NOT_MAPPABLE, CURRENT_MODE_RIG,
+                             "0x2030 (Current mode setting value) is not PDO-mappable"),
 }

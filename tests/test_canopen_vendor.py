@@ -66,11 +66,12 @@ def run_forces(drive, forces):
     return counts
 
 
-def oracle_counts(rig, forces, rated_mnm=100.0):
-    """The same forces on the exact plant, torque quantised to per-mille of ``rated_mnm``."""
+def oracle_counts(rig, forces, rated_mnm=100.0, per_newton=None):
+    """The same forces on the exact plant, torque quantised to per-mille of ``rated_mnm``
+    (or to ``per_newton`` set point units per newton)."""
     ref = MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
     held, out = 0.0, []
-    per_newton = rig.lever_arm_m / (rated_mnm * 1e-3) * 1000.0
+    per_newton = per_newton or rig.lever_arm_m / (rated_mnm * 1e-3) * 1000.0
     for k, f in enumerate(forces):
         if k:
             ref.step(held)
@@ -568,8 +569,9 @@ def test_the_check_and_the_rehearsal_agree_on_every_family_file(tmp_path, name):
         return
     try:
         assert offline is None and refusal is None
-        rated = d.assessment.rated_mnm
-        assert run_forces(d, FORCES[:100]) == oracle_counts(d.rig, FORCES[:100], rated)
+        per_newton = d.assessment.force_to_command
+        assert run_forces(d, FORCES[:100]) == oracle_counts(d.rig, FORCES[:100],
+                                                            per_newton=per_newton)
         d.disable()
         assert peer.state is State.SWITCH_ON_DISABLED and peer.torque_permille == 0
     finally:

@@ -162,5 +162,7 @@ def _describe(a: dict | None) -> list[str]:
     lines.append(f"bus load at 1 Mbit/s: {100 * load['load_nominal']:.1f} % nominal, "
                  f"{100 * load['load_worst']:.1f} % worst-case stuffing")
     lines += [f"obstacle: {o}" for o in a["obstacles"]]
+    if a.get("rig_lines"):
+        lines += ["rig lines that would make it usable:"] + [f"  {x}" for x in a["rig_lines"]]
     lines += [f"warning: {w}" for w in a["warnings"]]
     return lines
