@@ -55,7 +55,8 @@ import time
 import can
 import canopen
 
-from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
+from labbench.device import (ESTOP_STATE, DeviceDescription, DeviceFault, DeviceStatus,
+                             Sample)
 from labbench.drivers import cia402, emcy
 from labbench.drivers.can_echo import EchoFreeBus
 from labbench.drivers.can_trace import TracedBus
@@ -84,6 +85,8 @@ ERROR_CLASSES = {
     0x040: "bus off", 0x080: "bus error", 0x100: "controller restarted",
 }
 
+ESTOP_REASON = "emergency stop"  # the latched fault of emergency_stop()
+
 # Sample.flags bits of this device.
 FLAG_WARNING = 1  # statusword bit 7
 FLAG_INTERNAL_LIMIT = 2  # statusword bit 11 (e.g. torque limited by 0x6072)
@@ -97,12 +100,14 @@ class CanopenDrive:
     down on ``close()``. ``realtime``: pace SYNC at the sample time (hardware);
     otherwise SYNC goes out as soon as ``read()`` is called and the drive
     advances one period per SYNC (lock-step simulation). ``can_log``: a file
-    that receives every frame (``drivers/can_trace.py``).
+    that receives every frame (``drivers/can_trace.py``). ``simulated``: what stands in
+    for the drive ("" on hardware), said by ``describe()``.
     """
 
     def __init__(self, rig, config: CanopenConfig, bus: can.BusABC | None = None,
-                 realtime: bool = True, can_log: str | None = None):
+                 realtime: bool = True, can_log: str | None = None, simulated: str = ""):
         self.rig, self.config, self.realtime, self.can_log = rig, config, realtime, can_log
+        self.simulated = simulated
         self.T = rig.sample_time_s
         self._bus = bus
         self._network: canopen.Network | None = None
@@ -555,7 +560,8 @@ class CanopenDrive:
             details["can_log"] = self.can_log
         delay, why = self._own_delay()
         return DeviceDescription(
-            kind="canopen", name=f"CiA 402 drive, node {self.config.node_id}",
+            kind="canopen", name=f"{'simulated ' if self.simulated else ''}CiA 402 drive, "
+                                 f"node {self.config.node_id}", simulated=self.simulated,
             sample_time_s=self.T, force_limit_n=limit,
             position_limits_m=self.rig.position_limits_m, details=details,
             device_delay_s=delay, device_delay_why=why)
@@ -715,7 +721,7 @@ class CanopenDrive:
     def emergency_stop(self) -> None:
         """Zero torque and power stage off at once; latch. Never raises."""
         self._zero_force(Command.DISABLE_VOLTAGE)
-        self._latch("emergency stop")
+        self._latch(ESTOP_REASON)
 
     def _send_rpdos(self, set_point: int) -> None:
         cw = self._controlword
@@ -759,8 +765,8 @@ class CanopenDrive:
         return state
 
     def status(self) -> DeviceStatus:
-        state = ("closed" if self._closed else "fault" if self._fault
-                 else "enabled" if self._cyclic else "disabled")
+        state = ("closed" if self._closed else ESTOP_STATE if self._fault == ESTOP_REASON
+                 else "fault" if self._fault else "enabled" if self._cyclic else "disabled")
         return DeviceStatus(state, self._fault, dict(self.counters))
 
     def _latched(self) -> DeviceFault:

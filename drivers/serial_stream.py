@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 from labbench.drivers import framing
 from labbench.drivers.unwrap import Unwrapper
-from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
+from labbench.device import ESTOP_STATE, DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import DeviceConnectionError, UserError, unknown_name
 
 # Sample.flags bits of this device (0 = healthy).
@@ -142,6 +142,7 @@ class StreamDecoder:
         self._seq = Unwrapper(16, signed=False)
         self._last_seq: int | None = None
         self.samples = self.lost = self.reboots = self.duplicates = 0
+        self._base: dict = {}  # the counters when the stream was established
 
     def reset(self) -> None:
         """Forget the stream position (after a reboot or before a new sync)."""
@@ -191,7 +192,7 @@ class StreamDecoder:
             out.append(Decoded(Sample(seq, t_us * 1e-6, count * self._scale, flags), lost))
         return out
 
-    def counters(self) -> dict:
+    def _raw_counters(self) -> dict:
         p = self.parser
         link = (
             {"crc_errors": p.crc_errors, "bad_frames": p.bad_frames}
@@ -207,6 +208,18 @@ class StreamDecoder:
             **link,
         }
 
+    def counters(self) -> dict:
+        """Since the stream was established (``start_counting``), or since the start."""
+        return {k: v - self._base.get(k, 0) for k, v in self._raw_counters().items()}
+
+    def start_counting(self) -> dict:
+        """The link counters count from now on (the connection): what was seen before (a
+        board's boot text, the partial frame it was in when the port opened, the
+        handshake's samples) is no link error. Returns those counts."""
+        before = self.counters()
+        self._base = self._raw_counters()
+        return before
+
 
 def _with_flags(s: Sample, bits: int) -> Sample:
     return Sample(s.seq, s.t_s, s.position_m, s.flags | bits)
@@ -219,7 +232,10 @@ class SerialStream:
     its simulated board there). A lock-step simulated board's time is not wall
     time: it passes ``paced=False`` (the loop then does not judge its periods)
     and ``stale_s``, which overrides ``stale_periods * T``; ``kind`` names it
-    in ``describe()``. ``clock`` is injectable for tests.
+    in ``describe()``, ``simulated`` says what stands in for the board ("" for a
+    real one) and ``device_delay_s`` (with ``device_delay_why``) the delay the
+    board is known to add to every command (``labbench.device_delay``); ``warnings``
+    go into the session. ``clock`` is injectable for tests.
 
     Before ``enable()`` a read returns the newest sample waiting (older ones are
     dropped: nothing is driven yet, and a stale backlog would only add latency);
@@ -236,6 +252,10 @@ class SerialStream:
         paced: bool = True,
         kind: str = "serial",
         clock: Callable[[], float] = time.monotonic,
+        simulated: str = "",
+        device_delay_s: float = 0.0,
+        device_delay_why: str = "",
+        warnings: tuple = (),
     ):
         self.port = port
         self.config = config
@@ -243,6 +263,10 @@ class SerialStream:
         self.T = rig.sample_time_s
         self._on_close = on_close
         self._paced, self._kind = paced, kind
+        self._simulated, self._warnings = simulated, list(warnings)
+        self._delay = (device_delay_s, device_delay_why)
+        self.handshake: dict = {}  # what the handshake discarded (``wait_for_stream``)
+        self._estopped = False
         self._clock = clock
         self._decoder = StreamDecoder(config, self.T, rig.position_per_count)
         self._ready: deque[Sample] = deque()
@@ -278,10 +302,15 @@ class SerialStream:
             details={
                 "config": asdict(c),
                 "counters": self.counters(),
+                "handshake": dict(self.handshake),
                 "paced": self._paced,
                 "stale_s": self._stale_s,
                 "metres_per_count": self.rig.metres_per_count,
+                **({"warnings": list(self._warnings)} if self._warnings else {}),
             },
+            device_delay_s=self._delay[0],
+            device_delay_why=self._delay[1],
+            simulated=self._simulated,
         )
 
     def counters(self) -> dict:
@@ -326,6 +355,7 @@ class SerialStream:
                 f"the board streams every {period * 1e3:.3f} ms but the rig's "
                 f"sample_time_s is {self.T * 1e3:.3f} ms"
             )
+        self.handshake = self._decoder.start_counting()
         self._last_arrival = self._clock()
 
     def enable(self, timeout: float = 1.0) -> None:
@@ -350,6 +380,7 @@ class SerialStream:
                 )
             self._ingest(self._read_chunk())
         self._fault = None
+        self._estopped = False
         self._force = 0.0
         self._enabled = True
 
@@ -359,6 +390,7 @@ class SerialStream:
         self._send(0.0)
 
     def emergency_stop(self) -> None:
+        self._estopped = True
         self._latch("emergency stop")
 
     def read(self, timeout: float) -> Sample:
@@ -437,8 +469,8 @@ class SerialStream:
         return self._fault
 
     def status(self) -> DeviceStatus:
-        state = ("closed" if self._closed else "fault" if self._fault
-                 else "enabled" if self._enabled else "disabled")
+        state = ("closed" if self._closed else ESTOP_STATE if self._estopped
+                 else "fault" if self._fault else "enabled" if self._enabled else "disabled")
         return DeviceStatus(state, self._fault, self.counters())
 
     def close(self) -> None:

@@ -27,9 +27,19 @@ class Sample:
     flags: int = 0
 
 
+# The one wording of a latched emergency stop, whatever the backend (``DeviceStatus.state``).
+ESTOP_STATE = "E-STOP latched"
+
+
 @dataclass(frozen=True)
 class DeviceDescription:
-    """What ``describe()`` returns: identity, units and limits at the handle."""
+    """What ``describe()`` returns: identity, units and limits at the handle.
+
+    ``simulated``: what stands in for the hardware, e.g. "simulated CiA 402 drive in a
+    thread of this process" ("" on hardware: every simulated backend says so here);
+    ``details["paced"]``: whether samples come at the sample time of the wall clock
+    (hardware, a paced simulator) or as fast as the host goes (lock-step).
+    """
 
     kind: str  # "sim", "canopen", "serial", ...
     name: str
@@ -45,13 +55,27 @@ class DeviceDescription:
     # labbench.device_delay (a rig file's measured value takes precedence).
     device_delay_s: float = 0.0
     device_delay_why: str = ""
+    simulated: str = ""
+
+    @property
+    def paced(self) -> bool:
+        return bool(self.details.get("paced", True))
+
+    def label(self) -> str:
+        """One line for people: the name, what simulates it, and its pacing, e.g.
+        "simulated CiA 402 drive, node 1: simulated drive in a thread, lock-step (as fast as
+        the host goes)"."""
+        pace = "paced at the sample time" if self.paced else "lock-step (as fast as the " \
+                                                              "host goes)"
+        return f"{self.name}: {self.simulated}, {pace}" if self.simulated else \
+            f"{self.name} ({self.kind})"
 
 
 @dataclass(frozen=True)
 class DeviceStatus:
     """What a device tells about itself without bus traffic (``StatusReporting``)."""
 
-    state: str  # "disabled" | "enabled" | "E-STOP latched" | "fault" | "closed"
+    state: str  # "disabled" | "enabled" | ESTOP_STATE | "fault" | "closed"
     fault: str | None = None  # the latched fault, if any
     link: dict = field(default_factory=dict)  # link counters: CRC errors, lost frames, EMCY...
 

@@ -309,7 +309,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
             progress(pages[1], n)
         if live is not None:
             live({"n": pages[1], "overruns": counts["overrun"], "max_s": worst[0],
-                  "worst_t_s": worst[2]})
+                  "worst_t_s": worst[2], "wall_s": clock() - start})
 
     def last_event(t_s, name, reason):
         """The event that ends the run, after the samples that led to it."""

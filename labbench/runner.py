@@ -108,13 +108,13 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     plan does not fit the rig. ``simulated`` says whether the device is a
     simulator (the only place ``allow_unstable`` is accepted, and its watchdog records a
     host stall instead of tripping: ``labbench.safety.WatchdogPolicy``); None: its
-    description's kind starts with "sim" (a real driver talking to a simulated
-    peer reports the driver's kind, so the caller who opened it must say).
+    description says so (``DeviceDescription.simulated``, or a kind starting with "sim").
     ``realtime``: what the loop's thread asks the OS for on a paced device
     (default ``RealtimeConfig()``: on); ``warn(line)`` gets the one line saying
     how to grant what was refused (default: a logging warning).
     ``live_timing(snapshot)``: the run's timing so far after each page (overruns,
-    max_s, worst_t_s, n), e.g. for a status bar. ``skip_commissioning``: render a spring
+    max_s, worst_t_s, n, wall_s, T_s, paced), e.g. for a status bar
+    (``labbench.timing.status_figures``). ``skip_commissioning``: render a spring
     or damper on real hardware before the rig passed its direction check
     (``labbench.commissioning.gate``).
     """
@@ -133,7 +133,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
             raise UserError(f"the device samples every {T:g} s but the protocol assumes "
                             f"{protocol.ve.T:g} s (set sample_time_s)")
         if simulated is None:
-            simulated = str(desc.kind).startswith("sim")
+            simulated = bool(desc.simulated) or str(desc.kind).startswith("sim")
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant = protocol.plant(rig)
@@ -212,7 +212,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
         gen = protocol.segments(plant)
         segment = next(gen)
         # the earlier segments' share of live_timing
-        before = {"overruns": 0, "max_s": 0.0, "worst_t_s": None}
+        before = {"overruns": 0, "max_s": 0.0, "worst_t_s": None, "wall_s": 0.0}
         while True:
             first = run_state.n_samples
 
@@ -225,7 +225,9 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
                 live_timing({"n": _first + snap["n"],
                              "overruns": before["overruns"] + snap["overruns"],
                              "max_s": snap["max_s"] if worse else before["max_s"],
-                             "worst_t_s": snap["worst_t_s"] if worse else before["worst_t_s"]})
+                             "worst_t_s": snap["worst_t_s"] if worse else before["worst_t_s"],
+                             "wall_s": before["wall_s"] + snap["wall_s"],
+                             "T_s": T, "paced": desc.paced})
 
             run_state.emit(records.event_record(
                 run_state.last_t, "segment", segment.label, role=segment.role,
@@ -245,6 +247,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
             if t.get("max_s", 0.0) > before["max_s"]:
                 before.update(max_s=t["max_s"], worst_t_s=t.get("worst", {}).get("t_s"))
             before["overruns"] += t.get("overruns", 0)
+            before["wall_s"] += t.get("wall_s", 0.0)
             run_state.segments.append({
                 "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
                 "start": first,

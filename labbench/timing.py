@@ -96,6 +96,38 @@ def summary(timing: dict) -> str:
     return line
 
 
+def status_figures(timing: dict) -> dict:
+    """What a status bar shows, from one timing summary: a run's (``merge``, the loop's
+    ``period_stats``) or a live snapshot (``labbench.runner.run``'s ``live_timing``).
+
+    ``samples_per_s``: samples over wall seconds. On a paced device it is the loop's
+    rate (1/T when it keeps up). On an unpaced one (lock-step) it is how fast the host
+    simulates, not a loop rate: ``speed`` (simulated seconds per wall second) says so,
+    and the periods (``p50_s``, ``p99_s``) are compute times per sample. A window that
+    counted its own samples per second beside the loop's p99 showed "1999 Hz" beside
+    "p99 1.65 ms" for a lock-step avr-sim run: both true, neither a loop rate.
+    """
+    T = timing.get("T_s")
+    n = timing.get("periods", timing.get("n"))
+    wall = timing.get("wall_s")
+    per_s = n / wall if isinstance(n, (int, float)) and isinstance(wall, (int, float)) \
+        and wall > 0 else None
+    paced = bool(timing.get("paced"))
+    out = {"paced": paced, "sample_rate_hz": 1 / T if T else None, "samples_per_s": per_s,
+           "speed": per_s * T if per_s is not None and T else None,
+           "p50_s": timing.get("p50_s"), "p99_s": timing.get("p99_s"),
+           "overruns": timing.get("overruns", 0) if paced else None,
+           "max_s": timing.get("max_s"),
+           "worst_t_s": timing.get("worst_t_s", (timing.get("worst") or {}).get("t_s"))}
+    if paced:
+        rate = f"{per_s:.0f} samples/s" if per_s is not None else "-"
+        out["rate_text"] = f"paced at {out['sample_rate_hz']:.0f} Hz: {rate}"
+    else:
+        speed = f"{out['speed']:.2g}x real time" if out["speed"] is not None else "-"
+        out["rate_text"] = f"lock-step (unpaced): {speed}"
+    return out
+
+
 def scheduling(rt: dict) -> str:
     """What the loop's thread ran with, e.g. 'SCHED_FIFO 80 on CPU 1, memory locked, GC frozen,
     CPU wake-up latency <= 0 us'."""

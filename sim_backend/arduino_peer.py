@@ -365,6 +365,8 @@ def connect_sim_serial(
     # A lock-step board's time is virtual (its plant waits for the host), so a few
     # periods of wall time mean nothing there: the host's stale limit is half the
     # board's own wait for a command instead.
+    # free-running, the answer to sample k is applied in period k + 1 (module doc)
+    late = delay_samples + (1 if realtime else 0)
     driver = SerialStream(
         ser,
         config,
@@ -373,6 +375,12 @@ def connect_sim_serial(
         paced=realtime,
         stale_s=None if realtime else lockstep_timeout_s / 2,
         kind="sim-serial",
+        simulated="simulated encoder board (a Python peer of docs/serial-protocol.md) on "
+                  + ("a pty" if url.startswith("/") else url.split(":", 1)[0]),
+        device_delay_s=late * T,
+        device_delay_why=(f"the simulated board applies each answer {late} sample(s) late"
+                          + (" (free-running: the answer to sample k acts in period k + 1)"
+                             if realtime else "")) if late else "",
     )
     peer.start()
     try:
@@ -411,9 +419,14 @@ def default_plant(rig):
     return MassDamperPlant(rig.nominal_mass_kg, rig.nominal_damping_ns_m, rig.sample_time_s)
 
 
-def open_sim_serial(rig, realtime: bool = False, seed: int | None = None, **sim_options):
+def open_sim_serial(rig, realtime: bool | None = None, seed: int | None = None,
+                    **sim_options):
     """Device registry factory for ``--device sim-serial``.
 
-    ``sim_options`` are those of ``--device sim`` (``labbench.sim_backend.sim_device``).
+    ``sim_options`` are those of ``--device sim`` (``labbench.sim_backend.sim_device``);
+    ``realtime`` None: the rig's ``[sim] paced`` (default lock-step).
     """
-    return connect_sim_serial(rig, realtime=realtime, seed=seed, sim=sim_options)[0]
+    from labbench.sim_backend.sim_device import paced_by_rig
+
+    return connect_sim_serial(rig, realtime=paced_by_rig(rig, realtime), seed=seed,
+                              sim=sim_options)[0]

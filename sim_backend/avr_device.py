@@ -43,6 +43,10 @@ PWM_PER_NEWTON = 40.0  # the sketch's default: duty counts (of 255) per newton
 VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's tick
 RENDER_DIV = 5  # the sketch's default: render ticks per sample (5 kHz at T = 1 ms)
 LOCKSTEP_TIMEOUT_S = 3.0  # wall time; generous: this machine is shared and loaded
+# The board's own delay, declared to the analyses (labbench.device_delay; a rig's
+# measured_td_s takes precedence): docs/serial-protocol.md, "Emulated board".
+BOARD_DELAY_WHY = ("the reference sketch latches each command at its next tick: one sample "
+                   "on everything the host commands")
 _PLANT_OPTIONS = ("m", "b", "x0_m", "v0_m_s", "coulomb_n", "extra_delay_samples")
 _GEOMETRY_OPTIONS = ("sign", "counts_per_rev", "lever_arm_m")
 
@@ -281,9 +285,19 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
     except BaseException:
         board.close()
         raise
+    T = rig.sample_time_s
+    warnings = []
+    if rig.measured_td_s is not None and abs(rig.measured_td_s - T) > 0.1 * T:
+        warnings.append(f"{rig.source}: [rig] measured_td_s = {rig.measured_td_s:g} s, but the "
+                        f"reference sketch on avr-sim adds one sample ({T:g} s) to every "
+                        "command: the theory and the pre-check use the rig's value; "
+                        "docs/arduino/avr-sim.toml is the rig for this board")
     driver = SerialStream(
         ser, config, rig, on_close=board.close, paced=realtime,
         stale_s=None if realtime else LOCKSTEP_TIMEOUT_S / 2, kind="avr-sim",
+        simulated="the reference sketch (docs/arduino/labbench_encoder.ino) on simavr's "
+                  "ATmega328P, in a simulated mass-damper",
+        device_delay_s=T, device_delay_why=BOARD_DELAY_WHY, warnings=warnings,
     )
     try:
         driver.wait_for_stream(config.sync_timeout_s)
@@ -295,6 +309,7 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
 
 def _plant_table(rig, options: dict) -> dict:
     table = {**rig.section("sim"), **options}
+    table.pop("paced", None)  # how it runs, not the plant (open_avr_sim)
     other = sorted(set(table) - set(_PLANT_OPTIONS) - set(_GEOMETRY_OPTIONS))
     if other:
         raise UserError(
@@ -304,6 +319,9 @@ def _plant_table(rig, options: dict) -> dict:
     return table
 
 
-def open_avr_sim(rig, realtime: bool = False, seed: int | None = None, **options):
-    """Device registry factory for ``--device avr-sim`` (``seed`` unused: nothing is random)."""
-    return connect_avr_sim(rig, realtime=realtime, **options)[0]
+def open_avr_sim(rig, realtime: bool | None = None, seed: int | None = None, **options):
+    """Device registry factory for ``--device avr-sim`` (``seed`` unused: nothing is random);
+    ``realtime`` None: the rig's ``[sim] paced`` (default lock-step)."""
+    from labbench.sim_backend.sim_device import paced_by_rig
+
+    return connect_avr_sim(rig, realtime=paced_by_rig(rig, realtime), **options)[0]

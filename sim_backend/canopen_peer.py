@@ -63,7 +63,7 @@ from labbench.drivers.canopen_objects import (RPDO_COMM, RPDO_MAP, TPDO_COMM, TP
                                               read_eds)
 from labbench.drivers.cia402 import State
 from labbench.sim_backend.canopen_process import start_process_drive
-from labbench.sim_backend.sim_device import SimDevice, open_sim
+from labbench.sim_backend.sim_device import SimDevice, open_sim, paced_by_rig
 
 EDS_PATH = Path(__file__).with_name("drive.eds")
 SIM_DEVICE_TYPE = 0x00020192  # CiA 402 (0x192), servo drive (0x02 in bits 16-23)
@@ -662,8 +662,11 @@ def start_sim_drive(rig, config: CanopenConfig, seed=None,
 def driver_for(rig, config, peer, host_bus, realtime: bool = False,
                can_log: str | None = None) -> CanopenDrive:
     """The real driver on ``host_bus``, not yet opened; closing it stops ``peer``."""
+    where = ("in its own process on python-can's udp_multicast bus" if config.sim_drive ==
+             "process" else "in a thread of this process on python-can's virtual bus")
     try:
-        drive = CanopenDrive(rig, config, bus=host_bus, realtime=realtime, can_log=can_log)
+        drive = CanopenDrive(rig, config, bus=host_bus, realtime=realtime, can_log=can_log,
+                             simulated=f"simulated CiA 402 drive {where}")
     except BaseException:
         host_bus.shutdown()
         peer.close()
@@ -681,15 +684,17 @@ def connect_driver(rig, config, peer, host_bus, realtime: bool = False,
     return drive
 
 
-def open_sim_canopen(rig, realtime: bool = False, seed=None, can_log: str | None = None,
+def open_sim_canopen(rig, realtime: bool | None = None, seed=None, can_log: str | None = None,
                      **options) -> CanopenDrive:
     """Registry factory (``--device sim-canopen``): the real driver connected to a simulated drive.
 
     ``seed`` and ``options`` are those of the plain simulator (``labbench.sim_backend.sim_device``),
     applied to the handle behind the drive; ``can_log`` records every frame. With
     ``[canopen] sim_drive = "process"`` the drive runs in its own process
-    (``canopen_process``), on ``udp_multicast``.
+    (``canopen_process``), on ``udp_multicast``. ``realtime``: the driver paces SYNC at
+    the sample time, as on hardware (None: the rig's ``[sim] paced``; default lock-step).
     """
+    realtime = paced_by_rig(rig, realtime)
     config = sim_config(rig)
     if config.sim_drive == "process":
         peer, host_bus = start_process_drive(rig, config, seed, paced=realtime, **options)

@@ -16,6 +16,14 @@ actuator latency and ``extra_delay_fraction`` in [0, 1) more (each step then
 holds the previous command for that fraction of T first: the latency model of
 ``labbench.theory``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
 
+``paced`` (all simulated backends: sim, sim-canopen, sim-serial, avr-sim; ``paced_by_rig``):
+run at the sample time of the wall clock, under the rig's ``[realtime]`` settings, as the
+rig's hardware would, instead of lock-step. Default false: a lock-step run's record is the
+same on any machine and under any load (the peers share this machine's CPU with the
+loop, and a paced run of them faults on a loaded machine as hardware would not); a
+paced run is for what timing shows. ``--realtime`` (CLI) or ``realtime=True`` (a
+factory's argument) asks for it too, and an explicit ``realtime`` wins over the rig.
+
 Truth that may differ from the rig file (so commissioning can be tested against a rig
 file that is wrong in a known way; ``true_geometry``): ``sign`` (1 or -1: the way the
 encoder really counts, relative to a positive force; default the rig's belief
@@ -35,7 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labbench.device import DeviceDescription, DeviceFault, DeviceStatus, Sample
+from labbench.device import (ESTOP_STATE, DeviceDescription, DeviceFault, DeviceStatus,
+                             Sample)
 from labbench.errors import UserError, nearest_hint
 from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
@@ -60,6 +69,7 @@ _OPTIONS = {
     "counts_per_rev": (None, lambda v: _num(v) and 0 < v <= 1e9, "a number in (0, 1e9] [counts]"),
     "lever_arm_m": (None, lambda v: _num(v) and 0 < v <= 10, "a number in (0, 10] [m]"),
     "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
+    "paced": (False, lambda v: isinstance(v, bool), "true or false"),
 }
 _NOISE_BLOCK = 4096
 ESTOP_LATCHED = 1  # bit of a sample's flags: the emergency stop is latched, force is off
@@ -116,9 +126,17 @@ def true_geometry(rig, settings: dict, believed_sign: int | None = None) -> Geom
     return Geometry(sign, 2 * math.pi * lever / counts, lever)
 
 
-def open_sim(rig, realtime: bool = False, seed: int | None = None, **options) -> SimDevice:
-    """Open the simulated device for ``rig`` (registered as "sim" in ``labbench.devices``)."""
-    return SimDevice(rig, realtime=realtime, seed=seed, **options)
+def paced_by_rig(rig, realtime: bool | None) -> bool:
+    """Whether a simulated backend runs paced: ``realtime`` when given, else the rig's
+    ``[sim] paced`` (module doc)."""
+    return bool(realtime) if realtime is not None else bool(rig.section("sim").get("paced"))
+
+
+def open_sim(rig, realtime: bool | None = None, seed: int | None = None,
+             **options) -> SimDevice:
+    """Open the simulated device for ``rig`` (registered as "sim" in ``labbench.devices``);
+    ``realtime`` None: the rig's ``[sim] paced``."""
+    return SimDevice(rig, realtime=paced_by_rig(rig, realtime), seed=seed, **options)
 
 
 class SimDevice:
@@ -174,6 +192,7 @@ class SimDevice:
             position_limits_m=tuple(self.rig.position_limits_m),
             details={**self.options, "metres_per_count": self.rig.metres_per_count,
                      "paced": self.realtime, "seed": self.seed},
+            simulated="simulated mass-damper handle (the exact sampled model)",
         )
 
     def enable(self, timeout: float = 1.0) -> None:
@@ -196,7 +215,7 @@ class SimDevice:
         self._u = force_n * self._force_gain
 
     def status(self) -> DeviceStatus:
-        state = ("closed" if self.closed else "E-STOP latched" if self.estopped
+        state = ("closed" if self.closed else ESTOP_STATE if self.estopped
                  else "enabled" if self.enabled else "disabled")
         return DeviceStatus(state)
 

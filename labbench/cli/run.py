@@ -197,7 +197,7 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     with ProgressBar(name) as bar:
         # the start record says where the plant came from (the window shows it)
         return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
-                            simulated=args.device.startswith("sim"), realtime=rt,
+                            realtime=rt,  # simulated or not: the description says
                             skip_commissioning=args.skip_commissioning,
                             start_extra={"plant_from": plant_from} if plant_from else None)
 
