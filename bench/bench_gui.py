@@ -96,7 +96,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60, prel
     with no new data). Raises if a frame did not paint what it changed, so the times
     always include the paint. Returns the times and the live updates' times [s]."""
     from labbench.session_content import analysis_meta
-    from labbench.gui.main_window import ve_from_meta
+    from labbench.analysis.compare import ve_from_meta
 
     n_pages = round(preload_s / 0.1)
     at = [i for i, r in enumerate(recs) if r["kind"] == PAGE][n_pages]
@@ -104,7 +104,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60, prel
     buf = StreamBuffer()
     for r in preload:
         buf(r)
-    win.buffer = buf
+    win.live.buffer = buf
     meta = analysis_meta(buf.start, buf.descriptor)
     plant, ve = Rig().nominal_plant, ve_from_meta(meta)
     # The estimates the estimate frames show: the live estimator's on the whole record,
@@ -126,7 +126,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60, prel
     estimates = iter(estimates)
     win.tabs.setCurrentIndex(0)
     app.processEvents()
-    traces, effective = win.traces, win.impedance.effective
+    traces, effective = win.live.traces, win.live.impedance.effective
     painted = PaintCounter([traces.viewport(), effective.viewport()])
 
     def frame(new_estimate: bool = False, floor: str | None = None):
@@ -141,7 +141,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60, prel
             buf(next(stream))
             traces.update_from(buf)
             if est is not None:
-                win.impedance.show_estimate(est)
+                win.live.impedance.show_estimate(est)
         app.processEvents()
         dt = time.perf_counter() - t
         if painted.counts[traces.viewport()] < 1 or (
@@ -171,14 +171,14 @@ def gui_run(app, win: MainWindow, seconds: float) -> dict:
     """The same run inside the window (live plots and estimate on); its loop timing."""
     win.last_run = None
     win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value(("duration_s",), seconds)
-    win.protocol_panel.set_value(("seed",), 3)
+    win.protocol_panel.set_value("duration_s", seconds)
+    win.protocol_panel.set_value("seed", 3)
     win.start_protocol()
     # the Qt event loop, as in the application (a processEvents() loop would hold the GIL)
     wait_until(lambda: win.last_run is not None and win.mode == "idle", seconds * 4 + 30)
     if win.last_run is None:
         raise SystemExit("GUI run did not finish")
-    return {**win.last_run.timing, "frames": win.traces.frames, "estimates": win.impedance.updates}
+    return {**win.last_run.timing, "frames": win.live.traces.frames, "estimates": win.live.impedance.updates}
 
 
 def main() -> int:
@@ -243,7 +243,7 @@ def print_frame_times(app, win) -> None:
     recs, _ = recorded_run(75.0, realtime=False)
     times, etfe_s = frame_times(app, win, recs)
     ms = {k: (statistics.median(v) * 1e3, np.percentile(v, 90) * 1e3) for k, v in times.items()}
-    print(f"frame time, one redraw tick (4 curves x {win.traces.window} points, 0.1 s of new data a "
+    print(f"frame time, one redraw tick (4 curves x {win.live.traces.window} points, 0.1 s of new data a "
           f"frame after 60 s, live ETFE update), {QtWidgets.QApplication.platformName()}, "
           f"load average {os.getloadavg()[0]:.1f}:")
     for key, floor, what in (("estimate", "floor", "with a new estimate (goal <= 8 ms)"),

@@ -37,9 +37,9 @@ def start_demo(win: MainWindow, settings: dict | None = None) -> None:
 
 def demo_finished(win: MainWindow) -> bool:
     """The run is over and the live estimate shows all of its data."""
-    est = win.impedance.last
+    est = win.live.impedance.last
     return (win.mode == "idle" and win.last_run is not None and est is not None
-            and est.n_samples == win.buffer.n and not win.estimator.busy)
+            and est.n_samples == win.live.buffer.n and not win.live.estimator.busy)
 
 
 def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None,

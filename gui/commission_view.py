@@ -17,6 +17,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.gui.verdict_view import COLOURS
 
+PROTOCOL = "commission"  # what the page runs (never the Protocol panel's choice)
 CHECK_TITLES = {"direction": "1. direction", "delay": "2. delay", "scale": "3. scale",
                 "friction": "4. friction and offset", "k_max": "5. stiffest safe spring K_max"}
 COLUMNS = ("check", "verdict", "measured", "what to do")
@@ -25,7 +26,8 @@ STEPS = (
     "commissioning checks what the rig file believes: VE off, force doublets of both signs "
     "and a short chirp within the rig's force limit and position window (about 22 s of rig time).",
     "1. Connect the device (left). Leave the handle free to move.",
-    "2. Press <b>Run commissioning</b>. The settings are the <tt>commission</tt> protocol's (left).",
+    "2. Press <b>Run commissioning</b>, with the settings under <b>settings</b> below (the "
+    "<tt>commission</tt> protocol's; the Protocol panel on the left is for the measuring runs).",
     "3. Read each check below: a failed check says what is wrong and what to set.",
     "4. <b>Write to rig file</b> puts the measured values into the rig file (comments kept; the "
     "old file is kept as FILE.bak). A wrong scale is not written: the mass cannot tell whether "
@@ -46,8 +48,19 @@ class CommissionView(QtWidgets.QWidget):
     run_requested = QtCore.Signal()
     write_requested = QtCore.Signal()
 
-    def __init__(self, parent=None):
+    def __init__(self, settings=None, parent=None):
+        """``settings``: a QSettings the page remembers its run's settings in (or None)."""
         super().__init__(parent)
+        from labbench.gui.protocol_panel import protocol_form
+
+        self.settings = settings
+        self.form = protocol_form(PROTOCOL, settings)
+        self.settings_box = QtWidgets.QGroupBox("settings (the commission protocol's)")
+        self.settings_box.setCheckable(True)  # unticked: folded away
+        self.settings_box.setChecked(False)
+        QtWidgets.QVBoxLayout(self.settings_box).addWidget(self.form)
+        self.form.setVisible(False)
+        self.settings_box.toggled.connect(self.form.setVisible)
         steps = QtWidgets.QLabel("<br>".join(STEPS))
         steps.setWordWrap(True)
         self.rig_label = QtWidgets.QLabel()
@@ -77,6 +90,7 @@ class CommissionView(QtWidgets.QWidget):
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(steps)
         lay.addWidget(self.rig_label)
+        lay.addWidget(self.settings_box)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.run_button)
         row.addWidget(self.state, 1)
@@ -92,6 +106,7 @@ class CommissionView(QtWidgets.QWidget):
         self.results: dict = {}
         self.fields: dict = {}  # what Write puts into [rig]
         self._rig = None
+        self._idle = True
         self.run_button.clicked.connect(self.run_requested)
         self.write_button.clicked.connect(self.write_requested)
 
@@ -111,14 +126,29 @@ class CommissionView(QtWidgets.QWidget):
         self.rig_label.setText(f"{escape(rig.name)}: {where}; {gate}")
         self._sync_write()
 
-    def set_running(self, running: bool, text: str = "") -> None:
-        self.run_button.setEnabled(not running)
-        if running:
-            self.write_button.setEnabled(False)
-        else:
-            self._sync_write()
-        if text:
-            self.state.setText(text)
+    def values(self) -> dict:
+        """The settings of the next commissioning run (UserError names a bad field)."""
+        return self.form.values()
+
+    def shown(self) -> dict:
+        return self.form.shown()
+
+    def save_state(self) -> None:
+        from labbench.gui.protocol_panel import remember_form
+
+        remember_form(self.settings, PROTOCOL, self.form)
+
+    def follow(self, state) -> None:
+        """The run's state (``RunState``): Run while a run may start, Write while idle."""
+        self.run_button.setEnabled(state.can_start)
+        self.run_button.setToolTip(state.why_not_start())
+        self.form.setEnabled(state.activity == "idle")
+        self._idle = state.activity == "idle"
+        self._sync_write()
+
+    def show_state(self, text: str) -> None:
+        """What the run started from this page is doing (its progress line)."""
+        self.state.setText(text)
 
     def show_result(self, results: dict, session: str, fields: dict) -> None:
         """A commissioning run's ``results`` (or {"error": ...}), recorded in ``session``;
@@ -182,7 +212,7 @@ class CommissionView(QtWidgets.QWidget):
 
     def _sync_write(self) -> None:
         can = self._rig is not None and has_file(self._rig) and bool(self.fields)
-        self.write_button.setEnabled(can and self.run_button.isEnabled())
+        self.write_button.setEnabled(can and self._idle)
         if self._rig is not None and not has_file(self._rig):
             self.write_button.setToolTip("no rig file: start with labbench gui --rig FILE")
         elif not self.fields:

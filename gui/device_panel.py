@@ -41,26 +41,30 @@ class DevicePanel(QtWidgets.QGroupBox):
         for key, title in HEALTH_FIELDS:
             form.addRow(title, self.health[key])
 
-        self.connected = False
+        self._link = "none"
         self.enabled = False
         self.connect_button.clicked.connect(self._on_connect)
         self.enable_button.clicked.connect(lambda: self.enable_requested.emit(not self.enabled))
 
     def _on_connect(self):
-        if self.connected:
-            self.disconnect_requested.emit()
-        else:
-            self.connect_button.setEnabled(False)
-            self.connect_button.setText("Connecting...")
+        if self._link == "none":
             self.connect_requested.emit(self.backend.currentText())
+        else:
+            self.disconnect_requested.emit()
+
+    def follow(self, state) -> None:
+        """The run's state (``RunState``): Connect with no device, Disconnect with one (a
+        latched one too: that clears the latch), the backend fixed while one is open,
+        Enable only on a connected device that no E-STOP latched."""
+        self._link = state.link
+        self.connect_button.setEnabled(state.link != "connecting")
+        self.connect_button.setText({"none": "Connect", "connecting": "Connecting..."}.get(
+            state.link, "Disconnect"))
+        self.backend.setEnabled(state.link == "none")
+        self.enable_button.setEnabled(state.link == "connected")
 
     def set_connected(self, description=None) -> None:
         """``description``: a DeviceDescription, or None when disconnected (or failed)."""
-        self.connected = description is not None
-        self.connect_button.setEnabled(True)
-        self.connect_button.setText("Disconnect" if self.connected else "Connect")
-        self.backend.setEnabled(not self.connected)
-        self.enable_button.setEnabled(self.connected)
         if description is None:
             self.name_label.setText("not connected")
             self.set_enabled(False)

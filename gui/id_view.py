@@ -41,20 +41,6 @@ def model_force(t, force, position, fit: dict, hold: str = "zoh"):
     return t[d.keep], f[d.keep], model
 
 
-def plant_data(data: dict, meta: dict) -> dict:
-    """The record as the plant felt it: the command force after the device's own delay
-    (``labbench.device_delay``; ``compare.plant_force``, as chirp-ID's analysis fits it)."""
-    from labbench.analysis.compare import plant_force
-    from labbench.analysis.dataio import recording_from_arrays
-    from labbench.device_delay import from_meta
-
-    latency = from_meta(meta)
-    if not latency:
-        return data
-    rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
-    return {**data, "command": plant_force(rec, None, latency)}
-
-
 # table rows: result key -> (label, unit)
 ROWS = (("m", "mass m", "kg"), ("m_ci", "m, 95 % interval", "kg"),
         ("b", "damping b", "N s/m"), ("b_ci", "b, 95 % interval", "N s/m"),

@@ -1,11 +1,17 @@
-"""The main window: device and protocol on the left, live plots / identification / sessions
-on the right, the event log below, E-STOP on top, loop health in the status bar.
+"""The main window: it wires the pages together and owns the run's one state machine.
 
-The device and its runs live in the acquisition process (``labbench.gui.acquisition``: the
-GUI thread's drawing must not hold the interpreter the 1 kHz loop needs); replays,
-estimates and exports run on worker threads (``labbench.gui.worker``, ``labbench.gui.live_estimate``).
-The window only drains their mailbox from a QTimer (<= 30 Hz) and redraws, so it
-never freezes and the acquisition loop never waits for it.
+Left: E-STOP, the Device panel and the Protocol panel; right: the pages (Live,
+Identification, Commissioning, Sessions, Sweeps), each its own module with its own
+state; below them the event log; the loop's health in the status bar. A page asks
+(its signals) and shows (its methods); only this window starts, stops and routes: the
+run's state (``labbench.gui.run_state.RunState``: the device link and the activity)
+changes here and every page follows it, so no page can change another's choice.
+
+The device and its runs live in the acquisition process (``labbench.gui.acquisition``:
+the GUI thread's drawing must not hold the interpreter the 1 kHz loop needs); replays,
+estimates and exports run on worker threads (``labbench.gui.worker``,
+``labbench.gui.live_estimate``). The window only drains their mailbox from a QTimer
+(<= 30 Hz) and redraws, so it never freezes and the acquisition loop never waits for it.
 """
 from __future__ import annotations
 
@@ -20,38 +26,32 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
-from labbench.gui.buffers import StreamBuffer
-from labbench.gui.commission_view import CommissionView
+from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.event_log import EventLog
-from labbench.gui.id_view import IdView, plant_data
-# While a run streams, the estimate is updated with the new samples only (constant cost,
-# labbench.analysis.etfe_live); once it has ended, the run's own estimator on all data.
-from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR
-from labbench.gui.live_estimate import MIN_SAMPLES, LiveEstimator, estimate
-from labbench.gui.live_plots import ImpedancePlots, TimeTraces
-from labbench.gui.protocol_panel import ProtocolPanel, settings_rows
+from labbench.gui.exports import export_in_child
+from labbench.gui.id_view import IdView
+from labbench.gui.jobs import (catalogue, load_identification, plant_data, reanalyse_session,
+                               scalar_rows, session_label, used_method)
+from labbench.gui.live_view import LiveView
+from labbench.gui.loop_status import LoopStatus
+from labbench.gui.protocol_panel import ProtocolPanel, precheck_text, settings_rows
+from labbench.gui.run_state import IDLE, RUNNING, RunState
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
-from labbench.gui.exports import export_in_child
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
-from labbench.gui.verdict_view import VerdictLabel, verdicts_of
+from labbench.gui.verdict_view import verdicts_of
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
-from labbench.records import EVENT, STOP
-from labbench.predictions import recorded_plant
-from labbench.session_catalogue import OWN_PLANT
-from labbench.safety import OVERRUN, SEQ_GAP
-from labbench.analysis.compare import ve_from_meta
 from labbench.numfmt import fmt
+from labbench.records import EVENT, STOP
+from labbench.safety import OVERRUN, SEQ_GAP
+from labbench.session_catalogue import OWN_PLANT
 from labbench.ve import Plant
 
 log = logging.getLogger(__name__)
 
 ESTOP_KEYS = ("Esc", "Space")
-# the theory overlay's plant: the session's (as its analysis and report), or identified live
-PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
-RUN_PLANT, IDENTIFIED = range(2)
 SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
 
 
@@ -78,10 +78,12 @@ def default_backend(rig) -> str:
     return "sim"
 
 
-def protocol_names() -> list[str]:
+def panel_protocols() -> list[str]:
+    """The protocols the Protocol panel offers: every registered one but those a page runs
+    itself (commissioning has its own page, settings and Write)."""
     from labbench.registry import protocol_names
 
-    return protocol_names()
+    return [name for name in protocol_names() if name != COMMISSION]
 
 
 _GC: GarbageCollector | None = None
@@ -107,46 +109,42 @@ class MainWindow(QtWidgets.QMainWindow):
         ones; ``skip_commissioning``: render springs on real hardware before the rig passed
         its direction check (``labbench.commissioning.gate``), as the CLI's option."""
         super().__init__()
+        _collect_garbage_in_gui_thread()
         self.settings = settings
         self.skip_commissioning = skip_commissioning
-        self.identified: dict | None = None  # the newest chirp-ID of this rig: the plant runs use
-        self._plant_from: dict | None = None  # ... and the one the run under way uses
-        self._id_session_shown: str | None = None  # whose identification the tab shows
-        self._protocol_shown: str | None = None  # whose settings the tree holds
-        _collect_garbage_in_gui_thread()
         self.rig = rig
         self.session_dir = Path(session_dir)
         self.realtime = realtime
+        self.identified: dict | None = None  # the newest chirp-ID of this rig: the plant runs use
+        self._plant_from: dict | None = None  # ... and the one the run under way uses
+        self._id_session_shown: str | None = None  # whose identification the page shows
         self.mailbox = Mailbox()
-        self.buffer = StreamBuffer()
-        self.estimator = LiveEstimator()
         self.acquisition = Acquisition(self.mailbox)
+        self.state = RunState(self)
         self.device = None  # DeviceDescription of the device open in the acquisition process
         self.health: dict = {}  # its latest health report
         self.estop_confirmed = False  # the acquisition process has emergency-stopped the device
         self.stop_event = threading.Event()  # stops a replay
-        self.mode = "idle"  # "running" | "replay"
         self.session_path: str | None = None
         self.last_run = None  # RunResult of the last run
-        self._drawn_version = -1
-        self._estimated_version = -1
         self._rate = (time.monotonic(), 0)
-        self._pending_start = False
-        self._estimator_error_shown = None
         self._run_started = time.monotonic()
         self._replay: threading.Thread | None = None
         self._device_used = False  # a run has used the connected device
         self._backend_connected = ""  # the backend name of the device connected
+        self._pending_protocol: str | None = None  # what a Start waiting for the device runs
         self._progress_shown = 0.0  # monotonic time of the last progress shown
         self._progress = 0.0  # the fraction of the run or replay done
         self._halted = ""  # Stop or E-STOP pressed: what the progress line says until the end
         self._run_protocol: str | None = None  # the protocol of the run under way (or last)
         self._replay_path: str | None = None
+        self._live_timing = False  # the acquisition process sends the loop's timing live
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
         remembered = settings.value("device/backend", "", type=str) if settings else ""
         self._build(backend or remembered or default_backend(rig))
+        self._wire()
         self._restore_state()
         if units is not None:
             self.units_choice.set_units(units)
@@ -157,7 +155,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.redraw_timer.start()
         self.estimate_timer = QtCore.QTimer(self)
         self.estimate_timer.setInterval(int(estimate_period_s * 1000))  # >= 2 estimates per second
-        self.estimate_timer.timeout.connect(self._estimate_tick)
+        self.estimate_timer.timeout.connect(self.live.estimate)
         self.estimate_timer.start()
         self.health_timer = QtCore.QTimer(self)
         self.health_timer.setInterval(500)
@@ -170,27 +168,27 @@ class MainWindow(QtWidgets.QMainWindow):
             sc.activated.connect(self.emergency_stop)
         QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
         self.log.add("info", f"rig: {rig.name} ({rig.source}); sessions in {self.session_dir}")
+        self._follow_state()
+        self._rig_changed()
         self._show_overlay()  # the rig's nominal until the sessions folder is read
         self.refresh_sessions()
+
+    @property
+    def mode(self) -> str:
+        """What the window is doing: "idle", "running" (a run) or "replay"."""
+        return self.state.activity
 
     # ----- layout -------------------------------------------------------------------------
     def _build(self, backend: str):
         self.estop = EStopButton(" / ".join(ESTOP_KEYS))
-        self.estop.clicked.connect(self.emergency_stop)
         self.device_panel = DevicePanel(backend)
-        self.protocol_panel = ProtocolPanel(protocol_names())
-        self.traces = TimeTraces()
-        self.impedance = ImpedancePlots()
-        self.theory_plant = QtWidgets.QComboBox()
-        self.theory_plant.addItems(PLANT_CHOICES)
-        self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
-                                     "its analysis and report use), or l2 identified on its data")
+        self.protocol_panel = ProtocolPanel(panel_protocols(), self.settings)
+        self.live = LiveView(self.rig)
         self.id_view = IdView()
-        self.commission = CommissionView()
-        self.units_choice = UnitsChoice()
-        self.result_verdicts = VerdictLabel()  # the verdicts of the result on the Live tab
+        self.commission = CommissionView(self.settings)
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
         self.sweeps = SweepView(self.session_dir)  # a re-run point's session goes with the runs
+        self.units_choice = UnitsChoice()
         self.log = EventLog()
         self.banner = QtWidgets.QLabel()
         self.banner.setWordWrap(True)
@@ -209,74 +207,62 @@ class MainWindow(QtWidgets.QMainWindow):
         left.setMinimumWidth(360)
         left.setMaximumWidth(460)
 
-        live = QtWidgets.QWidget()
-        lv = QtWidgets.QVBoxLayout(live)
-        lv.setContentsMargins(0, 0, 0, 0)
-        row = QtWidgets.QHBoxLayout()
-        row.addWidget(QtWidgets.QLabel("theory overlay plant:"))
-        row.addWidget(self.theory_plant)
-        row.addStretch(1)
-        lv.addLayout(row)
-        lv.addWidget(self.result_verdicts)
-        split = QtWidgets.QSplitter()
-        split.addWidget(self.traces)
-        split.addWidget(self.impedance)
-        split.setSizes([500, 700])
-        self.splitters = {"live": split, "identification": self.id_view.splitter}
-        lv.addWidget(split, 1)
-
         self.tabs = QtWidgets.QTabWidget()
-        self.tabs.addTab(live, "Live")
-        self.tabs.addTab(self.id_view, "Identification")
-        self.tabs.addTab(self.commission, "Commissioning")
-        self.tabs.addTab(self.sessions, "Sessions")
-        self.tabs.addTab(self.sweeps, "Sweeps")
+        for page, title in ((self.live, "Live"), (self.id_view, "Identification"),
+                            (self.commission, "Commissioning"), (self.sessions, "Sessions"),
+                            (self.sweeps, "Sweeps")):
+            self.tabs.addTab(page, title)
         self.tabs.setCornerWidget(self.units_choice, QtCore.Qt.Corner.TopRightCorner)
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         right.addWidget(self.tabs)
         right.addWidget(self.log)
         right.setSizes([820, 150])
-        self.splitters["log"] = right
 
         body = QtWidgets.QSplitter()
         body.addWidget(left)
         body.addWidget(right)
         body.setStretchFactor(1, 1)
-        self.splitters["body"] = body
+        self.splitters = {"live": self.live.splitter, "identification": self.id_view.splitter,
+                          "log": right, "body": body}
         central = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(central)
         cl.setContentsMargins(4, 4, 4, 4)
         cl.addWidget(self.banner)
         cl.addWidget(body, 1)
         self.setCentralWidget(central)
+        self.loop_status = LoopStatus(self.statusBar())
 
-        self.status = {k: QtWidgets.QLabel(f"{k}: -") for k in
-                       ("mode", "loop rate", "period p99", "overruns", "worst stall", "bus load")}
-        self._live_timing = False  # the acquisition process sends the loop's timing live
-        for lab in self.status.values():
-            self.statusBar().addPermanentWidget(lab)
-
+    def _wire(self) -> None:
+        """Each page's requests to the window's actions; the run's state to every page."""
+        self.state.changed.connect(self._follow_state)
+        self.estop.clicked.connect(self.emergency_stop)
         self.device_panel.connect_requested.connect(self.connect_device)
         self.device_panel.disconnect_requested.connect(self.disconnect_device)
         self.device_panel.enable_requested.connect(self.enable_device)
-        self.protocol_panel.protocol_changed.connect(self.select_protocol)
+        self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
+        self.protocol_panel.protocol_changed.connect(self._protocol_chosen)
         self.protocol_panel.settings_changed.connect(self.update_precheck)
         self.protocol_panel.start_requested.connect(self.start_protocol)
         self.protocol_panel.stop_requested.connect(self.stop_run)
+        self.live.estimate_shown.connect(lambda _est: self._show_overlay())
+        self.live.warning.connect(lambda text: self.log.add("warning", text))
+        self.commission.run_requested.connect(self.start_commissioning)
+        self.commission.write_requested.connect(self.write_rig_file)
         self.sessions.refresh_requested.connect(self.refresh_sessions)
         self.sessions.replay_requested.connect(self.replay)
         self.sessions.reanalyse_requested.connect(self.reanalyse)
         self.sessions.export_requested.connect(self.export)
         self.sweeps.session_requested.connect(lambda path: self.replay(path, None))
-        self.theory_plant.currentTextChanged.connect(lambda *_: self._invalidate_estimate())
         self.units_choice.changed.connect(self.set_units)
-        self.commission.run_requested.connect(self.start_commissioning)
-        self.commission.write_requested.connect(self.write_rig_file)
-        self.tabs.currentChanged.connect(self._tab_shown)
-        self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
 
-        self.select_protocol(self.protocol_panel.choice.currentText())
-        self._rig_changed()
+    def _follow_state(self) -> None:
+        """Every page shows the run's state as it is now."""
+        state = self.state
+        self.protocol_panel.follow(state)
+        self.commission.follow(state)
+        self.device_panel.follow(state)
+        self.estop.set_latched(state.latched)
+        self.loop_status.show_mode(state.name)
 
     @staticmethod
     def _estimators() -> list[str]:
@@ -301,7 +287,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.statusBar().showMessage(text, 8000)
         self.log.add("info", text)
 
-
     # ----- device ---------------------------------------------------------------------------
     @guarded
     def connect_device(self, backend: str, opener=None):
@@ -310,24 +295,23 @@ class MainWindow(QtWidgets.QMainWindow):
         self._new_action()
         from labbench.registry import open_device
 
+        self.state.connecting()
         options = {"realtime": self.realtime} if backend == "sim" else {}
         self.log.add("info", f"connecting to {backend} ...")
         self._backend_connected = backend
-        self.estop.set_latched(False)
-        self._sync_buttons()
+        self.device = None
         self.estop_confirmed = False
         self.health = {}
+        self.device_panel.set_connected(None)
         self.acquisition.connect(opener or functools.partial(open_device, backend), self.rig, options)
 
     @guarded
     def disconnect_device(self):
         self._new_action()
-        if self.mode == "running":
-            raise UserError("stop the run before disconnecting")
+        self.state.check_disconnect()
         was, self.device = self.device, None
         self.device_panel.set_connected(None)
-        self.estop.set_latched(False)  # the latch lives in the device being closed
-        self._sync_buttons()
+        self.state.disconnected()  # the latch lives in the device being closed
         if was is not None:
             self.acquisition.send("disconnect")
 
@@ -347,114 +331,53 @@ class MainWindow(QtWidgets.QMainWindow):
         the GUI or for the loop."""
         self.acquisition.emergency_stop()
         self.stop_event.set()
-        dev = self.device
-        self.estop.set_latched(dev is not None)
-        self.device_panel.set_enabled(False)
-        self.device_panel.enable_button.setEnabled(False)  # until a reconnect clears the latch
-        if self.mode != "idle":
+        had_device = self.state.link != "none"
+        if self.mode != IDLE:
             self._halt(f"E-STOP: force zeroed, {self._activity} stopped at {100 * self._progress:.0f} %")
-        self._sync_buttons()
-        self.log.add("warning", "E-STOP: force zeroed, run stopped" if dev is not None
+        self.device_panel.set_enabled(False)
+        self.state.latch()  # until a reconnect clears it
+        self.log.add("warning", "E-STOP: force zeroed, run stopped" if had_device
                      else "E-STOP: no device connected; any run or replay stopped")
 
     def _poll_health(self):
+        buf = self.live.buffer
         if self.device is not None:
             health = dict(self.health)
-            if self.mode == "running":
-                health["drops"] = str(self._count_flag(SEQ_GAP))
+            if self.mode == RUNNING:
+                health["drops"] = str(_count_flag(buf, SEQ_GAP))
             self.device_panel.set_health(health)
-        if self.mode == "running" and not self._live_timing:  # a replay: from the flags
-            self.status["overruns"].setText(f"overruns: {self._count_flag(OVERRUN)} (live)")
-        self._update_rate()
-
-    def _count_flag(self, bit: int) -> int:
-        """Samples of this run whose loop flags carry ``bit`` (labbench.safety)."""
-        flags = self.buffer.channel("flags").astype(np.int64)
-        return int(np.count_nonzero(flags & bit))
+        if self.mode == RUNNING and not self._live_timing:  # a replay: from the flags
+            self.loop_status.show_overruns(_count_flag(buf, OVERRUN))
+        now = time.monotonic()
+        t0, n0 = self._rate
+        if now - t0 >= 1.0:
+            self.loop_status.show_rate((buf.n - n0) / (now - t0) if self.mode != IDLE else None)
+            self._rate = (now, buf.n)
 
     # ----- protocol ---------------------------------------------------------------------------
-    @guarded
-    def select_protocol(self, name: str):
+    def _protocol_chosen(self, _name: str) -> None:
         self._new_action()
-        from labbench.registry import make_protocol
-
-        self._remember_protocol()
-        built = self.protocol_panel.show_protocol(name, make_protocol(name).config.as_dict())
-        self._protocol_shown = name
-        if built and self.settings is not None:  # later, the tree holds the user's edits
-            from labbench.gui.settings import load_protocol
-
-            self.protocol_panel.apply_values(load_protocol(self.settings, name))
         self.update_precheck()
 
-    def _remember_protocol(self) -> None:
-        """Keep the settings of the protocol shown (before another replaces it, and on close)."""
-        if self.settings is None or self._protocol_shown is None:
-            return
-        from labbench.gui.settings import save_protocol
-
-        try:
-            values = self.protocol_panel.values()
-        except UserError:
-            return  # a half-typed number: keep what was remembered before
-        save_protocol(self.settings, self._protocol_shown, values)
-
-    # ----- remembered state -----------------------------------------------------------------
-    def _restore_state(self) -> None:
-        s = self.settings
-        if s is None:
-            return
-        for key, restore in (("window/geometry", self.restoreGeometry),
-                             ("window/state", self.restoreState)):
-            value = s.value(key)
-            if isinstance(value, QtCore.QByteArray):
-                restore(value)
-        for name, splitter in self.splitters.items():
-            value = s.value(f"splitters/{name}")
-            if isinstance(value, QtCore.QByteArray):
-                splitter.restoreState(value)
-        self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
-        self.units_choice.set_units(parse_or_si(s.value("display/units", "", type=str)))
-        protocol = s.value("protocol/current", "", type=str)
-        if protocol and self.protocol_panel.choice.findText(protocol) >= 0:
-            self.protocol_panel.choice.setCurrentText(protocol)  # its settings follow
-
-    def save_state(self) -> None:
-        """Write what the window remembers (also done on close)."""
-        s = self.settings
-        if s is None:
-            return
-        s.setValue("window/geometry", self.saveGeometry())
-        s.setValue("window/state", self.saveState())
-        for name, splitter in self.splitters.items():
-            s.setValue(f"splitters/{name}", splitter.saveState())
-        s.setValue("window/tab", self.tabs.currentIndex())
-        s.setValue("display/units", units_text(self.units_choice.units()))
-        s.setValue("device/backend", self.device_panel.backend.currentText())
-        s.setValue("protocol/current", self.protocol_panel.choice.currentText())
-        self._remember_protocol()
-        if self.rig.source and Path(str(self.rig.source)).is_file():
-            s.setValue("rig/file", str(Path(str(self.rig.source)).resolve()))
-        s.setValue("sessions/folder", str(Path(self.sessions.directory).resolve()))
-        s.sync()
-
-    def protocol_values(self) -> tuple[dict, dict | None]:
-        """The settings of the protocol shown, and the identification they take their plant
-        from: as ``labbench run --plant-from last-id``, a protocol with plant fields left
-        empty uses the newest chirp-ID of this rig in the sessions folder (None: the rig's
-        nominal, or the plant given)."""
-        values = self.protocol_panel.values()
+    def protocol_values(self, name: str | None = None) -> tuple[dict, dict | None]:
+        """The settings of protocol ``name`` (default: the Protocol panel's choice) as shown
+        where it is set, and the identification they take their plant from: as ``labbench
+        run --plant-from last-id``, a protocol with plant fields left empty uses the newest
+        chirp-ID of this rig in the sessions folder (None: the rig's nominal, or the plant
+        given)."""
+        name = name or self.protocol_panel.name
+        values = self.commission.values() if name == COMMISSION else self.protocol_panel.values()
         found = self.identified
-        if (found is None or self.protocol_panel.choice.currentText() in OWN_PLANT
-                or "plant_m_kg" not in values
+        if (found is None or name in OWN_PLANT or "plant_m_kg" not in values
                 or values.get("plant_m_kg") is not None or values.get("plant_b") is not None):
             return values, None
         return {**values, "plant_m_kg": found["m"], "plant_b": found["b"]}, found
 
-    def make_protocol(self):
+    def make_protocol(self, name: str | None = None):
         from labbench.registry import make_protocol
 
-        return make_protocol(self.protocol_panel.choice.currentText(), **self.protocol_values()[0])
+        name = name or self.protocol_panel.name
+        return make_protocol(name, **self.protocol_values(name)[0])
 
     @property
     def simulated(self) -> bool:
@@ -463,14 +386,14 @@ class MainWindow(QtWidgets.QMainWindow):
             self.device_panel.backend.currentText()
         return backend in SIM_BACKENDS
 
-    def checked_protocol(self):
+    def checked_protocol(self, name: str | None = None):
         """The configured protocol and its pre-check report; UserError when refused: bad
         settings, an unstable VE, or a spring or damper on real hardware before the rig
         passed its direction check (``labbench.commissioning.gate``: the CLI's one line)."""
         from labbench.commissioning import gate
         from labbench.protocol import precheck
 
-        protocol = self.make_protocol()
+        protocol = self.make_protocol(name)
         plant = protocol.plant(self.rig)
         gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning)
         return protocol, precheck(protocol, plant, self.rig)
@@ -496,65 +419,58 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol_panel.set_precheck(text, bool(rep.get("stable", True)))
 
     @guarded
-    def start_protocol(self):
+    def start_protocol(self, name: str | None = None):
+        """Start protocol ``name`` (default: the Protocol panel's choice) with its settings
+        as shown where they are set, connecting the device first if needed."""
         self._new_action()
-        if self.mode != "idle":
-            raise UserError(f"a {self.mode} is in progress; stop it first")
-        if self.estop.latched:
-            raise UserError("E-STOP is latched: disconnect and reconnect the device to clear it")
-        self.update_precheck()
-        protocol, _rep = self.checked_protocol()  # refuse bad settings before touching the device
+        name = name or self.protocol_panel.name
+        self.state.check_start()
+        if name == self.protocol_panel.name:
+            self.update_precheck()
+        protocol, _rep = self.checked_protocol(name)  # refuse bad settings before touching the device
         backend = self.device_panel.backend.currentText()
         if self.device is not None and self._device_used and backend in SIM_BACKENDS:
             # A fresh simulator per run: every run starts from the same state, so seeded
             # runs repeat exactly. Connecting closes the old one.
             self.device = None
-            self.device_panel.set_connected(None)
         if self.device is None:
-            self._pending_start = True
             self.connect_device(backend)
-            self.protocol_panel.set_progress(0.0, f"connecting to {backend} ...")
-            self._sync_buttons()  # no second Start while the first waits for the device
+            if self.state.link == "connecting":
+                self._pending_protocol = name
+                self.state.wait_for_device()  # no second Start while the first waits
+                self.protocol_panel.set_progress(0.0, f"connecting to {backend} ...")
             return
-        self._reset_view()
+        self.live.reset()
+        self._rate = (time.monotonic(), 0)
         self.stop_event = threading.Event()
         self._device_used = True
-        self.mode = "running"
         self._run_protocol, self.session_path = protocol.name, None
         self._progress, self._halted = 0.0, ""
         self._live_timing = False
         self._run_started = time.monotonic()
-        self.protocol_panel.set_running(True)
+        values, self._plant_from = self.protocol_values(name)
+        self.state.run()
         self.protocol_panel.set_progress(0.0, "starting ...")
-        values, self._plant_from = self.protocol_values()
         if self._plant_from:
             found = self._plant_from
             self.log.add("info", f"using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
                                  f"identified in {found['session']}")
         self.log.add("info", f"start {protocol.name} with these settings:",
                      rows=settings_rows(protocol.config.as_dict()))
-        extra = {"gui_settings": self.protocol_panel.state()}
+        shown = self.commission.shown() if name == COMMISSION else self.protocol_panel.state()
+        extra = {"gui_settings": shown}
         if self._plant_from:
             extra["plant_from"] = self._plant_from  # as labbench run records it
-        if protocol.name == "commission":
-            self.commission.set_running(True, "commissioning ...")
-        self.acquisition.run(self.protocol_panel.choice.currentText(), values, self.rig,
-                             self.session_dir, start_extra=extra, simulated=self.simulated,
-                             skip_commissioning=self.skip_commissioning)
-
-    def _tab_shown(self, _index: int) -> None:
-        """The commissioning page runs the ``commission`` protocol with the settings on the
-        left: shown with it, so a person reads those before pressing Run (the panel showed
-        whatever protocol came last), unless a run holds the panel."""
-        if self.tabs.currentWidget() is self.commission and self.mode == "idle":
-            self.protocol_panel.choice.setCurrentText("commission")
+        if name == COMMISSION:
+            self.commission.show_state("commissioning ...")
+        self.acquisition.run(name, values, self.rig, self.session_dir, start_extra=extra,
+                             simulated=self.simulated, skip_commissioning=self.skip_commissioning)
 
     @guarded
     def start_commissioning(self):
-        """The commissioning page's Run: the ``commission`` protocol, as its settings stand
-        in the protocol panel, through the same Start as any run."""
-        self.protocol_panel.choice.setCurrentText("commission")
-        self.start_protocol()
+        """The Commissioning page's Run: the ``commission`` protocol with the page's own
+        settings, through the same Start as any run (the Protocol panel's choice stays)."""
+        self.start_protocol(COMMISSION)
 
     @guarded
     def write_rig_file(self):
@@ -565,14 +481,14 @@ class MainWindow(QtWidgets.QMainWindow):
         from labbench.rig import load_rig
 
         self._new_action()
-        if self.mode != "idle":
-            raise UserError(f"a {self.mode} is in progress; write the rig file after it")
+        if self.mode != IDLE:
+            raise UserError(f"a {self._activity} is in progress; write the rig file after it")
         fields = dict(self.commission.fields)
         if not fields:
             raise UserError("nothing to write: run commissioning first")
         path = str(self.rig.source)
         backup = write_rig(path, fields)
-        self.rig = load_rig(path)
+        self.rig = self.live.rig = load_rig(path)
         text = (f"{path}: wrote {', '.join(fields)} (old file {backup})" if backup
                 else f"{path}: nothing to change")
         self.commission.show_written(text)
@@ -589,76 +505,79 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def set_units(self, units) -> None:
         """Display units (``labbench.units.DisplayUnits``) of every plot and label at once."""
-        for view in (self.traces, self.impedance, self.id_view):
-            view.set_units(units)
+        self.live.set_units(units)
+        self.id_view.set_units(units)
 
     @guarded
     def stop_run(self):
-        if self.mode != "idle":
+        if self.mode != IDLE:
             self.stop_event.set()
             self.acquisition.request_stop()
             self.log.add("info", f"stop requested ({self.mode})")
             self._halt(f"stopping the {self._activity} at {100 * self._progress:.0f} % ...")
 
-    def _reset_view(self):
-        self.buffer = StreamBuffer()
-        self.estimator.reset()
-        self.traces.clear_data()
-        self.impedance.clear_data()
-        self.result_verdicts.show_verdicts([])
-        self._drawn_version = self._estimated_version = -1
-        self._estimator_error_shown = None
-        self._rate = (time.monotonic(), 0)
+    # ----- remembered state -----------------------------------------------------------------
+    def _restore_state(self) -> None:
+        s = self.settings
+        if s is None:
+            return
+        for key, restore in (("window/geometry", self.restoreGeometry),
+                             ("window/state", self.restoreState)):
+            value = s.value(key)
+            if isinstance(value, QtCore.QByteArray):
+                restore(value)
+        for name, splitter in self.splitters.items():
+            value = s.value(f"splitters/{name}")
+            if isinstance(value, QtCore.QByteArray):
+                splitter.restoreState(value)
+        self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
+        self.units_choice.set_units(parse_or_si(s.value("display/units", "", type=str)))
+
+    def save_state(self) -> None:
+        """Write what the window remembers (also done on close)."""
+        s = self.settings
+        if s is None:
+            return
+        s.setValue("window/geometry", self.saveGeometry())
+        s.setValue("window/state", self.saveState())
+        for name, splitter in self.splitters.items():
+            s.setValue(f"splitters/{name}", splitter.saveState())
+        s.setValue("window/tab", self.tabs.currentIndex())
+        s.setValue("display/units", units_text(self.units_choice.units()))
+        s.setValue("device/backend", self.device_panel.backend.currentText())
+        self.protocol_panel.save_state()
+        self.commission.save_state()
+        if self.rig.source and Path(str(self.rig.source)).is_file():
+            s.setValue("rig/file", str(Path(str(self.rig.source)).resolve()))
+        s.setValue("sessions/folder", str(Path(self.sessions.directory).resolve()))
+        s.sync()
 
     # ----- the redraw timer -------------------------------------------------------------------------
     def _tick(self):
         try:
             for kind, payload in self.mailbox.drain():
                 self._handle(kind, payload)
-            if self.buffer.version != self._drawn_version:
-                self.traces.update_from(self.buffer)
-                self._drawn_version = self.buffer.version
-            est = self.estimator.poll()
-            if est is not None:
-                self.impedance.show_estimate(est)
-                self._show_overlay()
-            err = self.estimator.last_error
-            if err and err != self._estimator_error_shown:
-                self._estimator_error_shown = err
-                self.log.add("warning", err)
+            self.live.redraw()
         except Exception as exc:  # noqa: BLE001 - a bad record must not stop the display
             log.exception("redraw failed")
             self.show_error(f"display error: {describe_error(exc)}")
 
     def _handle(self, kind: str, payload):
         if kind == "record":
-            self.buffer(payload)
+            self.live.feed(payload)
             if payload.get("kind") == EVENT:
                 self.log.add("event", f"{payload.get('name')}: {payload.get('reason')}")
-                if payload.get("name") == "segment" and self.mode == "running":
+                if payload.get("name") == "segment" and self.mode == RUNNING:
                     self.device_panel.set_enabled(True)  # the loop enables the device for it
             elif payload.get("kind") == STOP:
-                if self.mode == "running":
+                if self.mode == RUNNING:
                     self.device_panel.set_enabled(False)  # and disables it at the run's end
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
-            frac, text = payload
-            if self.mode != "running" or self._halted:
-                return  # queued before the run ended or was stopped: the end state stays
-            self._progress = frac
-            now = time.monotonic()
-            if now - self._progress_shown < 0.5 and frac < 1.0:
-                return  # 2 Hz is plenty, and each update re-lays out the left panel
-            self._progress_shown = now
-            elapsed = now - self._run_started
-            left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
-            line = f"{text}: {100 * frac:.0f} %  {left}".strip()
-            self.protocol_panel.set_progress(frac, line)
-            if self._run_protocol == "commission":
-                self.commission.set_running(True, line)
+            self._show_progress(*payload)
         elif kind == "timing":
             self._live_timing = True
-            self._show_timing(payload, live=True)
+            self.loop_status.show_timing(payload, live=True)
         elif kind == "warning":
             self.log.add("warning", payload)
         elif kind == "session":
@@ -679,18 +598,31 @@ class MainWindow(QtWidgets.QMainWindow):
         elif kind == "acquisition died":
             self.device = None
             self.device_panel.set_connected(None)
-            self._pending_start = False
-            if self.mode == "running":
+            if self.mode == RUNNING:
                 self._run_finished("run ended: the acquisition process died")
-            self._sync_buttons()
+            self.state.disconnected()
             self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
                             "reconnect the device")
+
+    def _show_progress(self, frac: float, text: str) -> None:
+        if self.mode != RUNNING or self._halted:
+            return  # queued before the run ended or was stopped: the end state stays
+        self._progress = frac
+        now = time.monotonic()
+        if now - self._progress_shown < 0.5 and frac < 1.0:
+            return  # 2 Hz is plenty, and each update re-lays out the left panel
+        self._progress_shown = now
+        elapsed = now - self._run_started
+        left = f"{elapsed * (1 - frac) / frac:.0f} s left" if 0.02 < frac < 1 else ""
+        line = f"{text}: {100 * frac:.0f} %  {left}".strip()
+        self.protocol_panel.set_progress(frac, line)
+        if self._run_protocol == COMMISSION:
+            self.commission.show_state(line)
 
     def _on_error(self, tag: str, message: str):
         if tag == "connect":
             self.device_panel.set_connected(None)
-            self._pending_start = False
-            self._sync_buttons()
+            self.state.disconnected()
         if tag in ("run", "replay"):
             self._run_finished(f"{tag} failed: {message}")
         self.show_error(f"{tag}: {message}")
@@ -699,11 +631,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device = desc
         self._device_used = False
         self.device_panel.set_connected(desc)
+        if self.state.link == "connecting":  # not latched by an E-STOP meanwhile
+            self.state.connected()
         self._rig_changed()
         self.log.add("info", f"connected: {desc.name} ({desc.kind})")
-        if self._pending_start:
-            self._pending_start = False
-            self.start_protocol()
+        if self.state.take_pending_start():
+            self.start_protocol(self._pending_protocol)
 
     def _on_disconnect_done(self, _):
         self.log.add("info", "disconnected")
@@ -723,7 +656,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log.add(level, f"run ended: {status} {reason}".strip())
         if status not in ("success", "completed", "aborted"):
             self.show_error(f"run {status}: {reason}")
-        self._show_timing(getattr(result, "timing", {}) or {})
+        self.loop_status.show_timing(getattr(result, "timing", {}) or {})
         self._show_results(getattr(result, "results", {}) or {}, self.session_path, self._run_protocol,
                            ran_here=status == "success")
         done = f"{100 * self._progress:.0f} %" if status != "success" else "100 %"
@@ -736,50 +669,124 @@ class MainWindow(QtWidgets.QMainWindow):
         from labbench.records import protocol_name
 
         self.log.add("info", f"replay {status}")
-        results = (self.buffer.stop or {}).get("results")
-        if isinstance(results, dict) and self.buffer.start:
-            self._show_results(results, self._replay_path, protocol_name(self.buffer.start),
-                               replayed=True)
+        buf = self.live.buffer
+        results = (buf.stop or {}).get("results")
+        if isinstance(results, dict) and buf.start:
+            self._show_results(results, self._replay_path, protocol_name(buf.start), replayed=True)
         self._run_finished(f"replay {status}")
 
-    def _run_finished(self, state: str):
-        """The run or replay is over; ``state``: what the progress line says of its end."""
-        self.mode = "idle"
+    def _run_finished(self, line: str):
+        """The run or replay is over; ``line``: what the progress line says of its end."""
         self._halted = ""
-        self.protocol_panel.set_running(False)
-        self.protocol_panel.set_progress(self._progress, state)
-        self.commission.set_running(False, state if self._run_protocol == "commission" else "")
-        self._sync_buttons()
-        self._invalidate_estimate()  # the final estimate, with the run's own estimator
+        self.protocol_panel.set_progress(self._progress, line)
+        if self._run_protocol == COMMISSION and self.mode == RUNNING:
+            self.commission.show_state(line)
+        self.state.ended()
+        self.live.invalidate_estimate()  # the final estimate, with the run's own estimator
 
     @property
     def _activity(self) -> str:
-        return "run" if self.mode == "running" else self.mode
+        return "run" if self.mode == RUNNING else self.mode
 
     def _halt(self, text: str) -> None:
         """Stop or E-STOP pressed: the progress line says so at once, and keeps saying it
         (progress still queued from the run is not shown); Stop cannot be pressed twice."""
         self._halted = text
         self.protocol_panel.set_progress(self._progress, text)
-        self.protocol_panel.stop_button.setEnabled(False)
+        self.state.stop_requested()
 
-    def _sync_buttons(self) -> None:
-        """Start only when idle and no E-STOP is latched (its tooltip says why not)."""
-        idle = self.mode == "idle" and not self._pending_start
-        why = "E-STOP is latched: disconnect and reconnect the device to clear it" \
-            if self.estop.latched else ""
-        for start in (self.protocol_panel.start_button, self.commission.run_button):
-            start.setEnabled(idle and not self.estop.latched)
-            start.setToolTip(why)
+    # ----- results -------------------------------------------------------------------------
+    def _show_results(self, results: dict, session: str | None, protocol: str | None,
+                      ran_here: bool = False, replayed: bool = False):
+        """A run's (or a replayed session's) results wherever the window shows a result:
+        their verdicts on the Live page, an identification and a closed-loop fit on the
+        Identification page, a commissioning on its page (``ran_here``: a run of this window
+        on this rig, whose measured values may be written into the rig file)."""
+        if results.get("error"):
+            self.show_error(str(results["error"]))
+        rows = scalar_rows(results)
+        if rows:
+            self.log.add("info", "results:", rows=rows)
+        name = Path(session).name if session else "this run (not recorded)"
+        self.live.verdicts.show_verdicts(verdicts_of(results), prefix=f"<b>{protocol}, {name}</b>")
+        ident = results.get("identification")
+        buf = self.live.buffer
+        if isinstance(ident, dict) and ident:
+            from labbench.session_content import analysis_meta
+
+            meta = analysis_meta(buf.start or {}, buf.descriptor or {})
+            self.id_view.show_results(ident, plant_data(buf.snapshot(), meta),
+                                      source=f"chirp-ID {name}", used=used_method(ident))
+            self._id_session_shown = session
+            self.tabs.setCurrentWidget(self.id_view)
+        if ran_here and protocol == "chirp-id" and session:
+            self._identified_here(results, session)
+        fit = results.get("loop_fit")
+        if isinstance(fit, dict) and fit:
+            self.id_view.show_loop_fit(fit, f"the run's own analysis of {name}, as its report: the "
+                                       "run renders its VE, so the VE-path delay tv is its td; the "
+                                       "device latency td is fitted")
+        if protocol == COMMISSION:
+            from datetime import datetime, timezone
+
+            from labbench.commissioning import changes_to_write
+
+            fields = {}
+            if ran_here and session and "error" not in results:
+                fields = changes_to_write(results, session,
+                                          datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+            self.commission.show_result(results, session or "", fields)
+            if replayed:
+                self.commission.show_state(f"replayed: {name} (a run of this window, on this "
+                                           "rig, writes the rig file; a replay does not)")
+            self.tabs.setCurrentWidget(self.commission)
+
+    # ----- sessions -------------------------------------------------------------------------
+    @guarded
+    def refresh_sessions(self):
+        run_in_background(self.mailbox, "sessions", catalogue, self.sessions.directory,
+                          self.session_dir, self.rig.name)
+
+    @guarded
+    def replay(self, path: str, speed):
+        self._new_action()
+        from labbench.session_format import looks_like_session
+
+        if not looks_like_session(path):
+            raise UserError(f"not a labbench session file: {path}")
+        self.state.replay()
+        self.live.reset()
+        self._rate = (time.monotonic(), 0)
+        self.stop_event = threading.Event()
+        self._replay_path, self._run_protocol = path, None
+        self._progress, self._halted = 0.0, ""
+        self.tabs.setCurrentWidget(self.live)
+        self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
+        self._replay = start_replay(self.mailbox, path, speed, self.stop_event)
+
+    @guarded
+    def reanalyse(self, path: str, estimator: str):
+        self._new_action()
+        self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
+        fallback = self.rig.nominal_plant if self.live.uses_run_plant() else None
+        run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
+                          None if estimator == "default" else estimator, fallback)
+
+    @guarded
+    def export(self, path: str, fmt: str):
+        self._new_action()
+        out_dir = self.session_dir / "exports"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.log.add("info", f"exporting {Path(path).name} as {fmt} ...")
+        run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
 
     def _on_reanalyse_done(self, value):
         est, id_results, data, again = value
         name = Path(again["path"]).name
-        if self.mode == "idle":  # what the Live tab showed was another record's
-            self._reset_view()
+        if self.mode == IDLE:  # what the Live page showed was another record's
+            self.live.reset()
         if est is not None:
-            self.impedance.show_estimate(est)
-            self._show_overlay()
+            self.live.show_estimate(est)
         if id_results:
             self.id_view.show_results(id_results, data, source=f"re-analysis of {name}: l2 and l1 "
                                       "on the command force")
@@ -789,8 +796,8 @@ class MainWindow(QtWidgets.QMainWindow):
                                        f"{name}: the delay model chosen by cross-validation")
         verdicts = [(w, v) for w, v in again.get("verdicts", [])]
         verdicts += [(f"identification ({m})", r.get("verdict")) for m, r in (id_results or {}).items()]
-        self.result_verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>")
-        self.tabs.setCurrentIndex(0)
+        self.live.verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>")
+        self.tabs.setCurrentWidget(self.live)
         self.log.add("info", "re-analysis done")
 
     def _on_export_done(self, paths):
@@ -801,6 +808,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.set_sessions(summaries)
         self._set_identified(found)
 
+    # ----- the plant the next runs take ---------------------------------------------------------
     def _identified_here(self, results: dict, session: str) -> None:
         """A chirp-ID run of this window: the next run takes its plant at once (the sessions
         folder, read in the background, names the same one as ``last_identified``)."""
@@ -812,7 +820,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _set_identified(self, found: dict | None) -> None:
         """The newest chirp-ID of this rig (the plant the next runs' theory takes): the
-        pre-check follows it, the Identification tab shows it."""
+        pre-check follows it, the Identification page shows it."""
         changed = (found or {}).get("session") != (self.identified or {}).get("session")
         self.identified = found
         if changed:
@@ -823,8 +831,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_overlay()
 
     def _show_overlay(self) -> None:
-        """The Identification tab says which plant the theory overlay uses, and whence."""
-        est = self.impedance.last
+        """The Identification page says which plant the theory overlay uses, and whence."""
+        est = self.live.impedance.last
         if est is not None and est.theory:
             text = f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m, {est.plant_source}"
         elif est is not None and est.plant is None:
@@ -849,156 +857,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if path != self._id_session_shown or not ident:
             return  # a newer one was asked for meanwhile
         self.id_view.show_results(ident, data, source=f"chirp-ID {Path(path).name}: the "
-                                  "identification the theory overlay uses", used=_used_method(ident))
-
-    # ----- live estimate -------------------------------------------------------------------------
-    def _invalidate_estimate(self):
-        self._estimated_version = -1
-        self._estimate_tick()
-
-    def _estimate_tick(self):
-        buf = self.buffer
-        if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
-            return
-        ve, plant, meta, source = self._estimate_inputs(buf)
-        data = buf.snapshot(("t", "excitation", "position", "command"))
-        if self.estimator.submit(data, meta, ve, plant, plant_source=source, **self._etfe_options(buf)):
-            self._estimated_version = buf.version
-
-    def _etfe_options(self, buf) -> dict:
-        """While data stream in: the fast LIVE_ESTIMATOR; once the stream has ended: the
-        run's own estimator (its default when none is set), as the analysis uses."""
-        proto = buf.start.get("protocol") if isinstance(buf.start.get("protocol"), dict) else {}
-        opts = {}
-        if isinstance(proto.get("window"), int):
-            opts["window"] = proto["window"]
-        if buf.stop is None:
-            opts["estimator"] = LIVE_ESTIMATOR
-        elif proto.get("estimator"):
-            opts["estimator"] = proto["estimator"]
-        return opts
-
-    def _estimate_inputs(self, buf):
-        """(VE, plant or None to identify it, analysis metadata, where the plant came from)."""
-        from labbench.session_content import analysis_meta
-
-        meta = analysis_meta(buf.start, buf.descriptor or {})
-        ve = ve_from_meta(meta)
-        plant, source = None, "identified (l2)"
-        if self.theory_plant.currentIndex() == RUN_PLANT:
-            plant = recorded_plant(buf.start, (buf.stop or {}).get("results"))
-            source = plant_source(buf.start) if plant else "the window's rig nominal model"
-            plant = plant or self.rig.nominal_plant
-        return ve, plant, meta, source
-
-    # ----- results -------------------------------------------------------------------------
-    def _show_timing(self, timing: dict, live: bool = False):
-        def ms(key):
-            v = timing.get(key)
-            return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
-
-        tag = " (live)" if live else ""
-        if not live:
-            self.status["period p99"].setText(f"period p99: {ms('p99_s')}")
-        self.status["overruns"].setText(f"overruns: {timing.get('overruns', '-')}{tag}")
-        when = timing.get("worst_t_s", (timing.get("worst") or {}).get("t_s"))
-        at = f" at {when:.1f} s" if isinstance(when, (int, float)) else ""
-        self.status["worst stall"].setText(f"worst stall: {ms('max_s')}{at}{tag}")
-        if "bus_load" in timing:
-            self.status["bus load"].setText(f"bus load: {100 * timing['bus_load']:.0f} %")
-
-    def _update_rate(self):
-        now = time.monotonic()
-        t0, n0 = self._rate
-        if now - t0 >= 1.0:
-            rate = (self.buffer.n - n0) / (now - t0)
-            text = f"{rate:.0f} Hz" if self.mode != "idle" else "-"
-            self.status["loop rate"].setText(f"loop rate: {text}")
-            self._rate = (now, self.buffer.n)
-        self.status["mode"].setText(f"mode: {self.mode}")
-
-    def _show_results(self, results: dict, session: str | None, protocol: str | None,
-                      ran_here: bool = False, replayed: bool = False):
-        """A run's (or a replayed session's) results wherever the window shows a result:
-        their verdicts on the Live tab, an identification and a closed-loop fit on the
-        Identification tab, a commissioning on its page (``ran_here``: a run of this window
-        on this rig, whose measured values may be written into the rig file)."""
-        if results.get("error"):
-            self.show_error(str(results["error"]))
-        rows = scalar_rows(results)
-        if rows:
-            self.log.add("info", "results:", rows=rows)
-        name = Path(session).name if session else "this run (not recorded)"
-        self.result_verdicts.show_verdicts(verdicts_of(results), prefix=f"<b>{protocol}, {name}</b>")
-        ident = results.get("identification")
-        if isinstance(ident, dict) and ident:
-            from labbench.session_content import analysis_meta
-
-            meta = analysis_meta(self.buffer.start or {}, self.buffer.descriptor or {})
-            self.id_view.show_results(ident, plant_data(self.buffer.snapshot(), meta),
-                                      source=f"chirp-ID {name}", used=_used_method(ident))
-            self._id_session_shown = session
-            self.tabs.setCurrentWidget(self.id_view)
-        if ran_here and protocol == "chirp-id" and session:
-            self._identified_here(results, session)
-        fit = results.get("loop_fit")
-        if isinstance(fit, dict) and fit:
-            self.id_view.show_loop_fit(fit, f"the run's own analysis of {name}, as its report: the "
-                                       "run renders its VE, so the VE-path delay tv is its td; the "
-                                       "device latency td is fitted")
-        if protocol == "commission":
-            from datetime import datetime, timezone
-
-            from labbench.commissioning import changes_to_write
-
-            fields = {}
-            if ran_here and session and "error" not in results:
-                fields = changes_to_write(results, session,
-                                          datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
-            self.commission.show_result(results, session or "", fields)
-            if replayed:
-                self.commission.state.setText(f"replayed: {name} (a run of this window, on this "
-                                              "rig, writes the rig file; a replay does not)")
-            self.tabs.setCurrentWidget(self.commission)
-
-    # ----- sessions -------------------------------------------------------------------------
-    @guarded
-    def refresh_sessions(self):
-        run_in_background(self.mailbox, "sessions", catalogue, self.sessions.directory,
-                          self.session_dir, self.rig.name)
-
-    @guarded
-    def replay(self, path: str, speed):
-        self._new_action()
-        if self.mode != "idle":
-            raise UserError(f"a {self.mode} is in progress; stop it first")
-        from labbench.session_format import looks_like_session
-
-        if not looks_like_session(path):
-            raise UserError(f"not a labbench session file: {path}")
-        self._reset_view()
-        self.stop_event = threading.Event()
-        self.mode = "replay"
-        self._replay_path, self._run_protocol = path, None
-        self.tabs.setCurrentIndex(0)
-        self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
-        self._replay = start_replay(self.mailbox, path, speed, self.stop_event)
-
-    @guarded
-    def reanalyse(self, path: str, estimator: str):
-        self._new_action()
-        self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
-        fallback = self.rig.nominal_plant if self.theory_plant.currentIndex() == RUN_PLANT else None
-        run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
-                          None if estimator == "default" else estimator, fallback)
-
-    @guarded
-    def export(self, path: str, fmt: str):
-        self._new_action()
-        out_dir = self.session_dir / "exports"
-        out_dir.mkdir(parents=True, exist_ok=True)
-        self.log.add("info", f"exporting {Path(path).name} as {fmt} ...")
-        run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
+                                  "identification the theory overlay uses", used=used_method(ident))
 
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
@@ -1011,127 +870,11 @@ class MainWindow(QtWidgets.QMainWindow):
         # the runner zeroes the force and disables; then the device is closed and the child ends
         self.acquisition.shutdown(timeout=5.0)
         self.device = None
-        self.estimator.shutdown()
+        self.live.shutdown()
         super().closeEvent(event)
 
 
-def scalar_rows(results: dict, prefix: str = "", depth: int = 2) -> list[tuple[str, str]]:
-    """(key, value) of the numbers and words in a results dict, nested keys dotted (arrays,
-    lists, verdicts and the big tables left out: the window shows those itself)."""
-    rows = []
-    for k, v in results.items():
-        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory", "verdict"):
-            rows += scalar_rows(v, f"{prefix}{k}.", depth - 1)
-        elif isinstance(v, (bool, int, float, str)) or v is None:
-            rows.append((f"{prefix}{k}", fmt(v)))
-    return rows
+def _count_flag(buf, bit: int) -> int:
+    """Samples of the stream whose loop flags carry ``bit`` (labbench.safety)."""
+    return int(np.count_nonzero(buf.channel("flags").astype(np.int64) & bit))
 
-
-def precheck_text(rep: dict) -> str:
-    """One line per checked VE: stable or not, spectral radius, K_max and margin."""
-    lines = []
-    for c in rep.get("checks", []):
-        ve = c["ve"]
-        km = c.get("k_max")
-        margin = (f", margin K_max/K = {km / ve['K']:.1f}x" if km and ve.get("K") else "")
-        # K_max depends on the VE's damping: say which (commissioning's is for B = 0)
-        at_b = f" at B = {fmt(ve['B'])} N s/m" if ve.get("B") is not None else ""
-        bound = f"K_max = {km:.4g} N/m{at_b}" if km else "no K bound"
-        lines.append(f"{'stable' if c['stable'] else 'UNSTABLE'} {ve['kind']}: spectral radius "
-                     f"{c['spectral_radius']:.4f}; {bound}{margin}")
-    return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
-
-
-def plant_source(start: dict) -> str:
-    """Where the plant of a run's theory came from, in words (from its start record)."""
-    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
-    if isinstance(found.get("session"), str):
-        return f"identified in {session_label(found['session'])}"
-    config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
-    if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
-        return "given in the run's settings"
-    return "the rig's nominal model"
-
-
-def session_label(path) -> str:
-    """A session's file name less its uid: ``20261203-063850_chirp-id`` (when and what)."""
-    return Path(path).stem.rsplit("_", 1)[0]
-
-
-def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None):
-    """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker.
-    ``run_plant`` given: the theory uses the session's own plant (``recorded_plant``), this
-    one when it names none; None: the plant identified on the session's data."""
-    from labbench.session_content import load_analysis_arrays, load_session
-
-    arrays = load_analysis_arrays(path)
-    start, _desc, ch, _ev, stop, _problem = load_session(path)
-    meta = arrays["meta"]
-    data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
-            "command": ch["command"]}
-    plant, source = None, "identified (l2)"
-    if run_plant is not None:
-        plant = recorded_plant(start, (stop or {}).get("results"))
-        source = plant_source(start) if plant else "the window's rig nominal model"
-        plant = plant or run_plant
-    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source)
-    return est, identify_all(data, meta), plant_data(data, meta), analyze_etfe(path, estimator, meta)
-
-
-def analyze_etfe(path: str, estimator: str | None, meta: dict) -> dict:
-    """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
-    (``Session.etfe(fit=True)``): the ETFE's verdict and the closed-loop fit (or why none);
-    for a session without a VE only its path."""
-    from labbench.session_api import load
-
-    out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "verdicts": []}
-    if ve_from_meta(meta) is None:
-        return out
-    try:
-        fr = load(path).etfe(estimator=estimator, fit=True)
-    except UserError as exc:
-        out["fit"] = {"error": str(exc)}
-        return out
-    d = fr.as_dict()
-    out["fit"] = d["fit"]
-    out["verdicts"] = [("ETFE", d.get("verdict")), ("closed-loop fit", d["fit"].get("verdict"))]
-    return out
-
-
-def catalogue(folder, session_dir, rig_name: str):
-    """(the sessions in ``folder``, the newest chirp-ID of ``rig_name`` in ``session_dir``):
-    the Sessions tab's rows and the plant the next runs take (``last_identified``)."""
-    from labbench.session_catalogue import last_identified, list_sessions
-
-    summaries = list_sessions(folder) if Path(folder).is_dir() else []
-    return summaries, last_identified(session_dir, rig_name, on_skip=lambda *_: None)
-
-
-def load_identification(path: str):
-    """(the identification a chirp-ID session recorded, its data as the plant felt them,
-    ``path``)."""
-    from labbench.session_content import analysis_meta, load_session
-
-    start, desc, ch, _ev, stop, _problem = load_session(path)
-    ident = ((stop or {}).get("results") or {}).get("identification")
-    data = {k: ch[k] for k in ("t", "command", "position") if k in ch}
-    return (ident if isinstance(ident, dict) else {}), plant_data(data, analysis_meta(start, desc)), path
-
-
-def _used_method(ident: dict) -> str | None:
-    """The fit whose m, b a chirp-ID gives as its result (``protocols.chirp_id``: l2 first)."""
-    return "l2" if "l2" in ident else next(iter(ident), None)
-
-
-def identify_all(data: dict, meta: dict) -> dict:
-    """l2 and l1 fits of the net force on the device (the ``command`` channel, after the
-    device's own delay: as chirp-ID's analysis fits it)."""
-    from labbench.analysis.dataio import recording_from_arrays
-    from labbench.analysis.identify import identify
-
-    felt = plant_data(data, meta)
-    rec = recording_from_arrays(felt["t"], felt["command"], felt["position"], meta)
-    out = {}
-    for method in ("l2", "l1"):
-        out[method] = identify(rec, model="auto", method=method).as_dict()
-    return out

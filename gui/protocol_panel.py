@@ -13,6 +13,7 @@ from html import escape
 from PySide6 import QtCore, QtWidgets
 
 from labbench.errors import UserError
+from labbench.numfmt import fmt
 from labbench.ve import VE_KINDS
 
 # name or suffix -> (unit, lower limit); the protocol itself enforces the real bounds
@@ -213,8 +214,6 @@ class SettingsForm(QtWidgets.QWidget):
 def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
     """(label with unit, value) per setting of a (nested) config, for a table a person reads
     (the run's start in the event log); a None is the protocol's default."""
-    from labbench.numfmt import fmt
-
     rows = []
     for name, value in config.items():
         unit, _low, label = _unit(name)
@@ -226,14 +225,61 @@ def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
     return rows
 
 
+def precheck_text(rep: dict) -> str:
+    """One line per checked VE: stable or not, spectral radius, K_max and margin."""
+    lines = []
+    for c in rep.get("checks", []):
+        ve = c["ve"]
+        km = c.get("k_max")
+        margin = (f", margin K_max/K = {km / ve['K']:.1f}x" if km and ve.get("K") else "")
+        # K_max depends on the VE's damping: say which (commissioning's is for B = 0)
+        at_b = f" at B = {fmt(ve['B'])} N s/m" if ve.get("B") is not None else ""
+        bound = f"K_max = {km:.4g} N/m{at_b}" if km else "no K bound"
+        lines.append(f"{'stable' if c['stable'] else 'UNSTABLE'} {ve['kind']}: spectral radius "
+                     f"{c['spectral_radius']:.4f}; {bound}{margin}")
+    return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
+
+
+
+def protocol_form(name: str, settings=None) -> SettingsForm:
+    """The settings form of protocol ``name``: its defaults (``config.as_dict()``), then
+    what ``settings`` (a QSettings, or None) remembers of it."""
+    from labbench.registry import make_protocol
+
+    form = SettingsForm(make_protocol(name).config.as_dict())
+    if settings is not None:
+        from labbench.gui.settings import load_protocol
+
+        form.apply(load_protocol(settings, name))
+    return form
+
+
+def remember_form(settings, name: str, form: SettingsForm) -> None:
+    """Keep what ``form`` shows as protocol ``name``'s settings (a half-typed number keeps
+    what was remembered before)."""
+    if settings is None:
+        return
+    from labbench.gui.settings import save_protocol
+
+    try:
+        save_protocol(settings, name, form.values())
+    except UserError:
+        pass
+
+
 class ProtocolPanel(QtWidgets.QGroupBox):
+    """The protocol the next Start runs, as the person chose it (nothing else changes the
+    choice), its settings, the pre-check, Start / Stop and the run's progress. It owns its
+    forms and what it remembers of them (``settings``: a QSettings, or None)."""
+
     start_requested = QtCore.Signal()
     stop_requested = QtCore.Signal()
     settings_changed = QtCore.Signal()
     protocol_changed = QtCore.Signal(str)
 
-    def __init__(self, names, parent=None):
+    def __init__(self, names, settings=None, parent=None):
         super().__init__("Protocol", parent)
+        self.settings = settings
         self.choice = QtWidgets.QComboBox()
         self.choice.addItems(list(names))
         # one form per protocol, built once and kept: switching back shows the user's edits.
@@ -267,16 +313,24 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         lay.addWidget(self.progress)
         lay.addWidget(self.time_left)
 
-        self.choice.currentTextChanged.connect(self.protocol_changed)
+        self.choice.currentTextChanged.connect(self._show)
         self.start_button.clicked.connect(self.start_requested)
         self.stop_button.clicked.connect(self.stop_requested)
+        remembered = settings.value("protocol/current", "", type=str) if settings else ""
+        if remembered and self.choice.findText(remembered) >= 0:
+            self.choice.setCurrentText(remembered)
+        self._show(self.choice.currentText())
 
-    def show_protocol(self, name: str, config: dict) -> bool:
-        """Show the settings of protocol ``name``: its form as the user left it, or, the first
-        time, one built from its default ``config`` (returns True then)."""
-        new = name not in self.built
-        if new:
-            form = SettingsForm(config)
+    @property
+    def name(self) -> str:
+        """The protocol chosen: what Start runs."""
+        return self.choice.currentText()
+
+    def _show(self, name: str) -> None:
+        """Show the settings of protocol ``name``: its form as the user left it, or, the
+        first time, one built from its defaults and what was remembered of it."""
+        if name not in self.built:
+            form = protocol_form(name, self.settings)
             form.changed.connect(self.settings_changed)
             scroll = QtWidgets.QScrollArea()
             scroll.setWidgetResizable(True)
@@ -285,7 +339,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
             self.built[name] = (scroll, form)
         page, self.form = self.built[name]
         self.forms.setCurrentWidget(page)
-        return new
+        self.protocol_changed.emit(name)
 
     def values(self) -> dict:
         return self.form.values()
@@ -297,19 +351,29 @@ class ProtocolPanel(QtWidgets.QGroupBox):
     def set_value(self, name: str, value) -> None:
         self.form.fields[name].set(value)
 
-    def apply_values(self, values: dict) -> None:
-        """Put remembered ``values`` (as ``values()`` gave them) back into the form."""
-        self.form.apply(values)
+    def save_state(self) -> None:
+        """Remember the protocol chosen and the settings of every protocol shown."""
+        if self.settings is None:
+            return
+        self.settings.setValue("protocol/current", self.name)
+        for name, (_page, form) in self.built.items():
+            remember_form(self.settings, name, form)
 
     def set_precheck(self, text: str, ok: bool | None) -> None:
         colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]
         self.precheck.setText(f'<span style="color:{colour}">{escape(text, quote=False)}</span>')
 
-    def set_running(self, running: bool) -> None:
-        self.start_button.setEnabled(not running)
-        self.stop_button.setEnabled(running)
-        self.choice.setEnabled(not running)
-        self.forms.setEnabled(not running)
+    def follow(self, state) -> None:
+        """The run's state (``RunState``): Start while one may start, Stop while a run or
+        replay goes on (once), the choice and the form fixed during a run."""
+        from labbench.gui.run_state import RUNNING
+
+        self.start_button.setEnabled(state.can_start)
+        self.start_button.setToolTip(state.why_not_start())
+        self.stop_button.setEnabled(state.can_stop)
+        fixed = state.activity == RUNNING
+        self.choice.setEnabled(not fixed)
+        self.forms.setEnabled(not fixed)
 
     def set_progress(self, frac: float, text: str = "") -> None:
         self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))

@@ -124,23 +124,23 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     win.last_run = None
     start_demo(win, {"duration_s": seconds, "seed": 1})
     if realtime:  # a mid-run picture needs a paced run
-        if not wait_until(lambda: win.impedance.updates >= 2 and win.buffer.n > seconds * 400,
+        if not wait_until(lambda: win.live.impedance.updates >= 2 and win.live.buffer.n > seconds * 400,
                           4 * seconds):
             raise RuntimeError("live estimate did not appear; log: " + " | ".join(win.log.texts()))
         settle_and_grab(win, "live-etfe-running.png")
     if not wait_until(lambda: demo_finished(win), 4 * seconds + 60):
         raise RuntimeError("demo run did not finish; log: " + " | ".join(win.log.texts()))
-    settle_and_grab(win, "demo-etfe.png", win.result_verdicts.isVisible()
-                    and "identified in" in win.impedance.title.text)
-    win.impedance.setCurrentIndex(1)
+    settle_and_grab(win, "demo-etfe.png", win.live.verdicts.isVisible()
+                    and "identified in" in win.live.impedance.title.text)
+    win.live.impedance.setCurrentIndex(1)
     settle_and_grab(win, "bode.png")
-    win.impedance.setCurrentIndex(0)
+    win.live.impedance.setCurrentIndex(0)
     win.tabs.setCurrentWidget(win.id_view)
     settle_and_grab(win, "identification.png", win.id_view.table.isVisible()
                     and win.id_view.fit_table.isVisible())
     win.tabs.setCurrentIndex(0)
     win.units_choice.set_units(DisplayUnits.parse("mm,deg,Hz"))
-    settle_and_grab(win, "units-hz.png", "Hz" in win.impedance.marks["ws"].label.format)
+    settle_and_grab(win, "units-hz.png", "Hz" in win.live.impedance.marks["ws"].label.format)
     win.units_choice.set_units(SI)
 
     win.tabs.setCurrentWidget(win.sessions)

@@ -18,7 +18,10 @@ from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.app import run_app  # noqa: E402
 from labbench.gui.live_estimate import estimate  # noqa: E402
-from labbench.gui.main_window import IDENTIFIED, LIVE_ESTIMATOR, MainWindow, ve_from_meta  # noqa: E402
+from labbench.analysis.compare import ve_from_meta  # noqa: E402
+from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
+from labbench.gui.live_view import IDENTIFIED  # noqa: E402
+from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
 from labbench.session_catalogue import list_sessions  # noqa: E402
 from labbench.session_content import analysis_meta, load_session  # noqa: E402
@@ -52,29 +55,29 @@ def wait_run_done(qtbot, win, timeout=RUN_TIMEOUT_MS):
 
 def wait_final_estimate(qtbot, win, timeout=RUN_TIMEOUT_MS):
     """The estimate of the whole run, made after its end (with the run's own estimator)."""
-    qtbot.waitUntil(lambda: win.impedance.last is not None and win.mode == "idle"
-                    and win.impedance.last.n_samples == win.buffer.n
-                    and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=timeout)
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None and win.mode == "idle"
+                    and win.live.impedance.last.n_samples == win.live.buffer.n
+                    and win.live.impedance.last.estimator != LIVE_ESTIMATOR, timeout=timeout)
 
 
 def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_window):
     win = make_window()
-    win.theory_plant.setCurrentIndex(IDENTIFIED)
+    win.live.theory_plant.setCurrentIndex(IDENTIFIED)
     start(win, "etfe", duration_s=6.0, seed=5)
     wait_run_done(qtbot, win)
     wait_final_estimate(qtbot, win)
     assert win.last_run.status == "success", win.last_run.reason
-    assert win.buffer.n == 6000
+    assert win.live.buffer.n == 6000
 
     # time traces: the last 5000 samples of the stream per channel, as what their line
     # covers in each pixel column: one span (low, high) a column, at its centre
-    t = win.buffer.channel("t")[-5000:]
+    t = win.live.buffer.channel("t")[-5000:]
     for name in ("position", "velocity", "command", "excitation"):
-        x, y = win.traces.curves[name].getOriginalDataset()
-        raw = win.buffer.channel(name)[-5000:]
-        vb = win.traces.plots[{"command": "force", "excitation": "force"}.get(name, name)].getViewBox()
+        x, y = win.live.traces.curves[name].getOriginalDataset()
+        raw = win.live.buffer.channel(name)[-5000:]
+        vb = win.live.traces.plots[{"command": "force", "excitation": "force"}.get(name, name)].getViewBox()
         (x0, x1), _ = vb.viewRange()
-        columns = (t[-1] - t[0]) / (x1 - x0) * vb.width() * win.traces.devicePixelRatioF()
+        columns = (t[-1] - t[0]) / (x1 - x0) * vb.width() * win.live.traces.devicePixelRatioF()
         assert columns - 2 <= x.size / 2 <= columns + 2
         assert np.all(x[0::2] == x[1::2]) and np.all(y[0::2] <= y[1::2])
         assert y.min() == raw.min() and y.max() == raw.max()
@@ -86,10 +89,10 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     start_rec, desc, ch, _events, stop, problem = load_session(summaries[0].path)
     assert problem is None and stop["status"] == "success"
     assert start_rec["gui_settings"]["K"] == "50"  # as the form showed it
-    np.testing.assert_array_equal(ch["position"], win.buffer.channel("position"))
+    np.testing.assert_array_equal(ch["position"], win.live.buffer.channel("position"))
 
     # the drawn estimate is the ETFE of the recorded data, with the theory for the identified plant
-    est = win.impedance.last
+    est = win.live.impedance.last
     meta = analysis_meta(start_rec, desc)
     again = estimate({k: ch[k] for k in ch}, meta, ve_from_meta(meta), None)
     np.testing.assert_allclose(est.Z, again.Z, rtol=1e-12)
@@ -99,7 +102,7 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     assert est.plant.b == pytest.approx(TRUTH.b, rel=0.05)
     from labbench.theory import theory_curve
 
-    wt, yt = win.impedance.curves["ED_theory"].getOriginalDataset()
+    wt, yt = win.live.impedance.curves["ED_theory"].getOriginalDataset()
     Zt = theory_curve(est.plant, ve_from_meta(meta), est.theory["w"], "sampled")
     shown = np.isfinite(yt)  # up to a third of Nyquist
     assert shown.sum() > 300 and wt[shown].max() == pytest.approx(np.pi * 1000 / 3, rel=0.01)
@@ -115,8 +118,8 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     wg = np.geomspace(1, 300, 3000)
     ws_true = measured_ws_star(wg, effective_impedances(wg, theory_curve(
         TRUTH, ve_from_meta(meta), wg, "sampled")).ES)
-    assert win.impedance.marks["ws"].isVisible()
-    assert 10 ** win.impedance.marks["ws"].value() == pytest.approx(est.ws_measured)
+    assert win.live.impedance.marks["ws"].isVisible()
+    assert 10 ** win.live.impedance.marks["ws"].value() == pytest.approx(est.ws_measured)
     assert est.ws_measured == pytest.approx(ws_true, rel=0.05)
 
 
@@ -129,20 +132,20 @@ def test_live_estimate_updates_during_a_realtime_run(qtbot, make_window):
     seen, stalls = [], []
 
     def watch():
-        seen.append((win.impedance.updates, win.mode))
-        stalls.append(win.status["worst stall"].text())
+        seen.append((win.live.impedance.updates, win.mode))
+        stalls.append(win.loop_status.labels["worst stall"].text())
         return win.mode == "idle"
 
     qtbot.waitUntil(watch, timeout=RUN_TIMEOUT_MS)
     during = max(u for u, mode in seen if mode == "running")
     # 5 s of data, estimates from 2 s on, every 0.5 s: several while the run goes on
     assert during >= 2, seen[-5:]
-    assert win.traces.frames >= 20
+    assert win.live.traces.frames >= 20
     # the loop's timing reached the status bar while the run went on, then its total
     assert any(t.startswith("worst stall: ") and t.endswith("(live)") for t in stalls)
     timing = win.last_run.timing
     assert stalls[-1].startswith(f"worst stall: {timing['max_s'] * 1e3:.2f} ms")
-    assert win.status["overruns"].text() == f"overruns: {timing['overruns']}"
+    assert win.loop_status.labels["overruns"].text() == f"overruns: {timing['overruns']}"
     assert timing["realtime"]["requested"] and sum(timing["histogram"]["counts"]) > 4000
 
 
@@ -175,7 +178,7 @@ def test_chirp_id_fills_identification_view(qtbot, make_window):
     # residual of the fitted samples: the model explains an exact plant's force
     t, resid = view.residual.getData()
     assert len(t) == view.results["l2"]["n_used"]
-    force = win.buffer.snapshot()["command"]
+    force = win.live.buffer.snapshot()["command"]
     assert np.sqrt(np.mean(resid**2)) < 1e-3 * np.sqrt(np.mean(force**2))
 
 
@@ -208,7 +211,7 @@ def test_estop_label_fits_and_enable_button_follows_the_device(qtbot, make_windo
 def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
     win = make_window(realtime=True)
     start(win, "etfe", duration_s=60.0, seed=1)
-    qtbot.waitUntil(lambda: win.buffer.n > 300, timeout=20_000)
+    qtbot.waitUntil(lambda: win.live.buffer.n > 300, timeout=20_000)
     # the loop runs in its own process, which has not loaded Qt
     with open(f"/proc/{win.acquisition.process.pid}/maps") as f:
         maps = f.read()
@@ -225,7 +228,7 @@ def test_estop_key_zeroes_force_and_stops_the_run(qtbot, make_window):
     assert win.last_run.status in ("aborted", "failed")
     qtbot.waitUntil(lambda: win.device_panel.health["state"].text() == "E-STOP latched",
                     timeout=5_000)  # the device panel shows the child's report
-    assert win.buffer.n < 20_000
+    assert win.live.buffer.n < 20_000
     assert any("E-STOP" in t for t in win.log.texts("warning"))
     win.start_protocol()  # refused while the latch holds
     assert "E-STOP is latched" in win.banner.text() and win.mode == "idle"
@@ -287,7 +290,7 @@ def test_device_fault_mid_run_is_reported_not_raised(qtbot, make_window):
     wait_run_done(qtbot, win)
     assert win.last_run.status == "failed"
     assert win.banner.isVisible() and "over-current" in win.banner.text()
-    assert win.buffer.n < 5000
+    assert win.live.buffer.n < 5000
 
 
 def test_a_host_stall_does_not_end_a_simulated_run(qtbot, make_window):
@@ -301,10 +304,10 @@ def test_a_host_stall_does_not_end_a_simulated_run(qtbot, make_window):
     start(win, "etfe", duration_s=2.5, seed=1)
     wait_run_done(qtbot, win)
     assert win.last_run.status == "success", win.last_run.reason
-    assert win.buffer.n == 2500 and not win.banner.isVisible()
+    assert win.live.buffer.n == 2500 and not win.banner.isVisible()
     assert any("host stall" in t and "run goes on" in t for t in win.log.texts("event"))
     assert win.last_run.timing["max_s"] >= 0.3
-    assert "worst stall: 3" in win.status["worst stall"].text()  # 300-odd ms
+    assert "worst stall: 3" in win.loop_status.labels["worst stall"].text()  # 300-odd ms
     start_rec = load_session(win.session_path)[0]
     assert start_rec["watchdog"]["applies"] == "simulator"
 
@@ -314,16 +317,16 @@ def test_replay_session_through_the_live_view(qtbot, make_window):
     start(win, "etfe", duration_s=4.0, seed=3)
     wait_run_done(qtbot, win)
     wait_final_estimate(qtbot, win)
-    recorded = win.buffer.snapshot()
-    z_live = win.impedance.last.Z
+    recorded = win.live.buffer.snapshot()
+    z_live = win.live.impedance.last.Z
     win.refresh_sessions()
     qtbot.waitUntil(lambda: len(win.sessions.paths) == 1, timeout=10_000)
     win.sessions.buttons["Replay fast"].click()
-    qtbot.waitUntil(lambda: win.mode == "idle" and win.buffer.stop is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.live.buffer.stop is not None, timeout=20_000)
     wait_final_estimate(qtbot, win)
     for name in ("t", "position", "command"):
-        np.testing.assert_array_equal(win.buffer.channel(name), recorded[name])
-    np.testing.assert_allclose(win.impedance.last.Z, z_live, rtol=1e-12)
+        np.testing.assert_array_equal(win.live.buffer.channel(name), recorded[name])
+    np.testing.assert_allclose(win.live.impedance.last.Z, z_live, rtol=1e-12)
 
 
 def test_export_session_data_and_report(qtbot, make_window):
@@ -337,7 +340,7 @@ def test_export_session_data_and_report(qtbot, make_window):
     qtbot.waitUntil(lambda: sum("exported" in t for t in win.log.texts("info")) >= 2,
                     timeout=20_000)  # both jobs finished, not just their files created
     with h5py.File(next(out.glob("*.h5")), "r") as f:
-        np.testing.assert_array_equal(f["channels/position"][()], win.buffer.channel("position"))
+        np.testing.assert_array_equal(f["channels/position"][()], win.live.buffer.channel("position"))
     win.sessions.buttons["Export report"].click()
     qtbot.waitUntil(lambda: any("exported" in t and ".pdf" in t for t in win.log.texts("info")),
                     timeout=RUN_TIMEOUT_MS)

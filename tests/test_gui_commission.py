@@ -43,14 +43,16 @@ def _window(qtbot, tmp_path, sim: str = "", rig: str = "", **options):
 def _commission(qtbot, win) -> dict[str, list[str]]:
     """Run commissioning from its page as a person does; the rows it then shows."""
     page = win.commission
-    win.tabs.setCurrentWidget(page)
-    assert win.protocol_panel.choice.currentText() == "commission"  # its settings, on the left
+    chosen = win.protocol_panel.choice.currentText()
+    win.tabs.setCurrentWidget(page)  # looking at the page changes no choice
+    assert win.protocol_panel.choice.currentText() == chosen
     win.last_run = None
     page.run_button.click()
     assert not page.run_button.isEnabled() and not page.write_button.isEnabled()
     qtbot.waitUntil(lambda: win.mode == "idle" and win.last_run is not None, timeout=RUN_MS)
     assert win.last_run.status == "success", win.last_run.reason
     assert win.tabs.currentWidget() is page and page.run_button.isEnabled()
+    assert win.protocol_panel.choice.currentText() == chosen  # Start still runs what it did
     rows = page.check_rows()
     assert list(rows) == [DIRECTION, DELAY, SCALE, FRICTION, KMAX]
     return rows

@@ -13,7 +13,9 @@ import pytest  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.id_view import cells  # noqa: E402
-from labbench.gui.main_window import LIVE_ESTIMATOR, MainWindow, session_label  # noqa: E402
+from labbench.gui.jobs import session_label  # noqa: E402
+from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
+from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.numfmt import fmt  # noqa: E402
 from labbench.gui.settings import open_settings  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
@@ -71,12 +73,12 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     log = _log_text(win)
     assert "start etfe with these settings:" in log and "{" not in log.split("these settings:")[1]
     assert any(line.split() == ["K", "60", "N/m"] for line in log.splitlines())
-    qtbot.waitUntil(lambda: win.impedance.updates >= 1 and win.traces.frames >= 3, timeout=30_000)
+    qtbot.waitUntil(lambda: win.live.impedance.updates >= 1 and win.live.traces.frames >= 3, timeout=30_000)
     qtbot.waitUntil(lambda: "%" in panel.time_left.text(), timeout=10_000)
-    assert win.impedance.last.estimator == LIVE_ESTIMATOR
-    assert "effective impedances from" in win.impedance.title.text
-    n_seen = win.buffer.n
-    qtbot.waitUntil(lambda: win.buffer.n > n_seen + 500, timeout=10_000)
+    assert win.live.impedance.last.estimator == LIVE_ESTIMATOR
+    assert "effective impedances from" in win.live.impedance.title.text
+    n_seen = win.live.buffer.n
+    qtbot.waitUntil(lambda: win.live.buffer.n > n_seen + 500, timeout=10_000)
 
     # E-STOP (Esc) mid-run: within one frame the progress line, the buttons and the log say so
     win.activateWindow()
@@ -103,7 +105,7 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
     panel.set_value("duration_s", 3.0)
     panel.start_button.click()
-    qtbot.waitUntil(lambda: win.buffer.n > 500, timeout=20_000)
+    qtbot.waitUntil(lambda: win.live.buffer.n > 500, timeout=20_000)
     panel.stop_button.click()
     assert panel.time_left.text().startswith("stopping the run at")
     assert not panel.stop_button.isEnabled()
@@ -122,19 +124,19 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     statuses = sorted(table.item(r, 3).text() for r in range(table.rowCount()))
     assert statuses == ["aborted", "aborted", "success"]
     assert win.sessions.selected() == win.session_path
-    recorded = win.buffer.snapshot()
+    recorded = win.live.buffer.snapshot()
 
     # replay it: the same stream through the live view
     win.tabs.setCurrentWidget(win.sessions)
     win.sessions.buttons["Replay fast"].click()
     assert win.mode == "replay" and win.tabs.currentIndex() == 0
-    qtbot.waitUntil(lambda: win.mode == "idle" and win.buffer.stop is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.live.buffer.stop is not None, timeout=20_000)
     assert panel.time_left.text().startswith("replay ")
-    np.testing.assert_array_equal(win.buffer.channel("position"), recorded["position"])
+    np.testing.assert_array_equal(win.live.buffer.channel("position"), recorded["position"])
     results = load_session(win.session_path)[4]["results"]  # its verdicts, as recorded
     verdicts = {"ETFE": results["etfe"].get("verdict"), "closed-loop fit": results["loop_fit"].get("verdict")}
-    assert win.result_verdicts.levels() == {k: v["level"] for k, v in verdicts.items() if v}
-    assert "ETFE" in win.result_verdicts.levels()
+    assert win.live.verdicts.levels() == {k: v["level"] for k, v in verdicts.items() if v}
+    assert "ETFE" in win.live.verdicts.levels()
 
     # re-analyse: the identification tab fills from the session
     win.sessions.buttons["Re-analyse"].click()
@@ -214,10 +216,10 @@ def _run(qtbot, win, protocol: str, **settings):
 
 
 def _final_estimate(qtbot, win):
-    qtbot.waitUntil(lambda: win.impedance.last is not None and win.mode == "idle"
-                    and win.impedance.last.n_samples == win.buffer.n
-                    and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_MS)
-    return win.impedance.last
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None and win.mode == "idle"
+                    and win.live.impedance.last.n_samples == win.live.buffer.n
+                    and win.live.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_MS)
+    return win.live.impedance.last
 
 
 def _interval(ci, scale=1.0) -> str:
@@ -264,7 +266,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert rows["VE-path delay tv (ms)"] == [fmt(1e3 * lf["tv_s"], 5), "held (not fitted)"]
     assert rows["delay model"][0] == lf["delay_model"] == "common"
     assert view.fit_verdict.levels() == {"closed-loop fit": lf["verdict"]["level"]}
-    assert win.result_verdicts.levels() == {"ETFE": etfe.results["etfe"]["verdict"]["level"],
+    assert win.live.verdicts.levels() == {"ETFE": etfe.results["etfe"]["verdict"]["level"],
                                             "closed-loop fit": lf["verdict"]["level"]}
     etfe_path = win.session_path
     win.close()
@@ -288,8 +290,8 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     rows = cells(again.id_view.fit_table)
     assert rows["mass m (kg)"] == [fmt(fit["m"], 5), _interval(fit["ci95"]["m"])]
     assert rows["delay model"][0] == fit["delay_model"]
-    assert again.result_verdicts.levels()["closed-loop fit"] == fit["verdict"]["level"]
-    assert again.buffer.n == 0  # the Live tab no longer shows another record's traces
+    assert again.live.verdicts.levels()["closed-loop fit"] == fit["verdict"]["level"]
+    assert again.live.buffer.n == 0  # the Live tab no longer shows another record's traces
     again.close()
 
 
@@ -301,37 +303,37 @@ def test_display_units_follow_the_choice_and_are_remembered(qtbot, tmp_path):
     win = _window(qtbot, folder, open_settings(ini), realtime=False)
     _run(qtbot, win, "etfe", duration_s=8.0, seed=3)
     est = _final_estimate(qtbot, win)
-    ws_si = win.impedance.marks["ws"].label.format
+    ws_si = win.live.impedance.marks["ws"].label.format
 
     # a person picks mm, deg and Hz from the drop-down lists
     for kind, unit in (("length", "mm"), ("angle", "deg"), ("frequency", "Hz")):
         win.units_choice.combos[kind].setCurrentText(unit)
     chosen = DisplayUnits("mm", "deg", "Hz")
     assert win.units_choice.units() == chosen
-    label = win.impedance.marks["ws"].label.format
+    label = win.live.impedance.marks["ws"].label.format
     assert label.replace("\n", " ") == predictions.label("ws", est.ws_measured, est.predicted, chosen)
     assert label != ws_si and " Hz" in label
-    assert 10 ** win.impedance.marks["ws"].value() == pytest.approx(est.ws_measured / (2 * np.pi))
-    x, _ = win.impedance.curves["ED"].getOriginalDataset()
+    assert 10 ** win.live.impedance.marks["ws"].value() == pytest.approx(est.ws_measured / (2 * np.pi))
+    x, _ = win.live.impedance.curves["ED"].getOriginalDataset()
     assert x[0] == pytest.approx(est.w[est.w > 0][0] / (2 * np.pi))
-    assert win.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
-    assert win.traces.plots["position"].getAxis("left").labelUnits == "mm"
-    assert win.traces.plots["position"].getAxis("left").scale == 1e3
-    win.impedance.setCurrentIndex(1)  # Bode: phase in degrees
-    _, phase = win.impedance.curves["bode_phase"].getOriginalDataset()
+    assert win.live.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
+    assert win.live.traces.plots["position"].getAxis("left").labelUnits == "mm"
+    assert win.live.traces.plots["position"].getAxis("left").scale == 1e3
+    win.live.impedance.setCurrentIndex(1)  # Bode: phase in degrees
+    _, phase = win.live.impedance.curves["bode_phase"].getOriginalDataset()
     ok = (est.w > 0) & (est.w <= est.w_nyquist / 3)
     np.testing.assert_allclose(phase, np.degrees(np.unwrap(np.angle(est.Z[ok]))))
     win.close()
 
     again = _window(qtbot, folder, open_settings(ini), realtime=False)
     assert again.units_choice.units() == chosen  # remembered
-    assert again.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
+    assert again.live.impedance.plots["EM"].getAxis("bottom").labelUnits == "Hz"
     again.close()
     # `labbench gui --units ...` wins over what was remembered
     given = MainWindow(Rig(), folder, realtime=False, settings=open_settings(ini), units=SI)
     qtbot.addWidget(given)
     assert given.units_choice.units() == SI
-    assert given.traces.plots["position"].getAxis("left").labelUnits == "m"
+    assert given.live.traces.plots["position"].getAxis("left").labelUnits == "m"
     given.close()
 
 
@@ -365,7 +367,7 @@ def test_disconnect_is_refused_mid_run_and_a_lost_acquisition_process_shows_at_o
     panel.choice.setCurrentText("etfe")
     panel.set_value("duration_s", 60.0)
     panel.start_button.click()
-    qtbot.waitUntil(lambda: win.mode == "running" and win.buffer.n > 500, timeout=30_000)
+    qtbot.waitUntil(lambda: win.mode == "running" and win.live.buffer.n > 500, timeout=30_000)
     dev.connect_button.click()  # Disconnect, mid-run
     assert win.banner.isVisible() and win.banner.text() == "stop the run before disconnecting"
     assert win.mode == "running" and panel.stop_button.isEnabled()

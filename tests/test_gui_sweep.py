@@ -180,8 +180,8 @@ def test_the_main_window_replays_a_point_of_its_sweeps_tab(qtbot, tmp_path, smal
     win.sweeps.select(i)
     win.sweeps.open_button.click()
     assert win.mode == "replay"
-    qtbot.waitUntil(lambda: win.mode == "idle" and win.buffer.n == rows[i]["n_samples"],
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.live.buffer.n == rows[i]["n_samples"],
                     timeout=RUN_TIMEOUT_MS)
     _start, _desc, channels, *_ = load_session(rows[i]["session"])
-    assert np.array_equal(win.buffer.channel("position"), channels["position"])
+    assert np.array_equal(win.live.buffer.channel("position"), channels["position"])
     assert f"replay {os.path.basename(rows[i]['session'])}" in " ".join(win.log.texts("info"))

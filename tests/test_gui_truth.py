@@ -9,7 +9,9 @@ from decimal import Decimal  # noqa: E402
 import pytest  # noqa: E402
 
 from labbench.gui.id_view import cells  # noqa: E402
-from labbench.gui.main_window import LIVE_ESTIMATOR, RUN_PLANT, MainWindow  # noqa: E402
+from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
+from labbench.gui.live_view import RUN_PLANT  # noqa: E402
+from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.numfmt import fmt  # noqa: E402
 from labbench.report.blocks import Table  # noqa: E402
 from labbench.report.content import build  # noqa: E402
@@ -51,21 +53,21 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
     win = MainWindow(RIGS[rig], tmp_path / "sessions", realtime=False)
     qtbot.addWidget(win)
     win.show()
-    assert win.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
+    assert win.live.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
     win.protocol_panel.choice.setCurrentText("etfe")
     win.protocol_panel.set_value("duration_s", 8.0)
     win.protocol_panel.set_value("seed", 2)
     win.start_protocol()
     qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
     assert win.last_run.status == "success", win.last_run.reason
-    qtbot.waitUntil(lambda: win.impedance.last is not None and win.impedance.last.n_samples == 8000
-                    and win.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_TIMEOUT_MS)
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None and win.live.impedance.last.n_samples == 8000
+                    and win.live.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_TIMEOUT_MS)
     html = _report_html(win.session_path)
     bw = win.last_run.results["bandwidths"]
     plant = win.last_run.results["plant"]
 
     # the marks: measured, the sampled theory, the paper's closed form, as the report's table
-    ws, wb = (win.impedance.marks[k].label.format.replace("\n", " ") for k in ("ws", "wb"))
+    ws, wb = (win.live.impedance.marks[k].label.format.replace("\n", " ") for k in ("ws", "wb"))
     numbers = {k: fmt(bw[k]) for k in bw}
     assert ws == (f"w_s* = {numbers['ws_star_measured']} rad/s (sampled theory "
                   f"{numbers['ws_star_predicted']} rad/s; paper eq. 5: {numbers['ws_star_eq5']})")
@@ -79,7 +81,7 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
     assert "(theory " not in ws + wb
 
     # the plant of the overlay is the report's "device model of the theory"
-    title = win.impedance.title.text
+    title = win.live.impedance.title.text
     m, b = fmt(plant["m"]), fmt(plant["b"])
     assert f"m = {m} kg, b = {b} N s/m" in title
     assert re.search(rf"m = {re.escape(m)} kg, b = {re.escape(b)} N s/m", html)

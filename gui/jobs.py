@@ -1,0 +1,137 @@
+"""What the window computes off the GUI thread, and the words it puts on sessions (no Qt).
+
+Each job is a plain function a worker thread runs (``labbench.gui.worker.run_in_background``):
+reading the sessions folder, loading a chirp-ID's identification, re-analysing a session
+as ``labbench analyze`` does. Results go back to the window through its mailbox.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from labbench.analysis.compare import ve_from_meta
+from labbench.errors import UserError
+from labbench.gui.live_estimate import estimate
+from labbench.numfmt import fmt
+from labbench.predictions import recorded_plant
+from labbench.ve import Plant
+
+
+def plant_data(data: dict, meta: dict) -> dict:
+    """The record as the plant felt it: the command force after the device's own delay
+    (``labbench.device_delay``; ``compare.plant_force``, as chirp-ID's analysis fits it)."""
+    from labbench.analysis.compare import plant_force
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.device_delay import from_meta
+
+    latency = from_meta(meta)
+    if not latency:
+        return data
+    rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
+    return {**data, "command": plant_force(rec, None, latency)}
+
+
+def scalar_rows(results: dict, prefix: str = "", depth: int = 2) -> list[tuple[str, str]]:
+    """(key, value) of the numbers and words in a results dict, nested keys dotted (arrays,
+    lists, verdicts and the big tables left out: the window shows those itself)."""
+    rows = []
+    for k, v in results.items():
+        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory", "verdict"):
+            rows += scalar_rows(v, f"{prefix}{k}.", depth - 1)
+        elif isinstance(v, (bool, int, float, str)) or v is None:
+            rows.append((f"{prefix}{k}", fmt(v)))
+    return rows
+
+
+def plant_source(start: dict) -> str:
+    """Where the plant of a run's theory came from, in words (from its start record)."""
+    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
+    if isinstance(found.get("session"), str):
+        return f"identified in {session_label(found['session'])}"
+    config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
+    if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
+        return "given in the run's settings"
+    return "the rig's nominal model"
+
+
+def session_label(path) -> str:
+    """A session's file name less its uid: ``20261203-063850_chirp-id`` (when and what)."""
+    return Path(path).stem.rsplit("_", 1)[0]
+
+
+def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None):
+    """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker.
+    ``run_plant`` given: the theory uses the session's own plant (``recorded_plant``), this
+    one when it names none; None: the plant identified on the session's data."""
+    from labbench.session_content import load_analysis_arrays, load_session
+
+    arrays = load_analysis_arrays(path)
+    start, _desc, ch, _ev, stop, _problem = load_session(path)
+    meta = arrays["meta"]
+    data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
+            "command": ch["command"]}
+    plant, source = None, "identified (l2)"
+    if run_plant is not None:
+        plant = recorded_plant(start, (stop or {}).get("results"))
+        source = plant_source(start) if plant else "the window's rig nominal model"
+        plant = plant or run_plant
+    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source)
+    return est, identify_all(data, meta), plant_data(data, meta), analyze_etfe(path, estimator, meta)
+
+
+def analyze_etfe(path: str, estimator: str | None, meta: dict) -> dict:
+    """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
+    (``Session.etfe(fit=True)``): the ETFE's verdict and the closed-loop fit (or why none);
+    for a session without a VE only its path."""
+    from labbench.session_api import load
+
+    out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "verdicts": []}
+    if ve_from_meta(meta) is None:
+        return out
+    try:
+        fr = load(path).etfe(estimator=estimator, fit=True)
+    except UserError as exc:
+        out["fit"] = {"error": str(exc)}
+        return out
+    d = fr.as_dict()
+    out["fit"] = d["fit"]
+    out["verdicts"] = [("ETFE", d.get("verdict")), ("closed-loop fit", d["fit"].get("verdict"))]
+    return out
+
+
+def catalogue(folder, session_dir, rig_name: str):
+    """(the sessions in ``folder``, the newest chirp-ID of ``rig_name`` in ``session_dir``):
+    the Sessions tab's rows and the plant the next runs take (``last_identified``)."""
+    from labbench.session_catalogue import last_identified, list_sessions
+
+    summaries = list_sessions(folder) if Path(folder).is_dir() else []
+    return summaries, last_identified(session_dir, rig_name, on_skip=lambda *_: None)
+
+
+def load_identification(path: str):
+    """(the identification a chirp-ID session recorded, its data as the plant felt them,
+    ``path``)."""
+    from labbench.session_content import analysis_meta, load_session
+
+    start, desc, ch, _ev, stop, _problem = load_session(path)
+    ident = ((stop or {}).get("results") or {}).get("identification")
+    data = {k: ch[k] for k in ("t", "command", "position") if k in ch}
+    return (ident if isinstance(ident, dict) else {}), plant_data(data, analysis_meta(start, desc)), path
+
+
+def used_method(ident: dict) -> str | None:
+    """The fit whose m, b a chirp-ID gives as its result (``protocols.chirp_id``: l2 first)."""
+    return "l2" if "l2" in ident else next(iter(ident), None)
+
+
+def identify_all(data: dict, meta: dict) -> dict:
+    """l2 and l1 fits of the net force on the device (the ``command`` channel, after the
+    device's own delay: as chirp-ID's analysis fits it)."""
+    from labbench.analysis.dataio import recording_from_arrays
+    from labbench.analysis.identify import identify
+
+    felt = plant_data(data, meta)
+    rec = recording_from_arrays(felt["t"], felt["command"], felt["position"], meta)
+    out = {}
+    for method in ("l2", "l1"):
+        out[method] = identify(rec, model="auto", method=method).as_dict()
+    return out

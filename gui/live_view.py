@@ -1,0 +1,146 @@
+"""The Live page: the stream shown (a run's or a replay's), its time traces, its effective
+impedances with the theory overlay, and the verdicts of its result.
+
+The page owns the stream it shows (``StreamBuffer``) and its live estimate
+(``LiveEstimator``): the window feeds it records and calls ``redraw`` from its redraw timer
+and ``estimate`` from its estimate timer. While data stream in, the estimate is the
+incremental ``live-welch`` (constant cost, ``labbench.analysis.etfe_live``); once the
+stream has ended, the run's own estimator on all of it, as its analysis computes it.
+"""
+from __future__ import annotations
+
+from PySide6 import QtCore, QtWidgets
+
+from labbench.analysis.compare import ve_from_meta
+from labbench.gui.buffers import StreamBuffer
+from labbench.gui.jobs import plant_source
+from labbench.gui.live_estimate import LIVE, MIN_SAMPLES, LiveEstimator
+from labbench.gui.live_plots import ImpedancePlots, TimeTraces
+from labbench.gui.verdict_view import VerdictLabel
+from labbench.predictions import recorded_plant
+
+# the theory overlay's plant: the session's (as its analysis and report), or identified live
+PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
+RUN_PLANT, IDENTIFIED = range(2)
+
+
+class LiveView(QtWidgets.QWidget):
+    """``estimate_shown`` carries each estimate drawn (the Identification page names its
+    plant); ``warning`` a failed estimate's message, once per distinct failure."""
+
+    estimate_shown = QtCore.Signal(object)
+    warning = QtCore.Signal(str)
+
+    def __init__(self, rig, parent=None):
+        super().__init__(parent)
+        self.rig = rig  # its nominal plant is the theory's when a run names none
+        self.buffer = StreamBuffer()
+        self.estimator = LiveEstimator()
+        self._drawn_version = self._estimated_version = -1
+        self._error_shown: str | None = None
+        self.theory_plant = QtWidgets.QComboBox()
+        self.theory_plant.addItems(PLANT_CHOICES)
+        self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
+                                     "its analysis and report use), or l2 identified on its data")
+        self.verdicts = VerdictLabel()  # the verdicts of the result shown
+        self.traces = TimeTraces()
+        self.impedance = ImpedancePlots()
+        self.splitter = QtWidgets.QSplitter()
+        self.splitter.addWidget(self.traces)
+        self.splitter.addWidget(self.impedance)
+        self.splitter.setSizes([500, 700])
+
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(QtWidgets.QLabel("theory overlay plant:"))
+        row.addWidget(self.theory_plant)
+        row.addStretch(1)
+        lay.addLayout(row)
+        lay.addWidget(self.verdicts)
+        lay.addWidget(self.splitter, 1)
+        self.theory_plant.currentIndexChanged.connect(lambda *_: self.invalidate_estimate())
+
+    # ----- the stream -------------------------------------------------------------------------
+    def reset(self) -> None:
+        """A new stream (a run or replay starts, or another record is shown): nothing of
+        the old one stays on the page."""
+        self.buffer = StreamBuffer()
+        self.estimator.reset()
+        self.traces.clear_data()
+        self.impedance.clear_data()
+        self.verdicts.show_verdicts([])
+        self._drawn_version = self._estimated_version = -1
+        self._error_shown = None
+
+    def feed(self, record: dict) -> None:
+        self.buffer(record)
+
+    def redraw(self) -> None:
+        """New samples into the traces, a finished estimate into the plots (redraw timer)."""
+        if self.buffer.version != self._drawn_version:
+            self.traces.update_from(self.buffer)
+            self._drawn_version = self.buffer.version
+        est = self.estimator.poll()
+        if est is not None:
+            self.show_estimate(est)
+        err = self.estimator.last_error
+        if err and err != self._error_shown:
+            self._error_shown = err
+            self.warning.emit(err)
+
+    def show_estimate(self, est) -> None:
+        self.impedance.show_estimate(est)
+        self.estimate_shown.emit(est)
+
+    def invalidate_estimate(self) -> None:
+        """Estimate again now (the stream ended, or the overlay's plant was changed)."""
+        self._estimated_version = -1
+        self.estimate()
+
+    def estimate(self) -> None:
+        """Hand the newest samples to the estimator unless it is busy (estimate timer)."""
+        buf = self.buffer
+        if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
+            return
+        ve, plant, meta, source = self._estimate_inputs(buf)
+        data = buf.snapshot(("t", "excitation", "position", "command"))
+        if self.estimator.submit(data, meta, ve, plant, plant_source=source, **self._etfe_options(buf)):
+            self._estimated_version = buf.version
+
+    @staticmethod
+    def _etfe_options(buf) -> dict:
+        """While data stream in: the fast LIVE estimator; once the stream has ended: the
+        run's own estimator (its default when none is set), as the analysis uses."""
+        proto = buf.start.get("protocol") if isinstance(buf.start.get("protocol"), dict) else {}
+        opts = {}
+        if isinstance(proto.get("window"), int):
+            opts["window"] = proto["window"]
+        if buf.stop is None:
+            opts["estimator"] = LIVE
+        elif proto.get("estimator"):
+            opts["estimator"] = proto["estimator"]
+        return opts
+
+    def uses_run_plant(self) -> bool:
+        return self.theory_plant.currentIndex() == RUN_PLANT
+
+    def _estimate_inputs(self, buf):
+        """(VE, plant or None to identify it, analysis metadata, where the plant came from)."""
+        from labbench.session_content import analysis_meta
+
+        meta = analysis_meta(buf.start, buf.descriptor or {})
+        ve = ve_from_meta(meta)
+        plant, source = None, "identified (l2)"
+        if self.uses_run_plant():
+            plant = recorded_plant(buf.start, (buf.stop or {}).get("results"))
+            source = plant_source(buf.start) if plant else "the window's rig nominal model"
+            plant = plant or self.rig.nominal_plant
+        return ve, plant, meta, source
+
+    def set_units(self, units) -> None:
+        self.traces.set_units(units)
+        self.impedance.set_units(units)
+
+    def shutdown(self) -> None:
+        self.estimator.shutdown()
