@@ -64,9 +64,18 @@ def spot_pos(qtbot, view, row: int) -> QtCore.QPoint:
     """Where the spot of table row ``row`` is, in the plot's viewport pixels."""
     vb = view.plot.getPlotItem().getViewBox()
     spot = next(p for p in view.points.points() if p.data() == row)
-    # the view range follows new data at the next paint
-    qtbot.waitUntil(lambda: vb.width() > 100 and vb.viewRect().contains(spot.pos()))
-    return view.plot.mapFromScene(vb.mapViewToScene(spot.pos()))
+    # the view range follows new data at the next paint, and its padding the laid-out size:
+    # the place is where it stays over two paints
+    places = []
+
+    def settled():
+        if vb.width() > 100 and vb.viewRect().contains(spot.pos()):
+            places.append(view.plot.mapFromScene(vb.mapViewToScene(spot.pos())))
+        qtbot.wait(40)
+        return len(places) >= 2 and places[-1] == places[-2]
+
+    qtbot.waitUntil(settled)
+    return places[-1]
 
 
 def shown_row(view) -> dict[str, str]:
