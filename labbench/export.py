@@ -87,7 +87,8 @@ def _fill_hdf5(f, session_path, start, desc, ch, events, stop, problem, units) -
     packed = COMPRESSION if ch["t"].size else {}  # an empty dataset cannot be chunked
     for name, values in ch.items():
         ds = g.create_dataset(name, data=values, **packed)
-        ds.attrs["units"] = units.get(name, "")
+        unit = units.get(name)  # a hostile descriptor may hold anything there
+        ds.attrs["units"] = unit if isinstance(unit, str) else ""
         ds.attrs["description"] = records.DESCRIPTIONS.get(name, "")
     time = g["t"]
     time.make_scale("time")

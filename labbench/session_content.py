@@ -25,12 +25,24 @@ def session_ve(start: dict) -> VirtualEnvironment | None:
     if not isinstance(proto.get("ve"), str):
         return None
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
-    w0 = proto.get("w0_rad_s")
+    w0 = _number(proto, "w0_rad_s", None)
     return VirtualEnvironment(
-        proto["ve"], K=float(proto.get("K", 0.0)), B=float(proto.get("B", 0.0)),
-        w0=math.inf if w0 is None else float(w0),
-        T=float(proto.get("sample_time_s") or rig.get("sample_time_s") or 0.001),
-        td=float(proto.get("td_s", 0.0)))
+        proto["ve"], K=_number(proto, "K", 0.0), B=_number(proto, "B", 0.0),
+        w0=math.inf if w0 is None else w0,
+        T=_number(proto, "sample_time_s", None) or _number(rig, "sample_time_s", None, "rig") or 0.001,
+        td=_number(proto, "td_s", 0.0))
+
+
+def _number(d: dict, key: str, default, where: str = "protocol"):
+    """``d[key]`` as a float (``default`` when absent or null); a UserError naming the field
+    when a start record holds something else there."""
+    value = d.get(key)
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UserError(f"the start record's {where}.{key} is {type(value).__name__} "
+                        f"{str(value)[:40]!r}, not a number")
+    return float(value)
 
 
 def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:

@@ -8,10 +8,13 @@ replay, analyze id/etfe, export CSV/HDF5, report) must give a result or one
 error line (tests/fuzzing.py). The report, the slowest entry point, sees every
 corruption under ``-m slow`` and a fixed sample otherwise.
 
-Then the field types: every field of the non-page records of two real sessions
-(chirp-ID, ETFE), down to three levels, given each JSON type it does not have
-(1 860 sessions); the report's content must come out of each (a field of the
-wrong type is left out and flagged, ``labbench.report.shapes``).
+Then the fields: every field of the non-page records of two real sessions
+(chirp-ID, ETFE), down to six levels, given each JSON type it does not have,
+and every key of every record (the first page's included) removed; the report's
+content must come out of each (a field of the wrong shape, or an object without
+a key it needs, is left out and flagged, ``labbench.report.shapes``), and every
+other reader (replay, analyze id/etfe, export CSV/HDF5, ``labbench.load``) must
+give a result or one error line. A sample by default, all of them under ``-m slow``.
 """
 from __future__ import annotations
 
@@ -258,7 +261,7 @@ def _json_type(value) -> str:
             type(None): "null"}[type(value)]
 
 
-def _fields(value, path=(), depth=3):
+def _fields(value, path=(), depth=6):
     """(path, value) of every field down to ``depth`` (a list: its first element)."""
     if isinstance(value, dict):
         members = list(value.items())
@@ -292,6 +295,24 @@ def type_mutations(items):
                 yield f"{head['kind']}[{i}] {'.'.join(map(str, path))} -> {type_name}", mutated
 
 
+def key_removals(items):
+    """(name, items) with one key of one record removed, for every key of every record down
+    to six levels (a list: its first element); of the pages, the first one's."""
+    for i, (head, _) in enumerate(items):
+        if head.get("kind") == "page" and i != next(
+                k for k, (h, _) in enumerate(items) if h.get("kind") == "page"):
+            continue
+        for path, _value in _fields(head):
+            if path == ("kind",) or isinstance(path[-1], int):
+                continue
+            mutated = copy.deepcopy(items)
+            target = mutated[i][0]
+            for key in path[:-1]:
+                target = target[key]
+            del target[path[-1]]
+            yield f"{head['kind']}[{i}] without {'.'.join(map(str, path))}", mutated
+
+
 @pytest.fixture(scope="module")
 def real_items(tmp_path_factory):
     """A chirp-ID and an ETFE session of the simulator: the records every analysis writes."""
@@ -308,15 +329,16 @@ def real_items(tmp_path_factory):
     return [items_of(list(read_session(p))) for p in paths]
 
 
-def _report_content(tmp_path, real_items, every: int) -> tuple[int, list[str]]:
-    """Build the report of every ``every``-th type-mutated session in this process (the
+def _report_content(tmp_path, real_items, every: int,
+                    mutations=type_mutations) -> tuple[int, list[str]]:
+    """Build the report of every ``every``-th mutated session in this process (the
     content, where a record's fields are read; the rendering takes only what it built)."""
     from labbench.errors import LabbenchError
     from labbench.report.content import build
 
     n, failures = 0, []
     for items in real_items:
-        for k, (name, mutated) in enumerate(type_mutations(items)):
+        for k, (name, mutated) in enumerate(mutations(items)):
             if k % every:
                 continue
             path = write_chunks(tmp_path / "case.lbsession", mutated)
@@ -334,14 +356,128 @@ def test_report_content_of_type_mutated_sessions_sample(tmp_path, real_items):
     """Every 13th case (all six types and every record kind appear); -m slow: all of them."""
     n, failures = _report_content(tmp_path, real_items, every=13)
     print(f"\nreport content: {n} type-mutated sessions")
-    assert n > 120 and failures == []
+    assert n > 180 and failures == []
 
 
 @pytest.mark.slow
 def test_report_content_of_type_mutated_sessions_all(tmp_path, real_items):
     n, failures = _report_content(tmp_path, real_items, every=1)
     print(f"\nreport content: {n} type-mutated sessions")
-    assert n > 1500 and failures == []
+    assert n > 2500 and failures == []
+
+
+def test_report_content_of_sessions_missing_keys_sample(tmp_path, real_items):
+    """Every 7th removed key (every record kind appears); -m slow: all of them."""
+    n, failures = _report_content(tmp_path, real_items, every=7, mutations=key_removals)
+    print(f"\nreport content: {n} sessions missing a key")
+    assert n > 60 and failures == []
+
+
+@pytest.mark.slow
+def test_report_content_of_sessions_missing_keys_all(tmp_path, real_items):
+    n, failures = _report_content(tmp_path, real_items, every=1, mutations=key_removals)
+    print(f"\nreport content: {n} sessions missing a key")
+    assert n > 450 and failures == []
+
+
+def _load_api(path) -> str | None:
+    """``labbench.load`` and what it offers without an analysis: a LabbenchError is its one
+    clear error; anything else escaping is what the fuzzing looks for."""
+    import labbench
+    from labbench.errors import LabbenchError
+
+    try:
+        session = labbench.load(path)
+        repr(session)
+        session.to_dataframe()
+    except LabbenchError:
+        pass
+    except Exception as exc:  # noqa: BLE001
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def _every_reader(tmp_path, real_items, mutations, every: int) -> tuple[int, Tally, list]:
+    """Every ``every``-th mutated session through the CLI's readers and ``labbench.load``."""
+    tally, loads, n = Tally(), [], 0
+    out = tmp_path / "out"
+    out.mkdir()
+    for items in real_items:
+        for k, (name, mutated) in enumerate(mutations(items)):
+            if k % every:
+                continue
+            n += 1
+            path = write_chunks(tmp_path / "case.lbsession", mutated)
+            for entry, argv in READERS.items():
+                if entry == "replay --speed 1000":
+                    continue  # paced: the same reading as replay, seconds per case
+                tally.add(entry, run_cli(argv(path, out)))
+                for f in out.iterdir():
+                    f.unlink()
+            if (problem := _load_api(path)) is not None:
+                loads.append(f"{name}: {problem}")
+    print(f"\n{n} sessions\n" + tally.report())
+    return n, tally, loads
+
+
+def test_every_reader_of_sessions_missing_keys_sample(tmp_path, real_items):
+    n, tally, loads = _every_reader(tmp_path, real_items, key_removals, every=17)
+    assert n > 25 and tally.failures == [] and loads == []
+
+
+def test_every_reader_of_type_mutated_sessions_sample(tmp_path, real_items):
+    n, tally, loads = _every_reader(tmp_path, real_items, type_mutations, every=97)
+    assert n > 25 and tally.failures == [] and loads == []
+
+
+@pytest.mark.parametrize("record, path, value", [
+    *[("start", ("protocol", key), value) for key in ("K", "B", "w0_rad_s", "td_s",
+                                                       "sample_time_s")
+      for value in ("x", [1], {"x": 1})],
+    ("descriptor", ("channels", "position"), {"x": 1}),
+    ("descriptor", ("channels", "command"), None),
+])
+def test_what_the_type_fuzz_found(tmp_path, real_items, record, path, value):
+    """Tracebacks the full corpus found in analyze, export and labbench.load: a start record
+    whose protocol numbers are not numbers (float() of a list), a descriptor whose channel
+    unit is not text (HDF5 has no type for it)."""
+    items = copy.deepcopy(real_items[1])
+    (head,) = [h for h, _ in items if h.get("kind") == record]
+    head[path[0]][path[1]] = value
+    session = write_chunks(tmp_path / "case.lbsession", items)
+    tally = Tally()
+    for entry, argv in READERS.items():
+        if entry != "replay --speed 1000":
+            tally.add(entry, run_cli(argv(session, tmp_path)))
+    assert tally.failures == [] and _load_api(session) is None
+
+
+@pytest.mark.slow
+def test_every_reader_of_sessions_missing_keys_all(tmp_path, real_items):
+    n, tally, loads = _every_reader(tmp_path, real_items, key_removals, every=1)
+    assert n > 450 and tally.failures == [] and loads == []
+
+
+@pytest.mark.slow
+def test_every_reader_of_type_mutated_sessions_all(tmp_path, real_items):
+    n, tally, loads = _every_reader(tmp_path, real_items, type_mutations, every=1)
+    assert n > 2500 and tally.failures == [] and loads == []
+
+
+def test_report_of_a_precheck_without_its_ve(tmp_path, real_items):
+    """The issue's traceback (KeyError 've' in the pre-check table): the report is written,
+    the check is left out and page 1 names it; a VE dict the VE cannot take is left out of the
+    table with a note."""
+    for change, named in ((lambda c: c.pop("ve"), "element(s) not an object with ve"),
+                          (lambda c: c["ve"].update(x=1), "left out: not a valid VE")):
+        items = copy.deepcopy(real_items[1])  # the ETFE
+        (head,) = [h for h, _ in items if h.get("kind") == "start"]
+        change(head["precheck"]["checks"][0])
+        session = write_chunks(tmp_path / "case.lbsession", items)
+        o = run_cli(["report", session, "-o", tmp_path / "r", "--force"], time_limit_s=120)
+        assert o.code == 0 and o.crash is None, (o.err, o.crash)
+        (html,) = (tmp_path / "r").glob("*.html")
+        assert named in html.read_text(encoding="utf-8")
 
 
 @pytest.mark.parametrize("kind, path, value, named", [

@@ -12,6 +12,7 @@ through ``labbench.registry``, never imported here.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -296,9 +297,14 @@ def _precheck_table(s: ReportSession) -> Table | None:
     checks = (s.start.get("precheck") or {}).get("checks")
     if not checks:
         return None
-    rows = []
+    rows, unreadable = [], 0
     for c in checks:
-        ve = VirtualEnvironment.from_dict(c["ve"])
+        try:  # the shape is checked at load (report.shapes); the values are the VE's to judge
+            ve = VirtualEnvironment.from_dict(c["ve"])
+        except (UserError, TypeError) as exc:  # e.g. a key VirtualEnvironment does not take
+            logging.getLogger(__name__).info("precheck VE left out: %s", exc)
+            unreadable += 1
+            continue
         km = c.get("k_max")
         rows.append([ve.kind, fmt(ve.K), fmt(ve.B), fmt(ve.w0) if math.isfinite(ve.w0) else "none",
                      fmt(ve.td * 1e3), fmt(c.get("stable")), fmt(c.get("spectral_radius"), 6),
@@ -310,7 +316,7 @@ def _precheck_table(s: ReportSession) -> Table | None:
         title += f" (m = {plant.m:.4g} kg, b = {plant.b:.4g} N s/m)"
     return Table(title, ["VE", "K (N/m)", "B (N s/m)", "w0 (rad/s)", "td (ms)", "stable",
                          "spectral radius", "K_max exact (N/m)", "K_max paper (N/m)", "K_max / K"],
-                 rows)
+                 rows, note=f"{unreadable} check(s) left out: not a valid VE." if unreadable else "")
 
 
 def overlay_color(s: ReportSession) -> str:

@@ -9,30 +9,37 @@ leaves out what does not have the shape it needs, saying so
 a table.
 
 A shape is ``NUMBER``, ``OPTIONAL`` (a number or null: a fit that gave none),
-``INT`` (or null), ``INTS``/``NUMBERS`` (lists of them), ``list`` or
-``dict`` (any contents), ``{key: shape}`` (an object; the keys listed are checked
-when present, ``"*"`` stands for every key) or ``[shape]`` (a list, each element
-checked).
+``INT`` (or null), ``COUNT`` (a whole number, never null), ``TEXT`` (or null),
+``INTERVAL`` (a list of two numbers or nulls), ``INTS``/``NUMBERS`` (lists of them),
+``list`` or ``dict`` (any contents), ``{key: shape}`` (an object; the keys listed are
+checked when present, ``"*"`` stands for every key, and the keys named under
+``REQUIRED`` must be there: an object without one does not fit) or ``[shape]`` (a list,
+each element checked).
 """
 from __future__ import annotations
 
 NUMBER, OPTIONAL, INT = "number", "number or null", "integer or null"
+COUNT, TEXT, INTERVAL = "whole number", "text or null", "interval [lo, hi]"
 INTS, NUMBERS = [INT], [NUMBER]
+REQUIRED = "required keys"  # in an object's shape: the keys it cannot do without
 
 _PLANT = {"m": NUMBER, "b": NUMBER}  # a model to compute with: both numbers
-_FIT = {"m": OPTIONAL, "b": OPTIONAL, "coulomb": OPTIONAL, "ci95": {"*": list}, "flags": list,
-        "selection": dict, "rms_residual": OPTIONAL, "explained": NUMBER}
+_FIT = {"m": OPTIONAL, "b": OPTIONAL, "coulomb": OPTIONAL, "ci95": {"*": INTERVAL},
+        "flags": list, "selection": dict, "rms_residual": OPTIONAL, "explained": NUMBER,
+        "model": TEXT}
+_VE = {REQUIRED: ("kind",), "kind": TEXT, "K": NUMBER, "B": NUMBER, "w0": OPTIONAL,
+       "T": NUMBER, "td": NUMBER}
 START = {
     "rig": {"sections": {"*": dict}, "sample_time_s": NUMBER},
     "device": {"details": dict},
     "plant": _PLANT,
-    "precheck": {"plant": _PLANT, "checks": [{"ve": dict, "k_max": OPTIONAL,
-                                             "k_max_approx": OPTIONAL}]},
+    "precheck": {"plant": _PLANT, "checks": [{REQUIRED: ("ve",), "ve": _VE,
+                                             "k_max": OPTIONAL, "k_max_approx": OPTIONAL}]},
     "safety": dict,
 }
 _REALTIME = {"affinity": INTS, "refused": list, "unavailable": list, "priority": INT}
 STOP = {
-    "timing": {"T_s": OPTIONAL, "histogram": {"edges_T": NUMBERS, "counts": INTS},
+    "timing": {"T_s": OPTIONAL, "histogram": {"edges_T": NUMBERS, "counts": [COUNT]},
                "worst": dict, "realtime": _REALTIME, "overruns": INT},
     "results": {"plant": _PLANT, "identification": {"*": _FIT}, "etfe": dict,
                 "loop_fit": dict, "theory": dict, "bandwidths": dict},
@@ -41,17 +48,21 @@ STOP = {
 
 def _is(value, leaf: str) -> bool:
     if value is None:
-        return leaf != NUMBER
+        return leaf not in (NUMBER, COUNT, INTERVAL)
     if isinstance(value, bool):
         return False
     if leaf in (NUMBER, OPTIONAL):
         return isinstance(value, (int, float))
-    if leaf == INT:
+    if leaf in (INT, COUNT):
         return isinstance(value, int)
+    if leaf == INTERVAL:
+        return isinstance(value, list) and len(value) == 2 and all(_is(v, OPTIONAL) for v in value)
     return isinstance(value, str)
 
 
 def _kind(shape) -> str:
+    if isinstance(shape, dict) and shape.get(REQUIRED):
+        return f"an object with {', '.join(shape[REQUIRED])}"
     if isinstance(shape, dict) or shape is dict:
         return "an object"
     if isinstance(shape, list) or shape is list:
@@ -60,7 +71,9 @@ def _kind(shape) -> str:
 
 
 def _fits(value, shape) -> bool:
-    if shape is dict or isinstance(shape, dict):
+    if isinstance(shape, dict):
+        return isinstance(value, dict) and all(k in value for k in shape.get(REQUIRED, ()))
+    if shape is dict:
         return isinstance(value, dict)
     if shape is list or isinstance(shape, list):
         return isinstance(value, list)
@@ -73,19 +86,21 @@ def conform(value, shape, where: str, problems: list[str]):
     if isinstance(shape, dict):
         out = dict(value)
         for key, item in list(out.items()):
-            sub = shape.get(key, shape.get("*"))
+            sub = shape.get(key, shape.get("*")) if key != REQUIRED else None
             if sub is None:
                 continue
-            if not _fits(item, sub):
+            if _fits(item, sub):
+                item = conform(item, sub, f"{where}.{key}", problems)
+            if _fits(item, sub):  # again: a required key of the wrong shape is left out
+                out[key] = item
+            else:
                 problems.append(f"{where}.{key}: {type(item).__name__} where {_kind(sub)} is due")
                 del out[key]
-            else:
-                out[key] = conform(item, sub, f"{where}.{key}", problems)
         return out
     if isinstance(shape, list):
         (element,) = shape
-        kept = [conform(v, element, f"{where}[{i}]", problems)
-                for i, v in enumerate(value) if _fits(v, element)]
+        kept = [c for i, v in enumerate(value) if _fits(v, element)
+                and _fits(c := conform(v, element, f"{where}[{i}]", problems), element)]
         if len(kept) < len(value):
             problems.append(f"{where}: {len(value) - len(kept)} element(s) not {_kind(element)}")
         return kept
