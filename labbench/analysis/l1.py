@@ -10,16 +10,21 @@ breakpoints r_i / (X_i u) with weights |X_i u|: a simplex step with exact line
 search, as in Barrodale & Roberts (1973, SIAM J. Numer. Anal. 10:839). In exact
 arithmetic every step lowers the objective, so no basis comes back (no cycling);
 in floating point, residuals within rounding of zero count as ties, and a basis
-that does come back ends the steps. At a tied
-(degenerate) vertex where no edge descends, a small LP over the tied rows
-decides optimality.
+that does come back ends the steps. At a tied (degenerate) vertex, where more
+than p residuals are zero and no edge of the basis descends, a small LP over the
+tied rows (_tied_edge) finds a descending edge of another basis through the same
+point, or proves that none exists (optimal). Without it, near-noise-free records
+(a simulated chirp: residuals of 1e-13 beside forces of 1, ties at every few
+steps) stalled at such vertices.
 
 Start: least squares, a few IRLS steps (weights 1/|r|), then the vertex
 through small residuals whose rows are well apart (_initial_basis). Each step
 costs a few passes over the data, and a handful of steps reach the certified
 optimum, so the answer is the exact LAD vertex (to floating point), not a
-point within a solver tolerance. The full dual LP (HiGHS) is the fallback if
-the steps stall; its vertex is solved exactly and stepped from in turn.
+point within a solver tolerance. If the steps still stall, an LP over a working
+set of rows (_working_set: constraint generation, a few hundred rows, not an LP
+over all n samples, whose cost grew as n^2) takes over, and its vertex is solved
+exactly and stepped from in turn.
 """
 from __future__ import annotations
 
@@ -32,6 +37,7 @@ IRLS_STEPS = 6
 MAX_STEPS = 500
 XI_TOL = 1e-9
 BASIS_TOL = 1e-4  # least new direction a row must bring to the initial basis (columns scaled to max 1)
+WS_ROWS = 32  # rows per parameter in the first working set of the fallback LP
 
 
 def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.ndarray:
@@ -48,15 +54,16 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.nd
         return theta
     theta = np.linalg.lstsq(X, y, rcond=None)[0] if theta0 is None else np.asarray(theta0, float)
     theta = _irls(X, y, theta, IRLS_STEPS)
-    B = _initial_basis(X, np.abs(y - X @ theta))
-    theta = _simplex(X, y, B)
-    return _full_lp(X, y) if theta is None else theta
+    vertex, certified = _simplex(X, y, _initial_basis(X, np.abs(y - X @ theta)))
+    return vertex if certified else _working_set(X, y, theta if vertex is None else vertex)
 
 
 def _simplex(X, y, B):
-    """Descent steps from basis B to the certified optimum (module doc); None if they stall."""
+    """Descent steps from basis B to the certified optimum (module doc): (theta, True), or
+    when they stall (the lowest vertex met or None, False)."""
     seen: set[tuple[int, ...]] = set()
     peak = np.max(np.abs(y)), np.max(np.abs(X), axis=0)
+    best, best_f = None, np.inf
     for _ in range(MAX_STEPS):
         if (key := tuple(sorted(B))) in seen:
             break  # a basis came back: a step "descended" by rounding only
@@ -68,30 +75,35 @@ def _simplex(X, y, B):
             # along an edge "descended" by 1e-16 and the next step came back (cycling)
             _zero_rounding(r, X, y, theta, peak)
             r[B] = 0.0  # exactly, so the basis rows never show up as breakpoints
+            if (f := np.sum(np.abs(r))) < best_f:
+                best, best_f = theta, f
             g = -(np.sign(r) @ X)
             xi = np.linalg.solve(X[B].T, g)
             if np.max(np.abs(xi)) <= 1.0 + XI_TOL:
-                return theta
+                return theta, True
             U = np.linalg.solve(X[B], np.diag(-np.sign(xi)))  # column j: the edge leaving row B[j]
         except np.linalg.LinAlgError:
-            break  # singular basis: leave it to the LP
+            break  # singular basis: leave it to the working-set LP
         tie = r == 0.0
         tie[B] = False
         # slope of the objective along each edge at t = 0+: 1 - |xi_j|, plus |X_i u| for each
         # other zero residual (sign(0) = 0 left it out of xi); ties make a degenerate vertex
         slope = 1.0 - np.abs(xi) + np.abs(X[tie] @ U).sum(axis=0)
         j = int(np.argmin(slope))
-        if slope[j] >= -XI_TOL:  # no edge of this basis descends
-            if _certified(X, B, tie, g):
-                return theta
-            break  # a degenerate vertex that needs non-descending pivots: the LP does it
-        a = X @ U[:, j]
-        i_new = _line_search(r, a, -slope[j] / 2.0)
+        if slope[j] < -XI_TOL:
+            keep, u, need = np.delete(B, j), U[:, j], -slope[j] / 2.0
+        else:  # no edge of this basis descends: at a tied vertex another basis's edge may
+            edge = _tied_edge(X, B, tie, g)
+            if edge is None:
+                return theta, True  # certified: zero is in the subdifferential
+            if not edge:
+                break
+            keep, u, need = edge
+        i_new = _line_search(r, X @ u, need)
         if i_new < 0:
             break  # no breakpoint ahead: the basis solve overflowed (inf/nan residuals)
-        B = B.copy()
-        B[j] = i_new
-    return None
+        B = np.append(keep, i_new)
+    return best, False
 
 
 def _zero_rounding(r, X, y, theta, peak):
@@ -186,13 +198,64 @@ def _line_search(r, a, need):
         k *= 4
 
 
-def _certified(X, B, tie, g) -> bool:
-    """Optimality at a degenerate vertex: signs s in [-1, 1] for all zero residuals
-    (basis and ties) with sum_i s_i X_i = g, i.e. zero in the subdifferential.
-    A feasibility LP over those few rows (HiGHS)."""
-    T = np.r_[B, np.flatnonzero(tie)]
-    res = optimize.linprog(np.zeros(len(T)), A_eq=X[T].T, b_eq=g, bounds=(-1, 1), method="highs")
-    return res.status == 0
+def _tied_edge(X, B, tie, g):
+    """At a tied (degenerate) vertex, whose zero residuals Z (basis and ties) outnumber p:
+    a descending edge, or None when there is none (the vertex is optimal).
+
+    Along a direction u the objective changes at the rate g.u + sum_Z |X_i u|. The small LP
+    min sum_Z |X_i u| s.t. g.u = -1 (HiGHS, over the rows of Z only) finds the steepest
+    such direction; its minimum >= 1 means no direction descends (its dual is zero in the
+    subdifferential: signs in [-1, 1] on Z with sum s_i X_i = g). Its vertex keeps p - 1
+    rows of Z at zero: an edge, recomputed exactly as the null vector of those rows.
+    Returns (the p - 1 rows kept, u, need) for the line search, None when certified, or ()
+    when no edge can be trusted (the LP's or the edge's numbers at rounding level).
+    """
+    Z = np.r_[B, np.flatnonzero(tie)]
+    p, nz = X.shape[1], len(Z)
+    if not np.any(g):
+        return None
+    scale = np.max(np.abs(X[Z]), axis=0)
+    scale[scale == 0] = 1.0
+    XZ = X[Z] / scale  # columns scaled: HiGHS's tolerances are absolute
+    gs = g / scale
+    gs_norm = np.max(np.abs(gs))
+    # variables (u, t): min sum t s.t. |XZ u| <= t, (gs / |gs|) u = -1
+    A_ub = np.block([[XZ, -np.eye(nz)], [-XZ, -np.eye(nz)]])
+    res = optimize.linprog(np.r_[np.zeros(p), np.ones(nz)], A_ub=A_ub, b_ub=np.zeros(2 * nz),
+                           A_eq=np.r_[gs / gs_norm, np.zeros(nz)][None, :], b_eq=[-1.0],
+                           bounds=[(None, None)] * p + [(0, None)] * nz, method="highs")
+    if res.status != 0:
+        return ()  # numerical trouble: no edge to trust
+    if res.fun >= gs_norm * (1.0 - XI_TOL):
+        return None
+    us = res.x[:p]
+    a = np.abs(XZ @ us) / np.maximum(np.linalg.norm(XZ, axis=1) * np.linalg.norm(us), 1e-300)
+    keep = _independent_rows(XZ, np.argsort(a), p - 1)
+    if keep is None:
+        return ()
+    u = (np.linalg.svd(XZ[keep])[2][-1] if len(keep) else us) / scale  # null vector of the kept rows
+    u *= -np.sign(g @ u) or 1.0
+    slope = g @ u + np.abs(X[Z] @ u).sum()
+    if not slope < -XI_TOL * (np.abs(g) @ np.abs(u)):
+        return ()  # the exact edge does not descend: rounding at the LP's tolerance
+    return Z[keep], u, -slope / 2.0
+
+
+def _independent_rows(A, order, k):
+    """The first k rows of A in ``order`` each with a part outside the span of those before
+    it of at least BASIS_TOL of its norm (Gram-Schmidt, projected twice); None if fewer."""
+    taken, Q = [], np.zeros((0, A.shape[1]))
+    for i in order:
+        if len(taken) == k:
+            break
+        v = A[i]
+        for _ in range(2):
+            v = v - (v @ Q.T) @ Q
+        norm = np.linalg.norm(v)
+        if norm >= BASIS_TOL * np.linalg.norm(A[i]) and norm > 0:
+            taken.append(int(i))
+            Q = np.vstack([Q, v / norm])
+    return np.array(taken, int) if len(taken) == k else None
 
 
 def objective(X, y, theta) -> float:
@@ -217,30 +280,55 @@ def _irls(X, y, theta, steps):
     return theta
 
 
-def _full_lp(X, y):
-    """The dual LP max y.d s.t. X^T d = 0, |d| <= 1 (HiGHS), then its vertex exactly.
+def _working_set(X, y, theta):
+    """LAD from theta when the steps stall, by an LP over a working set S of rows (constraint
+    generation): each round costs a few passes over the data and an LP of |S| rows, never
+    one of all n (which grew as n^2: 19 s at 90 000 samples).
 
-    Solved with y and the columns of X scaled to largest magnitude 1 (LAD is
-    equivariant to both): HiGHS's tolerances are absolute, and with y ~ 6e-8 it
-    answered a dual 50 % off. The equality marginals are theta only to the
-    solver's tolerance, so the rows with |d_i| < 1, the zero residuals
-    (complementary slackness), give a basis that is solved exactly and stepped
-    from; its answer is taken unless it fits worse than the marginals.
+    With the rows outside S held at their signs s_i at theta,
+    f(theta + d) >= sum_S |r_i - X_i d| - c.d + const, c = sum_{i not in S} s_i X_i, with
+    equality while no outside row changes sign; so where the minimiser of that bound changes
+    no outside sign, it minimises f itself. Its dual, max r_S.d s.t. X_S^T d = -c, |d| <= 1,
+    is solved (HiGHS) with the residuals and the columns scaled to largest magnitude 1 (its
+    tolerances are absolute); infeasible means the bound is unbounded below, and S grows.
+    Each round S takes the WS_ROWS x p rows of smallest |r| (doubling every round, so S
+    reaches all rows only if every smaller set fails), the zero residuals and the rows
+    whose sign changed. The equality marginals are the step only to the solver's
+    tolerance, so the vertex through the rows of S it fits best is solved exactly and
+    stepped from; its answer is taken unless it fits worse.
     """
-    ys = np.max(np.abs(y)) or 1.0
+    n, p = X.shape
     xs = np.max(np.abs(X), axis=0)
     xs[xs == 0] = 1.0
-    res = optimize.linprog(-y / ys, A_eq=(X / xs).T, b_eq=np.zeros(X.shape[1]), bounds=(-1, 1),
-                           method="highs")
-    if res.status != 0:
-        raise RuntimeError(f"l1 LP failed: {res.message}")
-    theta_lp = -np.asarray(res.eqlin.marginals, float) * ys / xs
-    absr = np.abs(y - X @ theta_lp)
-    absr[np.abs(res.x) >= 1.0 - 1e-7] = np.inf  # |d_i| = 1: not a zero residual, last in the order
-    theta = _simplex(X, y, _initial_basis(X, absr))
-    if theta is None or not np.all(np.isfinite(theta)) or objective(X, y, theta) > objective(X, y, theta_lp):
-        return theta_lp
-    return theta
+    r = y - X @ theta
+    f = np.sum(np.abs(r))
+    S = np.zeros(n, bool)
+    k = min(n, WS_ROWS * p)
+    while True:
+        S[np.argpartition(np.abs(r), k - 1)[:k] if k < n else slice(None)] = True
+        S |= r == 0.0  # a zero residual outside S would be left out of the bound
+        s = np.where(S, 0.0, np.sign(r))
+        rs = np.max(np.abs(r[S])) or 1.0
+        res = optimize.linprog(-r[S] / rs, A_eq=(X[S] / xs).T, b_eq=-(s @ X) / xs, bounds=(-1, 1),
+                               method="highs")
+        if res.status == 0:
+            step = -np.asarray(res.eqlin.marginals, float) * rs / xs
+            r_new = y - X @ (theta + step)
+            flipped = s * r_new < 0
+            if (f_new := np.sum(np.abs(r_new))) <= f:
+                theta, r, f = theta + step, r_new, f_new
+            if not flipped.any():
+                break
+            S |= flipped
+        elif k == n:
+            raise RuntimeError(f"l1 LP failed: {res.message}")
+        k = min(n, 2 * k)
+    absr = np.abs(r)
+    absr[~S] = np.inf  # outside rows are not zero residuals: last in the order
+    vertex, _ = _simplex(X, y, _initial_basis(X, absr))
+    if vertex is None or not np.all(np.isfinite(vertex)) or objective(X, y, vertex) > f:
+        return theta
+    return vertex
 
 
 def lad_cvxpy(X, y) -> np.ndarray:
