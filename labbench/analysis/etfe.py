@@ -46,7 +46,11 @@ LPM_GROUPS = (12, 40)  # half-width limits (bins) of the groups of bands fitted 
 LPM_BIAS_SCREEN = 0.1  # a band is tested for bias when its estimated bias could exceed this x se
 LPM_NARROWING = 4  # each Lepski step divides the half-width by this (4: two steps from 100 bins to 6)
 CURVATURE_SIGNIFICANT = float(np.log(1e4))  # 1e-4 false alarms per band
+# a fit's expectation of the paper estimate takes the model at PAPER_NODES runs of each
+# window's bins, each run within PAPER_NODE_SPAN relative width (every bin at the low end)
+PAPER_NODES, PAPER_NODE_SPAN = 16, 0.02
 WELCH_SEGMENT = 2**14
+HANN_INDEPENDENT = 3  # bins between uncorrelated Hann-tapered DFT coefficients
 LOW_COHERENCE = 0.8
 # near a sharp resonance Z changes by more than its own band from bin to bin and a local
 # model's bias is not in the band: measured 20-28 % errors with 9-11 % bands at gamma^2
@@ -56,6 +60,19 @@ W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
 LITTLE_EXCITATION = 1e-3  # force power relative to its in-band median
 QUANT_SNR = 0.01  # quantisation noise power relative to position power
 LEAKAGE = 0.1  # edge-leakage amplitude relative to |X| that counts as drift
+
+
+@dataclass
+class FitPoints:
+    """What a model fitted to an estimate (``labbench.analysis.loopfit``) compares, at the
+    frequencies ``w[idx]`` of the result: the estimate there, its standard error, and the
+    estimator's expectation of it given a model of the truth."""
+
+    idx: np.ndarray  # indices into EtfeResult.w
+    Z_se: np.ndarray  # standard error of Z at them
+    # (model: w -> Z, sel) -> the expected estimate at idx[sel] when the truth is model;
+    # None: the model itself (an unbiased estimator with no smoothing the model must follow)
+    expect: Callable | None = None
 
 
 @dataclass
@@ -80,6 +97,8 @@ class EtfeResult:
     # relative upward bias of Z that force-sensor noise could cause, (1 - g^2) / g^2, per
     # frequency; 0 where the record's force is the command itself (``force_is_command``)
     eiv_bound: np.ndarray | None = field(default=None, repr=False)
+    # (mask of usable frequencies) -> FitPoints; None: every usable frequency, Z_se, the model
+    fit_points: Callable[[np.ndarray], FitPoints] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         eff = effective_impedances(self.w, self.Z)
@@ -157,7 +176,85 @@ def _paper(F, X, dw, window) -> EtfeResult:
     coh = np.clip(np.abs(Sfx) ** 2 / (Sff * Sxx), 0, 1)
     n_eff = h.sum() ** 2 / np.sum(h**2)
     se, err = _h1_err(Z, coh, n_eff)
-    return EtfeResult("paper", w, Z, coh, err, se, coh < LOW_COHERENCE, window=window)
+    return EtfeResult("paper", w, Z, coh, err, se, coh < LOW_COHERENCE, window=window,
+                      fit_points=lambda use: _paper_fit_points(use, F, X, raw, Z, dw, h))
+
+
+def _paper_fit_points(use, F, X, raw, Z, dw, h) -> FitPoints:
+    """The paper estimate as a fit should read it (``FitPoints``).
+
+    Its smoothing makes neighbouring bins share raw ratios, so a fit takes the centres of
+    windows that do not overlap (at least the window apart, and GRID_PER_DECADE per decade
+    at most): independent points, as many as the data resolve. Two things make the
+    estimate differ from the truth Z where the model must follow them:
+
+    * the window's average: E[Z_hat(k)] is the weighted mean of the expected raw ratios
+      over the window (at the low end of a record they change by far more than the noise
+      over a window: K / (jw) across 0.05-10 rad/s);
+    * noise on the position: for X_j = G F_j + N_j, N_j circular Gaussian of power s^2,
+      E[F_j / (jw X_j)] = Z (1 - exp(-|G F_j|^2 / s^2)) (the mean of the reciprocal of a
+      noncentral complex Gaussian), which averages to gamma^2 Z over a random excitation:
+      the raw ratio is biased low by the incoherent share (on a 2-min simulated record
+      -16 % at gamma^2 0.8-0.9, -0.4 % above 0.99; the loop fit read that as a misfit,
+      chi^2/dof 3.2e3). s^2 is what the model leaves of the position over the window,
+      sum_j w_j |X_j - G F_j|^2 (leakage included: to the ratio it is noise like any other).
+
+    The model is evaluated at the weighted mean frequency of each run of a window's bins
+    (PAPER_NODES runs, each also within PAPER_NODE_SPAN relative width: at the record's low
+    end every bin), the attenuation bin by bin with the known F_j. The standard error is
+    the window's weights applied to the raw ratios' spread about the estimate,
+    sqrt(sum_j w_j^2 |raw_j - Z_hat_j|^2).
+    """
+    L, n = len(h), len(raw)
+    centres = _spaced(np.flatnonzero(use), L)
+    # Z_hat[i] = sum_m h[m] raw[i + c - m] / (sum of h over bins that exist): oaconvolve "same"
+    m = np.arange(L)
+    j = centres[:, None] + (L - 1) // 2 - m[None, :]
+    win, col = np.nonzero((j >= 0) & (j < n))  # flat: window, column (windows never overlap)
+    j = j[win, col]
+    wts = h[col] / np.bincount(win, h[col])[win]
+    se = np.sqrt(np.bincount(win, wts**2 * np.abs(raw[j] - Z[j]) ** 2, len(centres)))
+    bins = j + 1.0
+    # runs: a new node where the uniform block or the relative-width block changes
+    key = np.stack([win, m[col] * PAPER_NODES // L,
+                    np.floor(np.log(bins) / np.log1p(PAPER_NODE_SPAN)).astype(int)], axis=1)
+    _, node = np.unique(key, axis=0, return_inverse=True)
+    node = node.ravel()
+    wsum = np.bincount(node, wts)
+    w_node = np.bincount(node, wts * bins) / np.where(wsum > 0, wsum, 1.0) * dw
+    node_win = np.zeros(len(w_node), int)
+    node_win[node] = win
+    Fj, Xj = F[j + 1], X[j + 1]
+    tiny = np.finfo(float).tiny
+
+    def expect(model, sel=slice(None)):
+        Gn = 1.0 / (1j * w_node * model(w_node))
+        GF = Gn[node] * Fj
+        # what the model leaves of the position is its noise
+        s2 = np.bincount(win, wts * np.abs(Xj - GF) ** 2, len(centres))
+        att = -np.expm1(-np.abs(GF) ** 2 / np.maximum(s2[win], tiny))
+        per_node = np.bincount(node, wts * att, len(w_node))
+        zn = per_node / (1j * w_node * Gn)
+        return (np.bincount(node_win, zn.real, len(centres))
+                + 1j * np.bincount(node_win, zn.imag, len(centres)))[sel]
+
+    return FitPoints(centres, se, expect)
+
+
+def _spaced_points(use, se, gap) -> FitPoints:
+    idx = _spaced(np.flatnonzero(use), gap)
+    return FitPoints(idx, se[idx])
+
+
+def _spaced(idx: np.ndarray, gap: int) -> np.ndarray:
+    """Increasing indices from ``idx``, each at least ``gap`` and a GRID_PER_DECADE step of the
+    log grid after the one before (indices are bins - 1)."""
+    out, step = [], 10 ** (1 / GRID_PER_DECADE)
+    i = 0
+    while i < len(idx):
+        out.append(int(idx[i]))
+        i = int(np.searchsorted(idx, max(idx[i] + gap, np.ceil((idx[i] + 1) * step) - 1)))
+    return np.array(out, int)
 
 
 def radius95(dof) -> np.ndarray:
@@ -193,7 +290,10 @@ def _h1_welch(f, x, fs) -> EtfeResult:
     coh = np.clip(np.abs(Sfx[k]) ** 2 / (Sff[k] * Sxx[k]), 0, 1)
     n_seg = max(1, 2 * len(f) // nper - 1)
     se, err = _h1_err(Z, coh, n_seg)
-    return EtfeResult("h1-welch", w, Z, coh, err, se, coh < LOW_COHERENCE)
+    # a fit takes bins HANN_INDEPENDENT apart (Hann-tapered DFT coefficients of white noise
+    # correlate -2/3 at one bin, 1/6 at two, 0 at three), at most GRID_PER_DECADE per decade
+    return EtfeResult("h1-welch", w, Z, coh, err, se, coh < LOW_COHERENCE,
+                      fit_points=lambda use: _spaced_points(use, se, HANN_INDEPENDENT))
 
 
 @functools.lru_cache(maxsize=8)

@@ -24,13 +24,17 @@ Weighted complex least squares (``scipy.optimize.least_squares``, trust region w
 bounds m > 0, b >= 0, delays >= 0) in the form the ETFE estimates, G = X / F =
 1 / (jw Z): residual ``(G - G_model) / se_G`` at every estimated frequency with
 coherence >= 0.8 below FIT_W_MAX x Nyquist, se_G the ETFE's standard error of G (it
-does not follow the estimate's own error, as weights from |Z| would). The phase of a
+does not follow the estimate's own error, as weights from |Z| would). An estimator that
+smooths bin by bin (``paper``, ``h1-welch``) names its independent subset of those and,
+where it is biased, its expectation given the model (``etfe.FitPoints``): G_model is then
+that expectation's. The phase of a
 delay wraps, so the cost has local minima in the delays: each model starts from the
 best points of a grid over 0-DELAY_GRID_MAX samples (quarter samples), refined
 locally; the lowest refined cost wins, so a bound of the start is never the answer.
 
 95 % intervals (``_spread``): sandwich covariance with the ETFE's own correlation of
-its errors between the frequencies (neighbouring bands share DFT bins), scaled by
+its errors between the frequencies (neighbouring bands share DFT bins; else an AR(1)
+from the residuals, applied in O(n)), scaled by
 chi^2/dof (a misfit widens them), ``theta +- t(0.975, dof) * se``; a delay's and b's
 interval is cut at 0. Force-sensor noise (errors in the variables) scales the
 estimated Z up by 1 + S_nn/S_ff, at most the ETFE's ``eiv_bound`` (from the coherence;
@@ -52,10 +56,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, signal, stats
 
 from labbench import theory, verdict
-from labbench.analysis.etfe import EtfeResult
+from labbench.analysis.etfe import EtfeResult, FitPoints
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -70,6 +74,7 @@ CV_FOLDS, MIN_GAIN_SE, MIN_GAIN_REL = 5, 2.0, 0.005
 # chi2/dof is ~1 for a good fit: issue 24's 164 good fits had <= 1.5, its 60 wrong ones >= 4.8
 CHI2_FAILED = 4.0
 RHO_DOUBTFUL = 0.6  # lag-one residual correlation beyond the ETFE bands' own overlap
+RHO_MAX = 0.999  # an estimated AR(1) correlation is capped below 1 (its whitening divides by 1 - rho^2)
 M_TOLERANCE, B_TOLERANCE, TD_TOLERANCE_S = 0.02, 0.05, 5e-5  # issue 24's accuracy targets
 
 
@@ -115,6 +120,7 @@ class _Problem:
     start: Plant
     fit_ve: bool
     R: np.ndarray | None = None  # correlation of the ETFE's errors between the frequencies
+    expect: object = None  # the estimator's expectation of Z given the model (FitPoints.expect)
 
     def __post_init__(self):
         # fitted as the ETFE estimates it, G = X / F = 1 / (jw Z), whose standard error does
@@ -122,9 +128,9 @@ class _Problem:
         self.G = 1.0 / (1j * self.w * self.Z)
         self.G_se = self.Z_se / (self.w * np.abs(self.Z) ** 2)
 
-    def residual(self, model: str, theta: np.ndarray, use=slice(None)) -> np.ndarray:
+    def residual(self, model: str, theta: np.ndarray, use=slice(None), coarse: bool = False) -> np.ndarray:
         """Standardised complex residual of the measured G against the model's."""
-        Gm = 1.0 / (1j * self.w[use] * self.model(model, theta, use))
+        Gm = 1.0 / (1j * self.w[use] * self.model(model, theta, use, coarse))
         return (self.G[use] - Gm) / self.G_se[use]
 
     def names(self, model: str) -> list[str]:
@@ -136,24 +142,28 @@ class _Problem:
              "td_s": self.ve.T, "tv_s": self.ve.T, "K": max(self.ve.K, 1.0), "B": max(self.ve.B, 1e-2)}
         return np.array([s[k] for k in self.names(model)])
 
-    def model(self, model: str, theta: np.ndarray, use=slice(None)) -> np.ndarray:
+    def model(self, model: str, theta: np.ndarray, use=slice(None), coarse: bool = False) -> np.ndarray:
+        """The model's Z as the estimator would show it at the frequencies ``use`` (its
+        expectation, ``etfe.FitPoints``); ``coarse``: the model's Z itself (the delay grid)."""
         p = dict(zip(self.names(model), theta))
         ve = self.ve.with_(K=p["K"], B=p["B"]) if self.fit_ve else self.ve
         tv = p.get("tv_s", self.ve.td)
-        return theory.z_sampled(Plant(p["m"], p["b"]), ve, self.w[use], latency=p.get("td_s", 0.0),
-                                ve_delay=tv)
+
+        def z(w):
+            return theory.z_sampled(Plant(p["m"], p["b"]), ve, w, latency=p.get("td_s", 0.0), ve_delay=tv)
+        return z(self.w[use]) if self.expect is None or coarse else self.expect(z, use)
 
     def fit(self, model: str, use=slice(None), starts=None):
         """Best refined fit of one delay model on the frequencies ``use``: (result, scale)."""
         scale = self.scale(model)
         names = self.names(model)
 
-        def residual(p):
-            r = self.residual(model, p * scale, use)
+        def residual(p, coarse=False):
+            r = self.residual(model, p * scale, use, coarse)
             return np.concatenate([r.real, r.imag])
 
         if starts is None:
-            starts = self._grid_starts(model, residual, scale)
+            starts = self._grid_starts(model, lambda p: residual(p, coarse=True), scale)
         # the ranges Plant and VirtualEnvironment accept, in scaled units
         lo_hi = {"m": (1e-6, 1e3), "b": (0.0, 1e4), "td_s": (0.0, 1.0), "tv_s": (0.0, 1.0),
                  "K": (0.0, 1e7), "B": (0.0, 1e5)}
@@ -211,8 +221,15 @@ def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool
     if use.sum() < MIN_POINTS:
         raise UserError(f"only {int(use.sum())} coherent frequencies between {W_MIN:g} and "
                         f"{w_max:.4g} rad/s: not enough to fit the loop (need {MIN_POINTS})")
-    R = res.error_corr()[np.ix_(use, use)] if res.error_corr is not None else None
-    prob = _Problem(res.w[use], res.Z[use], res.Z_se[use], ve, start, fit_ve, R)
+    # the points to fit: all usable frequencies, or the estimator's independent subset
+    pts = res.fit_points(use) if res.fit_points is not None else FitPoints(np.flatnonzero(use), res.Z_se[use])
+    if len(pts.idx) < MIN_POINTS:
+        hint = f"; the {res.estimator} estimate's windows of {res.window} bins leave that few " \
+               "independent ones: a smaller --window gives more" if res.window else ""
+        raise UserError(f"only {len(pts.idx)} independent coherent frequencies between {W_MIN:g} and "
+                        f"{w_max:.4g} rad/s: not enough to fit the loop (need {MIN_POINTS}){hint}")
+    R = res.error_corr()[np.ix_(pts.idx, pts.idx)] if res.error_corr is not None else None
+    prob = _Problem(res.w[pts.idx], res.Z[pts.idx], pts.Z_se, ve, start, fit_ve, R, pts.expect)
     if ve.kind == "none":
         selection = {"model": "common", "reason": "no VE: only the common latency acts"}
     elif delay_model != "auto":
@@ -226,7 +243,7 @@ def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool
     names = prob.names(model)
     theta, half, chi2, rho, _ = _spread(best, scale, prob.R)
     n = len(prob.w)
-    bound = res.eiv_bound[use] if res.eiv_bound is not None else np.zeros(len(prob.w))
+    bound = res.eiv_bound[pts.idx] if res.eiv_bound is not None else np.zeros(len(prob.w))
     shift = _eiv_shift(prob, best, scale, bound)
     ci = _intervals(names, theta, half, shift)
     if losses is not None:
@@ -297,9 +314,11 @@ def _spread(best, scale, R: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, 
     imaginary standardised errors (0.5 [[Re R, -Im R], [Im R, Re R]] for circular complex
     errors of correlation R), chi2 = sum |r|^2 / (n - p/2) (1 when the ETFE's errors are
     right and the model fits; a misfit widens the intervals). Without the ETFE's own R, an
-    AR(1) correlation rho^|i-l| from the residuals' lag-one correlation. The t quantile has
-    the dof of n_eff = n^2 / sum |R|^2 independent frequencies. Structure: the lag-one
-    correlation of the residuals whitened by R (0 when the errors are as the ETFE says).
+    AR(1) correlation rho^|i-l| from the residuals' lag-one correlation, applied by recursion
+    (``_ar1``: O(n); as a matrix it took n^2 memory, 7.5 GB on the paper estimate's bins).
+    The t quantile has the dof of n_eff = n^2 / sum |R|^2 independent frequencies.
+    Structure: the lag-one correlation of the residuals whitened by R (0 when the errors
+    are as the ETFE says).
     """
     theta = best.x * scale
     J = best.jac / scale  # d residual / d theta
@@ -307,18 +326,29 @@ def _spread(best, scale, R: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, 
     r = best.fun[:n] + 1j * best.fun[n:]
     chi2 = float(np.sum(np.abs(r) ** 2) / max(n - p / 2, 1))
     if R is None:
-        rho = max(_lag1(r), 0.0)
-        idx = np.arange(n)
-        R = rho ** np.abs(idx[:, None] - idx[None, :]).astype(float)
-    C = 0.5 * np.block([[R.real, -R.imag], [R.imag, R.real]])
+        rho = min(max(_lag1(r), 0.0), RHO_MAX)
+        CJ = 0.5 * np.concatenate([_ar1(rho, J[:n]), _ar1(rho, J[n:])])
+        lags = np.arange(1, n)
+        n_eff = n**2 / float(n + 2 * np.sum((n - lags) * rho ** (2.0 * lags)))
+        white = np.concatenate([r[:1], (r[1:] - rho * r[:-1]) / math.sqrt(1 - rho**2)])
+    else:
+        C = 0.5 * np.block([[R.real, -R.imag], [R.imag, R.real]])
+        CJ = np.einsum("kl,lj->kj", C, J)
+        n_eff = n**2 / float(np.sum(np.abs(R) ** 2))
+        white = np.linalg.solve(np.linalg.cholesky(R + 1e-9 * np.eye(n)), r)
     A = np.linalg.pinv(J.T @ J)
     # einsum, not BLAS: the same bits whatever the threads (sweep rows are bit-identical)
-    cov = chi2 * A @ np.einsum("ki,kl,lj->ij", J, C, J) @ A
-    n_eff = n**2 / float(np.sum(np.abs(R) ** 2))
+    cov = chi2 * A @ np.einsum("ki,kj->ij", J, CJ) @ A
     half = stats.t.ppf(0.975, max(2 * n_eff - p, 1)) * np.sqrt(np.maximum(np.diag(cov), 0.0))
-    L = np.linalg.cholesky(R + 1e-9 * np.eye(n))
-    structure = _lag1(np.linalg.solve(L, r))
-    return theta, half, chi2, structure, cov
+    return theta, half, chi2, _lag1(white), cov
+
+
+def _ar1(rho: float, x: np.ndarray) -> np.ndarray:
+    """R x for R_il = rho^|i-l| along axis 0: a forward and a backward first-order recursion
+    (sum_l<=i rho^(i-l) x_l + sum_l>=i rho^(l-i) x_l - x_i)."""
+    fwd = signal.lfilter([1.0], [1.0, -rho], x, axis=0)
+    bwd = signal.lfilter([1.0], [1.0, -rho], x[::-1], axis=0)[::-1]
+    return fwd + bwd - x
 
 
 def _folds(n: int) -> list[np.ndarray]:
