@@ -30,6 +30,11 @@ class RecordingError(LabbenchError):
     message says what was kept. The run stops (the device first) and fails."""
 
 
+class Cancelled(LabbenchError):
+    """An analysis stopped because its cancel event was set (``labbench.analysis.progress``);
+    the CLI treats it as an interrupt."""
+
+
 class DeviceError(LabbenchError):
     """A device did not do what it was asked: root of the device errors."""
 

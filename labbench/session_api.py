@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from labbench import device_delay, records
 from labbench.analysis.dataio import Recording, load_recording
 from labbench.analysis.etfe import EtfeResult
 from labbench.analysis.identify import IdResult
+from labbench.analysis.progress import Progress, Steps
 from labbench.effective import effective_impedances
 from labbench.errors import UserError, missing_extra
 
@@ -93,18 +95,22 @@ class Identification:
 
 def identify_recording(rec: Recording, model: str = "auto", method: str = "l2",
                        cutoff_hz: float | None = None, solver: str = "fast",
-                       force_hold: str | None = None) -> Identification:
+                       force_hold: str | None = None, progress: Progress | None = None,
+                       cancel: threading.Event | None = None) -> Identification:
     """Identify the device from a record: open loop as recorded, closed loop (a VE in the
     metadata) on the force the plant felt (``labbench.analysis.compare.plant_recording``).
     ``force_hold``: "zoh" or "sample" (None: the metadata's, else chosen from the data;
-    ``labbench.analysis.identify``)."""
+    ``labbench.analysis.identify``). ``progress(fraction, phrase)`` hears how far it is;
+    once ``cancel`` is set it raises ``labbench.errors.Cancelled`` within about 0.5 s
+    (``labbench.analysis.progress``)."""
     from labbench.analysis import compare
     from labbench.analysis.identify import identify
 
     plant_rec, ve = compare.plant_recording(rec)
     latency = device_delay.from_meta(rec.meta)
     res = identify(plant_rec, model=model, method=method, cutoff_hz=cutoff_hz, solver=solver,
-                   hold=force_hold, response=None if ve is None else compare.loop_response(rec, ve, latency))
+                   hold=force_hold, response=None if ve is None else compare.loop_response(rec, ve, latency),
+                   progress=progress, cancel=cancel)
     source = "force" if ve is None else f"force minus the {ve.kind} VE force of the metadata"
     if latency:
         source += f", as held after the device delay of {1e3 * latency:.4g} ms"
@@ -222,19 +228,24 @@ class FrequencyResponse:
 
 def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 200,
                    m: float | None = None, b: float | None = None, fit: bool = False,
-                   fit_ve: bool = False) -> FrequencyResponse:
+                   fit_ve: bool = False, progress: Progress | None = None,
+                   cancel: threading.Event | None = None) -> FrequencyResponse:
     """ETFE of a record; with a VE in the metadata, the theory curve and the deviation from
     it, on the device ``m``, ``b`` given (here or in the metadata) or identified from the
     closed-loop record itself (``labbench.analysis.compare``). ``fit``: fit m, b and the
     extra loop delay to Z with the exact sampled model (``labbench.analysis.loopfit``; with
-    ``fit_ve`` the rendered K, B too); the theory then uses the fitted plant and delay."""
+    ``fit_ve`` the rendered K, B too); the theory then uses the fitted plant and delay.
+    ``progress(fraction, phrase)`` hears how far it is; once ``cancel`` is set it raises
+    ``labbench.errors.Cancelled`` within about 0.5 s (``labbench.analysis.progress``)."""
     from labbench.analysis import compare
     from labbench.analysis.etfe import etfe
     from labbench.effective import measured_wb_star
     from labbench.ve import Plant
 
-    res = etfe(rec, estimator, window)
+    steps = Steps(progress, cancel)
     ve = compare.ve_from_meta(rec.meta, rec.fs)
+    etfe_end, ident_end = (0.2, 0.5) if (fit or fit_ve) else (0.2, 0.95)
+    res = etfe(rec, estimator, window, progress=steps.part(0.0, etfe_end), cancel=cancel)
     m = m if m is not None else compare.meta_number(rec.meta, "m")
     b = b if b is not None else compare.meta_number(rec.meta, "b")
     if (m is None) != (b is None):
@@ -245,23 +256,27 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
     if ve is not None:
         source, latency = "given", device_delay.from_meta(rec.meta)
         if m is None:
-            ident = compare.identify_closed_loop(rec, ve, latency=latency)
+            ident = compare.identify_closed_loop(rec, ve, latency=latency,
+                                                 progress=steps.part(etfe_end, ident_end), cancel=cancel)
             m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"
         if fit or fit_ve:
             from labbench.analysis.loopfit import fit_loop
 
-            loop_fit = fit_loop(res, ve, Plant(float(m), float(b)), fit_ve=fit_ve)
+            loop_fit = fit_loop(res, ve, Plant(float(m), float(b)), fit_ve=fit_ve,
+                                progress=steps.part(ident_end, 0.95), cancel=cancel)
             m, b, latency = loop_fit.m, loop_fit.b, loop_fit.td_s
             source = "fitted (with the fitted device latency td)"
             n_tv = round(loop_fit.tv_s / ve.T)
             if loop_fit.tv_s != ve.td and abs(loop_fit.tv_s / ve.T - n_tv) < 0.01:
                 ve = ve.with_(td=n_tv * ve.T)  # the overlay's VE delay line: whole samples only
                 source += f" and VE-path delay {n_tv} samples"
+        steps.report(0.95, "comparing with the theory")
         cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
         cmp["plant_source"] = source
         wb_star = cmp["wb_star"]
     elif m is not None:
         wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
+    steps.report(1.0, "done")
     return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit)
 
 
@@ -296,17 +311,21 @@ class Session:
         return self._recording
 
     def identify(self, model: str = "auto", method: str = "l2", cutoff_hz: float | None = None,
-                 solver: str = "fast", force_hold: str | None = None) -> Identification:
-        """``labbench analyze id`` on this file (same options, same numbers)."""
-        return identify_recording(self.recording, model=model, method=method,
-                                  cutoff_hz=cutoff_hz, solver=solver, force_hold=force_hold)
+                 solver: str = "fast", force_hold: str | None = None,
+                 progress: Progress | None = None, cancel: threading.Event | None = None) -> Identification:
+        """``labbench analyze id`` on this file (same options, same numbers). ``progress``,
+        ``cancel``: as ``identify_recording`` (a progress bar, a Cancel button)."""
+        return identify_recording(self.recording, model=model, method=method, cutoff_hz=cutoff_hz,
+                                  solver=solver, force_hold=force_hold, progress=progress, cancel=cancel)
 
     def etfe(self, estimator: str | None = None, window: int = 200, m: float | None = None,
-             b: float | None = None, fit: bool = False, fit_ve: bool = False) -> FrequencyResponse:
+             b: float | None = None, fit: bool = False, fit_ve: bool = False,
+             progress: Progress | None = None, cancel: threading.Event | None = None) -> FrequencyResponse:
         """``labbench analyze etfe`` on this file (same options, same numbers); ``fit``:
-        ``--fit`` (the loop fit in ``.fit``, its verdict in ``.fit.verdict``)."""
+        ``--fit`` (the loop fit in ``.fit``, its verdict in ``.fit.verdict``). ``progress``,
+        ``cancel``: as ``etfe_recording`` (a progress bar, a Cancel button)."""
         return etfe_recording(self.recording, estimator=estimator, window=window, m=m, b=b,
-                              fit=fit, fit_ve=fit_ve)
+                              fit=fit, fit_ve=fit_ve, progress=progress, cancel=cancel)
 
     def plot(self, path=None, force: bool = False):
         """Position and forces against time; returns the matplotlib Figure (and writes it to

@@ -111,3 +111,96 @@ def test_errors_are_one_line(tmp_path):
     bad.write_text("a,b\n1,2\n")
     with pytest.raises(UserError, match="missing column"):
         labbench.load(bad)
+
+
+# ----------------------------------------------------------------------------- progress, cancel
+class _CountingEvent:
+    """A cancel event that reads as set from its ``at``-th check on (never, when None),
+    counting the checks."""
+
+    def __init__(self, at: int | None = None):
+        self.at, self.calls = at, 0
+
+    def is_set(self) -> bool:
+        self.calls += 1
+        return self.at is not None and self.calls >= self.at
+
+
+ANALYSES = {
+    "etfe paper --fit": lambda s, **kw: s.etfe(estimator="paper", window=20, fit=True, **kw),
+    "etfe lpm --fit": lambda s, **kw: s.etfe(fit=True, **kw),
+    "etfe h1-welch": lambda s, **kw: s.etfe(estimator="h1-welch", **kw),
+    "id l1": lambda s, **kw: s.identify(method="l1", **kw),
+    "id l2 (closed loop)": lambda s, **kw: s.identify(**kw),
+}
+
+
+def _session_for(name, sessions):
+    return labbench.load(sessions["chirp" if name == "id l1" else "etfe"])
+
+
+@pytest.mark.parametrize("name", ANALYSES)
+def test_progress_is_monotone_from_0_to_1_with_phrases(sessions, name):
+    heard = []
+    result = ANALYSES[name](_session_for(name, sessions), progress=lambda f, p: heard.append((f, p)))
+    fractions = [f for f, _ in heard]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and len(heard) >= 4
+    assert all(0.0 <= a <= b <= 1.0 for a, b in zip(fractions, fractions[1:])), fractions
+    assert all(isinstance(p, str) and 0 < len(p) < 60 for _, p in heard)
+    # reporting changes nothing: the same numbers as without a callback
+    plain = ANALYSES[name](_session_for(name, sessions))
+    assert json.dumps(_as_json(plain.as_dict())) == json.dumps(_as_json(result.as_dict()))
+
+
+@pytest.mark.parametrize("name", ANALYSES)
+def test_cancel_stops_at_every_check(sessions, name):
+    # a set event raises Cancelled at whichever check sees it first: from before any work to
+    # the last step (checks counted on a run that is never cancelled)
+    from labbench.errors import Cancelled, LabbenchError
+
+    session = _session_for(name, sessions)
+    count = _CountingEvent()
+    ANALYSES[name](session, cancel=count)
+    assert count.calls >= 4
+    for at in sorted({1, 2, count.calls // 3, count.calls // 2, count.calls - 1, count.calls}):
+        event = _CountingEvent(at)
+        with pytest.raises(Cancelled):
+            ANALYSES[name](session, cancel=event)
+        assert event.calls == at  # stopped at the check that saw it, nothing after
+    assert issubclass(Cancelled, LabbenchError)
+
+
+def test_cancel_with_a_real_event_from_another_thread(sessions):
+    import threading
+
+    from labbench.errors import Cancelled
+
+    session = labbench.load(sessions["etfe"])
+    cancel = threading.Event()
+    outcome = []
+
+    def work():
+        try:
+            session.etfe(estimator="paper", window=20, fit=True, cancel=cancel,
+                         progress=lambda f, p: cancel.set() if f >= 0.5 else None)
+        except Cancelled as exc:
+            outcome.append(exc)
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join(60)
+    assert not t.is_alive() and len(outcome) == 1
+
+
+def test_cli_maps_cancelled_like_an_interrupt(sessions, capsys, monkeypatch):
+    from labbench import session_api
+    from labbench.errors import Cancelled
+
+    def cancelled(*a, **kw):
+        raise Cancelled("analysis cancelled")
+
+    monkeypatch.setattr(session_api, "etfe_recording", cancelled)
+    capsys.readouterr()
+    assert main(["analyze", "etfe", str(sessions["etfe"])]) == 130
+    err = capsys.readouterr().err
+    assert "analysis cancelled" in err and "Traceback" not in err

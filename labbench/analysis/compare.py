@@ -97,11 +97,13 @@ def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | Non
 
 
 def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "l2",
-                         latency: float = 0.0) -> IdResult:
-    """m, b from a closed-loop record (see module doc; ``latency``: the rig's extra delay)."""
+                         latency: float = 0.0, progress=None, cancel=None) -> IdResult:
+    """m, b from a closed-loop record (see module doc; ``latency``: the rig's extra delay;
+    ``progress``, ``cancel``: ``labbench.analysis.progress``)."""
     u = plant_force(rec, ve, latency)
     return identify(recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source),
-                    model="mb", method=method, response=loop_response(rec, ve, latency))
+                    model="mb", method=method, response=loop_response(rec, ve, latency),
+                    progress=progress, cancel=cancel)
 
 
 def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):

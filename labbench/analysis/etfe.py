@@ -24,6 +24,7 @@ low-coherence mask. Flags name the failure modes seen in the data.
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -31,6 +32,7 @@ import numpy as np
 from scipy import fft, signal, special
 
 from labbench.analysis.dataio import Recording, position_quantum
+from labbench.analysis.progress import Progress, Steps
 from labbench.effective import effective_impedances, measured_ws_star
 from labbench.errors import UserError
 from labbench.verdict import BIAS_SE, DOUBTFUL, Verdict, judge
@@ -120,8 +122,12 @@ class EtfeResult:
         }
 
 
-def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> EtfeResult:
-    """Estimate Z(jw) from a recording with the named estimator (default DEFAULT_ESTIMATOR)."""
+def etfe(rec: Recording, estimator: str | None = None, window: int = 200,
+         progress: Progress | None = None, cancel: threading.Event | None = None) -> EtfeResult:
+    """Estimate Z(jw) from a recording with the named estimator (default DEFAULT_ESTIMATOR).
+    ``progress``, ``cancel``: ``labbench.analysis.progress`` (Cancelled once ``cancel`` is set)."""
+    steps = Steps(progress, cancel)
+    steps.report(0.0, "transforming")
     estimator = estimator or DEFAULT_ESTIMATOR
     if estimator not in ESTIMATORS:
         raise UserError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
@@ -134,8 +140,10 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> Etf
         if np.ptp(values) == 0:
             raise UserError(f"{rec.source}: {name} never changes: no frequency response to estimate")
     F = fft.rfft(f)
+    steps.check()
     X = fft.rfft(x)
     dw = 2 * np.pi / (len(f) * T)
+    steps.report(0.3, f"estimating ({estimator})")
     if estimator == "h1-welch":
         res = _h1_welch(f, x, rec.fs)
     else:
@@ -147,8 +155,10 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200) -> Etf
             res = _lpm(F, X, dw)
     coh = np.clip(res.coherence, 1e-12, 1.0)
     res.eiv_bound = np.zeros_like(coh) if force_is_command(rec.meta) else (1 - coh) / coh
+    steps.report(0.9, "checking the estimate")
     res.flags = _flags(res, rec, F, X)
     res.verdict = _verdict(res)
+    steps.report(1.0, "estimated")
     return res
 
 

@@ -60,6 +60,7 @@ with Coulomb friction the fit away from velocity reversals (``_away_from_reversa
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -75,6 +76,7 @@ from labbench.analysis.derivatives import (
     force_band,
     lowpass,
 )
+from labbench.analysis.progress import Progress, Steps
 from labbench.errors import UserError
 from labbench.verdict import BIAS_SE, DOUBTFUL, FAILED, Verdict, judge, unvouched
 
@@ -177,7 +179,8 @@ class _Data:
 
 def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz: float | None = None,
              solver: str = "fast", hold: str | None = None,
-             response: Callable[[float, float], np.ndarray] | None = None) -> IdResult:
+             response: Callable[[float, float], np.ndarray] | None = None,
+             progress: Progress | None = None, cancel: threading.Event | None = None) -> IdResult:
     """Fit the device model to a recording (see module doc).
 
     ``hold``: "zoh" (force held over each sample interval, as a bench command
@@ -186,7 +189,8 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     (``IdResult.force_hold`` says which and why). ``response``: for a closed-loop record
     whose force is what the plant felt (``compare.plant_recording``), ``(m, b) ->`` the
     position the loop would have on its exogenous force alone (``compare.loop_response``):
-    m and b then come from instrumental variables (module doc).
+    m and b then come from instrumental variables (module doc). ``progress``, ``cancel``:
+    ``labbench.analysis.progress`` (Cancelled once ``cancel`` is set).
     """
     if model not in MODEL_CHOICES:
         raise UserError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
@@ -194,13 +198,18 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
         raise UserError(f"unknown method {method!r}; choose l2 or l1")
     if solver not in SOLVERS:
         raise UserError(f"unknown solver {solver!r}; choose fast or cvxpy")
-    fit = _fitter(method, solver)
+    steps = Steps(progress, cancel)
+    fit = _fitter(method, solver, steps.check)
+    steps.report(0.0, "reading how the force was held")
     hold_info = _force_hold(rec, hold, cutoff_hz, method, fit)
+    steps.report(0.3, "derivatives")
     data = _prepare(rec, cutoff_hz, hold_info["value"])
     if not _identifiable(data, "mb"):
         raise UserError(f"{rec.source}: the position hardly moves (x' and x'' are not independent): "
                         "nothing to identify")
+    steps.report(0.35, "selecting the model")
     selection = _select(data, fit, method) if model == "auto" else {"criterion": "given"}
+    steps.report(0.75, "estimating with intervals")
     chosen = selection.get("model", model)
     if not _identifiable(data, chosen):
         raise UserError(f"model {chosen} cannot be identified from this record: the velocity never "
@@ -244,11 +253,13 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     )
     if inst is not None:
         result.selection["estimator"] = "instrumental variables (the loop's response to the exogenous force)"
+    steps.report(0.95, "checking the fit")
     result.flags = _flags(result, data, fit, method, selection)
     if response is not None and method == "l1":
         result.flags.append("closed-loop-l1: the motion of a closed loop follows any force the record "
                             "lacks, which biases l1 (l2 uses instrumental variables against it)")
     result.verdict = _verdict(result, data)
+    steps.report(1.0, "identified")
     return result
 
 
@@ -412,12 +423,17 @@ def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False) -
                  d.cutoff_hz, fs, hold, {"m": enc * d.noise_gain[1] ** 2, "b": enc * d.noise_gain[0] ** 2})
 
 
-def _fitter(method: str, solver: str):
-    if method == "l2":
-        return lambda X, y, theta0=None: np.linalg.lstsq(X, y, rcond=None)[0]
-    if solver == "cvxpy":
-        return lambda X, y, theta0=None: l1.lad_cvxpy(X, y)
-    return l1.lad
+def _fitter(method: str, solver: str, check: Callable[[], None]):
+    """The fit of one design matrix; ``check`` before it (and between l1's steps): it raises
+    to cancel."""
+    if method == "l1" and solver == "fast":
+        return lambda X, y, theta0=None: l1.lad(X, y, theta0, check)
+    solve = ((lambda X, y: np.linalg.lstsq(X, y, rcond=None)[0]) if method == "l2" else l1.lad_cvxpy)
+
+    def fit(X, y, theta0=None):
+        check()
+        return solve(X, y)
+    return fit
 
 
 def _loss(method: str, r: np.ndarray) -> float:

@@ -28,6 +28,8 @@ exactly and stepped from in turn.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import optimize
 
@@ -40,31 +42,40 @@ BASIS_TOL = 1e-4  # least new direction a row must bring to the initial basis (c
 WS_ROWS = 32  # rows per parameter in the first working set of the fallback LP
 
 
-def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None) -> np.ndarray:
+def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None,
+        check: Callable[[], None] | None = None) -> np.ndarray:
     """Exact l1 regression coefficients (see module doc); theta0 is an optional start.
 
-    Columns that are linear combinations of earlier ones get coefficient 0.
+    Columns that are linear combinations of earlier ones get coefficient 0. ``check`` is
+    called between steps (each a few passes over the data): it may raise to stop the fit
+    (``labbench.analysis.progress``).
     """
+    check = check or _no_check
     X = np.asarray(X, float)
     y = np.asarray(y, float)
     keep = _independent_columns(X)
     if len(keep) < X.shape[1]:
         theta = np.zeros(X.shape[1])
-        theta[keep] = lad(X[:, keep], y, None if theta0 is None else np.asarray(theta0)[keep])
+        theta[keep] = lad(X[:, keep], y, None if theta0 is None else np.asarray(theta0)[keep], check)
         return theta
     theta = np.linalg.lstsq(X, y, rcond=None)[0] if theta0 is None else np.asarray(theta0, float)
-    theta = _irls(X, y, theta, IRLS_STEPS)
-    vertex, certified = _simplex(X, y, _initial_basis(X, np.abs(y - X @ theta)))
-    return vertex if certified else _working_set(X, y, theta if vertex is None else vertex)
+    theta = _irls(X, y, theta, IRLS_STEPS, check)
+    vertex, certified = _simplex(X, y, _initial_basis(X, np.abs(y - X @ theta)), check)
+    return vertex if certified else _working_set(X, y, theta if vertex is None else vertex, check)
 
 
-def _simplex(X, y, B):
+def _no_check() -> None:
+    pass
+
+
+def _simplex(X, y, B, check=_no_check):
     """Descent steps from basis B to the certified optimum (module doc): (theta, True), or
     when they stall (the lowest vertex met or None, False)."""
     seen: set[tuple[int, ...]] = set()
     peak = np.max(np.abs(y)), np.max(np.abs(X), axis=0)
     best, best_f = None, np.inf
     for _ in range(MAX_STEPS):
+        check()
         if (key := tuple(sorted(B))) in seen:
             break  # a basis came back: a step "descended" by rounding only
         seen.add(key)
@@ -262,7 +273,7 @@ def objective(X, y, theta) -> float:
     return float(np.sum(np.abs(y - X @ theta)))
 
 
-def _irls(X, y, theta, steps):
+def _irls(X, y, theta, steps, check=_no_check):
     """Iteratively reweighted least squares (weights 1/|r|, floored): a good start.
 
     Weights are relative to the mean |r| and floored at 1e6 (with the median as
@@ -271,6 +282,7 @@ def _irls(X, y, theta, steps):
     which takes a singular matrix (rows at rest) without raising.
     """
     for _ in range(steps):
+        check()
         r = np.abs(y - X @ theta)
         scale = np.mean(r)
         if scale == 0:
@@ -280,7 +292,7 @@ def _irls(X, y, theta, steps):
     return theta
 
 
-def _working_set(X, y, theta):
+def _working_set(X, y, theta, check=_no_check):
     """LAD from theta when the steps stall, by an LP over a working set S of rows (constraint
     generation): each round costs a few passes over the data and an LP of |S| rows, never
     one of all n (which grew as n^2: 19 s at 90 000 samples).
@@ -305,6 +317,7 @@ def _working_set(X, y, theta):
     S = np.zeros(n, bool)
     k = min(n, WS_ROWS * p)
     while True:
+        check()
         S[np.argpartition(np.abs(r), k - 1)[:k] if k < n else slice(None)] = True
         S |= r == 0.0  # a zero residual outside S would be left out of the bound
         s = np.where(S, 0.0, np.sign(r))
@@ -325,7 +338,7 @@ def _working_set(X, y, theta):
         k = min(n, 2 * k)
     absr = np.abs(r)
     absr[~S] = np.inf  # outside rows are not zero residuals: last in the order
-    vertex, _ = _simplex(X, y, _initial_basis(X, absr))
+    vertex, _ = _simplex(X, y, _initial_basis(X, absr), check)
     if vertex is None or not np.all(np.isfinite(vertex)) or objective(X, y, vertex) > f:
         return theta
     return vertex

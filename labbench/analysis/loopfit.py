@@ -53,6 +53,7 @@ record cannot vouch for the number to that accuracy.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,6 +61,7 @@ from scipy import optimize, signal, stats
 
 from labbench import theory, verdict
 from labbench.analysis.etfe import EtfeResult, FitPoints
+from labbench.analysis.progress import Progress, Steps
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -121,6 +123,7 @@ class _Problem:
     fit_ve: bool
     R: np.ndarray | None = None  # correlation of the ETFE's errors between the frequencies
     expect: object = None  # the estimator's expectation of Z given the model (FitPoints.expect)
+    steps: Steps = field(default_factory=Steps)  # checked at every evaluation of the model
 
     def __post_init__(self):
         # fitted as the ETFE estimates it, G = X / F = 1 / (jw Z), whose standard error does
@@ -145,6 +148,7 @@ class _Problem:
     def model(self, model: str, theta: np.ndarray, use=slice(None), coarse: bool = False) -> np.ndarray:
         """The model's Z as the estimator would show it at the frequencies ``use`` (its
         expectation, ``etfe.FitPoints``); ``coarse``: the model's Z itself (the delay grid)."""
+        self.steps.check()
         p = dict(zip(self.names(model), theta))
         ve = self.ve.with_(K=p["K"], B=p["B"]) if self.fit_ve else self.ve
         tv = p.get("tv_s", self.ve.td)
@@ -205,12 +209,16 @@ class _Problem:
 
 
 def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool = False,
-             delay_model: str = "auto") -> LoopFit:
+             delay_model: str = "auto", progress: Progress | None = None,
+             cancel: threading.Event | None = None) -> LoopFit:
     """Fit m, b and the delays (and K, B with ``fit_ve``) to the measured Z (module doc).
 
     ``start``: initial plant (e.g. identified from the record); ``ve``: the VE of the
     metadata; ``delay_model``: one of ``DELAY_MODELS`` or ``auto`` (cross-validated).
+    ``progress``, ``cancel``: ``labbench.analysis.progress`` (Cancelled once ``cancel`` is set).
     """
+    steps = Steps(progress, cancel)
+    steps.report(0.0, "fitting the loop")
     if ve.kind == "none" and fit_ve:
         raise UserError("--fit-ve needs a VE in the metadata (ve=spring, damper or spring-damper)")
     if delay_model not in ("auto", *DELAY_MODELS):
@@ -229,7 +237,7 @@ def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool
         raise UserError(f"only {len(pts.idx)} independent coherent frequencies between {W_MIN:g} and "
                         f"{w_max:.4g} rad/s: not enough to fit the loop (need {MIN_POINTS}){hint}")
     R = res.error_corr()[np.ix_(pts.idx, pts.idx)] if res.error_corr is not None else None
-    prob = _Problem(res.w[pts.idx], res.Z[pts.idx], pts.Z_se, ve, start, fit_ve, R, pts.expect)
+    prob = _Problem(res.w[pts.idx], res.Z[pts.idx], pts.Z_se, ve, start, fit_ve, R, pts.expect, steps)
     if ve.kind == "none":
         selection = {"model": "common", "reason": "no VE: only the common latency acts"}
     elif delay_model != "auto":
@@ -270,6 +278,7 @@ def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool
         chi2_dof=chi2, eiv_bias_bound=float(np.median(bound)), n_freq=n,
         band_rad_s=(float(prob.w[0]), float(prob.w[-1])), Z_model=Zm)
     fit.verdict = _judge(fit, rho, ve, dict(zip(names, shift)))
+    steps.report(1.0, "loop fitted")
     return fit
 
 
@@ -360,11 +369,18 @@ def _folds(n: int) -> list[np.ndarray]:
 def _select(prob: _Problem) -> dict:
     """The delay model by blocked cross-validation over frequency (module doc)."""
     n = len(prob.w)
-    fits = {m: prob.fit(m) for m in DELAY_MODELS}
+    done, total = 0, len(DELAY_MODELS) * (1 + CV_FOLDS)
+    fits = {}
+    for m in DELAY_MODELS:
+        prob.steps.report(done / total, f"fitting the loop ({m} delay model)")
+        fits[m] = prob.fit(m)
+        done += 1
     losses = {}
     for model, (best, scale) in fits.items():
         fold_loss = []
         for test in _folds(n):
+            prob.steps.report(done / total, f"cross-validating the {model} delay model")
+            done += 1
             r, _ = prob.fit(model, ~test, starts=[best.x])
             fold_loss.append(np.mean(np.abs(prob.residual(model, r.x * scale, test)) ** 2))
         losses[model] = np.array(fold_loss)

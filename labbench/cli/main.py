@@ -21,7 +21,7 @@ import sys
 import threading
 
 from labbench import __version__
-from labbench.errors import DeviceError, LabbenchError, UserError, missing_extra
+from labbench.errors import Cancelled, DeviceError, LabbenchError, UserError, missing_extra
 from labbench.interrupts import raising
 from labbench.units import SI, DisplayUnits
 
@@ -76,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     with contextlib.nullcontext() if own else raising():
         try:
             return int(args.func(args) or 0)
+        except Cancelled as exc:  # an analysis asked to stop: as an interrupt
+            print(f"labbench {args.command}: {exc}", file=sys.stderr)
+            return 130
         except LabbenchError as exc:
             print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
             return 1 if isinstance(exc, DeviceError) else 2
