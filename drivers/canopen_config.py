@@ -109,6 +109,7 @@ class CanopenConfig:
     enable_timeout_s: float = 0.5  # OPERATION ENABLED must show in a TPDO within this
     velocity_tpdo_every: int = 1  # a TPDO carrying only 0x606C: every n-th SYNC
     sim_drive: str = "thread"  # sim-canopen: the drive in a "thread" or its own "process"
+    sim_answer_delay_ms: float = 0.0  # sim-canopen: its TPDOs leave this long after the SYNC
     bus_options: dict = field(default_factory=dict)  # passed on to can.Bus
 
     _RANGES = {
@@ -121,7 +122,8 @@ class CanopenConfig:
         "velocity_tpdo_every": (1, 240),
     }
     _CHOICES = {"watchdog": ("auto", "heartbeat", "guarding"), "sim_drive": ("thread", "process")}
-    _NON_NEGATIVE = ("rated_torque_mnm", "torque_constant_nm_per_a", "rated_current_ma")
+    _NON_NEGATIVE = ("rated_torque_mnm", "torque_constant_nm_per_a", "rated_current_ma",
+                     "sim_answer_delay_ms")
 
     @classmethod
     def from_section(cls, section: dict, source: str = "rig") -> "CanopenConfig":

@@ -135,6 +135,8 @@ class CanopenDrive:
         self._mpc = rig.position_per_count  # signed: [rig] position_sign
         self._tpdo_wait = (config.stale_periods * self.T if realtime
                            else config.lockstep_timeout_s)
+        self.timing_log: list | None = None  # labbench.device.TimingProbe (preflight)
+        self._sync_wall = 0.0  # time.time() of the last SYNC sent while timing_log is on
         self._window: tuple[int, int] | None = None  # host-side position window [counts]
         self._guard_life = 0.0  # guarding answers expected within [s] (0: not guarded)
         self._last_answer = 0.0  # perf_counter time of the last node-guarding answer
@@ -802,6 +804,17 @@ class CanopenDrive:
         self._next_tick += self.T
         return due
 
+    stale_periods_max = CanopenConfig._RANGES["stale_periods"][1]
+
+    @property
+    def stale_limit_s(self) -> float:
+        """How long the TPDOs of a SYNC may take (``TimingProbe``; lock-step: its timeout)."""
+        return self._tpdo_wait
+
+    @stale_limit_s.setter
+    def stale_limit_s(self, seconds: float) -> None:
+        self._tpdo_wait = seconds
+
     def _exchange(self, due: float | None, wait: float) -> dict:
         """SYNC (and the heartbeat/guarding request when due), then every TPDO of that SYNC.
 
@@ -814,6 +827,8 @@ class CanopenDrive:
             self._fail("CAN controller is bus-off (error state)")
         self._send(self._sync_msg)
         sent = time.perf_counter()
+        if self.timing_log is not None:
+            self._sync_wall = time.time()
         late = sent - due if due is not None else 0.0
         if late > 0.5 * self.T:
             self.counters["late_syncs"] += 1
@@ -842,11 +857,23 @@ class CanopenDrive:
                                f"expected {dec[0].size}")
                 seen |= dec[2]
                 if seen == self._all_sync:
+                    if self.timing_log is not None:
+                        self._log_cycle(due, sent, msg)
                     return vals
                 continue
             self._dispatch(msg)
             if self._fault:  # EMCY, error frame or NMT change seen while waiting
                 self._fail(self._fault)
+
+    def _log_cycle(self, due: float | None, sent: float, last: can.Message) -> None:
+        """One ``TimingProbe`` row: the round trip on the wire from the last TPDO's own
+        timestamp (the interface's; python-can's clock is ``time.time``) and the SYNC's
+        sending, on that clock."""
+        now = time.perf_counter()
+        sync_wall = self._sync_wall
+        wire = last.timestamp - sync_wall if last.timestamp and sync_wall else math.nan
+        self.timing_log.append((math.nan if due is None else due, sent, now,
+                                wire if 0 <= wire < 60 else math.nan))
 
     def read(self, timeout: float) -> Sample:
         return Sample(*self.read_raw(timeout))

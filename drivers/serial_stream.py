@@ -267,6 +267,8 @@ class SerialStream:
         self._delay = (device_delay_s, device_delay_why)
         self.handshake: dict = {}  # what the handshake discarded (``wait_for_stream``)
         self._estopped = False
+        self.timing_log: list | None = None  # labbench.device.TimingProbe (preflight)
+        self._arrivals: dict = {}  # seq -> (silence began, arrival), while timing_log is on
         self._clock = clock
         self._decoder = StreamDecoder(config, self.T, rig.position_per_count)
         self._ready: deque[Sample] = deque()
@@ -315,6 +317,19 @@ class SerialStream:
 
     def counters(self) -> dict:
         return {**self._decoder.counters(), "stale_trips": self.stale_trips}
+
+    stale_periods_max = 3  # SerialConfig's bound: the sketch's own watchdog is 3 periods
+
+    @property
+    def stale_limit_s(self) -> float:
+        """The longest silence between frames that never faults while enabled
+        (``TimingProbe``): the stale limit and one poll, since what arrives during the poll
+        that crosses the limit is read before silence is judged (``read``)."""
+        return self._stale_s + self._poll_s
+
+    @stale_limit_s.setter
+    def stale_limit_s(self, seconds: float) -> None:
+        self._stale_s = seconds - self._poll_s
 
     def wait_for_stream(self, timeout: float) -> None:
         """Block until the board streams ``SYNC_SAMPLES`` good samples in a row.
@@ -429,6 +444,9 @@ class SerialStream:
         if self._ready:
             s = _with_flags(s, FLAG_BACKLOG)
         self._last_seq = s.seq
+        if self.timing_log is not None and s.seq in self._arrivals:
+            began, arrival = self._arrivals.pop(s.seq)
+            self.timing_log.append((math.nan, began, arrival, math.nan))
         return s
 
     def command(self, force_n: float) -> None:
@@ -541,6 +559,8 @@ class SerialStream:
                 )
                 self._latch(reason)
             self._ready.append(item.sample)
+            if self.timing_log is not None:
+                self._arrivals[item.sample.seq] = (self._last_arrival, arrival)
             self._last_arrival = arrival
         if reason is not None:
             raise DeviceFault(self._fault)

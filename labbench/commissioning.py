@@ -5,7 +5,8 @@ The gate (issue 20): until a rig has passed ``labbench run commission``'s direct
 a VE with K > 0 or B > 0: a flipped sign turns a spring into positive feedback. The
 simulators need no gate; ``--skip-commissioning`` is for people who know their rig.
 
-``write_rig`` puts a commissioning result's ``changes`` into the rig file with
+``write_rig`` (and ``write_tables``, for any table: the timing preflight's limits) puts a
+commissioning result's ``changes`` into the rig file with
 ``tomlkit``, which keeps the user's comments and layout, after copying the old file
 to ``<name>.bak`` (an existing backup is replaced: it is the file as it was just now),
 both through ``labbench.safe_write.edit_text`` (never through a planted link, mode and
@@ -46,28 +47,35 @@ def changes_to_write(results: dict, session: str, when: str) -> dict:
 
 
 def write_rig(path, fields: dict) -> Path | None:
-    """Set ``fields`` in the ``[rig]`` table of the rig file ``path`` (comments, layout,
-    line breaks and mode kept; a link is edited at its real path, as an editor does); the
-    old file goes to ``<real name>.bak`` first (``labbench.safe_write.edit_text``). Returns
+    """Set ``fields`` in the ``[rig]`` table of the rig file ``path`` (``write_tables``)."""
+    return write_tables(path, {"rig": fields})
+
+
+def write_tables(path, tables: dict) -> Path | None:
+    """Set ``{table: {field: value}}`` in the rig file ``path`` (comments, layout, line
+    breaks and mode kept; a link is edited at its real path, as an editor does); the old
+    file goes to ``<real name>.bak`` first (``labbench.safe_write.edit_text``). Returns
     the backup's path, or None when nothing changed. One UserError when the file cannot be
     read or written safely (read-only, a read-only folder, a full disk)."""
     import tomlkit
 
     from labbench.safe_write import edit_text
 
+    tables = {name: fields for name, fields in tables.items() if fields}
+
     def change(text: str) -> str | None:
         try:
             doc = tomlkit.parse(text)
         except tomlkit.exceptions.ParseError as exc:
             raise UserError(f"{path}: not valid TOML: {exc}") from None
-        table = doc.get("rig")
-        if table is None:
-            table = tomlkit.table()
-            doc["rig"] = table
-        if not fields or all(table.get(k) == v for k, v in fields.items()):
+        if all(doc.get(t) is not None and all(doc[t].get(k) == v for k, v in f.items())
+               for t, f in tables.items()):
             return None
-        for k, v in fields.items():
-            table[k] = v
+        for name, fields in tables.items():
+            if doc.get(name) is None:
+                doc[name] = tomlkit.table()
+            for k, v in fields.items():
+                doc[name][k] = v
         return tomlkit.dumps(doc)
 
     return edit_text(path, change, "rig file").backup

@@ -125,3 +125,20 @@ class Enabling(Protocol):
 class StatusReporting(Protocol):
     def status(self) -> DeviceStatus:
         """State, latched fault and link counters, from memory (no bus traffic)."""
+
+
+@runtime_checkable
+class TimingProbe(Protocol):
+    """What a sample's wait is made of, for the timing preflight (``labbench.preflight``).
+
+    ``timing_log``: None (off: nothing recorded, no cost), or a list that gets one
+    ``(due_s, start_s, answer_s, wire_s)`` per sample: when it was due by the device's
+    schedule, when the wait its stale limit measures began (a CANopen SYNC sent; a
+    serial board's previous frame in), when the answer was in the host
+    (``time.perf_counter`` seconds), and the round trip from the frames' own timestamps
+    (NaN where unknown). ``stale_limit_s``: that limit (settable: the preflight relaxes
+    it while it measures); ``stale_periods_max``: the most periods the rig may set."""
+
+    timing_log: list | None
+    stale_limit_s: float
+    stale_periods_max: int

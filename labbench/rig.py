@@ -109,11 +109,11 @@ MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a ri
 
 
 def _tables() -> tuple[str, ...]:
-    """Tables a rig file may hold: [rig], [safety], [realtime], and one per device backend
-    (its name)."""
+    """Tables a rig file may hold: [rig], [safety], [realtime], [preflight] (the timing
+    preflight, ``labbench.preflight``), and one per device backend (its name)."""
     from labbench.registry import device_names  # names only: no backend is imported
 
-    return ("rig", "safety", "realtime", *device_names())
+    return ("rig", "safety", "realtime", "preflight", *device_names())
 
 
 def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
@@ -165,6 +165,9 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     rig = Rig(**common, sections=sections, source=source)
     SafetyConfig.from_rig(rig)  # raises for a bad [safety] table
     RealtimeConfig.from_rig(rig)  # and for a bad [realtime] one
+    from labbench.preflight import PreflightConfig
+
+    PreflightConfig.from_rig(rig)  # and for a bad [preflight] one
     return rig
 
 

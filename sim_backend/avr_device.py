@@ -210,6 +210,15 @@ class AvrBoard:
             proc.kill()
 
 
+def _timer_fits(period_us: int) -> bool:
+    """The sketch's Timer2 takes the period (its #if chain): a multiple of 4 us up to 1024,
+    8 up to 2048 or 16 up to 4096, whose RENDER_DIV-th part is whole timer counts."""
+    for us_per_count in (4, 8, 16):
+        if period_us % us_per_count == 0 and period_us // us_per_count <= 256:
+            return (period_us // us_per_count) % RENDER_DIV == 0
+    return False
+
+
 def firmware_defines(rig, baud: int) -> dict:
     """The sketch settings that follow the rig: its period and baud rate."""
     period_us = rig.sample_time_s * 1e6
@@ -218,6 +227,11 @@ def firmware_defines(rig, baud: int) -> dict:
             f"{rig.source}: avr-sim needs a sample_time_s of whole microseconds >= 100 us, "
             f"got {rig.sample_time_s!r}"
         )
+    if not _timer_fits(round(period_us)):
+        raise UserError(
+            f"{rig.source}: the reference sketch's timer cannot tick every "
+            f"{round(period_us)} us: a multiple of 4 us up to 1024, of 8 up to 2048 or of "
+            f"16 up to 4096, whose fifth is whole timer counts (e.g. 1000, 2000, 4000)")
     return {"PERIOD_US": f"{round(period_us)}UL", "BAUD": f"{baud}UL"}
 
 

@@ -489,6 +489,8 @@ class SimCanopenDrive:
             lo, hi = self._get(0x607D, 1), self._get(0x607D, 2)
             if not lo <= counts <= hi:
                 self._fault(0x8612, f"position {counts} counts outside 0x607D [{lo}, {hi}]")
+        if self.config.sim_answer_delay_ms:  # a slow drive (the timing preflight's tests)
+            time.sleep(self.config.sim_answer_delay_ms * 1e-3)
         for cob_id, every, indices, st in self._tpdos:
             if self.sync_count % every == 0:
                 self._send(cob_id, st.pack(*[self._live(*i) for i in indices]))

@@ -17,6 +17,13 @@ FAULT -> SWITCH ON DISABLED, never further.
 ``--serial`` lists the serial ports of this computer (pyserial's
 ``serial.tools.list_ports``) with what the operating system says about them,
 to find the port for ``labbench run ... --device serial --port PORT``.
+
+``--timing [SECONDS]`` is the timing preflight (``labbench.preflight``): the device
+(``--device``, default the rig's CANopen drive, else its serial board) opened paced,
+enabled at zero force (unless ``[preflight] enable = false``), the loop's own calls for
+SECONDS (default ``[preflight] seconds``, 10) under the rig's real-time settings; then
+one verdict on the rig's stale limit and sample time, and what to change. ``--write-rig``
+writes the suggested limits into the rig file (comments kept, ``FILE.bak`` first).
 """
 from __future__ import annotations
 
@@ -39,11 +46,21 @@ def register(subparsers) -> None:
     p.add_argument("--serial", action="store_true",
                    help="list the serial ports of this computer (for --device serial --port)")
     p.add_argument("--json", action="store_true", help="print the listing as JSON")
+    p.add_argument("--timing", nargs="?", const="", default=None, metavar="SECONDS",
+                   help="timing preflight: run the loop's calls on the device for SECONDS "
+                        "(default [preflight] seconds, 10) and say whether this PC and bus "
+                        "hold the rig's stale limit and sample time")
+    p.add_argument("--device", default=None,
+                   help="with --timing: the backend to measure (default: canopen if the rig "
+                        "has [canopen], else serial)")
+    p.add_argument("--write-rig", action="store_true",
+                   help="with --timing: write the suggested limits into the rig file "
+                        "(comments kept, FILE.bak first)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from labbench.errors import DeviceConnectionError
+    from labbench.errors import DeviceConnectionError, UserError
     from labbench.jsonutil import json_safe
     from labbench.registry import device_names, device_probe
     from labbench.rig import load_rig
@@ -51,6 +68,10 @@ def run(args) -> int:
     if args.serial:
         return _list_serial(args.json)
     rig = load_rig(args.rig)
+    if args.timing is not None:
+        return _timing(args, rig)
+    if args.write_rig or args.device:
+        raise UserError("--write-rig and --device go with --timing")
     if args.fault_reset:
         result = device_probe("sim-canopen" if args.sim else "canopen")(rig, fault_reset=True)
         if "no_answer" in result:
@@ -82,6 +103,56 @@ def run(args) -> int:
         for line in lines:
             print("             " + line)
     return status
+
+
+# The rig table whose stale_periods a backend uses.
+_STALE_TABLE = {"canopen": "canopen", "sim-canopen": "canopen", "serial": "serial",
+                "sim-serial": "serial", "avr-sim": "serial"}
+
+
+def _timing(args, rig) -> int:
+    """``--timing``: the preflight's numbers and verdict (module doc)."""
+    import sys
+
+    from labbench.commissioning import write_tables
+    from labbench.errors import UserError
+    from labbench.jsonutil import json_safe
+    from labbench.preflight import PreflightConfig, checked_seconds, judge, lines, measure, \
+        rig_changes
+    from labbench.realtime import RealtimeConfig
+    from labbench.registry import open_device
+
+    config = PreflightConfig.from_rig(rig)
+    seconds = checked_seconds(args.timing) if args.timing else config.seconds
+    if args.write_rig and not args.rig:
+        raise UserError("--write-rig writes the rig file: give it with --rig FILE")
+    name = args.device or next((t for t in ("canopen", "serial") if t in rig.sections), None)
+    if name is None:
+        raise UserError("the rig configures no hardware ([canopen] or [serial]): name the "
+                        "backend to measure with --device (e.g. --device sim-canopen)")
+    print(f"labbench devices: measuring {name} for {seconds:g} s ...", file=sys.stderr)
+    with open_device(name, rig, realtime=True) as device:
+        m = measure(device, rig, seconds, RealtimeConfig.from_rig(rig), enable=config.enable,
+                    warn=lambda line: print(line, file=sys.stderr))
+    judged = judge(m)
+    changes = rig_changes(m, judged, _STALE_TABLE.get(name, ""))
+    written = None
+    if args.write_rig and changes:
+        backup = write_tables(args.rig, changes)
+        written = {"changes": changes, "backup": str(backup) if backup else None}
+    if args.json:
+        print(json.dumps(json_safe({"rig": rig.name, "source": rig.source, "preflight": m,
+                                    **judged, "rig_changes": changes, "written": written}),
+                         indent=2))
+        return 0
+    print("\n".join(lines(m, judged)))
+    for table, fields in changes.items():
+        said = ", ".join(f"{k} = {v:g}" for k, v in fields.items())
+        print(f"  rig change: [{table}] {said}" + (" (written)" if written else
+                                                   " (--write-rig writes it)"))
+    if written and written["backup"]:
+        print(f"  the old rig file is {written['backup']}")
+    return 0
 
 
 def _probe(name: str, rig) -> dict:

@@ -76,13 +76,14 @@ class Running:
 
 
 def start(variant: str = "event", tables: dict | None = None, use_eds: bool = True,
-          node_id: int = 1, seed=None, **options) -> Running:
+          node_id: int = 1, seed=None, answer_delay_s: float = 0.0, **options) -> Running:
     """A running drive of ``variant`` (``dictionary.VARIANTS``) and the rig that reaches it
     over ``udp_multicast``.
 
     ``tables``: rig tables ([rig], [safety], more [canopen] fields ...); ``use_eds``: the
     rig names the EDS the drive serves; ``seed``/``options``: the plant's
-    (``canopen_peer.plant_for``).
+    (``canopen_peer.plant_for``); ``answer_delay_s``: the drive takes each SYNC that long
+    after it arrived (a slow drive).
     """
     built = builder.build(variant)
     tables = {k: dict(v) for k, v in (tables or {}).items()}
@@ -92,7 +93,8 @@ def start(variant: str = "event", tables: dict | None = None, use_eds: bool = Tr
                          **tables.get("canopen", {})}
     rig = rig_from_dict(tables, source="canopennode-rig")
     spec = json.dumps({"lib": str(built.lib), "node_id": node_id, "rig": rig.as_dict(),
-                       "seed": seed, "options": options, "port": port})
+                       "seed": seed, "options": options, "port": port,
+                       "answer_delay_s": answer_delay_s})
     proc, monitor = spawn([sys.executable, str(HERE / "drive_process.py")], spec, port)
     watch = Watch({0x80 + node_id, 0x700 + node_id})  # EMCY, heartbeat / guarding answers
     running = Running(proc, monitor, rig, tables, built.eds, watch)

@@ -187,13 +187,17 @@ class Drive:
                               data=b"" if rtr.value else data.raw[:n], is_extended_id=False)
 
 
-def serve(drive: Drive, bus, commands: queue.SimpleQueue, stop: threading.Event) -> None:
-    """Frames in, processing steps, frames out, until ``stop``."""
+def serve(drive: Drive, bus, commands: queue.SimpleQueue, stop: threading.Event,
+          answer_delay_s: float = 0.0) -> None:
+    """Frames in, processing steps, frames out, until ``stop``. ``answer_delay_s``: a slow
+    drive (the timing preflight's tests): a SYNC is taken that long after it arrived."""
     lib = drive.lib
     last = time.monotonic_ns() // 1000
     while not stop.is_set():
         msg = bus.recv(IDLE_S)
         if msg is not None and not msg.is_error_frame and not msg.is_extended_id:
+            if answer_delay_s and msg.arbitration_id == 0x080:
+                time.sleep(answer_delay_s)
             lib.cod_rx(msg.arbitration_id, msg.is_remote_frame, msg.dlc, bytes(msg.data))
         while not commands.empty():
             drive.fault(int(commands.get()["fault"]), report=True)
@@ -220,7 +224,8 @@ def main() -> int:
     drive = Drive(lib, plant, geo.sign * geo.metres_per_count, geo.lever_arm_m)
     bus = multicast_bus(spec["port"])
     commands, stop = queue.SimpleQueue(), threading.Event()
-    worker = threading.Thread(target=serve, args=(drive, bus, commands, stop), daemon=True)
+    worker = threading.Thread(target=serve, args=(drive, bus, commands, stop,
+                                                  spec.get("answer_delay_s", 0.0)), daemon=True)
     worker.start()
     try:
         print("ready", flush=True)
