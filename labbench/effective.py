@@ -89,3 +89,19 @@ def measured_wb_star(w, ED, b: float, n_low: int = 3) -> float | None:
         return None
     i = idx[0]
     return float(w[i] + (w[i + 1] - w[i]) * (ED[i] - half) / (ED[i] - ED[i + 1]))
+
+
+def focus_limits(values, w, band: tuple[float, float], pad: float = 0.25) -> tuple[float, float] | None:
+    """Y limits that show ``values`` (ED, say) readably over ``band`` [rad/s] of ``w``: from
+    0 (or below it, when the values are) to their extreme there, ``pad`` beyond. A damping
+    of 1.1 N s/m rendered below 40 rad/s must not share its axis with a roll-off to -50 at
+    Nyquist (issue 30): what falls outside leaves the axes. None when no finite value lies in
+    the band."""
+    v = np.asarray(values, float)
+    w = np.asarray(w, float)
+    sel = (w >= band[0]) & (w <= band[1]) & np.isfinite(v)
+    if not sel.any():
+        return None
+    lo, hi = min(0.0, float(v[sel].min())), max(0.0, float(v[sel].max()))
+    span = hi - lo or max(abs(hi), 1.0)
+    return lo - (pad * span if lo < 0 else 0.0), hi + pad * span

@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from labbench.effective import effective_impedances
+from labbench.effective import effective_impedances, focus_limits
 from labbench.errors import UserError
 from labbench.escape import literal_mpl
 from labbench.safe_write import output_path, replacing
@@ -115,11 +115,14 @@ def paper_figure(curves: list[Curve], path=None, title: str | None = None,
     return fig
 
 
-def effective_figure(curves: list[Curve], size=(7.2, 2.15)) -> Figure:
+def effective_figure(curves: list[Curve], size=(7.2, 2.15),
+                     focus: tuple[float, float] | None = None) -> Figure:
     """ES, ED and EM side by side (paper Figures 5-8 without the Bode panels), for a
     summary page: lines for theory, points for measurements, ES where Im Z < 0 and EM
     where Im Z > 0 as in ``paper_figure``. Overlay several runs by giving their curves
-    one ``color`` each. Returns the figure."""
+    one ``color`` each. ``focus`` [rad/s]: the band whose ED the damping axis shows
+    readably (``labbench.effective.focus_limits``; the roll-off beyond leaves the axes).
+    Returns the figure."""
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
     es, ed, em = fig.subplots(1, 3, sharex=True)
@@ -132,6 +135,11 @@ def effective_figure(curves: list[Curve], size=(7.2, 2.15)) -> Figure:
         es.semilogx(w, np.where(stiff, eff.ES, 0.0), **style)
         ed.semilogx(w, eff.ED, **style)
         em.semilogx(w, np.where(stiff, 0.0, eff.EM), **style)
+    if focus is not None:
+        limits = [focus_limits(effective_impedances(c.w, c.Z).ED, c.w, focus) for c in curves]
+        limits = [x for x in limits if x is not None]
+        if limits:
+            ed.set_ylim(min(x[0] for x in limits), max(x[1] for x in limits))
     for ax, ylabel in ((es, "ES (N/m)"), (ed, "ED (N s/m)"), (em, "EM (kg)")):
         ax.set_ylabel(ylabel, fontsize=8)
         ax.set_xlabel("frequency (rad/s)", fontsize=8)

@@ -16,7 +16,8 @@ def session_ve(start: dict) -> VirtualEnvironment | None:
 
     Accepts a VE dict (``VirtualEnvironment.as_dict``) under ``start["ve"]`` or the
     protocol's ``ve``, or a protocol config with ``ve`` = kind and ``K``, ``B``,
-    ``w0_rad_s``, ``td_s``. ``None`` when the record names no VE.
+    ``w0_rad_s``, ``td_s``. ``None`` when the record names no VE, or names one with values
+    that are not numbers (a file's content is not trusted).
     """
     proto = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
     for candidate in (start.get("ve"), proto.get("ve")):

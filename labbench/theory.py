@@ -360,7 +360,7 @@ def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sam
     return {"ws_star": measured_ws_star(w, eff.ES), "wb_star": measured_wb_star(w, eff.ED, plant.b)}
 
 
-def _low_frequency(plant: Plant, ve: VirtualEnvironment, model: str,
+def low_frequency(plant: Plant, ve: VirtualEnvironment, model: str,
                    latency: float = 0.0) -> tuple[float, float]:
     """(ED, EM) in the limit w -> 0, by Richardson extrapolation in w^2.
 
@@ -407,14 +407,14 @@ def delay_effects(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) ->
         if latency:
             out["K_tau_felt"] = ve.K * (ve.delay + latency)
         for model in MODELS:
-            ed = _low_frequency(plant, ve, model, latency)[0] if model == "paper" or whole else None
+            ed = low_frequency(plant, ve, model, latency)[0] if model == "paper" or whole else None
             out[f"ED_low_{model}"] = ed
             out[f"ED_drop_{model}"] = None if ed is None else base - ed
     elif ve.B > 0:
         base = plant.m - (0.0 if math.isinf(ve.w0) else ve.B / ve.w0)
         out.update(EM_nodelay=base, B_tau=ve.B * ve.delay, B_td=ve.B * ve.td)
         for model in MODELS:
-            em = _low_frequency(plant, ve, model, latency)[1] if model == "paper" or whole else None
+            em = low_frequency(plant, ve, model, latency)[1] if model == "paper" or whole else None
             out[f"EM_low_{model}"] = em
             out[f"EM_drop_{model}"] = None if em is None else base - em
     return out

@@ -8,10 +8,20 @@ it, and ``--strict`` makes a ``failed`` result exit with ``STRICT_EXIT``.
 
 ``doubtful``: the number may be right but the record cannot vouch for it (say what
 would settle it); ``failed``: the number is not to be used.
+
+What a level judges (issue 30): whether what is stated, a value *with its interval*, can be
+trusted: a bias the interval does not hold, a misfit, an effect the model leaves out. How
+precise a number is, is its interval's to say, not the level's: a wide interval that holds
+the truth is ``ok``, and the verdict's ``notes`` say how precise it is against a target
+(``precision``). A frequency-domain result states its ``band`` (rad/s): the level refers to
+that band, the one the analysis was asked about; what limits the result outside it (the
+encoder's quantisation above some frequency, too short a record below another) goes in
+``notes`` and never raises the level.
 """
 from __future__ import annotations
 
 from collections.abc import Iterable
+import math
 from dataclasses import dataclass
 
 OK, DOUBTFUL, FAILED = "ok", "doubtful", "failed"
@@ -30,8 +40,13 @@ BIAS_SE = 0.5
 
 @dataclass(frozen=True)
 class Verdict:
+    """``level`` and the ``reasons`` behind it; ``band`` (lo, hi) rad/s: where the level
+    holds (None: not a frequency-domain result); ``notes``: limits that do not raise it."""
+
     level: str = OK
     reasons: tuple[str, ...] = ()
+    band: tuple[float, float] | None = None
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.level not in LEVELS:
@@ -42,11 +57,29 @@ class Verdict:
         return self.level == FAILED
 
     def as_dict(self) -> dict:
-        return {"level": self.level, "reasons": list(self.reasons)}
+        d = {"level": self.level, "reasons": list(self.reasons)}
+        if self.band is not None:
+            d["band_rad_s"] = list(self.band)
+        if self.notes:
+            d["notes"] = list(self.notes)
+        return d
 
-    def line(self) -> str:
-        """``ok`` or ``doubtful: reason; reason``."""
-        return self.level if not self.reasons else f"{self.level}: {'; '.join(self.reasons)}"
+    def head(self, units=None) -> str:
+        """``ok`` or ``ok over 2-340 rad/s`` (``units``: ``labbench.units.DisplayUnits``)."""
+        if self.band is None:
+            return self.level
+        from labbench.numfmt import band_text
+
+        return f"{self.level} over {band_text(self.band, units)}"
+
+    def line(self, units=None) -> str:
+        """``ok``, ``ok over 2-340 rad/s (note)`` or ``doubtful: reason; reason (note)``."""
+        text = self.head(units)
+        if self.reasons:
+            text += ": " + "; ".join(self.reasons)
+        if self.notes:
+            text += " (" + "; ".join(self.notes) + ")"
+        return text
 
 
 def unvouched(name: str, value: float, interval: tuple[float, float], target: float,
@@ -61,9 +94,20 @@ def unvouched(name: str, value: float, interval: tuple[float, float], target: fl
             f"[{lo:.4g}, {hi:.4g}], +-{reach:.2g}{unit} at 99.9 %")
 
 
-def judge(findings: Iterable[tuple[str, str]]) -> Verdict:
+def precision(name: str, value: float, interval: tuple[float, float], target: float,
+              unit: str = "") -> str | None:
+    """A note when ``value``'s 95 % ``interval``, stretched to 99.9 % (``VOUCH_STRETCH``),
+    reaches beyond +-``target`` of it: the record cannot pin the number to that target (its
+    interval says how far it can); None when it can."""
+    level, reason = unvouched(name, value, interval, target, unit)
+    return None if level == OK else reason
+
+
+def judge(findings: Iterable[tuple[str, str]], band: tuple[float, float] | None = None,
+          notes: Iterable[str | None] = ()) -> Verdict:
     """The verdict of ``(level, reason)`` findings: the worst level; the reasons of every
-    finding worse than ok, in order (an ``ok`` finding's reason is dropped)."""
+    finding worse than ok, in order (an ``ok`` finding's reason is dropped); ``band`` and
+    ``notes`` (Nones dropped) as given."""
     level, reasons = OK, []
     for lvl, reason in findings:
         if lvl not in LEVELS:
@@ -72,17 +116,22 @@ def judge(findings: Iterable[tuple[str, str]]) -> Verdict:
             reasons.append(reason)
             if LEVELS.index(lvl) > LEVELS.index(level):
                 level = lvl
-    return Verdict(level, tuple(reasons))
+    return Verdict(level, tuple(reasons), _band(band), tuple(n for n in notes if n))
+
+
+def _band(band) -> tuple[float, float] | None:
+    return None if band is None else (float(band[0]), float(band[1]))
 
 
 def worst(verdicts: Iterable[Verdict | None]) -> Verdict:
     """One verdict for several results: the worst level, every reason (Nones ignored)."""
-    level, reasons = OK, []
+    level, reasons, notes = OK, [], []
     for v in verdicts:
         if v is not None:
             reasons.extend(v.reasons)
+            notes.extend(v.notes)
             level = max(level, v.level, key=LEVELS.index)
-    return Verdict(level, tuple(reasons))
+    return Verdict(level, tuple(reasons), None, tuple(notes))
 
 
 def from_dict(d) -> Verdict | None:
@@ -90,10 +139,21 @@ def from_dict(d) -> Verdict | None:
     not trusted: unknown levels and non-string reasons are not taken)."""
     if not isinstance(d, dict) or d.get("level") not in LEVELS:
         return None
-    reasons = d.get("reasons")
-    if not isinstance(reasons, list):
-        reasons = []
-    return Verdict(d["level"], tuple(r for r in reasons[:MAX_REASONS] if isinstance(r, str)))
+    return Verdict(d["level"], _strings(d.get("reasons")), _read_band(d.get("band_rad_s")),
+                   _strings(d.get("notes")))
+
+
+def _strings(x) -> tuple[str, ...]:
+    return tuple(r for r in x[:MAX_REASONS] if isinstance(r, str)) if isinstance(x, list) else ()
+
+
+def _read_band(x) -> tuple[float, float] | None:
+    """A recorded band back: two finite numbers, lo < hi; else None."""
+    if not (isinstance(x, list) and len(x) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x)):
+        return None
+    lo, hi = float(x[0]), float(x[1])
+    return (lo, hi) if math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi else None
 
 
 def strict_exit(verdicts: Iterable[Verdict | None], strict: bool) -> int:

@@ -186,44 +186,24 @@ def _run_tf(tf, u: np.ndarray) -> np.ndarray:
 
 
 def _report_sections(protocol: ChirpId, session):
-    from labbench.report.blocks import (Figure, Markup, Paragraph, ReportSections, Table, fmt,
-                                        interval, plus_minus)
-    from labbench.report.content import analysis_flags
+    from labbench.report.blocks import Figure, Paragraph, ReportSections, Table, fmt, fmt_ci
 
     ident = session.results.get("identification") or {}
     if not ident:
         return ReportSections()
     primary = "l2" if "l2" in ident else next(iter(ident))
-    r = ident[primary]
-    ci = r.get("ci95") or {}
-    sel = r.get("selection") or {}
-    how = "chosen by cross-validation" if r.get("model") and "cross" in str(sel.get("criterion")) \
-        else "as configured"
-    verdict = [
-        ("model", f"f = {_model_text(r.get('model'))} ({how}, {primary} fit)"),
-        ("mass m (kg), 95 % interval", plus_minus(r.get("m"), *ci.get("m", (None, None)))),
-        ("damping b (N s/m), 95 % interval", plus_minus(r.get("b"), *ci.get("b", (None, None)))),
-    ]
-    if r.get("coulomb") is not None:
-        verdict.append((Markup("Coulomb friction F<sub>c</sub> (N), 95 % interval"),
-                        plus_minus(r["coulomb"], *ci.get("coulomb", (None, None)))))
-    for method, other in ident.items():
-        if method != primary:
-            verdict.append((f"cross-check: {method} fit", f"m = {fmt(other.get('m'), 5)} kg, "
-                                                          f"b = {fmt(other.get('b'), 5)} N s/m"))
-    flags = [f for method, fit in ident.items()
-             for f in analysis_flags(session.tag, fit.get("flags") or [], f"{method} fit: ")]
+    sel = ident[primary].get("selection") or {}
     rows = []
     for method, fit in ident.items():
         fci = fit.get("ci95") or {}
-        rows.append([method, str(fit.get("model")), fmt(fit.get("m"), 6),
-                     interval(*fci.get("m", (None, None)), 5), fmt(fit.get("b"), 6),
-                     interval(*fci.get("b", (None, None)), 5), fmt(fit.get("coulomb")),
+        rows.append([method, str(fit.get("model")), fmt_ci(fit.get("m"), *fci.get("m", (None, None))),
+                     fmt_ci(fit.get("b"), *fci.get("b", (None, None))),
+                     fmt_ci(fit.get("coulomb"), *fci.get("coulomb", (None, None))),
                      fmt(fit.get("rms_residual"), 3), f"{100 * fit.get('explained', 0):.4f} %",
                      str(fit.get("n_used"))])
     details = [Table("Identification f = m x'' + b x' [+ Fc sign(x')] [+ f0], every fit",
-                     ["fit", "model", "m (kg)", "m 95 %", "b (N s/m)", "b 95 %", "Fc (N)",
-                      "rms residual (N)", "explained", "samples"], rows,
+                     ["fit", "model", "m (kg), 95 % interval", "b (N s/m), 95 % interval",
+                      "Fc (N), 95 % interval", "rms residual (N)", "explained", "samples"], rows,
                      note=f"Model selection: {sel.get('reason') or sel.get('criterion') or 'as configured'}.")]
     figure = _open_loop_figure(protocol, session, ident)
     if figure is not None:
@@ -231,13 +211,7 @@ def _report_sections(protocol: ChirpId, session):
                               "identified model (lines, exact sampled, VE off)", figure))
     else:
         details.append(Paragraph("No open-loop impedance figure: the chirp's band is empty."))
-    return ReportSections(verdict_title="Identified device", verdict=verdict, flags=flags,
-                          details=details)
-
-
-def _model_text(model) -> str:
-    return {"mb": "m x'' + b x'", "mbc": "m x'' + b x' + Fc sign(x')",
-            "mbco": "m x'' + b x' + Fc sign(x') + f0"}.get(model, str(model))
+    return ReportSections(details=details)
 
 
 def _open_loop_figure(protocol: ChirpId, session, ident: dict):

@@ -132,22 +132,11 @@ class Commission(ProtocolBase):
              "rig": rig, "force_via_lever": via_lever})
 
     def report_sections(self, session):
-        """Page 1: each check's verdict with its numbers, and the rig changes they call for."""
-        from labbench.analysis.commission import CHECKS
-        from labbench.report.blocks import Flag, ReportSections
+        """Page 1 is the readout's (each check's verdict with its numbers, the rig changes:
+        ``labbench.readout``); nothing more to add."""
+        from labbench.report.blocks import ReportSections
 
-        r = session.results
-        if not r or "error" in r:
-            return ReportSections()
-        numbers = check_numbers(r)
-        rows = [(check, f"{r.get(check, {}).get('verdict', {}).get('level')}: {numbers[check]}")
-                for check in CHECKS]
-        rows.append(("rig changes", ", ".join(f"{k} = {v}" for k, v in r.get("changes", {}).items())
-                     or "none"))
-        flags = [Flag(session.tag, f"{check}: {reason}", "the reason says what to change; "
-                      "labbench run commission --write-rig writes it (docs/commissioning.md)")
-                 for check in CHECKS for reason in r.get(check, {}).get("verdict", {}).get("reasons", [])]
-        return ReportSections(verdict_title="Commissioning", verdict=rows, flags=flags)
+        return ReportSections()
 
 
 def applied_doublets(marks: list, data: dict) -> list:
@@ -162,26 +151,3 @@ def applied_doublets(marks: list, data: dict) -> list:
         return marks
     gated = (np.asarray(flags).astype(np.int64) & GATED) != 0
     return [m for m in marks if not gated[m[0]:m[1] + 1].any()]
-
-
-def check_numbers(r: dict) -> dict[str, str]:
-    """The numbers of each check of a commissioning result, in words: the report's summary
-    and the window's commissioning page say the same."""
-    from labbench.numfmt import fmt
-
-    d, s, k = r.get("delay", {}), r.get("scale", {}), r.get("k_max", {})
-    fr = r.get("friction", {})
-    terms = [f"{name} = {fmt(fr[key])} N" for name, key in (("Fc", "coulomb_n"), ("f0", "offset_n"))
-             if fr.get(key) is not None]
-    ci = d.get("delay_ci_samples") or [None, None]
-    return {
-        "direction": f"{r.get('direction', {}).get('agree')} of {r.get('direction', {}).get('of')} "
-                     "pulses moved with the force",
-        "delay": f"{fmt(d.get('delay_samples'), 4)} samples, 95 % [{fmt(ci[0], 4)}, {fmt(ci[1], 4)}]",
-        "scale": f"m = {fmt(s.get('m'), 5)} kg ({fmt(s.get('m_ratio'), 4)} x nominal), "
-                 f"b = {fmt(s.get('b'), 5)} N s/m",
-        "friction": f"model {fr.get('model')}" + (", " + ", ".join(terms) if terms else
-                                                  ": no Coulomb friction or offset"),
-        "k_max": f"{fmt(k.get('k_max_n_m'), 5)} N/m for a pure spring, B = 0 "
-                 "(exact sampled, measured m, b, delay)",
-    }

@@ -330,18 +330,10 @@ def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig):
 
 
 def _report_sections(protocol: StabilityProbe, session):
-    from labbench.report.blocks import Figure, ReportSections, Table, fmt, new_figure, percent
+    from labbench.report.blocks import Figure, ReportSections, Table, fmt, new_figure
 
     res = session.results
     var = res.get("variable", protocol.config.variable)
-    unit = "N/m" if var == "K" else "s"
-    verdict = [
-        ("probed variable", f"{var} ({unit}), {len(res.get('steps') or [])} steps"),
-        ("boundary measured", f"{fmt(res.get('measured_boundary'))} {unit}"),
-        ("boundary, exact sampled model", f"{fmt(res.get('exact_boundary'))} {unit}"),
-        ("boundary, paper approximation", f"{fmt(res.get('approx_boundary'))} {unit}"),
-        ("measured against exact", percent(res.get("rel_error_vs_exact"))),
-    ]
     steps = res.get("steps") or []
     details = []
     if steps:
@@ -369,5 +361,4 @@ def _report_sections(protocol: StabilityProbe, session):
         ax.legend(fontsize=7)
         details.append(Figure("Stability probe: growth rate of each step against the boundaries",
                               fig))
-    return ReportSections(verdict_title="Stability boundary", verdict=verdict, details=details,
-                          margin=False)
+    return ReportSections(details=details, margin=False)

@@ -48,7 +48,7 @@ def test_chirp_id_json_and_human_output(tmp_path, capsys):
     assert fit["m"] == pytest.approx(0.094, rel=0.02) and fit["b"] == pytest.approx(0.10, rel=0.02)
     assert main(["run", "chirp-id", "--duration-s", "20", "--methods", "l2", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
-    assert "chirp-id: success" in text and "l2: m = 0.094" in text
+    assert "chirp-id: success" in text and "mass m: 0.094 kg" in text and "identification (l2): ok" in text
 
 
 @pytest.mark.parametrize("argv,words", [

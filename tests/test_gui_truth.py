@@ -35,11 +35,11 @@ def _same_number(shown: str, reported: str) -> bool:
 
 
 def _report_loop_fit(path) -> dict[str, str]:
-    """name -> value of the report's closed-loop fit table (its "value ± 95 %" cells, or
-    "value (lo to hi)" where the interval is not centred: ``report.blocks.plus_minus``)."""
+    """name -> value of the report's closed-loop fit table (its "value (lo to hi)" cells:
+    ``labbench.numfmt.fmt_ci``)."""
     table = next(b for b in build([path]).blocks
                  if isinstance(b, Table) and b.title.startswith("Closed-loop fit"))
-    return {row[0]: re.split(r" ± | \(", row[1])[0] for row in table.rows}
+    return {row[0]: row[1].split(" (")[0] for row in table.rows}
 
 
 # the default rig, and one whose device has 2 samples of delay that its file states
@@ -75,7 +75,8 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
                   f"{numbers['wb_star_predicted']} rad/s; paper w0: {numbers['wb_star_w0']})")
     for sym in ("ws", "wb"):
         measured, predicted = numbers[f"{sym}_star_measured"], numbers[f"{sym}_star_predicted"]
-        assert f"{measured} / {predicted}" in html  # page 1: measured / sampled theory
+        # page 1, as labbench.readout writes it
+        assert f"measured = {measured} rad/s; sampled theory = {predicted} rad/s" in html
     # the wb* the sampled model predicts is far from w0: the window must not call w0 "theory"
     assert bw["wb_star_predicted"] < 0.7 * bw["wb_star_w0"]
     assert "(theory " not in ws + wb

@@ -19,6 +19,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from labbench import readout
     from labbench.jsonutil import json_safe
     from labbench.replay import StreamSummary, replay
 
@@ -27,10 +28,16 @@ def run(args) -> int:
     out = summary.as_dict()
     out["session"] = str(reader.path)
     out["damaged_tail"] = reader.problem
+    # what the run found, in the words of `labbench run`, the report and the window
+    read = readout.of_results(str(out.get("protocol") or ""), (summary.stop or {}).get("results"),
+                              summary.start)
+    out["readout"] = read.as_dict()
     if args.json:
         print(json.dumps(json_safe(out), indent=2))
     else:
         _print_summary(out)
+        for line in read.text_lines():
+            print(f"result    {line}")
     if reader.problem:
         print(f"labbench replay: warning: stream ends early: {reader.problem}", file=sys.stderr)
     return 0

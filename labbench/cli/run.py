@@ -17,7 +17,6 @@ from pathlib import Path
 from labbench.jsonutil import json_safe
 from labbench.registry import device_names, open_device
 from labbench.errors import UserError
-from labbench.numfmt import fmt
 from labbench.cli.progress import ProgressBar
 from labbench.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
@@ -319,55 +318,25 @@ def cmd_demo(args) -> int:
 
 
 def _print(args, out: dict, runs) -> None:
+    """The run's summary: every surface's words from ``labbench.readout`` (of the session as
+    recorded, when there is one); ``--json``: the same under ``readout`` (one per run)."""
+    from labbench import readout
+
+    reads = {name: readout.of_session(path) if path else readout.of_results(name, result.results)
+             for name, result, path in runs}
     if args.json:
-        print(json.dumps(json_safe(out), allow_nan=False))
+        key = "readout" if len(reads) == 1 else "readouts"
+        body = next(iter(reads.values())).as_dict() if len(reads) == 1 else \
+            {name: r.as_dict() for name, r in reads.items()}
+        print(json.dumps(json_safe({**out, key: body}), allow_nan=False))
         return
     for name, result, path in runs:
         print(f"{name}: {result.status} ({result.reason}); session {path}")
-        for line in summary_lines(name, result.results):
+        for line in reads[name].text_lines():
             print("  " + line)
     if out.get("report", {}).get("html"):
         print(f"report: {out['report']['html']}  {out['report']['pdf']}")
     sys.stdout.flush()
-
-
-def summary_lines(name: str, results: dict) -> list[str]:
-    """A few human-readable lines of a protocol's results."""
-    if not results:
-        return []
-    if "error" in results:
-        return [str(results["error"])]
-    lines = []
-    if name == "chirp-id":
-        for method, r in results.get("identification", {}).items():
-            lines.append(f"{method}: m = {r['m']:.6g} kg, b = {r['b']:.6g} N s/m ({r['model']})")
-    elif name == "etfe":
-        d = results.get("deviation_vs_sampled", {})
-        p = results.get("plant", {})
-        if d.get("median_rel") is not None:
-            lines.append(f"|Z - Z_sampled| / |Z_sampled| over {d['band_rad_s'][0]:g}-"
-                         f"{d['band_rad_s'][1]:g} rad/s: median {100 * d['median_rel']:.2g} %, "
-                         f"max {100 * d['max_rel']:.2g} % (m = {p.get('m', 0):.4g} kg, "
-                         f"b = {p.get('b', 0):.4g} N s/m)")
-        bw = results.get("bandwidths", {})
-        lines.append("w_s* measured {} / predicted {} rad/s; w_b* measured {} / predicted {} rad/s".format(
-            *(fmt(bw.get(k)) for k in ("ws_star_measured", "ws_star_predicted", "wb_star_measured",
-                                      "wb_star_predicted"))))
-    elif name == "commission":
-        for check in ("direction", "delay", "scale", "friction", "k_max"):
-            v = results.get(check, {}).get("verdict", {})
-            lines.append(f"{check}: {v.get('level')}" + "".join(f"; {r}" for r in v.get("reasons", [])))
-        d, s, k = results.get("delay", {}), results.get("scale", {}), results.get("k_max", {})
-        lines.append(f"delay {fmt(d.get('delay_samples'))} samples, m = {fmt(s.get('m'))} kg, "
-                     f"b = {fmt(s.get('b'))} N s/m, K_max = {fmt(k.get('k_max_n_m'))} N/m "
-                     "(a pure spring, B = 0)")
-        lines.append(f"rig changes: {results.get('changes') or 'none'}")
-    elif name == "stability":
-        unit = "N/m" if results.get("variable") == "K" else "s"
-        lines.append(f"boundary ({results.get('variable')}): measured {fmt(results.get('measured_boundary'))}, "
-                     f"exact {fmt(results.get('exact_boundary'))}, paper approx. "
-                     f"{fmt(results.get('approx_boundary'))} {unit}")
-    return lines
 
 
 

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import html
 import io
-import math
 from dataclasses import dataclass, field
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
 from labbench.escape import one_line
-from labbench.numfmt import fmt  # noqa: F401 - the one number formatter, for sections too
+from labbench.numfmt import fmt, fmt_ci  # noqa: F401 - the one number formatter, for sections too
 
 
 class Markup(str):
@@ -88,48 +87,21 @@ class PageBreak:
 class ReportSections:
     """A protocol's part of a report (``labbench.protocol.ProtocolBase.report_sections``).
 
-    ``verdict``: (label, value) rows for the summary table titled ``verdict_title``;
-    sessions with the same title share one table, a column each. ``curves``:
+    Page 1's numbers and verdicts are not the protocol's to write: the report reads them
+    from ``labbench.readout`` as the CLI and the window do. ``curves``:
     frequency responses for the summary's overlay figure (``labbench.figures.Curve``,
     measured as points, theory as lines). ``flags``: problems with what to do.
     ``details``: blocks for the session's part of the details. ``margin``: whether the
-    summary adds the run's stability margin and loop delay to the verdict (a protocol
-    whose verdict is the stability boundary itself says no). ``delay``: the loop delay
+    summary adds the run's stability margin and loop delay to its numbers (a protocol
+    whose result is the stability boundary itself says no). ``delay``: the loop delay
     as measured by the protocol's analysis (text), None when it measured none.
     """
 
-    verdict_title: str = ""
-    verdict: list = field(default_factory=list)
     curves: list = field(default_factory=list)
     flags: list = field(default_factory=list)
     details: list = field(default_factory=list)
     margin: bool = True
     delay: str | None = None
-
-
-def interval(lo, hi, digits: int = 4) -> str:
-    """A 95 % interval as ``lo to hi``."""
-    return "-" if lo is None or hi is None else f"{fmt(lo, digits)} to {fmt(hi, digits)}"
-
-
-def plus_minus(value, lo, hi) -> str:
-    """``value ± half-width`` of a symmetric interval, the half-width to 2 digits and the
-    value to the same decimal place (at least 4 significant digits); ``value (lo to hi)``
-    when the interval is not centred on the value (it also covers a second credible fit:
-    ``labbench.analysis.identify``, ``loopfit``)."""
-    if value is None:
-        return "-"
-    if lo is None or hi is None:
-        return fmt(value)
-    half = (hi - lo) / 2
-    if not half > 0:
-        return f"{fmt(value, 6)} ± 0"
-    if abs(value - (lo + hi) / 2) > 0.05 * half:
-        return f"{fmt(value, 6)} ({interval(lo, hi)})"
-    decimals = max(0, 1 - math.floor(math.log10(half)))
-    if abs(value) > 0:
-        decimals = max(decimals, 3 - math.floor(math.log10(abs(value))))
-    return f"{value:.{decimals}f} ± {half:.2g}"
 
 
 def percent(v, digits: int = 2) -> str:

@@ -19,7 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from labbench.analysis.etfe import W_BAND
 from labbench.errors import UserError
+from labbench.numfmt import band_text
 from labbench.report.blocks import (
     Figure,
     Flag,
@@ -100,20 +102,42 @@ def _sections(s: ReportSession) -> ReportSections:
 
 # ----------------------------------------------------------------------------- summary
 def _summary(sessions: list[ReportSession], parts: list[ReportSections]) -> list:
+    from labbench import readout
+
     blocks = [_what_ran(sessions)]
-    # each verdict ends with the run's stability margin and loop delay (when it had a VE)
-    verdicts = [(s, p.verdict_title, p.verdict + (_loop_rows(s, p.delay) if p.margin else []))
-                for s, p in zip(sessions, parts) if p.verdict]
+    # what each run found, in the words the CLI and the window use (labbench.readout), then
+    # the run's stability margin and loop delay (when it had a VE)
+    reads = [readout.of_results(s.protocol, s.results, s.start) for s in sessions]
+    verdicts = [(s, r.title, page_one_rows(r) + (_loop_rows(s, p.delay) if p.margin else []))
+                for s, p, r in zip(sessions, parts, reads) if r.rows or r.verdicts]
     for title in dict.fromkeys(t for _, t, _ in verdicts):
         blocks.append(_column_table(title, [(s, rows) for s, t, rows in verdicts if t == title]))
     curves = [c for p in parts for c in p.curves]
     if curves:
+        bands = [r.rendered.band for r in reads if r.rendered is not None]
+        focus = (min(b[0] for b in bands), max(b[1] for b in bands)) if bands else W_BAND
         blocks.append(Figure(
             "Effective stiffness ES, damping ED and mass EM: measured (points) against the exact "
             "sampled theory (lines)" + (", one colour per session" if len(
-                {c.color for c in curves}) > 1 else ""), _overlay(curves)))
-    blocks.append(_flags_table(sessions, parts))
+                {c.color for c in curves}) > 1 else "") + f"; the damping axis shows "
+            f"{band_text(focus)}, where the VE is meant to hold", _overlay(curves, focus)))
+    blocks.append(_flags_table(sessions, parts, reads))
     return blocks
+
+
+def page_one_rows(r) -> list[tuple[str, str]]:
+    """A readout's rows on page 1: the rendered impedance, its headline numbers, every
+    verdict (the rest of its rows open the session's details: ``readout_table``)."""
+    rows = [("rendered", r.rendered.sentence())] if r.rendered is not None else []
+    rows += [(label, text) for label, text in r.row_texts()
+             if r.headline is None or label in r.headline]
+    return rows + [(f"verdict: {j.what}", j.verdict.line()) for j in r.verdicts]
+
+
+def readout_table(r) -> Table:
+    """Every number of a readout, as the CLI prints them."""
+    return Table(r.title or "Results", ["", ""], r.row_texts() + [
+        (f"verdict: {j.what}", j.verdict.line()) for j in r.verdicts])
 
 
 def _what_ran(sessions: list[ReportSession]) -> Table:
@@ -156,14 +180,15 @@ def _loop_rows(s: ReportSession, measured_delay: str | None) -> list:
     return rows
 
 
-def _overlay(curves) -> object:
+def _overlay(curves, focus) -> object:
     from labbench.figures import effective_figure
 
-    return effective_figure(curves)
+    return effective_figure(curves, focus=focus)
 
 
-def _flags_table(sessions, parts) -> Table | Paragraph:
-    flags = [f for s, p in zip(sessions, parts) for f in _run_flags(s) + p.flags]
+def _flags_table(sessions, parts, reads) -> Table | Paragraph:
+    flags = [f for s, p, r in zip(sessions, parts, reads)
+             for f in _run_flags(s) + p.flags + verdict_flags(s.tag, r)]
     if not flags:
         return Paragraph("No flags: every run completed with intact files, no dropped samples "
                          "or safety trips, and the analyses raised no warnings.")
@@ -197,19 +222,25 @@ def _run_flags(s: ReportSession) -> list[Flag]:
     return out
 
 
-def analysis_flags(tag: str, flags, prefix: str = "") -> list[Flag]:
-    """Flags of labbench.analysis (``name: text``) with what to do about each."""
+def verdict_flags(tag: str, r) -> list[Flag]:
+    """Every reason a readout's verdicts give (the doubts and failures over the band each
+    speaks of, as the window and the CLI say them), with what to do about each."""
     out = []
-    for text in flags:
-        name = str(text).split(":", 1)[0].strip()
-        out.append(Flag(tag, prefix + str(text),
-                        FLAG_ACTIONS.get(name, "see docs/analysis.md")))
+    for j in r.verdicts:
+        for text in j.verdict.reasons:
+            name = text.split(":", 1)[0].strip()
+            out.append(Flag(tag, f"{j.what} {j.verdict.level}: {text}",
+                            FLAG_ACTIONS.get(name, "see docs/analysis.md")))
     return out
 
 
 # ----------------------------------------------------------------------------- details
 def _details(s: ReportSession, part: ReportSections) -> list:
-    blocks = [Heading(f"{s.tag} {s.protocol}: {s.path.name}", 2), *part.details]
+    from labbench import readout
+
+    r = readout.of_results(s.protocol, s.results, s.start)
+    blocks = [Heading(f"{s.tag} {s.protocol}: {s.path.name}", 2),
+              *([readout_table(r)] if r.rows else []), *part.details]
     stop = s.stop or {}
     blocks.append(key_values("Run", [
         ("uid", str(s.start.get("uid") or "-")), ("started", s.started),

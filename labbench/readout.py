@@ -1,0 +1,424 @@
+"""What a person reads of a run's results: the one source of the CLI's text and JSON, the
+report's page 1 and the window (issue 30: the three said different things of one session).
+
+``of_results(protocol, results, start)`` turns a run's results (the stop record's, or a
+protocol's analysis of a session) into a ``Readout``: the verdicts, each with the band it
+speaks of (``labbench.verdict``); the stiffness and damping the display rendered beside the
+commanded ones and the exact sampled theory's (``labbench.analysis.rendered``); the device
+model the theory used and where it came from, in one phrase; and the summary numbers in
+order, each a ``Value`` written by the one formatter (``labbench.numfmt``). Every surface
+writes these texts; none composes its own.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from labbench.numfmt import band_text, fmt, fmt_ci
+from labbench.verdict import Verdict, from_dict, worst
+
+NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit"}
+
+
+@dataclass(frozen=True)
+class Value:
+    """A number as read: SI ``value`` [``unit``], its 95 % interval ``lo``-``hi`` when it has
+    one, ``quantity`` = "frequency" when display units convert it, and ``scale``: the size
+    against which its interval's narrowness is judged (``numfmt.fmt_ci``; None: itself)."""
+
+    value: float | None
+    lo: float | None = None
+    hi: float | None = None
+    unit: str = ""
+    quantity: str = ""
+    scale: float | None = None
+
+    def text(self, units=None) -> str:
+        if self.quantity == "frequency" and units is not None:
+            conv = units.frequency_of
+            return fmt_ci(conv(self.value), conv(self.lo), conv(self.hi), units.frequency,
+                          None if self.scale is None else conv(self.scale))
+        return fmt_ci(self.value, self.lo, self.hi, self.unit, self.scale)
+
+    def as_dict(self) -> dict:
+        d = {"value": self.value, "unit": self.unit}
+        if self.lo is not None and self.hi is not None:
+            d["ci95"] = [self.lo, self.hi]
+        return d
+
+
+@dataclass(frozen=True)
+class Judged:
+    """A verdict and what it judges ("ETFE", "identification (l2)", "delay", ...)."""
+
+    what: str
+    verdict: Verdict
+
+    def line(self, units=None) -> str:
+        return f"{self.what}: {self.verdict.line(units)}"
+
+    def as_dict(self, units=None) -> dict:
+        return {"what": self.what, **self.verdict.as_dict(), "line": self.line(units)}
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """The rendered stiffness ES(0) and damping ED(0) (device b included) with their
+    intervals, read over ``band`` [rad/s]; commanded K, B and the device's b; the exact
+    sampled theory's prediction (the same fit to its curve, and its true limit)."""
+
+    K: Value
+    B: Value
+    band: tuple[float, float]
+    n_freq: int
+    K_commanded: float
+    B_commanded: float
+    b: float
+    K_theory: float
+    B_theory: float
+    K_limit: float
+    B_limit: float
+    model: str
+
+    def sentence(self, units=None) -> str:
+        return (f"renders K = {self.K.text(units)} and damping {self.B.text(units)} "
+                f"(b included) over {band_text(self.band, units)}; commanded K = {fmt(self.K_commanded)} "
+                f"N/m, B + b = {fmt(self.B_commanded + self.b)} N s/m; {self.model} theory "
+                f"{fmt(self.K_theory)} N/m, {fmt(self.B_theory)} N s/m")
+
+    def as_dict(self, units=None) -> dict:
+        return {"K": self.K.as_dict(), "B": self.B.as_dict(), "band_rad_s": list(self.band),
+                "n_freq": self.n_freq, "commanded": {"K": self.K_commanded, "B": self.B_commanded,
+                                                     "b": self.b},
+                "theory": {"model": self.model, "K": self.K_theory, "B": self.B_theory,
+                           "K_limit": self.K_limit, "B_limit": self.B_limit},
+                "sentence": self.sentence(units)}
+
+
+@dataclass(frozen=True)
+class PlantSource:
+    """The device model a run's theory used and where it came from, in one phrase."""
+
+    m: float
+    b: float
+    source: str
+
+    def text(self) -> str:
+        return f"m = {fmt(self.m)} kg, b = {fmt(self.b)} N s/m ({self.source})"
+
+
+@dataclass
+class Readout:
+    """What a person reads of one result (module doc)."""
+
+    protocol: str
+    title: str = ""
+    verdicts: list[Judged] = field(default_factory=list)
+    # (label, what is read): a Value, words, or (name, Value) pairs read as "m = ...; b = ..."
+    rows: list[tuple[str, Value | str | tuple]] = field(default_factory=list)
+    rendered: Rendered | None = None
+    plant: PlantSource | None = None
+    # labels of the rows a one-page summary keeps (None: all); the rest are details
+    headline: tuple[str, ...] | None = None
+
+    @property
+    def verdict(self) -> Verdict:
+        """All verdicts as one: the worst level, every reason."""
+        return worst(j.verdict for j in self.verdicts)
+
+    def row_texts(self, units=None) -> list[tuple[str, str]]:
+        return [(label, _text(v, units)) for label, v in self.rows]
+
+    def text_lines(self, units=None) -> list[str]:
+        """The CLI's summary: the rendered impedance first, then the rows, then the verdicts
+        (a verdict of the same name as a row is written on the row: "delay: ok; 0.9 ...")."""
+        lines = [self.rendered.sentence(units)] if self.rendered is not None else []
+        own = {j.what: j for j in self.verdicts}
+        for label, text in self.row_texts(units):
+            j = own.pop(label, None)
+            lines.append(f"{label}: {text}" if j is None else f"{j.line(units)}; {text}")
+        lines += [j.line(units) for j in self.verdicts if j.what in own]
+        return lines
+
+    def as_dict(self, units=None) -> dict:
+        return {"protocol": self.protocol, "title": self.title,
+                "verdicts": [j.as_dict(units) for j in self.verdicts],
+                "rows": [{"label": label, "text": text, **_row_dict(v)}
+                         for (label, v), (_, text) in zip(self.rows, self.row_texts(units))],
+                "rendered": None if self.rendered is None else self.rendered.as_dict(units),
+                "plant": None if self.plant is None else {
+                    "m": self.plant.m, "b": self.plant.b, "source": self.plant.source,
+                    "text": self.plant.text()}}
+
+
+def _text(v, units=None) -> str:
+    if isinstance(v, Value):
+        return v.text(units)
+    if isinstance(v, tuple):
+        return "; ".join(f"{name} = {x.text(units)}" for name, x in v)
+    return str(v)
+
+
+def _row_dict(v) -> dict:
+    if isinstance(v, Value):
+        return v.as_dict()
+    if isinstance(v, tuple):
+        return {"parts": {name: x.as_dict() for name, x in v}}
+    return {}
+
+
+# ----------------------------------------------------------------------------- entry points
+def of_results(protocol: str, results: dict | None, start: dict | None = None) -> Readout:
+    """The readout of a run's ``results`` (module doc); ``start``: its start record (the
+    VE, the rig, where the plant came from). Results read from a file are not trusted: what
+    is missing or malformed is left out."""
+    results = results if isinstance(results, dict) else {}
+    start = start if isinstance(start, dict) else {}
+    if results.get("error"):
+        return Readout(protocol, "Analysis failed", rows=[("error", str(results["error"]))])
+    if isinstance(results.get("etfe"), dict):
+        return _etfe(protocol, results, start)
+    if isinstance(results.get("identification"), dict):
+        return _identification(protocol, results)
+    if protocol == "commission" or isinstance(results.get("changes"), dict):
+        return _commission(protocol, results)
+    if "measured_boundary" in results:
+        return _stability(protocol, results)
+    return Readout(protocol)
+
+
+def of_session(path) -> Readout:
+    """The readout of a recorded session: its stop record's results with its start record
+    (headers only; the sample pages are not decoded)."""
+    from labbench import records
+    from labbench.session_format import SessionReader
+
+    got = records.StreamCollector()
+    with SessionReader(path, decode_pages=False) as reader:
+        records.fan_out(reader, [got])
+    stop = got.stop if isinstance(got.stop, dict) else {}
+    return of_results(records.protocol_name(got.start) or "", stop.get("results"), got.start)
+
+
+def of_etfe_analysis(d: dict, start: dict | None = None) -> Readout:
+    """The readout of ``labbench analyze etfe``'s result (``FrequencyResponse.as_dict``)."""
+    results = {"etfe": d, "loop_fit": d.get("fit"), "rendered": d.get("rendered"),
+               "plant": (d.get("theory") or {}).get("plant"),
+               "deviation_vs_sampled": _deviation_of_analysis(d)}
+    r = _etfe("etfe", results, start or {})
+    source = (d.get("theory") or {}).get("plant_source")
+    if r.plant is not None and isinstance(source, str):
+        r.plant = PlantSource(r.plant.m, r.plant.b, source)
+    return r
+
+
+def of_identification(d: dict, method: str | None = None) -> Readout:
+    """The readout of ``labbench analyze id``'s result (``IdResult.as_dict``)."""
+    return _identification("chirp-id", {"identification": {method or d.get("method") or "fit": d}})
+
+
+# ----------------------------------------------------------------------------- plant source
+def plant_source(start: dict) -> str:
+    """Where the plant of a run's theory came from, in one phrase (its start record)."""
+    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
+    if isinstance(found.get("session"), str):
+        return f"identified in {session_label(found['session'])}"
+    config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
+    if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
+        return "given in the run's settings"
+    return "the rig's nominal model"
+
+
+def session_label(path) -> str:
+    """A session's file name less its uid: ``20261203-063850_chirp-id`` (when and what)."""
+    return Path(str(path)).stem.rsplit("_", 1)[0]
+
+
+# ----------------------------------------------------------------------------- per result
+def _num(x) -> float | None:
+    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else None
+
+
+def _ci(d: dict, key: str) -> tuple[float | None, float | None]:
+    ci = (d.get("ci95") or {}).get(key) if isinstance(d.get("ci95"), dict) else None
+    if isinstance(ci, (list, tuple)) and len(ci) == 2:
+        return _num(ci[0]), _num(ci[1])
+    return None, None
+
+
+def _judged(what: str, d) -> list[Judged]:
+    v = from_dict(d.get("verdict")) if isinstance(d, dict) else None
+    return [] if v is None else [Judged(what, v)]
+
+
+def _etfe(protocol: str, results: dict, start: dict) -> Readout:
+    e = results["etfe"]
+    r = Readout(protocol, "Rendered impedance against the exact sampled theory",
+                headline=("|Z - Z_theory| / |Z_theory|", "w_s*", "w_b*", "device model of the theory"))
+    r.verdicts = _judged(NAMES["etfe"], e) + _judged(NAMES["loop_fit"], results.get("loop_fit"))
+    plant = results.get("plant") if isinstance(results.get("plant"), dict) else {}
+    m, b = _num(plant.get("m")), _num(plant.get("b"))
+    if m is not None and b is not None:
+        r.plant = PlantSource(m, b, plant_source(start))
+    r.rendered = _rendered(results.get("rendered"))
+    dev = results.get("deviation_vs_sampled") if isinstance(results.get("deviation_vs_sampled"), dict) else {}
+    band = dev.get("band_rad_s")
+    if _num(dev.get("median_rel")) is not None and isinstance(band, list) and len(band) == 2:
+        r.rows.append(("|Z - Z_theory| / |Z_theory|", f"median {_pct(dev['median_rel'])}, max "
+                       f"{_pct(dev.get('max_rel'))} over {band_text(band)}"))
+    bw = results.get("bandwidths") if isinstance(results.get("bandwidths"), dict) else {}
+    for sym, key in (("w_s*", "ws_star"), ("w_b*", "wb_star")):
+        got, want = _num(bw.get(f"{key}_measured")), _num(bw.get(f"{key}_predicted"))
+        if got is not None or want is not None:
+            r.rows.append((sym, (("measured", Value(got, unit="rad/s", quantity="frequency")),
+                                 ("sampled theory", Value(want, unit="rad/s", quantity="frequency")))))
+    if r.plant is not None:
+        r.rows.append(("device model of the theory", r.plant.text()))
+    fit = results.get("loop_fit") if isinstance(results.get("loop_fit"), dict) else {}
+    if "m" in fit:
+        r.rows.append(("closed-loop fit", _fit_parts(fit)))
+    elif fit.get("error"):
+        r.rows.append(("closed-loop fit", f"none: {fit['error']}"))
+    return r
+
+
+def _rendered(d) -> Rendered | None:
+    if not isinstance(d, dict):
+        return None
+    th = d.get("theory") if isinstance(d.get("theory"), dict) else {}
+    cmd = d.get("commanded") if isinstance(d.get("commanded"), dict) else {}
+    K, B = _num(d.get("K")), _num(d.get("B"))
+    band = d.get("band_rad_s")
+    nums = [_num(x) for x in (cmd.get("K"), cmd.get("B"), cmd.get("b"), th.get("K"), th.get("B"),
+                              th.get("K_limit"), th.get("B_limit"))]
+    if K is None or B is None or None in nums or not (isinstance(band, list) and len(band) == 2):
+        return None
+    (klo, khi), (blo, bhi) = _pair(d.get("K_ci95")), _pair(d.get("B_ci95"))
+    return Rendered(Value(K, klo, khi, "N/m", scale=max(abs(nums[0]), abs(K))),
+                    Value(B, blo, bhi, "N s/m", scale=max(abs(nums[1] + nums[2]), abs(B))),
+                    (float(band[0]), float(band[1])), int(d.get("n_freq") or 0), *nums,
+                    str(th.get("model") or "sampled"))
+
+
+def _pair(x) -> tuple[float | None, float | None]:
+    if isinstance(x, (list, tuple)) and len(x) == 2:
+        return _num(x[0]), _num(x[1])
+    return None, None
+
+
+def _fit_parts(fit: dict) -> tuple:
+    """The loop fit's m, b and delays (device td, VE-path tv; in ms, judged against 1 ms)."""
+    parts = [("m", Value(_num(fit.get("m")), *_ci(fit, "m"), "kg")),
+             ("b", Value(_num(fit.get("b")), *_ci(fit, "b"), "N s/m"))]
+    for key, name in (("td_s", "td"), ("tv_s", "tv")):
+        if _num(fit.get(key)) is not None and None not in _ci(fit, key):
+            lo, hi = _ci(fit, key)
+            parts.append((name, Value(1e3 * fit[key], None if lo is None else 1e3 * lo,
+                                      None if hi is None else 1e3 * hi, "ms", scale=1.0)))
+    return tuple(parts)
+
+
+def _deviation_of_analysis(d: dict) -> dict:
+    th = d.get("theory") if isinstance(d.get("theory"), dict) else {}
+    return {"band_rad_s": th.get("band_rad_s"), "median_rel": th.get("deviation_median"),
+            "max_rel": th.get("deviation_max")}
+
+
+def _identification(protocol: str, results: dict) -> Readout:
+    """The primary fit (l2 when there is one) in full; the others as cross-checks."""
+    r = Readout(protocol, "Identified device",
+                headline=("model", "mass m", "damping b", "Coulomb friction Fc", "force offset f0"))
+    fits = {k: v for k, v in results["identification"].items() if isinstance(v, dict)}
+    if not fits:
+        return r
+    primary = "l2" if "l2" in fits else next(iter(fits))
+    fit = fits[primary]
+    r.rows.append(("model", f"{_model_text(fit.get('model'))} ({primary} fit)"))
+    r.rows.append(("mass m", Value(_num(fit.get("m")), *_ci(fit, "m"), "kg")))
+    r.rows.append(("damping b", Value(_num(fit.get("b")), *_ci(fit, "b"), "N s/m", scale=_b_scale(fit))))
+    for key, name in (("coulomb", "Coulomb friction Fc"), ("offset", "force offset f0")):
+        if _num(fit.get(key)) is not None:
+            r.rows.append((name, Value(fit[key], *_ci(fit, key), "N", scale=_force_scale(fit))))
+    for method, other in fits.items():
+        if method != primary:
+            r.rows.append((f"cross-check: {method} fit",
+                           (("m", Value(_num(other.get("m")), *_ci(other, "m"), "kg")),
+                            ("b", Value(_num(other.get("b")), *_ci(other, "b"), "N s/m",
+                                        scale=_b_scale(other))))))
+    for method, f in fits.items():
+        r.verdicts += _judged(f"identification ({method})", f)
+    return r
+
+
+def _b_scale(fit: dict) -> float | None:
+    """b's scale: the force's, per unit velocity (b near 0 is exact only against that)."""
+    m, b = _num(fit.get("m")), _num(fit.get("b"))
+    return None if m is None or b is None else max(abs(b), 1e-3 * abs(m))
+
+
+def _force_scale(fit: dict) -> float | None:
+    rms = _num(fit.get("rms_residual"))
+    return None if rms is None else max(rms, 1e-3)
+
+
+def _model_text(model) -> str:
+    return {"mb": "f = m x'' + b x'", "mbc": "f = m x'' + b x' + Fc sign(x')",
+            "mbco": "f = m x'' + b x' + Fc sign(x') + f0"}.get(model, str(model))
+
+
+CHECKS = ("direction", "delay", "scale", "friction", "k_max")
+
+
+def _commission(protocol: str, results: dict) -> Readout:
+    r = Readout(protocol, "Commissioning")
+    d = results.get("direction") if isinstance(results.get("direction"), dict) else {}
+    dl = results.get("delay") if isinstance(results.get("delay"), dict) else {}
+    s = results.get("scale") if isinstance(results.get("scale"), dict) else {}
+    fr = results.get("friction") if isinstance(results.get("friction"), dict) else {}
+    k = results.get("k_max") if isinstance(results.get("k_max"), dict) else {}
+    ci = _pair(dl.get("delay_ci_samples"))
+    terms = ", ".join(f"{name} = {fmt(fr[key])} N" for name, key in (("Fc", "coulomb_n"), ("f0", "offset_n"))
+                      if _num(fr.get(key)) is not None)
+    r.rows = [
+        ("direction", f"{d.get('agree')} of {d.get('of')} pulses moved with the force"),
+        ("delay", Value(_num(dl.get("delay_samples")), *ci, "samples", scale=1.0)),
+        ("scale", f"m = {fmt(s.get('m'), 5)} kg ({fmt(s.get('m_ratio'), 4)} x nominal), "
+                  f"b = {fmt(s.get('b'), 5)} N s/m"),
+        ("friction", f"model {fr.get('model')}" + (f", {terms}" if terms else
+                                                    ": no Coulomb friction or offset")),
+        ("k_max", f"{fmt(k.get('k_max_n_m'), 5)} N/m for a pure spring, B = 0 "
+                  "(exact sampled, measured m, b, delay)"),
+    ]
+    changes = results.get("changes") if isinstance(results.get("changes"), dict) else {}
+    r.rows.append(("rig changes", ", ".join(f"{key} = {v}" for key, v in changes.items()) or "none"))
+    for check in CHECKS:
+        r.verdicts += _judged(check, results.get(check))
+    return r
+
+
+def check_text(readout: Readout, check: str, units=None) -> str:
+    """The numbers of one commissioning check, as every surface writes them."""
+    return dict(readout.row_texts(units)).get(check, "-")
+
+
+def _stability(protocol: str, results: dict) -> Readout:
+    r = Readout(protocol, "Stability boundary", headline=(
+        "boundary (K), measured", "boundary (K), exact sampled", "boundary (td), measured",
+        "boundary (td), exact sampled", "measured against exact"))
+    var = results.get("variable")
+    unit = "N/m" if var == "K" else "s"
+    steps = results.get("steps") if isinstance(results.get("steps"), list) else []
+    r.rows.append(("probed variable", f"{var} ({unit}), {len(steps)} steps"))
+    for label, key in (("measured", "measured_boundary"), ("exact sampled", "exact_boundary"),
+                       ("paper's approximation", "approx_boundary")):
+        r.rows.append((f"boundary ({var}), {label}", Value(_num(results.get(key)), unit=unit)))
+    rel = _num(results.get("rel_error_vs_exact"))
+    if rel is not None:
+        r.rows.append(("measured against exact", f"{100 * rel:+.2g} %"))
+    return r
+
+
+def _pct(x) -> str:
+    x = _num(x)
+    return "-" if x is None else f"{100 * x:.2g} %"
