@@ -37,13 +37,17 @@ import numpy as np
 from scipy.linalg import null_space
 
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.ve import RANGES, Plant, VirtualEnvironment
 
 MODELS = ("paper", "sampled")
 
-# Spectral radius below this counts as stable; keeps a marginal mode computed
-# as 1 - 1e-16 (e.g. an undamped plant) from being called stable.
-_STABLE_BELOW = 1.0 - 1e-9
+# Eigenvalues of the loop matrix this close to z = 1 are found again as roots of the
+# characteristic polynomial in w = z - 1 (``_poles_near_one``): there a float eigenvalue's
+# error (~1e-16 |A|) can exceed its distance from the unit circle (a soft spring on a
+# heavily damped device: 1 - |z| ~ K T / b). Only those whose |z| is within
+# _UNDECIDED of 1 need it: an eigenvalue's error stays below ~1e-8 even in a close pair.
+_NEAR_ONE = 1e-2
+_UNDECIDED = 1e-6
 
 
 # ----------------------------------------------------------------------------- paper model
@@ -255,19 +259,32 @@ def closed_loop(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> D
 # ----------------------------------------------------------------------------- stability
 @dataclass(frozen=True)
 class Stability:
+    """``stable``: every pole of the exact sampled loop strictly inside the unit circle;
+    ``spectral_radius`` the largest |z|; ``margin`` 1 - that radius, computed without
+    the rounding of |z| near 1 (what ``stable`` is decided on: ``margin > 0``)."""
+
     stable: bool
     spectral_radius: float
+    margin: float
 
 
 def stability(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> Stability:
-    """Stability of the exact sampled loop: spectral radius of A below 1.
+    """Stability of the exact sampled loop: every pole inside the unit circle.
 
-    Without a virtual spring (K = 0) any constant position offset is an
-    equilibrium: A has the eigenvector e = [1, 0, 1, 0, 0, ...] (x = x[k-1] =
-    const, all velocities and forces zero) with eigenvalue exactly 1. That mode
-    is not instability, so it is deflated: with Q an orthonormal basis of the
-    complement of e, ``Q^T A Q`` carries the remaining eigenvalues (Schur
-    deflation, Golub & Van Loan, Matrix Computations, sec. 7.3).
+    The poles are the eigenvalues of the loop matrix A (``closed_loop``), except those
+    within ``_NEAR_ONE`` of z = 1 and ``_UNDECIDED`` of the unit circle, which are polished
+    as roots of the characteristic
+    polynomial in w = z - 1 (``_poles_near_one``), whose coefficients carry no
+    cancellation. So there is no threshold: a soft spring on a heavily damped device
+    (a pole at 1 - 1e-10) is stable, and ``k_max`` (which calls this) finds the true
+    boundary, not one shifted by a tolerance.
+
+    Without a virtual spring (K = 0) any constant position offset is an equilibrium:
+    A has the eigenvector e = [1, 0, 1, 0, 0, ...] (x = x[k-1] = const, all velocities
+    and forces zero) with eigenvalue exactly 1. That mode is not instability, so it is
+    deflated: with Q an orthonormal basis of the complement of e, ``Q^T A Q`` carries
+    the remaining eigenvalues (Schur deflation, Golub & Van Loan, Matrix Computations,
+    sec. 7.3); the polynomial drops its factor w likewise.
     """
     A = closed_loop(plant, ve, latency).A
     if ve.K == 0:
@@ -275,8 +292,77 @@ def stability(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> Sta
         e[0] = e[2] = 1.0
         Q = null_space(e[None, :])
         A = Q.T @ A @ Q
-    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
-    return Stability(stable=rho < _STABLE_BELOW, spectral_radius=rho)
+    lam = np.linalg.eigvals(A)
+    near = (np.abs(lam - 1.0) < _NEAR_ONE) & (np.abs(1.0 - np.abs(lam)) < _UNDECIDED)
+    margins = [1.0 - np.abs(lam[~near])]
+    radii = [np.abs(lam[~near])]
+    if near.any():
+        w = _poles_near_one(plant, ve, latency, lam[near] - 1.0)
+        radius = np.abs(1.0 + w)
+        # 1 - |1 + w| = -(2 Re w + |w|^2) / (1 + |1 + w|): no rounding of |1 + w| to 1
+        margins.append(-(2.0 * w.real + np.abs(w) ** 2) / (1.0 + radius))
+        radii.append(radius)
+    margin = float(np.min(np.concatenate(margins)))
+    return Stability(stable=margin > 0, spectral_radius=float(np.max(np.concatenate(radii))),
+                     margin=margin)
+
+
+def characteristic_polynomial(plant: Plant, ve: VirtualEnvironment,
+                              latency: float = 0.0) -> np.ndarray:
+    """Coefficients (lowest power first) of the loop's characteristic polynomial in
+    w = z - 1, the equilibrium factor w divided out when K = 0.
+
+    From ``1 + z^-n C(z) P_L(z) = 0`` (module doc) with ``P_L = z^-(d+1) N(z) /
+    ((z - 1)(z - e))``, ``N(z) = (z - e)(G_late,0 z + G_early,0) + Ad01 (G_late,1 z +
+    G_early,1)``, ``e = exp(-b T / m)``, ``C = (K T (z - a) + B (1 - a)(z - 1)) / (T (z - a))``:
+    ``w (w + 1 - e) T (w + 1 - a) (1 + w)^(n+d+1) + (K T (1 - a) + (K T + B (1 - a)) w) N``.
+    Every factor has non-negative coefficients in w (1 - e and 1 - a by expm1), so each
+    coefficient is a sum of positive terms, accurate to rounding: the small roots, the poles
+    near z = 1, are as accurate as the model's numbers.
+    """
+    P = np.polynomial.polynomial
+    T = ve.T
+    n = ve.delay_samples
+    d, alpha = latency_split(latency, T)
+    Ad, _ = zoh_matrices(plant.m, plant.b, T)
+    g_late, g_early = latency_inputs(plant, T, alpha)
+    one_minus_e = -math.expm1(-plant.b * T / plant.m)
+    one_minus_a = 1.0 if math.isinf(ve.w0) else -math.expm1(-ve.w0 * T)
+    N = P.polyadd(P.polymul([one_minus_e, 1.0], [g_late[0] + g_early[0], g_late[0]]),
+                  Ad[0, 1] * np.array([g_late[1] + g_early[1], g_late[1]]))
+    hold = P.polymul(P.polymul([one_minus_e * T, T], [one_minus_a, 1.0]),
+                     P.polypow([1.0, 1.0], n + d + 1))
+    gain = [ve.K * T * one_minus_a, ve.K * T + ve.B * one_minus_a]
+    if ve.K == 0:  # w divides both terms: gain = [0, B (1 - a)], hold = w (...)
+        return P.polyadd(hold, ve.B * one_minus_a * N)
+    return P.polyadd(P.polymul([0.0, 1.0], hold), P.polymul(gain, N))
+
+
+def _poles_near_one(plant: Plant, ve: VirtualEnvironment, latency: float,
+                    start: np.ndarray) -> np.ndarray:
+    """The poles w = z - 1 near 0, polished from the eigenvalues ``start`` (also w) on the
+    characteristic polynomial by Newton's method with implicit deflation of the others
+    (Maehly; Stoer & Bulirsch, Introduction to Numerical Analysis, sec. 5.5), so close or
+    double poles converge to distinct roots. The starts are nudged off the real axis,
+    differently each, so a pair that is complex (or real) may become so."""
+    P = np.polynomial.polynomial
+    c = characteristic_polynomial(plant, ve, latency)
+    c = c / np.max(np.abs(c))  # no overflow in the sums below
+    dc = P.polyder(c)
+    scale = max(float(np.max(np.abs(start))), 1e-300)
+    w = start.astype(complex) + 1j * scale * 1e-3 * np.arange(1, start.size + 1)
+    for _ in range(100):
+        p = P.polyval(w, c)
+        apart = w[:, None] - w[None, :]
+        np.fill_diagonal(apart, np.inf)
+        # p / (p' - p sum_j 1/(w_i - w_j)): Newton's step on p / prod_j (w - w_j)
+        denominator = P.polyval(w, dc) - p * np.sum(1.0 / apart, axis=1)
+        ok = (p != 0) & (denominator != 0)
+        step = np.where(ok, p / np.where(ok, denominator, 1.0), 0.0)
+        w = w - step
+        if np.all(np.abs(step) <= 4e-16 * np.abs(w)):
+            break
+    return w
 
 
 def _stable_with_k(plant: Plant, ve: VirtualEnvironment, K: float, latency: float = 0.0) -> bool:
@@ -289,20 +375,23 @@ def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4, latency: 
     Defined as the first loss of stability as K grows from 0: K is raised by
     factors of 1.25 from a small value until the loop is unstable, then the
     bracket is bisected to ``rel_tol`` (default 0.01 %, as docs/theory.md
-    states). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up
-    to 1e12 N/m is unstable; None for kinds without a spring.
+    states; ``stability`` decides each K, with no tolerance, so every K below the result
+    is stable). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up to the
+    stiffest VE there is (``labbench.ve.RANGES``, 1e7 N/m) is unstable; None for kinds
+    without a spring.
     """
     if ve.kind not in ("spring", "spring-damper"):
         return None
+    ceiling = RANGES["K"][1]
     guess = k_max_approx(plant, ve, latency)
-    lo = 1e-6 * guess if guess and math.isfinite(guess) else 1e-6
+    lo = min(1e-6 * guess if guess and math.isfinite(guess) else 1e-6, 1e-6 * ceiling)
     if not _stable_with_k(plant, ve, lo, latency):
         return 0.0
     hi = lo * 1.25
     while _stable_with_k(plant, ve, hi, latency):
-        lo, hi = hi, hi * 1.25
-        if hi > 1e12:
+        if hi >= ceiling:
             return math.inf
+        lo, hi = hi, min(hi * 1.25, ceiling)
     while hi - lo > rel_tol * lo:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if _stable_with_k(plant, ve, mid, latency) else (lo, mid)

@@ -125,6 +125,10 @@ BAD = [
     ["--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "10", "--td", "0,0.001"],
     ["--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "10", "--plot", "fig.jpg"],
     ["--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "10", "--T", "0"],
+    ["--ve", "spring-damper", "--m", "0.1", "--b", "0.01", "--K", "50", "--B", "1", "--w0", "125",
+     "--w", "3200"],  # above pi/T: an alias (ED +4275 N s/m, silently, before)
+    ["--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "10", "--T", "0.002", "--w",
+     "1,1571", "--model", "paper"],
 ]
 
 
@@ -144,3 +148,38 @@ def test_bad_input_through_the_console_entry_point():
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "whole number of samples" in r.stderr
+
+
+def test_frequencies_up_to_nyquist_are_answered(capsys):
+    code, out, _ = run_cli(["theory", "--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "10",
+                            "--w", f"1,{math.pi / 0.001!r}", "--model", "sampled", "--json"], capsys)
+    assert code == 0 and len(strict_json(out)["ED"]) == 2
+
+
+@pytest.mark.parametrize("model", ["paper", "sampled"])
+def test_each_field_says_which_model_it_is_of(model, capsys):
+    """Under --model paper, stable and K_max are still the sampled loop's: the JSON says so,
+    and so does the text."""
+    code, out, _ = run_cli(SD + ["--w", "1,10", "--model", model, "--json"], capsys)
+    d = strict_json(out)
+    of = d["model_of"]
+    assert {of[k] for k in ("Z_re", "Z_im", "ES", "ED", "EM")} == {model}
+    assert {of[k] for k in ("stable", "spectral_radius", "stability_margin", "K_max")} == {"sampled"}
+    assert of["K_max_approx"] == "paper" and of["ws_star"] == d["bandwidths_model"]
+    assert set(of) <= set(d)
+    code, out, _ = run_cli(SD + ["--w", "1,10", "--model", model], capsys)
+    head = out.splitlines()
+    assert f"{model} model" in head[0] and "sampled loop stable" in head[1]
+    assert "N/m sampled (paper approx" in head[1]
+
+
+def test_a_soft_spring_on_a_damped_device_is_stable_beside_its_k_max(capsys):
+    """The issue's contradiction: K = 1e-4 N/m, b = 1000 N s/m said stable: false beside
+    K_max = 2.5e6 N/m (tests/test_theory_edges.py checks it against a 40-digit reference)."""
+    args = ["theory", "--ve", "spring", "--m", "0.1", "--b", "1000", "--K", "1e-4", "--w", "1"]
+    code, out, _ = run_cli(args + ["--json"], capsys)
+    d = strict_json(out)
+    assert d["stable"] is True and d["K_max"] > 1e6
+    assert d["stability_margin"] == pytest.approx(1e-10, rel=1e-3)
+    code, out, _ = run_cli(args, capsys)
+    assert "sampled loop stable (spectral radius 1 - 1e-10)" in out.splitlines()[1]

@@ -41,7 +41,9 @@ def register(subparsers) -> None:
                         "fractions of a sample allowed (default 0)")
     p.add_argument("--model", choices=theory.MODELS, default="paper",
                    help="paper: eq. 2 with delay T/2 + td; sampled: exact sampled-data loop")
-    p.add_argument("--w", type=float_list, metavar="W1,W2,...", help="frequencies (rad/s)")
+    p.add_argument("--w", type=float_list, metavar="W1,W2,...",
+                   help="frequencies (rad/s), up to the Nyquist frequency pi/T (default: a log "
+                        "grid, 31 points in the table, 200 with --json or --plot)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="FILE", help="write a paper-style figure (.png, .svg, .pdf)")
     p.add_argument("--force", action="store_true", help="replace an existing --plot file")
@@ -62,6 +64,12 @@ def run(args) -> int:
         raise UserError("several --td values need --plot (and no --json); give one value otherwise")
     if args.w is not None and any(not (w > 0) or math.isinf(w) for w in args.w):
         raise UserError("--w frequencies must be positive finite rad/s")
+    nyquist = math.pi / args.T if args.T > 0 else math.inf
+    above = [w for w in args.w or () if w > nyquist * (1 + 1e-12)]
+    if above:
+        raise UserError(f"--w {fmt(max(above), 6)} rad/s is above the Nyquist frequency pi/T = "
+                        f"{fmt(nyquist, 6)} rad/s of T = {fmt(args.T)} s: a sampled loop "
+                        "has no response of its own there (it would be an alias)")
     if args.model == "sampled":
         for ve in ves:
             ve.delay_samples  # one clear error when td is not whole samples
@@ -124,6 +132,13 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
     bw = predictions.bandwidths(plant, ve, latency)
     return {
         "model": model,
+        # which model each field is of: Z and what is read off it follow --model; stability
+        # and K_max are always the exact sampled loop's; K_max_approx the paper's formula
+        "model_of": {**dict.fromkeys(("Z_re", "Z_im", "ES", "ED", "EM"), model),
+                     **dict.fromkeys(("stable", "spectral_radius", "stability_margin", "K_max"),
+                                     "sampled"),
+                     "K_max_approx": "paper",
+                     **dict.fromkeys(("ws_star", "wb_star"), bw.model)},
         "ve": ve.as_dict(),
         "plant": {"m": plant.m, "b": plant.b},
         "device_delay_s": latency,
@@ -136,6 +151,7 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
         # sampled-model stability; null when td is not whole samples (no sampled model)
         "stable": None if st is None else st.stable,
         "spectral_radius": None if st is None else st.spectral_radius,
+        "stability_margin": None if st is None else st.margin,  # 1 - spectral radius, exactly
         "K_max": kmax,
         "K_max_approx": kapp,
         "K_max_margin": (kmax / kapp - 1) if kmax is not None and kapp else None,
@@ -155,13 +171,17 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
 def _headline(s: dict) -> str:
     ve = s["ve"]
     if s["stable"] is None:
-        stab = "n/a (td not whole samples)"
+        stab = "sampled loop: n/a (td not whole samples)"
     else:
         verdict = "stable" if s["stable"] else "UNSTABLE"
-        stab = f"{verdict} (spectral radius {s['spectral_radius']:.6f})"
+        margin = s["stability_margin"]  # near 1 the radius as 1 -/+ the margin: never "1.000000"
+        radius = (f"{s['spectral_radius']:.6f}" if abs(margin) >= 5e-7 else
+                  f"1 {'-' if margin > 0 else '+'} {abs(margin):.2g}")
+        stab = f"sampled loop {verdict} (spectral radius {radius})"
     line = f"td = {ve['td']:g} s: {stab}"
     if s["K_max_approx"] is not None:
-        line += f"; K_max {fmt(s['K_max'])} N/m (paper approx {fmt(s['K_max_approx'])})"
+        line += (f"; K_max {fmt(s['K_max'])} N/m sampled (paper approx "
+                 f"{fmt(s['K_max_approx'])})")
     de = s["delay_effects"]
     if "ED_drop_paper" in de:
         line += (f"; low-w ED drop {fmt(de['ED_drop_paper'])} paper, {fmt(de['ED_drop_sampled'])}"
