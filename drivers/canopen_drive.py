@@ -380,6 +380,7 @@ class CanopenDrive:
     def _setup_cyclic(self) -> None:
         """Per-cycle tables from the plan: TPDO decoders, RPDO frames, periodic frames."""
         plan, cfg = self.assessment.plan, self.config
+        self._torque_n = self.assessment.torque_per_permille_n  # 0x6077's newtons per unit
         self._decoders, self._all_sync = {}, 0
         for k, p in enumerate(plan.tpdos):
             bit = 1 << k if p.trans_type == 1 else 0
@@ -901,7 +902,7 @@ class CanopenDrive:
                        "software position limit 0x607D)")
         self._seq += 1
         if "torque" in vals:
-            self.torque_actual_n = vals["torque"] * self.assessment.torque_per_permille_n
+            self.torque_actual_n = vals["torque"] * self._torque_n
         if "velocity" in vals:
             self.velocity_m_s = vals["velocity"] * self._mpc
         flags = (FLAG_WARNING if status & cia402.SW_WARNING else 0) | (

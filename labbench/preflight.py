@@ -239,7 +239,14 @@ def judge(m: dict) -> dict:
     if shortest:
         suggest["shortest_sample_time_s"] = _nice_ceil(shortest)
         if findings and findings[-1][0] != OK and cycle:
-            suggest["sample_time_s"] = max(_nice_ceil(shortest), T)
+            if _nice_ceil(shortest) > T:
+                suggest["sample_time_s"] = _nice_ceil(shortest)
+            else:  # the cycle's own work fits: what overran was the host, stalled
+                level, text = findings[-1]
+                findings[-1] = (level, text + "; not the sample time's fault: the host "
+                                "stalled (pacing p99.9 " + ms(m["pacing"].get("p999_s"))
+                                + ", max " + ms(m["pacing"].get("max_s")) + "): a quieter "
+                                "or real-time host, not a longer period")
     rt = m.get("realtime") or {}
     refused = rt.get("requested") and (rt.get("refused") or rt.get("policy") not in (
         "SCHED_FIFO", "HIGH_PRIORITY_CLASS"))

@@ -218,6 +218,15 @@ def test_sample_time_verdict_and_the_shortest_that_holds():
     assert ok["suggest"]["shortest_sample_time_s"] == pytest.approx(0.0005)
 
 
+def test_overruns_of_a_stalled_host_do_not_ask_for_a_longer_period():
+    """The cycle's work fits the period with room; the overruns are host stalls."""
+    m = synthetic(0.0002, cycle_p999=0.0004, overruns=64)
+    m["pacing"] = {"p50_s": 3e-5, "p99_s": 7e-5, "p999_s": 0.0089, "max_s": 0.188, "n": 1000}
+    j = judge(m)
+    assert j["verdict"]["level"] == "doubtful" and "sample_time_s" not in j["suggest"]
+    assert "the host stalled (pacing p99.9 8.9 ms, max 188 ms)" in j["findings"][1]
+
+
 def test_stale_limit_beyond_what_the_device_allows_asks_for_a_longer_period():
     j = judge({**synthetic(0.0042, top=3), "over_stale": 9})  # a serial board: at most 3 periods
     assert "stale_periods" not in j["suggest"] and "no stale_periods up to 3" in \
