@@ -15,6 +15,7 @@ class DevicePanel(QtWidgets.QGroupBox):
     connect_requested = QtCore.Signal(str)
     disconnect_requested = QtCore.Signal()
     enable_requested = QtCore.Signal(bool)
+    timing_requested = QtCore.Signal(str)
 
     def __init__(self, default_device: str = "sim", parent=None):
         super().__init__("Device", parent)
@@ -30,6 +31,12 @@ class DevicePanel(QtWidgets.QGroupBox):
         self.health = {key: QtWidgets.QLabel("-") for key, _ in HEALTH_FIELDS}
         for lab in self.health.values():
             lab.setWordWrap(True)
+        self.timing_button = QtWidgets.QPushButton("Check timing")
+        self.timing_button.setToolTip(
+            "the timing preflight (labbench devices --timing): the backend opened paced for "
+            "the rig's [preflight] seconds, the loop's own calls; whether this PC and bus hold "
+            "the rig's stale limit and sample time (the device must not be connected)")
+        self.timing_label = QtWidgets.QLabel("not checked")  # one line; the rest in its tooltip
 
         form = QtWidgets.QFormLayout(self)
         row = QtWidgets.QHBoxLayout()
@@ -40,11 +47,18 @@ class DevicePanel(QtWidgets.QGroupBox):
         form.addRow("device", self.name_label)
         for key, title in HEALTH_FIELDS:
             form.addRow(title, self.health[key])
+        timing = QtWidgets.QHBoxLayout()
+        timing.addWidget(self.timing_button)
+        timing.addWidget(self.timing_label, 1)
+        form.addRow("timing", timing)
 
         self._link = "none"
+        self._checking = False
         self.enabled = False
         self.connect_button.clicked.connect(self._on_connect)
         self.enable_button.clicked.connect(lambda: self.enable_requested.emit(not self.enabled))
+        self.timing_button.clicked.connect(
+            lambda: self.timing_requested.emit(self.backend.currentText()))
 
     def _on_connect(self):
         if self._link == "none":
@@ -57,11 +71,42 @@ class DevicePanel(QtWidgets.QGroupBox):
         latched one too: that clears the latch), the backend fixed while one is open,
         Enable only on a connected device that no E-STOP latched."""
         self._link = state.link
-        self.connect_button.setEnabled(state.link != "connecting")
+        self._follow()
+
+    def _follow(self) -> None:
+        """The buttons as the link and a timing check in progress allow: the check opens
+        the device itself, so it runs only with none connected, and nothing connects
+        meanwhile."""
+        link, checking = self._link, self._checking
+        self.connect_button.setEnabled(link != "connecting" and not checking)
         self.connect_button.setText({"none": "Connect", "connecting": "Connecting..."}.get(
-            state.link, "Disconnect"))
-        self.backend.setEnabled(state.link == "none")
-        self.enable_button.setEnabled(state.link == "connected")
+            link, "Disconnect"))
+        self.backend.setEnabled(link == "none" and not checking)
+        self.enable_button.setEnabled(link == "connected")
+        self.timing_button.setEnabled(link == "none" and not checking)
+        self.timing_button.setText("Checking..." if checking else "Check timing")
+
+    def set_checking(self, checking: bool) -> None:
+        self._checking = checking
+        if checking:
+            self.timing_label.setText("measuring ...")
+            self.timing_label.setToolTip("")
+        self._follow()
+
+    def show_timing(self, result: dict | None, lines: list[str] = ()) -> None:
+        """The preflight's verdict in one line (``labbench.preflight.judge``: level and what to
+        change), every figure in the tooltip; None: not checked."""
+        if result is None:
+            self.timing_label.setText("not checked")
+            self.timing_label.setToolTip("")
+            return
+        level = result["verdict"]["level"]
+        change = ", ".join(f"{k} = {v:g}" for t in result.get("rig_changes", {}).values()
+                           for k, v in t.items())
+        self.timing_label.setText(f"{level}: " + (f"set {change}" if change else
+                                                  "the rig's limits hold" if level == "ok"
+                                                  else "see the tooltip"))
+        self.timing_label.setToolTip("\n".join(lines) or result.get("line", ""))
 
     def set_connected(self, description=None) -> None:
         """``description``: a DeviceDescription, or None when disconnected (or failed)."""

@@ -135,3 +135,29 @@ def identify_all(data: dict, meta: dict) -> dict:
     for method in ("l2", "l1"):
         out[method] = identify(rec, model="auto", method=method).as_dict()
     return out
+
+
+def timing_preflight(rig, backend: str) -> dict:
+    """The timing preflight (``labbench devices --timing``, ``labbench.preflight``) on
+    ``backend`` for the rig's ``[preflight] seconds``, in a process of its own as the
+    acquisition process runs the loop (away from the window's GIL, whose drawing would be
+    measured as the host's stalls). Its JSON; one ``UserError`` (exit 2) or
+    ``DeviceError`` line when it refuses or fails."""
+    import json
+    import subprocess
+    import sys
+
+    from labbench.errors import DeviceError
+    from labbench.preflight import PreflightConfig
+
+    seconds = PreflightConfig.from_rig(rig).seconds
+    argv = [sys.executable, "-m", "labbench", "devices", "--timing", repr(seconds), "--device",
+            backend, "--json"]
+    if rig.source and Path(str(rig.source)).is_file():
+        argv += ["--rig", str(rig.source)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=seconds + 120)
+    if proc.returncode != 0:
+        line = (proc.stderr.strip().splitlines() or [f"exit code {proc.returncode}"])[-1]
+        line = line.removeprefix("labbench devices: error: ")
+        raise (UserError if proc.returncode == 2 else DeviceError)(line)
+    return json.loads(proc.stdout)

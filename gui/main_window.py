@@ -32,7 +32,7 @@ from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
 from labbench.gui.id_view import IdView
 from labbench.gui.jobs import (catalogue, load_identification, plant_data, reanalyse_session,
-                               scalar_rows, session_label, used_method)
+                               scalar_rows, session_label, timing_preflight, used_method)
 from labbench.gui.live_view import LiveView
 from labbench.gui.loop_status import LoopStatus
 from labbench.gui.protocol_panel import ProtocolPanel, precheck_text, settings_rows
@@ -239,6 +239,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device_panel.connect_requested.connect(self.connect_device)
         self.device_panel.disconnect_requested.connect(self.disconnect_device)
         self.device_panel.enable_requested.connect(self.enable_device)
+        self.device_panel.timing_requested.connect(self.check_timing)
         self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
         self.protocol_panel.protocol_changed.connect(self._protocol_chosen)
         self.protocol_panel.settings_changed.connect(self.update_precheck)
@@ -314,6 +315,27 @@ class MainWindow(QtWidgets.QMainWindow):
         self.state.disconnected()  # the latch lives in the device being closed
         if was is not None:
             self.acquisition.send("disconnect")
+
+    @guarded
+    def check_timing(self, backend: str):
+        """The timing preflight on ``backend`` (``gui.jobs.timing_preflight``): its verdict on
+        the Device panel, its figures in the log. The device must not be connected (the
+        check opens it)."""
+        self._new_action()
+        if self.state.link != "none":
+            raise UserError("disconnect the device first: the timing check opens it itself")
+        self.device_panel.set_checking(True)
+        self.log.add("info", f"checking timing on {backend} (labbench devices --timing) ...")
+        run_in_background(self.mailbox, "timing", timing_preflight, self.rig, backend)
+
+    def _on_timing_done(self, result: dict):
+        from labbench.preflight import lines
+
+        text = lines(result["preflight"], result)
+        self.device_panel.set_checking(False)
+        self.device_panel.show_timing(result, text)
+        for line in text:
+            self.log.add("info", line)
 
     @guarded
     def enable_device(self, on: bool):
@@ -620,6 +642,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self.commission.show_state(line)
 
     def _on_error(self, tag: str, message: str):
+        if tag == "timing":
+            self.device_panel.set_checking(False)
+            self.device_panel.timing_label.setText("check failed: see the log")
         if tag == "connect":
             self.device_panel.set_connected(None)
             self.state.disconnected()
