@@ -138,6 +138,22 @@ def writable_folder(path, what: str = "folder") -> Path:
     return d
 
 
+def own_folder(path) -> Path:
+    """A folder the tool keeps inside its own (a sweep table's claims, its damaged parts):
+    made if missing; a link or a file at its name is refused, never followed."""
+    p = Path(path)
+    try:
+        os.mkdir(p)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise UserError(f"cannot create folder {p}: {why(exc)}") from None
+    if not stat.S_ISDIR(os.lstat(p).st_mode):
+        raise UserError(f"{p} is not a folder (a link or a file where labbench keeps its own "
+                        "folder): remove it")
+    return p
+
+
 def free_name(path) -> Path:
     """``path``, or ``<stem>-2<suffix>``, ``-3`` ... : the first name not taken."""
     p = Path(path)

@@ -499,7 +499,7 @@ def test_cli_table_csv_chart_progress_and_strict(tmp_path):
     assert "complete, 2/2 points" in r.stdout
     head, *lines = (tmp_path / "s.csv").read_text().splitlines()
     assert len(lines) == 2 and '"truth.median_rel"' in head
-    for png in (tmp_path / "m.png", out / "failure-1.png"):
+    for png in (tmp_path / "m.png", tmp_path / "s.charts" / "failure-1.png"):  # beside the table
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     r = subprocess.run([*LABBENCH, "sweep", str(spec), "--out", str(out), "--workers", "0",
                         "--csv", str(tmp_path / "s.csv")], capture_output=True, text=True,

@@ -1,8 +1,9 @@
 """``labbench sweep SPEC.toml``: every point of a sweep spec, one row each in a Parquet table.
 
 Points already in the table are skipped, so a stopped sweep is resumed by running
-it again. Progress and an ETA go to stderr. The spec's charts are drawn into the
-table folder when the sweep is complete (docs/sweep.md).
+it again; sweeps running at once into one table share its points. Progress and an
+ETA go to stderr. The spec's charts are drawn beside the table (NAME.charts) when
+the sweep is complete (docs/sweep.md).
 """
 from __future__ import annotations
 
@@ -32,13 +33,16 @@ def register(subparsers) -> None:
     p.add_argument("--flush-rows", type=int, default=64, metavar="N",
                    help="rows per part file written (default 64; at least every 10 s)")
     p.add_argument("--csv", metavar="FILE", help="also write the table as CSV")
-    p.add_argument("--charts", metavar="DIR", help="folder of the spec's charts (default: the table)")
+    p.add_argument("--charts", metavar="DIR", help="folder of the spec's charts (default: "
+                   "NAME.charts beside the table NAME.sweep)")
     p.add_argument("--chart", metavar="FILE", help="one more chart: a map of --x, --y [--color]")
     p.add_argument("--x", metavar="COLUMN", help="with --chart: the table column across")
     p.add_argument("--y", metavar="COLUMN", help="with --chart: the table column up")
     p.add_argument("--color", metavar="COLUMN", help="with --chart: the column that colours "
                    "the points (default: none)")
     p.add_argument("--force", action="store_true", help="replace existing CSV and chart files")
+    p.add_argument("--repair", action="store_true", help="move damaged part files of the table "
+                   "aside (NAME.sweep/_damaged) and compute their points again")
     p.add_argument("--strict", action="store_true",
                    help=f"exit {EXIT_STRICT} when a point failed (status not ok, or verdict failed)")
     p.add_argument("--json", action="store_true", help="print one JSON object: the summary")
@@ -57,6 +61,8 @@ class SweepProgress:
 
     def __call__(self, p) -> None:
         text = f"{p.done}/{p.total} points, {p.failed} not ok"
+        if p.waiting:
+            text += f", waiting for {p.waiting} that other sweeps of the table compute"
         if self.bar.enabled:
             self.bar(p.done / max(p.total, 1), text)
             return
@@ -72,7 +78,7 @@ class SweepProgress:
 
 
 def cmd_sweep(args) -> int:
-    from labbench.sweep import charts, table
+    from labbench.sweep import table
     from labbench.sweep.engine import run_sweep
     from labbench.sweep.spec import load_spec
 
@@ -90,27 +96,26 @@ def cmd_sweep(args) -> int:
         with stopping(stop):
             summary = run_sweep(spec, out, workers=args.workers, scheduler=args.scheduler,
                                 keep_sessions=args.keep_sessions, progress=progress, stop=stop,
-                                flush_rows=args.flush_rows)
+                                flush_rows=args.flush_rows, repair=args.repair)
     finally:
         progress.close()
     result = {"spec": args.spec, "table": str(summary.table), "points": summary.total,
               "already": summary.before, "computed": summary.computed,
               "not_ok": summary.failed, "workers": summary.workers,
-              "wall_s": summary.wall_s, "stopped": summary.stopped, "charts": []}
+              "wall_s": summary.wall_s, "stopped": summary.stopped, "charts": [],
+              "repaired": [str(p) for p in summary.repaired], "error": summary.error}
+    if summary.repaired:
+        print(f"labbench sweep: {len(summary.repaired)} damaged part file"
+              f"{'s' * (len(summary.repaired) > 1)} moved to {summary.repaired[0].parent}; "
+              "their points were computed again", file=sys.stderr)
     tab = table.read_table(summary.table)
     if not summary.stopped and tab.num_rows:
-        where = Path(args.charts) if args.charts else summary.table
-        wanted = [(c, where / charts.default_file(c, i)) for i, c in enumerate(spec.charts, 1)]
-        if args.chart:
-            extra = {"kind": "map", "x": args.x, "y": args.y,
-                     **({"color": args.color} if args.color else {})}
-            wanted.append((extra, Path(args.chart)))
-        rows = charts.columns(tab) if wanted else {}  # as Python lists: only to draw
-        for chart, path in wanted:
-            charts.write(rows, chart, path, force=args.force or path.parent == summary.table)
-            result["charts"].append(str(path))
-        if args.csv:
-            result["csv"] = str(table.to_csv(summary.table, args.csv, force=args.force))
+        try:
+            _charts_and_csv(args, spec, summary, tab, result)
+        except UserError as exc:  # e.g. a full disk: the table is whole, the summary said
+            result["error"] = str(exc)
+    if result["error"]:
+        print(f"labbench sweep: error: {result['error']}", file=sys.stderr)
     bad = _not_ok(tab)
     result["failed_points"] = bad
     if args.json:
@@ -129,7 +134,32 @@ def cmd_sweep(args) -> int:
             print("  run the same command again to compute the rest")
     if stop.exit_code:
         return stop.exit_code
+    if result["error"]:
+        return 2
     return EXIT_STRICT if args.strict and bad else 0
+
+
+def _charts_and_csv(args, spec, summary, tab, result: dict) -> None:
+    """The spec's charts (beside the table: Parquet readers take every file inside it for a
+    part), the --chart map and the --csv table."""
+    from labbench.safe_write import output_folder
+    from labbench.sweep import charts, table
+
+    default = table.charts_folder(summary.table)
+    where = Path(args.charts) if args.charts else default
+    wanted = [(c, where / charts.default_file(c, i)) for i, c in enumerate(spec.charts, 1)]
+    if wanted and not args.charts:
+        output_folder(default)
+    if args.chart:
+        extra = {"kind": "map", "x": args.x, "y": args.y,
+                 **({"color": args.color} if args.color else {})}
+        wanted.append((extra, Path(args.chart)))
+    rows = charts.columns(tab) if wanted else {}  # as Python lists: only to draw
+    for chart, path in wanted:
+        charts.write(rows, chart, path, force=args.force or path.parent == default)
+        result["charts"].append(str(path))
+    if args.csv:
+        result["csv"] = str(table.to_csv(summary.table, args.csv, force=args.force))
 
 
 def _not_ok(tab) -> int:

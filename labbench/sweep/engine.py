@@ -9,10 +9,17 @@ is ``labbench.sweep.point.compute_row(spec, point)``: pure, so a point's row
 does not depend on which worker ran it, on how many there are, or on what ran
 before it there (every random stream comes from the point's own seeds).
 
-Memory stays bounded whatever the number of points: at most ``window`` tasks are
-out at once, each finished row goes to the table's buffer
+Memory stays bounded whatever the number of points: the spec's points are made as
+they are needed (``Spec.iter_points``: a 10^6-point spec starts at once), at most
+``window`` tasks are out at once, each finished row goes to the table's buffer
 (``labbench.sweep.table.TableWriter``) and is written within ``flush_rows`` rows
-or ``flush_s`` seconds, and no session is kept unless asked (``keep_sessions``).
+or ``flush_s`` seconds, and no session is kept unless asked (``keep_sessions``). What
+grows with the points is the set of their keys (about 100 bytes a point).
+
+Sharing: the points are claimed in the table a few at a time
+(``labbench.sweep.sharing``), so sweeps running at once into one table compute each
+point once; a sweep that runs out of points waits for those the others claimed and
+computes what they leave.
 
 Stopping: ``stop`` (a ``labbench.interrupts.StopRequest``: the CLI sets it on
 SIGINT, SIGTERM or SIGHUP) is looked at twice a second; the tasks still out are
@@ -26,15 +33,16 @@ lost once the stop was asked) is no row: its point stays to compute.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from labbench.errors import UserError
-from labbench.sweep import table as tables
+from labbench.sweep import sharing, table as tables
 from labbench.sweep.point import compute_row
 from labbench.sweep.spec import Point, Spec
 
@@ -50,13 +58,14 @@ POLL_S = 0.5  # how often a running sweep looks at its stop request
 
 @dataclass
 class Progress:
-    """What a progress callback hears after each row."""
+    """What a progress callback hears after each row (and while waiting for other sweeps)."""
 
-    done: int  # rows in the table for this spec's points
-    total: int  # points in the spec
+    done: int  # points of this spec in the table, as far as seen
+    total: int  # points in the spec (a random draw repeated counts once, when met)
     failed: int  # rows of this run whose status is not "ok"
     computed: int  # rows computed by this run
     elapsed_s: float
+    waiting: int = 0  # points other sweeps of the table are computing, waited for
 
     @property
     def eta_s(self) -> float | None:
@@ -70,67 +79,178 @@ class Progress:
 class Summary:
     table: Path
     total: int
-    before: int  # rows already there
+    before: int  # rows found in the table (written before, or by other sweeps meanwhile)
     computed: int
     failed: int
     wall_s: float
     stopped: bool
     workers: int
+    repaired: list = field(default_factory=list)  # damaged parts set aside (--repair)
+    error: str | None = None  # a part the system refused to write (the sweep stopped)
 
 
 def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None = None,
               keep_sessions=None, progress: Callable[[Progress], None] | None = None,
               stop=None, flush_rows: int = 64, flush_s: float = 10.0,
-              window: int | None = None) -> Summary:
-    """Compute the points of ``spec`` missing from the table ``out`` (module doc)."""
+              window: int | None = None, repair: bool = False) -> Summary:
+    """Compute the points of ``spec`` missing from the table ``out`` (module doc), sharing
+    it with any other sweep writing it (``labbench.sweep.sharing``). A damaged part is a
+    ``DamagedTable`` error, or with ``repair`` set aside and its points computed again."""
     t0 = time.perf_counter()
     out = tables.open_table(out)
-    points = spec.points()
-    distinct = {}  # key -> its first point: a random draw may repeat a point, computed once
-    for p in points:
-        distinct.setdefault(p.key(spec), p)
-    done = tables.done_keys(out) & distinct.keys()
-    todo = [(p, k) for k, p in distinct.items() if k not in done]
-    check_names(spec, points)
+    check_names(spec)
     keep = None
     if keep_sessions is not None:
         from labbench.safe_write import output_folder
 
         keep = str(output_folder(keep_sessions).resolve())  # rows name sessions wherever read
-    tables.write_spec(out, spec.as_dict())
-    state = Progress(len(done), len(distinct), 0, 0, 0.0)
-    writer = tables.TableWriter(out, flush_rows, flush_s)
-    stopped = False
-    n_workers = 0
-    try:
-        if not todo:
-            rows = iter(())
-        elif workers == 0 and scheduler is None:
-            rows = _inline(spec.as_dict(), todo, keep, stop)
-        else:
-            client, n_workers = _client(workers, scheduler)
-            rows = _on_dask(client, spec.as_dict(), todo, keep, stop, window or 4 * n_workers)
-        with contextlib.closing(rows) if hasattr(rows, "close") else contextlib.nullcontext():
-            for row in rows:
-                writer.append(row)
-                state.done += 1
-                state.computed += 1
-                state.failed += row["status"] != "ok"
-                state.elapsed_s = time.perf_counter() - t0
-                if progress is not None:
-                    progress(state)
-        stopped = state.done < state.total
-    finally:
-        writer.close()
-    if not stopped:
-        tables.compact(out)
-    return Summary(out, len(distinct), len(done), state.computed, state.failed,
-                   time.perf_counter() - t0, stopped, n_workers)
+    spec_d = spec.as_dict()
+    with sharing.Share(out) as share:
+        with share.locked():
+            index = tables.KeyIndex(out, verify=repair)
+            repaired = []
+            if index.damaged:
+                if not repair:
+                    raise tables.DamagedTable(out, index.damaged)
+                repaired = tables.set_aside(out, index.damaged)
+                index = tables.KeyIndex(out)
+            tables.write_spec(out, spec_d)
+        state = Progress(0, spec.count(), 0, 0, 0.0)
+        writer = tables.TableWriter(out, flush_rows, flush_s, on_flush=share.release)
+        compute = _Compute(spec_d, keep, stop, workers, scheduler, window)
+        claims = _Claims(spec, share, index, state)
+        error = None
+        try:
+            while True:  # a round: the points not done nor claimed; then those others left
+                claims.start_round()
+                with contextlib.closing(compute.rows(iter(claims))) as rows:
+                    for row in rows:
+                        writer.append(row)
+                        state.done += 1
+                        state.computed += 1
+                        state.failed += row["status"] != "ok"
+                        state.elapsed_s = time.perf_counter() - t0
+                        if progress is not None:
+                            progress(state)
+                writer.flush()
+                if _stopping(stop) or not claims.deferred:
+                    break
+                if not _wait_for_others(share, state, stop, progress, t0):
+                    break
+        except tables.TableWriteError as exc:
+            error = str(exc)
+        finally:
+            with contextlib.suppress(tables.TableWriteError):
+                writer.close()
+            compute.close()
+        stopped = error is not None or state.done < state.total
+        if not stopped:
+            with share.locked():
+                tables.compact(out)
+    return Summary(out, state.total, state.done - state.computed, state.computed, state.failed,
+                   time.perf_counter() - t0, stopped, compute.n_workers, repaired, error)
 
 
-def _inline(spec_d: dict, todo: list[tuple[Point, str]], keep, stop):
+def _stopping(stop) -> bool:
+    return stop is not None and stop.is_set()
+
+
+class _Claims:
+    """The points of ``spec`` this sweep computes, claimed in the table ``chunk`` at a time
+    as they are asked for (``labbench.sweep.sharing``): not those in the table (counted as
+    done), nor those another sweep claimed (``deferred``, for a later round), nor a point a
+    random draw repeats."""
+
+    def __init__(self, spec: Spec, share, index, state: Progress, chunk: int = 32):
+        self.spec, self.share, self.index, self.state, self.chunk = spec, share, index, state, chunk
+        self.deferred = 0
+
+    def start_round(self) -> None:
+        self.state.done, self.state.total, self.deferred = 0, self.spec.count(), 0
+
+    def __iter__(self):
+        seen: set[int] = set()  # keys as numbers
+        batch = []
+        for p in self.spec.iter_points():
+            key = p.key(self.spec)
+            if int(key, 16) in seen:
+                self.state.total -= 1
+                continue
+            seen.add(int(key, 16))
+            batch.append((p, key))
+            if len(batch) >= self.chunk:
+                yield from self._claim(batch)
+                batch = []
+        yield from self._claim(batch)
+
+    def _claim(self, batch: list) -> list:
+        with self.share.locked():
+            self.index.refresh()
+            busy = self.share.others()
+            mine = []
+            for p, key in batch:
+                if key in self.index:
+                    self.state.done += 1
+                elif key in busy:
+                    self.deferred += 1
+                else:
+                    mine.append((p, key))
+            self.share.claim(key for _, key in mine)
+        return mine
+
+
+def _wait_for_others(share, state: Progress, stop, progress, t0: float) -> bool:
+    """Wait until no other sweep has points claimed (they finish them, or their claims go
+    with them); False when stopped meanwhile."""
+    last = 0.0
+    while not _stopping(stop):
+        with share.locked():
+            state.waiting = len(share.others())
+        if not state.waiting:
+            return True
+        state.elapsed_s = time.perf_counter() - t0
+        if progress is not None and state.elapsed_s - last >= 2.0:
+            last = state.elapsed_s
+            progress(state)
+        time.sleep(POLL_S)
+    return False
+
+
+class _Compute:
+    """Rows of the points given, in this process (``workers == 0``) or on Dask (the client
+    made at the first round with work, kept for the next, closed by ``close``)."""
+
+    def __init__(self, spec_d: dict, keep, stop, workers, scheduler, window):
+        self.spec_d, self.keep, self.stop = spec_d, keep, stop
+        self.workers, self.scheduler, self.window = workers, scheduler, window
+        self.client = None
+        self.n_workers = 0
+
+    def rows(self, todo):
+        if self.workers == 0 and self.scheduler is None:
+            return _inline(self.spec_d, todo, self.keep, self.stop)
+        return self._dask(todo)
+
+    def _dask(self, todo):
+        todo = iter(todo)
+        first = next(todo, None)  # no cluster for a round with nothing to compute
+        if first is None:
+            return
+        if self.client is None:
+            self.client, self.n_workers = _client(self.workers, self.scheduler)
+            self.spec_f = self.client.scatter(self.spec_d, broadcast=True)
+        yield from _on_dask(self.client, self.spec_f, itertools.chain([first], todo), self.keep,
+                            self.stop, self.window or 4 * self.n_workers)
+
+    def close(self) -> None:
+        if self.client is not None:
+            _close(self.client)
+            self.client = None
+
+
+def _inline(spec_d: dict, todo, keep, stop):
     for p, _key in todo:
-        if stop is not None and stop.is_set():
+        if _stopping(stop):
             return
         yield compute_row(spec_d, _task(p), keep)
 
@@ -196,27 +316,26 @@ def _close(client) -> None:
             cluster.close(timeout=10)
 
 
-def _on_dask(client, spec_d: dict, todo: list[tuple[Point, str]], keep, stop, window: int):
+def _on_dask(client, spec_f, todo, keep, stop, window: int):
     """Rows of ``todo`` as the workers finish them, at most ``window`` tasks out at once.
     A task whose worker died (or that raised past compute_row) is a row with its error,
     unless it was cancelled or the sweep is stopping (then it is no row: see the module doc)."""
     from distributed import wait
 
+    pending = iter(todo)
+    running = {}
+
+    def submit():
+        for p, key in pending:
+            f = client.submit(compute_row, spec_f, _task(p), keep, key=f"labbench-sweep-{key}")
+            running[f] = (p, key)
+            if len(running) >= window:
+                return
+
     try:
-        spec_f = client.scatter(spec_d, broadcast=True)
-        pending = iter(todo)
-        running = {}
-
-        def submit():
-            for p, key in pending:
-                f = client.submit(compute_row, spec_f, _task(p), keep, key=f"labbench-sweep-{key}")
-                running[f] = (p, key)
-                if len(running) >= window:
-                    return
-
         submit()
         while running:
-            if stop is not None and stop.is_set():
+            if _stopping(stop):
                 return
             try:
                 finished, _ = wait(list(running), timeout=POLL_S, return_when="FIRST_COMPLETED")
@@ -232,7 +351,6 @@ def _on_dask(client, spec_d: dict, todo: list[tuple[Point, str]], keep, stop, wi
     finally:
         with contextlib.suppress(Exception):
             client.cancel(list(running))
-        _close(client)
 
 
 def _finished_row(f, p: Point, key: str, stop) -> dict | None:
@@ -251,15 +369,15 @@ def _finished_row(f, p: Point, key: str, stop) -> dict | None:
                           "error": f"worker: {type(exc).__name__}: {exc}"})
 
 
-def check_names(spec: Spec, points: list[Point]) -> None:
+def check_names(spec: Spec, points=None) -> None:
     """Refuse a spec whose parameter names the targets do not know, before any point runs
     (a typo is one line, not ten thousand error rows): one point of every distinct set of
-    names is built, and for kind run its device opened and closed. Errors of a value are
-    the point's own (its row says so)."""
+    names (``Spec.name_samples``, or of ``points``) is built, and for kind run its device
+    opened and closed. Errors of a value are the point's own (its row says so)."""
     from labbench.sweep.point import analysis_params, build_run
 
     seen = set()
-    for p in points:
+    for p in spec.name_samples() if points is None else points:
         names = frozenset(p.params)
         if names in seen:
             continue

@@ -45,6 +45,7 @@ import hashlib
 import json
 import math
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from itertools import product
 from pathlib import Path
@@ -118,12 +119,17 @@ class Spec:
                 "chart": self.charts}
 
     def points(self) -> list[Point]:
-        """Every point, in the spec's order (see the module doc)."""
+        """Every point, in the spec's order (see the module doc), as a list."""
+        return list(self.iter_points())
+
+    def iter_points(self) -> Iterator[Point]:
+        """Every point, in the spec's order, made as it is asked for: a 10^6-point spec
+        starts at once in little memory (the list took 22 s and 800 MB)."""
         axes = [[({}, {name: v}) for v in values] for name, values in self.grid.items()]
         axes += [[({group: label}, params) for label, params in cases]
                  for group, cases in self.cases.items()]
-        draws = _draw(self.ranges, self.n_samples, self.sample, self.sample_seed)
-        out = []
+        draws = _Draws(self.ranges, self.n_samples, self.sample, self.sample_seed)
+        index = 0
         for combo in product(*axes):
             for draw in draws:
                 params, tags = dict(self.fixed), {}
@@ -131,8 +137,26 @@ class Spec:
                     tags.update(t)
                     params.update(p)
                 params.update(draw)
-                out.append(Point(len(out), params, tags))
-        return out
+                yield Point(index, params, tags)
+                index += 1
+
+    def name_samples(self) -> Iterator[Point]:
+        """One point of every distinct set of parameter names, without enumerating the
+        points: only the case groups make the names differ."""
+        grid = {name: values[0] for name, values in self.grid.items()}
+        draw = next(iter(_Draws(self.ranges, self.n_samples, self.sample, self.sample_seed)))
+        shapes = []  # per case group: its first case of each distinct set of names
+        for group, cases in self.cases.items():
+            first = {}
+            for label, params in cases:
+                first.setdefault(frozenset(params), (group, label, params))
+            shapes.append(list(first.values()))
+        for combo in product(*shapes):
+            params, tags = {**self.fixed, **grid}, {}
+            for group, label, p in combo:
+                tags[group] = label
+                params.update(p)
+            yield Point(0, {**params, **draw}, tags)
 
     def count(self) -> int:
         n = max(self.n_samples, 1) if self.sample != "grid" else 1
@@ -335,20 +359,31 @@ def _no_clash(source: str, fixed: dict, grid: dict, cases: dict, ranges: dict) -
             seen[k] = f"[[cases.{group}]]"
 
 
-def _draw(ranges: dict, n: int, sample: str, seed: int) -> list[dict]:
+class _Draws:
     """The sampled part of each point: one empty draw for a grid; else ``n`` draws, uniform
-    (random) or one per stratum of every range (lhs: McKay, Beckman & Conover 1979)."""
-    if sample == "grid":
-        return [{}]
-    rng = np.random.default_rng(seed)
-    out = [{} for _ in range(n)]
-    for name, r in ranges.items():  # one stream per range, in the spec's order
-        u = rng.random(n)
-        if sample == "lhs":
-            u = (rng.permutation(n) + u) / n
-        for d, ui in zip(out, u.tolist()):
-            d[name] = _value(r, ui)
-    return out
+    (random) or one per stratum of every range (lhs: McKay, Beckman & Conover 1979). The
+    uniform numbers are drawn at once (8 bytes a draw and range), the draws made from them
+    as they are asked for, as often as asked."""
+
+    def __init__(self, ranges: dict, n: int, sample: str, seed: int):
+        self.columns = []
+        self.grid = sample == "grid"
+        if self.grid:
+            return
+        rng = np.random.default_rng(seed)
+        for name, r in ranges.items():  # one stream per range, in the spec's order
+            u = rng.random(n)
+            if sample == "lhs":
+                u = (rng.permutation(n) + u) / n
+            self.columns.append((name, r, u))
+        self.n = n
+
+    def __iter__(self) -> Iterator[dict]:
+        if self.grid:
+            yield {}
+            return
+        for i in range(self.n):
+            yield {name: _value(r, float(u[i])) for name, r, u in self.columns}
 
 
 def _value(r: dict, u: float):

@@ -4,15 +4,22 @@ Layout of ``NAME.sweep/``::
 
     _spec.json            the spec of the last sweep into it (labbench.sweep.spec, as data)
     part-*.parquet        rows, appended in parts
+    _lock, _claims/       sweeps sharing the table (labbench.sweep.sharing)
+    _damaged/             damaged parts set aside by ``--repair``
+
+and the charts beside it, in ``NAME.charts/`` (not inside: Parquet readers take every
+file of the folder for a part; a PNG there made ``pandas.read_parquet`` fail).
 
 Rows are buffered and written as a new part every ``flush_rows`` rows or
-``flush_s`` seconds, each part through a temporary file renamed into place when
-whole (``labbench.safe_write``), so a sweep stopped at any moment (Ctrl-C,
+``flush_s`` seconds, each part through a new file linked into place when whole
+(``labbench.safe_write.new_output``), so a sweep stopped at any moment (Ctrl-C,
 SIGTERM, a kill) leaves only whole parts and loses at most the rows of the buffer,
-which a rerun computes again. Dot and underscore files are ignored by Parquet
-readers, so ``pandas.read_parquet("NAME.sweep")`` or ``pyarrow.dataset`` read the
-folder as one table too (``read_table`` also drops the duplicate rows a compaction
-cut short may leave).
+which a rerun computes again. Parts carry page checksums, so damage inside one is found
+when it is read. Dot and underscore names are skipped by Parquet readers, so
+``pandas.read_parquet("NAME.sweep")`` or ``pyarrow.parquet.read_table`` read the folder as
+one table too (``read_table`` also drops the duplicate rows a merge cut short may leave).
+A part that cannot be read (truncated, empty, garbled) is named in one line with the fix
+(``--repair``: ``set_aside``).
 """
 from __future__ import annotations
 
@@ -26,11 +33,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from labbench.errors import UserError
-from labbench.safe_write import output_folder, replacing
+from labbench.safe_write import new_output, output_folder, replacing
 
 SPEC_FILE = "_spec.json"
 PART_GLOB = "part-*.parquet"
 SUFFIX = ".sweep"
+CHARTS = ".charts"
+DAMAGED = "_damaged"
+_CHECKSUMS = {"write_page_checksum": True}
+_VERIFY = {"page_checksum_verification": True}
 
 
 def parts(directory) -> list[Path]:
@@ -44,12 +55,19 @@ def is_table(directory) -> bool:
 
 def open_table(directory) -> Path:
     """``directory`` as a sweep table folder (created if missing, its parent must exist);
-    refuses a folder holding anything else."""
+    refuses a folder holding anything else (dot and underscore names aside: a sweep that
+    is starting has no more yet)."""
     d = Path(directory)
-    if d.exists() and d.is_dir() and any(d.iterdir()) and not is_table(d):
+    if d.is_dir() and not is_table(d) and any(not n.startswith((".", "_")) for n in os.listdir(d)):
         raise UserError(f"{d} is not a sweep table (no {SPEC_FILE}, no part files): "
                         "give a new or a sweep folder")
     return output_folder(d)
+
+
+def charts_folder(directory) -> Path:
+    """Where a table's charts go by default: ``NAME.charts`` beside ``NAME.sweep``."""
+    d = Path(directory)
+    return d.with_name(d.name.removesuffix(SUFFIX) + CHARTS)
 
 
 def write_spec(directory, spec_dict: dict) -> None:
@@ -67,17 +85,105 @@ def read_spec(directory) -> dict:
         raise UserError(f"{p}: unreadable ({exc})") from None
 
 
+class DamagedTable(UserError):
+    """Part files that cannot be read; the message names them and the fix."""
+
+    def __init__(self, directory, damaged: dict):
+        self.damaged = dict(damaged)
+        listed = [f"{p.name} ({why})" for p, why in list(self.damaged.items())[:3]]
+        more = f" and {len(self.damaged) - 3} more" if len(self.damaged) > 3 else ""
+        super().__init__(f"{directory}: {len(self.damaged)} damaged part file"
+                         f"{'s' * (len(self.damaged) > 1)}: {', '.join(listed)}{more}; run the "
+                         f"same command with --repair to move them to "
+                         f"{Path(directory) / DAMAGED} and compute their points again")
+
+
+def _damage(p: Path, exc: BaseException) -> str:
+    try:
+        if p.stat().st_size == 0:
+            return "empty"
+    except OSError:
+        pass
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if "magic bytes" in text or "footer" in text:
+        return "truncated or not Parquet"
+    if "checksum" in text.lower() or "corrupt" in text.lower():
+        return "garbled: " + text[:60]
+    return text[:80]
+
+
+def _read_part(p: Path, columns=None) -> pa.Table:
+    return pq.read_table(p, columns=columns, **_VERIFY)
+
+
+_UNREADABLE = (pa.ArrowException, OSError, KeyError)  # a damaged part, as pyarrow says it
+
+
+class KeyIndex:
+    """The keys in a table's parts, each part read once (its key column; every column with
+    ``verify``): ``refresh()`` reads the parts that appeared since. ``damaged``: the parts
+    that cannot be read, with what is wrong."""
+
+    def __init__(self, directory, verify: bool = False):
+        self.directory, self.verify = Path(directory), verify
+        self.keys: set[int] = set()  # as numbers: 60 bytes a key less than as text
+        self.damaged: dict[Path, str] = {}
+        self._read: set[str] = set()
+        self.refresh()
+
+    def refresh(self) -> None:
+        for p in parts(self.directory):
+            if p.name in self._read:
+                continue
+            self._read.add(p.name)
+            try:
+                table = _read_part(p, None if self.verify else ["key"])
+                self.keys.update(int(k, 16) for k in table["key"].to_pylist())
+            except FileNotFoundError:
+                continue  # merged away meanwhile: its rows are in the merged part
+            except _UNREADABLE as exc:
+                self.damaged[p] = _damage(p, exc)
+
+    def __contains__(self, key: str) -> bool:
+        return int(key, 16) in self.keys
+
+
+def set_aside(directory, damaged) -> list[Path]:
+    """Move damaged parts into ``_damaged/`` (Parquet readers skip it); their points are no
+    longer in the table, so a sweep computes them again. Returns where they went."""
+    from labbench.safe_write import own_folder
+
+    d = own_folder(Path(directory) / DAMAGED)
+    moved = []
+    for p in damaged:
+        to = d / p.name
+        n = 1
+        while os.path.lexists(to):
+            n += 1
+            to = d / f"{p.stem}-{n}{p.suffix}"
+        os.replace(p, to)
+        moved.append(to)
+    return moved
+
+
+class TableWriteError(UserError):
+    """A part that could not be written (full disk, ...): its rows are not in the table."""
+
+
 class TableWriter:
-    """Appends rows; each flush is one new part file. ``close()`` flushes (safe twice)."""
+    """Appends rows; each flush is one new part file, after which ``on_flush(keys)`` hears
+    which keys are now in the table. ``close()`` flushes (safe twice). A part the system
+    refuses is a ``TableWriteError`` (once: its rows are dropped, to compute again)."""
 
     def __init__(self, directory, flush_rows: int = 64, flush_s: float = 10.0,
-                 clock=time.monotonic):
+                 clock=time.monotonic, on_flush=None):
         self.directory = Path(directory)
         self.flush_rows, self.flush_s, self._clock = flush_rows, flush_s, clock
         self._rows: list[dict] = []
         self._last = clock()
-        self._n = 0
+        self._on_flush = on_flush
         self.written = 0
+        self.failed = False
 
     def append(self, row: dict) -> None:
         self._rows.append(row)
@@ -86,15 +192,20 @@ class TableWriter:
 
     def flush(self) -> None:
         self._last = self._clock()
-        if not self._rows:
+        if not self._rows or self.failed:
             return
-        table = rows_table(self._rows)
-        self._n += 1
-        name = f"part-{time.time_ns():x}-{os.getpid()}-{self._n:04d}.parquet"
-        with replacing(self.directory / name) as tmp:
-            pq.write_table(table, tmp)
-        self.written += len(self._rows)
-        self._rows = []
+        rows, self._rows = self._rows, []
+        table = rows_table(rows)
+        try:
+            with new_output(self.directory, f"part-{time.time_ns():x}-", ".parquet") as tmp:
+                pq.write_table(table, tmp, **_CHECKSUMS)
+        except UserError as exc:
+            self.failed = True
+            raise TableWriteError(f"{exc}; {self.written} rows written, the {len(rows)} "
+                                  "after them not: run the same command again for them") from None
+        self.written += len(rows)
+        if self._on_flush is not None:
+            self._on_flush([r["key"] for r in rows])
 
     def close(self) -> None:
         self.flush()
@@ -114,16 +225,27 @@ def _column(values: list) -> pa.Array:
 
 
 def done_keys(directory) -> set[str]:
-    """Keys of the rows already in the table (reads the key column only)."""
-    keys: set[str] = set()
-    for p in parts(directory):
-        keys.update(pq.read_table(p, columns=["key"])["key"].to_pylist())
-    return keys
+    """Keys of the rows already in the table (reads the key column only); a damaged part
+    is a ``DamagedTable``."""
+    index = KeyIndex(directory)
+    if index.damaged:
+        raise DamagedTable(directory, index.damaged)
+    return {f"{k:016x}" for k in index.keys}
 
 
 def read_table(directory) -> pa.Table:
-    """Every row of the table, one per key (the first written), sorted by point index."""
-    tables = [pq.read_table(p) for p in parts(directory)]
+    """Every row of the table, one per key (the first written), sorted by point index. A
+    damaged part is a ``DamagedTable`` (one line naming it and the fix)."""
+    tables, damaged = [], {}
+    for p in parts(directory):
+        try:
+            tables.append(_read_part(p))
+        except FileNotFoundError:
+            continue
+        except _UNREADABLE as exc:
+            damaged[p] = _damage(p, exc)
+    if damaged:
+        raise DamagedTable(directory, damaged)
     if not tables:
         return pa.table({})
     table = pa.concat_tables(_unified(tables), promote_options="permissive")
@@ -157,14 +279,14 @@ def _as_text(t: pa.Table, names: set) -> pa.Table:
 
 def compact(directory) -> None:
     """Merge the parts into one (written first, then the old parts removed: a stop between
-    the two leaves duplicates that ``read_table`` drops)."""
+    the two leaves duplicates that ``read_table`` drops). The caller holds the table's lock
+    (``labbench.sweep.sharing``): another sweep may be merging too."""
     old = parts(directory)
     if len(old) < 2:
         return
     table = read_table(directory)
-    name = f"part-{time.time_ns():x}-{os.getpid()}-all.parquet"
-    with replacing(Path(directory) / name) as tmp:
-        pq.write_table(table, tmp)
+    with new_output(directory, f"part-{time.time_ns():x}-all-", ".parquet") as tmp:
+        pq.write_table(table, tmp, **_CHECKSUMS)
     for p in old:
         with contextlib.suppress(FileNotFoundError):
             p.unlink()
