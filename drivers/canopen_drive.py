@@ -77,6 +77,7 @@ logging.getLogger("canopen").addHandler(logging.NullHandler())
 NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 NMT_START, NMT_PRE_OPERATIONAL = 0x01, 0x80
 NMT_TIMEOUT_S = 3.0  # for a heartbeat or guarding answer showing the NMT state asked for
+AFTER_FAULT_SDO_S = 0.1  # an answer after a fault: a drive that answers does so in ms
 
 # SocketCAN error-frame classes (linux/can/error.h), carried in arbitration_id.
 ERROR_CLASSES = {
@@ -118,6 +119,7 @@ class CanopenDrive:
         self._closed = False
         self._cyclic = False
         self._enable_deadline: float | None = None  # set by enable(), until disable()
+        self._after_fault_for: str | None = None  # the fault _after_fault last handled
         self._confirmed = False  # a TPDO showed OPERATION ENABLED since enable()
         self._state_seen = State.NOT_READY_TO_SWITCH_ON  # from the latest statusword
         self._controlword = cia402.CONTROLWORD[Command.DISABLE_VOLTAGE]  # sent with each RPDO
@@ -679,7 +681,14 @@ class CanopenDrive:
         """Disable after a fault: one attempt, perhaps on a drive that no longer answers,
         to switch the power stage off over SDO; only once the drive shows no torque, NMT
         PRE-OPERATIONAL and its watch off (until then its watch is what removes the
-        torque). The fault already says what went wrong."""
+        torque). The fault already says what went wrong. Once per fault, each answer
+        awaited at most AFTER_FAULT_SDO_S: a drive that died must not hold the command for
+        the full SDO timeout on every disable and close (it took 6 s to exit)."""
+        if self._after_fault_for == self._fault:
+            return
+        self._after_fault_for = self._fault
+        client, timeout = self._sdo.client, self._sdo.client.RESPONSE_TIMEOUT
+        client.RESPONSE_TIMEOUT = min(timeout, AFTER_FAULT_SDO_S)
         try:
             self._sdo.write(0x6040, 0, "<H", cia402.CONTROLWORD[Command.DISABLE_VOLTAGE])
             if self.drive_state() in cia402.TORQUE_STATES:
@@ -691,6 +700,8 @@ class CanopenDrive:
                 self._watch_armed = False
         except (UserError, DeviceError):
             pass
+        finally:
+            client.RESPONSE_TIMEOUT = timeout
 
     def _wind_down(self, timeout: float) -> None:
         """Disable step (1): cyclic exchanges with zero torque and DISABLE VOLTAGE until a
