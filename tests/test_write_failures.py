@@ -270,3 +270,14 @@ def test_a_rig_write_refused_after_the_run_is_one_line_and_json(tmp_path, capsys
     assert out["results"]["changes"] == {"measured_td_s": pytest.approx(0.001, abs=1e-4)}
     assert rig.read_text() == RIG
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.toml", "rig.toml.bak", "s"]
+
+
+def test_devices_timing_refuses_a_read_only_rig_before_measuring(tmp_path, capsys):
+    rig = tmp_path / "rig.toml"
+    rig.write_text(RIG)
+    rig.chmod(0o444)
+    assert main(["devices", "--timing", "1", "--device", "sim-canopen", "--rig", str(rig),
+                 "--write-rig"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is read-only: make it writable" in err[0]  # no "measuring" line
+    assert rig.read_text() == RIG

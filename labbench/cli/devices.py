@@ -126,6 +126,10 @@ def _timing(args, rig) -> int:
     seconds = checked_seconds(args.timing) if args.timing else config.seconds
     if args.write_rig and not args.rig:
         raise UserError("--write-rig writes the rig file: give it with --rig FILE")
+    if args.write_rig:
+        from labbench.safe_write import editable
+
+        editable(args.rig, "rig file")  # before the measurement: not after it
     name = args.device or next((t for t in ("canopen", "serial") if t in rig.sections), None)
     if name is None:
         raise UserError("the rig configures no hardware ([canopen] or [serial]): name the "
@@ -136,23 +140,28 @@ def _timing(args, rig) -> int:
                     warn=lambda line: print(line, file=sys.stderr))
     judged = judge(m)
     changes = rig_changes(m, judged, _STALE_TABLE.get(name, ""))
-    written = None
+    written, code = None, 0
     if args.write_rig and changes:
-        backup = write_tables(args.rig, changes)
-        written = {"changes": changes, "backup": str(backup) if backup else None}
+        try:
+            backup = write_tables(args.rig, changes)
+        except UserError as exc:  # refused since the check (a full disk): the numbers stay
+            written, code = {"changes": changes, "error": str(exc)}, 2
+            print(f"labbench devices: error: {exc}", file=sys.stderr)
+        else:
+            written = {"changes": changes, "backup": str(backup) if backup else None}
     if args.json:
         print(json.dumps(json_safe({"rig": rig.name, "source": rig.source, "preflight": m,
                                     **judged, "rig_changes": changes, "written": written}),
                          indent=2))
-        return 0
+        return code
     print("\n".join(lines(m, judged)))
     for table, fields in changes.items():
         said = ", ".join(f"{k} = {v:g}" for k, v in fields.items())
-        print(f"  rig change: [{table}] {said}" + (" (written)" if written else
+        print(f"  rig change: [{table}] {said}" + (" (written)" if written and not code else
                                                    " (--write-rig writes it)"))
-    if written and written["backup"]:
+    if written and written.get("backup"):
         print(f"  the old rig file is {written['backup']}")
-    return 0
+    return code
 
 
 def _probe(name: str, rig) -> dict:
