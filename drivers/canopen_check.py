@@ -243,8 +243,8 @@ def _command(a: Assessment, d: Dictionary, config: CanopenConfig) -> bool:
                            "must be a signed integer of 8, 16 or 32 bit")
     ok = len(a.obstacles) == before
     shown = f"{ref_text(a.command)} {d.name(index, sub) or 'vendor object'}"
-    a.capabilities["torque object"] = (f"{shown} ({'per-mille of the rated torque' if a.unit == 'permille' else a.unit})"
-                                       if ok else "none")
+    unit = "per-mille of the rated torque" if a.unit == "permille" else a.unit
+    a.capabilities["torque object"] = f"{shown} ({unit})" if ok else "none"
     return ok
 
 

@@ -55,7 +55,7 @@ from labbench import timing as loop_timing
 from labbench.device import TimingProbe
 from labbench.errors import UserError
 from labbench.realtime import RealtimeConfig, acquire, hint
-from labbench.verdict import DOUBTFUL, FAILED, OK, Verdict, judge as judge_findings
+from labbench.verdict import DOUBTFUL, FAILED, OK, judge as judge_findings
 
 STALE_MARGIN = 1.5  # suggested stale limit = this x the longest wait measured
 CYCLE_SHARE = 0.8  # a cycle's p99.9 must leave this share of the period unused, or less

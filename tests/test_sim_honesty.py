@@ -55,9 +55,10 @@ def test_hardware_drivers_say_nothing_of_simulation():
 @pytest.mark.parametrize("backend", ["sim-canopen", "sim-serial"], indirect=True)
 def test_a_paced_simulated_run_keeps_the_wall_clock(backend):
     """Paced by the rig, a 1 s run takes about 1 s of wall time (a few samples the board
-    sent while the run started may wait queued; a lock-step run takes a tenth of it) and its timing is judged as a paced loop's. At 100 Hz: the board's
-    2.5-period stale limit outlasts a loaded machine's stalls (at 1 kHz it does not, which
-    is why lock-step is the default)."""
+    sent while the run started may wait queued; a lock-step run takes a tenth of it) and
+    its timing is judged as a paced loop's. At 100 Hz: the board's 2.5-period stale limit
+    outlasts a loaded machine's stalls (at 1 kHz it does not, which is why lock-step is the
+    default)."""
     rig = rig_with({"paced": True}, rig={"sample_time_s": 0.01},
                    canopen={"stale_periods": 20}, safety={"watchdog_s": 2.0})
     protocol = make_protocol("etfe", duration_s=1.0, seed=3, sample_time_s=0.01)
