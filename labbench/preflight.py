@@ -296,9 +296,15 @@ def lines(m: dict, judged: dict) -> list[str]:
         out.append("  " + row("host pacing (request after its time)", m["pacing"],
                               f"; {m['late_requests']} late (> T/2) of {m['cycles']}"))
         out.append("  " + row("host pacing floor (woken from sleep)", m["floor"]))
-    out.append("  " + row("wait for the answer (what the stale limit measures)", m["wait"],
-                          f"; stale limit {ms(m['stale_limit_s'])}" if m["stale_limit_s"]
-                          else ""))
+    limit = f"; stale limit {ms(m['stale_limit_s'])}" if m["stale_limit_s"] else ""
+    if m["pacing"]:
+        out.append("  " + row("wait for the answer (what the stale limit measures)", m["wait"],
+                              limit))
+    elif m["wait"]:  # a board pacing itself: its frames' interval and their jitter
+        w = m["wait"]
+        out.append("  " + row("frame interval (silence before each frame, what the stale "
+                              "limit measures)", w, f"; jitter p99 - p50 "
+                              f"{ms(w['p99_s'] - w['p50_s'])}{limit}"))
     if m["wire"]:
         out.append("  " + row("round trip on the bus (frame timestamps)", m["wire"]))
     out.append("  " + row("host response (answer in -> command out)", m["response"]))
