@@ -554,7 +554,7 @@ class CanopenDrive:
                    "mode": self._mode.text if self._mode else "", "paced": self.realtime,
                    "counters": dict(self.counters)}
         if a is not None:
-            details.update(
+            details.update(host_silence_limit=self._watch_limit(),
                 rated_torque_mnm=a.rated_mnm, torque_scale=a.capabilities.get("torque scale"),
                 set_point=a.capabilities.get("torque object"), max_set_point=a.max_command,
                 position_object=self.config.position,
@@ -570,6 +570,20 @@ class CanopenDrive:
             sample_time_s=self.T, force_limit_n=limit,
             position_limits_m=self.rig.position_limits_m, details=details,
             device_delay_s=delay, device_delay_why=why)
+
+    def _watch_limit(self) -> tuple[str, float] | None:
+        """The drive's shortest watch on the host (what a host stall that long trips): its
+        RPDO event timer, heartbeat consumer or life time, as the run arms them."""
+        a, cfg = self.assessment, self.config
+        limits = [(f"the drive's RPDO event timer ({p.name}:05)", p.event_timer_ms * 1e-3)
+                  for p in a.plan.rpdos if p.event_timer_ms]
+        if a.watchdog == "heartbeat":
+            limits.append(("the drive's heartbeat consumer 0x1016:01",
+                           cfg.heartbeat_consumer_ms * 1e-3))
+        elif a.watchdog == "guarding":
+            limits.append(("the drive's life guarding (0x100C x 0x100D)",
+                           cfg.guard_time_ms * cfg.life_time_factor * 1e-3))
+        return min(limits, key=lambda x: x[1]) if limits else None
 
     def _own_delay(self) -> tuple[float, str]:
         """The delay the drive adds to every command (``labbench.device_delay``): one

@@ -38,7 +38,14 @@ load, and what the OS granted.
   The shortest that would hold: the larger of (p99.9 of request -> command out + p99.9
   of the pacing floor) / 0.8 and 1.5 x longest wait / the stale periods the device
   allows, rounded up to 0.1 ms;
-* real-time scheduling refused while requests came late: grant it (``realtime.hint``).
+* real-time scheduling refused while requests came late: grant it (``realtime.hint``);
+* a simulated peer shares this machine, so a stall of the whole machine (a period beyond
+  T) is one of its answer too: it counts against the stale limit (measured: a 210 ms stall
+  in a 60 s preflight's pacing, none in its waits, and the run then faulted when one fell
+  between a SYNC and the in-process drive's answer). A hardware drive's answer waits in
+  the socket through a host stall; but a stall trips the loop's own watchdog (hardware)
+  and the drive's watch on the host (its RPDO timer, heartbeat consumer or life time:
+  ``details["host_silence_limit"]``), judged as the stale limit is.
 
 ``write_rig`` puts the suggested limits into the rig file (tomlkit, comments kept,
 backup: ``labbench.commissioning.write_tables``).
@@ -154,6 +161,7 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
         if probe is not None:
             probe.timing_log = None
             probe.stale_limit_s = stale_s
+    stalls = periods[1:] - T  # how much longer than a period each one was
     rows = np.array(log[-n:], float).reshape(-1, 4) if log else np.full((0, 4), np.nan)
     m = min(len(rows), n)  # the last m samples of the loop have their device's row
     due, start, answer, wire = (rows[len(rows) - m:, i] for i in range(4))
@@ -168,6 +176,13 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
         "enabled": enable, "realtime": granted,
         "stale_limit_s": stale_s,
         "over_stale": int(np.sum(answer - start > stale_s)) if stale_s else 0,
+        # a simulated peer shares this machine: a stall of the host is one of its answer
+        "shares_host": bool(desc.simulated),
+        "stalls_over_stale": int(np.sum(stalls > stale_s)) if stale_s else 0,
+        "host_stall": _stats(stalls),
+        "host_silence_limits": _silence_limits(desc, rig),
+        "host_stalls_over": {k: int(np.sum(stalls > v))
+                             for k, v in _silence_limits(desc, rig).items()},
         "pacing": _stats(lateness), "late_requests": int(np.sum(lateness > 0.5 * T)),
         "floor": _stats(lateness[slept]),
         # what a cycle needs of its period: from the request on (a board pacing itself
@@ -188,6 +203,21 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
     return out
 
 
+def _silence_limits(desc, rig) -> dict:
+    """What a host stall (no request, no command for that long) trips, by name: the loop's
+    own watchdog on hardware (``labbench.safety``; a simulator's records and goes on) and
+    the device's watch on the host (``details["host_silence_limit_s"]``)."""
+    from labbench.safety import SafetyConfig
+
+    out = {}
+    if not desc.simulated:
+        out["the loop's watchdog ([safety] watchdog_s)"] = SafetyConfig.from_rig(rig).watchdog_s
+    watch = desc.details.get("host_silence_limit")
+    if isinstance(watch, (list, tuple)) and len(watch) == 2:
+        out[str(watch[0])] = float(watch[1])
+    return out
+
+
 def _nice_ceil(x: float, step: float = 1e-4) -> float:
     return math.ceil(x / step - 1e-9) * step
 
@@ -198,15 +228,22 @@ def judge(m: dict) -> dict:
     wait, cycle, stale = m["wait"], m["cycle"], m["stale_limit_s"]
     top = m.get("stale_periods_max") or 100
     ms = _ms
+    stall = m.get("host_stall") or {}
     if wait and stale:
         longest = wait["max_s"]
-        periods = max(math.ceil(STALE_MARGIN * longest / T - 1e-9), 1)
         over = m["over_stale"]
+        if m.get("shares_host") and stall.get("max_s", 0.0) > longest:
+            longest = stall["max_s"]  # the whole machine stalled: the simulated peer too
+            over = max(over, m.get("stalls_over_stale", 0))
+        periods = max(math.ceil(STALE_MARGIN * longest / T - 1e-9), 1)
         level = (OK if longest * STALE_MARGIN <= stale else DOUBTFUL if over < SURE_FAULTS
                  else FAILED)
         word = "holds" if level == OK else "too tight" if over else "marginal"
         text = (f"stale limit {ms(stale)} ({stale / T:.3g} periods): {word}, longest wait "
-                f"{ms(longest)} (p99.9 {ms(wait['p999_s'])})")
+                f"{ms(wait['max_s'])} (p99.9 {ms(wait['p999_s'])})")
+        if longest > wait["max_s"]:
+            text += (f", longest host stall {ms(longest)} (the simulated peer shares this "
+                     "machine: a stall of it delays the answer)")
         if over:
             text += (f", {over} wait(s) longer: a run as long faults" + (
                 "" if level == FAILED else f" with a chance of about "
@@ -217,6 +254,17 @@ def judge(m: dict) -> dict:
                 text += f"; stale_periods = {periods} would hold"
             else:
                 text += f"; no stale_periods up to {top} holds at this sample time"
+        findings.append((level, text))
+    for name, limit in (m.get("host_silence_limits") or {}).items():
+        if not stall:
+            break
+        over = int(m.get("host_stalls_over", {}).get(name, 0))
+        level = (OK if stall["max_s"] * STALE_MARGIN <= limit else
+                 FAILED if over >= SURE_FAULTS else DOUBTFUL)
+        text = (f"{name} {ms(limit)}: {'holds' if level == OK else 'the host stalled'} "
+                f"(longest stall {ms(stall['max_s'])}"
+                + (f", {over} longer than it: a run as long stops there" if over else "")
+                + ")")
         findings.append((level, text))
     if not cycle:  # no per-sample timing: the loop's periods alone
         over = m["periods"].get("overruns", 0)
@@ -310,6 +358,8 @@ def lines(m: dict, judged: dict) -> list[str]:
     out.append("  " + row("host response (answer in -> command out)", m["response"]))
     out.append("  " + row("cycle (due -> command out)", m["cycle"]))
     out.append("  " + loop_timing.summary(m["periods"]))
+    if m.get("host_stall"):
+        out.append("  " + row("host stalls (a period beyond T)", m["host_stall"]))
     c = m["cpu"]
     out.append(f"  host CPU per period: loop thread {ms(c['thread_per_period_s'])} (p99 "
                f"{ms(c['thread_p99_s'])}), whole process {ms(c['process_per_period_s'])}")

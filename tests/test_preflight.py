@@ -83,7 +83,10 @@ def test_sim_canopen_preflight_agrees_with_the_run(tmp_path, capsys, sim_drive, 
     if too_tight:  # the drive answers 15 ms after each SYNC: seen in the loop and on the wire
         assert m["wait"]["p50_s"] == pytest.approx(0.015, abs=0.003)
         assert m["wire"]["p50_s"] == pytest.approx(0.015, abs=0.003)
-    assert_agrees(p, paced_run(load_rig(rig_file), "sim-canopen"), too_tight=too_tight)
+    # too tight is certain (every answer late); holding, nearly (a stall over 130 ms, seen
+    # on this VM now and then, makes the preflight doubtful: skipped, saying so)
+    assert_agrees(p, paced_run(load_rig(rig_file), "sim-canopen"),
+                  too_tight=True if too_tight else decided(p))
 
 
 def test_write_rig_writes_the_limits_that_then_hold(tmp_path, capsys):
@@ -133,7 +136,8 @@ def test_canopennode_preflight_agrees_with_the_run(tmp_path, capsys, too_tight):
         if too_tight:
             assert m["wait"]["p50_s"] == pytest.approx(0.015, abs=0.004)
         # the drive is a test's (no commissioning gate), the driver the hardware one
-        assert_agrees(p, paced_run(r.rig, "canopen", simulated=True), too_tight=too_tight)
+        assert_agrees(p, paced_run(r.rig, "canopen", simulated=True),
+                      too_tight=True if too_tight else decided(p))
     finally:
         r.close()
 
@@ -295,3 +299,33 @@ def test_lines_name_every_figure():
                   "verdict: ok", "shortest sample time"):
         assert words in text, (words, text)
     assert not math.isnan(m["wait"]["max_s"])
+
+
+def test_a_stall_of_the_whole_machine_counts_against_a_simulated_peer():
+    """Measured at 60 s: a 210 ms stall of this VM in the preflight's pacing, none in its
+    waits; the run then faulted when such a stall fell between a SYNC and the in-process
+    drive's answer. A simulated peer shares the machine: its stalls are the answer's."""
+    m = synthetic(0.0109, T=0.001, stale=0.020)
+    m.update(shares_host=True, stalls_over_stale=1,
+             host_stall={"p50_s": 0.0, "p99_s": 1e-4, "p999_s": 1e-3, "max_s": 0.210, "n": 999})
+    j = judge(m)
+    assert j["verdict"]["level"] == "doubtful" and "longest host stall 210 ms" in \
+        j["findings"][0] and "chance of about 63 %" in j["findings"][0]
+    assert judge({**m, "shares_host": False})["findings"][0].startswith(
+        "stale limit 20 ms (20 periods): holds")  # hardware: its answer waits in the socket
+
+
+@pytest.mark.parametrize("over,level", [(0, "ok"), (1, "doubtful"), (5, "failed")])
+def test_host_stalls_against_what_they_trip(over, level):
+    name = "the drive's RPDO event timer (RPDO1:05)"
+    m = synthetic(0.0002)
+    m.update(host_silence_limits={name: 0.05}, host_stalls_over={name: over},
+             host_stall={"p50_s": 0.0, "p99_s": 1e-4, "p999_s": 1e-3,
+                         "max_s": 0.21 if over else 0.02, "n": 999})
+    j = judge(m)
+    (text,) = [f for f in j["findings"] if f.startswith(name)]
+    if level == "ok":
+        assert j["verdict"]["level"] == "ok" and "50 ms: holds (longest stall 20 ms)" in text
+    else:
+        assert j["verdict"]["level"] == level and "the host stalled (longest stall 210 ms" \
+            in text
