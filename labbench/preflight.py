@@ -60,7 +60,7 @@ import numpy as np
 
 from labbench import timing as loop_timing
 from labbench.device import TimingProbe
-from labbench.errors import UserError
+from labbench.errors import DeviceFault, UserError
 from labbench.realtime import RealtimeConfig, acquire, hint
 from labbench.verdict import DOUBTFUL, FAILED, OK, judge as judge_findings
 
@@ -140,27 +140,33 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
     perf, thread_time = time.perf_counter, time.thread_time
     rt = realtime or RealtimeConfig.from_rig(rig)
     timeout = max(RELAXED_STALE_S, 10 * T)
-    k = 0
+    k, fault = 0, None
     try:
         with acquire(rt, warn) as grant:
             if enable:
                 device.enable(timeout=1.0)
             p0, w0 = time.process_time(), perf()
             prev = perf()
-            for k in range(n):
-                c0 = thread_time()
-                read(timeout)
-                command(0.0)
-                now = perf()
-                cpu[k] = thread_time() - c0
-                periods[k], done[k], prev = now - prev, now, now
-            k = n
+            try:
+                for k in range(n):
+                    c0 = thread_time()
+                    read(timeout)
+                    command(0.0)
+                    now = perf()
+                    cpu[k] = thread_time() - c0
+                    periods[k], done[k], prev = now - prev, now, now
+                k = n
+            except DeviceFault as exc:  # even the relaxed limit: what it measured, and why
+                fault = f"after {k * T:.3g} s: {exc}"
             process_s, wall_s = time.process_time() - p0, perf() - w0
             granted = dict(grant.record)
     finally:
         if probe is not None:
             probe.timing_log = None
             probe.stale_limit_s = stale_s
+    if k < 2:
+        raise DeviceFault(f"the timing preflight could not measure: the device faulted {fault}")
+    n, periods, cpu, done = k, periods[:k], cpu[:k], done[:k]
     stalls = periods[1:] - T  # how much longer than a period each one was
     rows = np.array(log[-n:], float).reshape(-1, 4) if log else np.full((0, 4), np.nan)
     m = min(len(rows), n)  # the last m samples of the loop have their device's row
@@ -200,6 +206,8 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
     }
     if probe is None:
         out["note"] = f"{desc.kind} reports no per-sample timing: loop periods only"
+    if fault:
+        out["fault"] = fault
     return out
 
 
@@ -225,6 +233,9 @@ def _nice_ceil(x: float, step: float = 1e-4) -> float:
 def judge(m: dict) -> dict:
     """One verdict on ``m`` (``measure``'s result) and the limits that would hold."""
     T, findings, suggest = m["T_s"], [], {}
+    if m.get("fault"):  # beyond even the relaxed limit (a lost frame, a stall over a second)
+        findings.append((FAILED, f"the device faulted during the measurement, {m['fault']}: "
+                                 "a run faults so"))
     wait, cycle, stale = m["wait"], m["cycle"], m["stale_limit_s"]
     top = m.get("stale_periods_max") or 100
     ms = _ms
