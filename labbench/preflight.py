@@ -176,6 +176,7 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
     # the host's pacing floor: the lateness of requests whose cycle found the previous one
     # done before its time (the host slept and woke); an overloaded loop's backlog is not it
     slept = np.r_[False, end[:-1] < due[1:]] if m else np.zeros(0, bool)
+    silences = _silence_limits(desc, rig)
     out = {
         "device": desc.kind, "name": desc.name, "simulated": desc.simulated,
         "label": desc.label(), "T_s": T, "seconds": n * T, "cycles": n, "wall_s": wall_s,
@@ -186,9 +187,9 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
         "shares_host": bool(desc.simulated),
         "stalls_over_stale": int(np.sum(stalls > stale_s)) if stale_s else 0,
         "host_stall": _stats(stalls),
-        "host_silence_limits": _silence_limits(desc, rig),
-        "host_stalls_over": {k: int(np.sum(stalls > v))
-                             for k, v in _silence_limits(desc, rig).items()},
+        "host_silence_limits": silences,
+        "host_stalls_over": {name: int(np.sum(stalls > limit))
+                             for name, limit in silences.items()},
         "pacing": _stats(lateness), "late_requests": int(np.sum(lateness > 0.5 * T)),
         "floor": _stats(lateness[slept]),
         # what a cycle needs of its period: from the request on (a board pacing itself
@@ -214,7 +215,7 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
 def _silence_limits(desc, rig) -> dict:
     """What a host stall (no request, no command for that long) trips, by name: the loop's
     own watchdog on hardware (``labbench.safety``; a simulator's records and goes on) and
-    the device's watch on the host (``details["host_silence_limit_s"]``)."""
+    the device's watch on the host (``details["host_silence_limit"]``: name, seconds)."""
     from labbench.safety import SafetyConfig
 
     out = {}
