@@ -345,3 +345,15 @@ def test_a_device_that_faults_while_measured_is_reported_not_raised():
     j = judge(m)
     assert j["verdict"]["level"] == "failed"
     assert j["findings"][0].startswith("the device faulted during the measurement, after 0.")
+
+
+def test_the_stale_limit_is_judged_on_the_bus_where_frames_carry_timestamps():
+    """A host stall after the SYNC makes the loop's wait long, but the answer arrived in time
+    and is read at once: no fault (60 s on CANopenNode, loop waits up to 115 ms, the run
+    with a 20 ms limit did not fault)."""
+    m = synthetic(0.115, T=0.001, stale=0.020)
+    m.update(judged_wait={"p50_s": 2e-4, "p99_s": 5e-4, "p999_s": 1e-3, "max_s": 0.002,
+                          "n": 1000}, stale_clock="the bus (frame timestamps)", over_stale=0)
+    (text, *_) = judge(m)["findings"]
+    assert text.startswith("stale limit 20 ms (20 periods): holds, longest wait 2 ms "
+                           "(p99.9 1 ms, on the bus)"), text
