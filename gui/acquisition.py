@@ -311,7 +311,7 @@ class Acquisition:
             self._commands, self._messages = self._ctx.Queue(), self._ctx.Queue()
         self.process = self._ctx.Process(target=_child_main, name="labbench-acquisition", daemon=True,
                                          args=(self._commands, self._messages, self.estop, self.stop))
-        with _main_module_hidden():
+        with main_module_hidden():
             self.process.start()
         self._reader = threading.Thread(target=self._forward, args=(self.process, self._messages),
                                         name="labbench-acq-reader", daemon=True)
@@ -389,7 +389,7 @@ class Acquisition:
         self._close_queues()
 
 
-class _main_module_hidden:
+class main_module_hidden:
     """``spawn`` re-imports the parent's ``__main__`` in the child (a script or ``-m gui...``
     that imports Qt); hide it while the child starts so the child imports only this module."""
 

@@ -28,6 +28,7 @@ from pyqtgraph.util.garbage_collector import GarbageCollector
 from labbench.gui.acquisition import Acquisition
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView
 from labbench.gui.device_panel import DevicePanel, EStopButton
+from labbench.gui.estop_keys import ARMED_HINT, KEYS, UNARMED_HINT, EStopKeys
 from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
 from labbench.gui.id_view import IdView
@@ -51,7 +52,6 @@ from labbench.ve import Plant
 
 log = logging.getLogger(__name__)
 
-ESTOP_KEYS = ("Esc", "Space")
 SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
 
 
@@ -162,10 +162,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.health_timer.timeout.connect(self._poll_health)
         self.health_timer.start()
 
-        for key in ESTOP_KEYS:
-            sc = QtGui.QShortcut(QtGui.QKeySequence(key), self)
-            sc.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
-            sc.activated.connect(self.emergency_stop)
+        # Esc and Space: E-STOP anywhere in the application while a device is connected
+        self.estop_keys = EStopKeys(lambda: self.state.armed, self.emergency_stop, self)
         QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
         self.log.add("info", f"rig: {rig.name} ({rig.source}); sessions in {self.session_dir}")
         self._follow_state()
@@ -180,7 +178,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- layout -------------------------------------------------------------------------
     def _build(self, backend: str):
-        self.estop = EStopButton(" / ".join(ESTOP_KEYS))
+        self.estop = EStopButton(KEYS)
         self.device_panel = DevicePanel(backend)
         self.protocol_panel = ProtocolPanel(panel_protocols(), self.settings)
         self.live = LiveView(self.rig)
@@ -230,6 +228,8 @@ class MainWindow(QtWidgets.QMainWindow):
         cl.addWidget(self.banner)
         cl.addWidget(body, 1)
         self.setCentralWidget(central)
+        self.keys_hint = QtWidgets.QLabel()  # the E-STOP keys' rule, as it holds now
+        self.statusBar().addPermanentWidget(self.keys_hint)
         self.loop_status = LoopStatus(self.statusBar())
 
     def _wire(self) -> None:
@@ -263,6 +263,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.commission.follow(state)
         self.device_panel.follow(state)
         self.estop.set_latched(state.latched)
+        self.keys_hint.setText(ARMED_HINT if state.armed else UNARMED_HINT)
         self.loop_status.show_mode(state.name)
 
     @staticmethod
@@ -886,6 +887,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
+        self.estop_keys.remove()  # the application's filter: a closed window stops nothing
         self.save_state()
         self.stop_event.set()
         for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
@@ -895,6 +897,7 @@ class MainWindow(QtWidgets.QMainWindow):
         # the runner zeroes the force and disables; then the device is closed and the child ends
         self.acquisition.shutdown(timeout=5.0)
         self.device = None
+        self.sweeps.close_run()
         self.live.shutdown()
         super().closeEvent(event)
 

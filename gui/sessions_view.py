@@ -68,7 +68,9 @@ class SessionsView(QtWidgets.QWidget):
         self.dir_label.setText(str(self.directory))
 
     def _choose(self):
-        d = QtWidgets.QFileDialog.getExistingDirectory(self, "Session folder", str(self.directory))
+        from labbench.gui.dialogs import choose_folder
+
+        d = choose_folder(self, "Session folder", str(self.directory))
         if d:
             self.directory = Path(d)
             self._set_dir_label()

@@ -1,11 +1,18 @@
-"""Sweeps tab: a sweep table's points on a map, the row of the point under the mouse, and a
-point opened as a session (the one the sweep kept, or the point re-run now).
+"""Sweeps tab: run a sweep spec (the engine of ``labbench sweep``, with progress and Cancel),
+or open a table one wrote; its points on a map, the row of the point under the mouse, and
+a point opened as a session (the one the sweep kept, or the point re-run now).
 
-A table is the folder ``labbench sweep`` writes (``labbench.sweep.table``), read
-whole when opened or reloaded (so a sweep still running can be watched). x, y and
-colour are picked among its columns; rows whose status is not "ok" are red
-crosses, as on the sweep's own charts (``labbench.sweep.charts``). Hovering a
-point shows its row; clicking selects it for the buttons.
+**Open spec...** takes a ``SPEC.toml`` (docs/sweep.md); **Run sweep** computes its points
+missing from its table (``<sessions folder>/../sweeps/<spec>.sweep``, as the command
+line's default ``sweeps/<spec>.sweep`` beside ``sessions/``) in a child process
+(``labbench.gui.sweep_runner``), the map filling in as rows come; **Cancel** stops it as
+Ctrl-C stops the command (the finished rows kept; Run again computes the rest). **Open
+table...** takes a ``NAME.sweep`` folder, read whole when opened or reloaded (so a sweep
+still running elsewhere can be watched). x, y and colour are picked among its columns,
+first as the spec's first chart draws them, else its varied parameters against a varied
+result; axes are labelled with units. Rows whose status is not "ok" are red crosses, as
+on the sweep's own charts (``labbench.sweep.charts``). Hovering a point shows its row;
+clicking selects it for the buttons.
 
 Re-running a point is ``labbench.sweep.point.compute_row`` with its session
 recorded: the same pure task a worker ran, so its row must equal the table's
@@ -14,6 +21,8 @@ recorded: the same pure task a worker ran, so its row must equal the table's
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +30,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
+from labbench.gui.sweep_runner import SweepRun
 from labbench.gui.worker import Mailbox, describe_error, run_in_background
 from labbench.numfmt import fmt
 
@@ -31,7 +41,10 @@ CMAP = pg.colormap.get("viridis")
 # categories: matplotlib's tab10 without its red (red is "not ok")
 CATEGORY_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2",
                     "#7f7f7f", "#bcbd22", "#17becf")
-POLL_MS = 100  # how often a re-run's mailbox is read
+POLL_MS = 100  # how often the mailbox of a re-run or a sweep under way is read
+REREAD_S = 1.0  # how often the table of a sweep under way is read again
+NOTHING_OPEN = ("no sweep open: Open spec... runs a sweep spec (SPEC.toml) here; Open table... "
+                "shows a NAME.sweep folder that labbench sweep wrote")
 LOG_SPAN = 50  # an axis of positive values spanning more than this ratio starts as log
 SHADES = 64  # of the colour map
 
@@ -77,9 +90,54 @@ def colours(values: list) -> tuple[list, str]:
     return [table[fmt(v)] for v in values], legend
 
 
+def column_label(name: str) -> str:
+    """A table column as a person reads it, with its unit: ``res.loop_fit.ci95.m.0`` ->
+    "loop fit: m, 95 % low [kg]", ``truth.k_max`` -> "truth: K_max [N/m]",
+    ``K_frac_k_max`` -> "K / K_max"."""
+    from labbench.gui.protocol_panel import _unit
+
+    parts = name.split(".")
+    where = {"res": "", "truth": "truth: "}.get(parts[0])
+    if where is not None:
+        parts = parts[1:]
+    else:
+        where = ""
+    end = ""
+    if len(parts) >= 2 and parts[-1] in ("0", "1", "n"):
+        end = {"0": " low", "1": " high", "n": " (count)"}[parts.pop()]
+    if len(parts) >= 2 and parts[-2] == "ci95":
+        end = ", 95 %" + end
+        parts = parts[:-2] + parts[-1:]
+    key = parts[-1] if parts else name
+    group = " ".join(p.replace("_", " ") for p in parts[:-1])
+    unit, word = COLUMN_UNITS.get(key, (None, None))
+    if unit is None:
+        unit, _low, word = _unit(key)
+    if end.endswith("(count)"):
+        unit = ""
+    text = f"{where}{group + ': ' if group else ''}{word}{end}"
+    return f"{text} [{unit}]" if unit else text
+
+
+# result keys whose unit the name's suffix does not say: key -> (unit, words)
+COLUMN_UNITS = {
+    "m": ("kg", "m"), "b": ("N s/m", "b"), "K": ("N/m", "K"), "B": ("N s/m", "B"),
+    "k_max": ("N/m", "K_max"), "k_max_approx": ("N/m", "K_max (paper's approximation)"),
+    "K_frac_k_max": ("", "K / K_max"), "coulomb": ("N", "Coulomb friction"),
+    "offset": ("N", "force offset"), "rms_residual": ("N", "rms force residual"),
+    "explained": ("", "force variance explained (fraction)"),
+    **{k: ("rad/s", k.replace("_star", "*").replace("_", " "))
+       for k in ("ws_star", "wb_star", "ws_star_measured", "ws_star_predicted", "ws_star_eq5",
+                 "wb_star_measured", "wb_star_predicted", "wb_star_w0")},
+    **{k: ("", k.replace("_", " ") + " (fraction)")
+       for k in ("median_rel", "max_rel", "m_rel", "b_rel", "worst_rel", "fit_m_rel",
+                 "fit_b_rel", "residual_rms")},
+}
+
+
 class SweepView(QtWidgets.QWidget):
-    """``open_table(folder)``, then pick axes; ``session_requested`` carries the path of a
-    session to show (the window replays it)."""
+    """``open_spec(file)`` and Run, or ``open_table(folder)``; then pick axes.
+    ``session_requested`` carries the path of a session to show (the window replays it)."""
 
     session_requested = QtCore.Signal(str)
 
@@ -89,29 +147,56 @@ class SweepView(QtWidgets.QWidget):
         self.folder: Path | None = None
         self.cols: dict[str, list] = {}
         self.spec: dict | None = None
+        self.spec_path: Path | None = None  # the spec Run runs
+        self.run: SweepRun | None = None
         self.hovered: int | None = None
         self.selected: int | None = None
         self._rerun_of: dict = {}  # the table's row of the point being re-run
+        self._reread = 0.0  # when the running sweep's table was read last
         self.mailbox = Mailbox()
         self.poll = QtCore.QTimer(self)
         self.poll.setInterval(POLL_MS)
         self.poll.timeout.connect(self._drain)
 
-        self.table_label = QtWidgets.QLabel("no sweep table open")
-        open_button = QtWidgets.QPushButton("Open table...")
-        open_button.clicked.connect(self._choose)
+        self.table_label = QtWidgets.QLabel(NOTHING_OPEN)
+        self.table_label.setWordWrap(True)
+        self.open_spec_button = QtWidgets.QPushButton("Open spec...")
+        self.open_spec_button.setToolTip("a sweep spec (SPEC.toml, docs/sweep.md): run it here")
+        self.open_spec_button.clicked.connect(self._choose_spec)
+        self.open_table_button = QtWidgets.QPushButton("Open table...")
+        self.open_table_button.setToolTip("a NAME.sweep folder that labbench sweep (or this tab) wrote")
+        self.open_table_button.clicked.connect(self._choose_table)
         self.reload_button = QtWidgets.QPushButton("Reload")
         self.reload_button.setToolTip("read the table again (a sweep still running adds rows)")
         self.reload_button.clicked.connect(lambda: self.folder and self.open_table(self.folder))
+        self.workers = QtWidgets.QSpinBox()
+        self.workers.setRange(0, 256)
+        self.workers.setValue(os.cpu_count() or 1)
+        self.workers.setPrefix("workers: ")
+        self.workers.setToolTip("local worker processes, as labbench sweep --workers "
+                                "(0: computed in one process, no Dask)")
+        self.run_button = QtWidgets.QPushButton("Run sweep")
+        self.run_button.clicked.connect(self.run_spec)
+        self.cancel_button = QtWidgets.QPushButton("Cancel")
+        self.cancel_button.setToolTip("stop after the points under way; the finished rows stay "
+                                      "in the table and Run computes the rest")
+        self.cancel_button.clicked.connect(self.cancel_run)
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.progress.setTextVisible(False)
+        self.progress_text = QtWidgets.QLabel("")
         self.x, self.y, self.color = (QtWidgets.QComboBox() for _ in range(3))
         self.log_x, self.log_y = QtWidgets.QCheckBox("log"), QtWidgets.QCheckBox("log")
+        self._picked = False  # the person chose the axes: a reload keeps them
         for w in (self.x, self.y, self.color):
-            w.currentTextChanged.connect(self._axes_changed)
+            w.currentIndexChanged.connect(self._axes_picked)
         for w in (self.log_x, self.log_y):
             w.toggled.connect(self.redraw)
 
         self.plot = pg.PlotWidget()
         self.plot.showGrid(x=True, y=True, alpha=0.3)
+        for side in ("bottom", "left"):  # the numbers as they are: no "(x0.001)" scaling
+            self.plot.getAxis(side).enableAutoSIPrefix(False)
         self.points = pg.ScatterPlotItem(size=9, hoverable=True, tip=None, hoverSize=14,
                                          hoverPen=pg.mkPen("k", width=2))
         self.points.sigHovered.connect(self._on_hover)
@@ -138,9 +223,14 @@ class SweepView(QtWidgets.QWidget):
         self.note.setWordWrap(True)
 
         top = QtWidgets.QHBoxLayout()
-        top.addWidget(open_button)
-        top.addWidget(self.reload_button)
+        for w in (self.open_spec_button, self.open_table_button, self.reload_button):
+            top.addWidget(w)
         top.addWidget(self.table_label, 1)
+        running = QtWidgets.QHBoxLayout()
+        for w in (self.workers, self.run_button, self.cancel_button):
+            running.addWidget(w)
+        running.addWidget(self.progress, 1)
+        running.addWidget(self.progress_text, 2)
         axes = QtWidgets.QHBoxLayout()
         for text, combo, log in (("x", self.x, self.log_x), ("y", self.y, self.log_y),
                                  ("colour", self.color, None)):
@@ -167,14 +257,114 @@ class SweepView(QtWidgets.QWidget):
         body.setSizes([800, 420])
         outer = QtWidgets.QVBoxLayout(self)
         outer.addLayout(top)
+        outer.addLayout(running)
         outer.addWidget(body, 1)
         outer.addWidget(self.note)
         self._sync_buttons()
 
+    # ----- a spec, run here ---------------------------------------------------------------
+    def _choose_spec(self):
+        from labbench.gui.dialogs import choose_file
+
+        start = str(self.spec_path.parent) if self.spec_path else str(Path.cwd())
+        path = choose_file(self, "Sweep spec (SPEC.toml, docs/sweep.md)", start,
+                           "sweep spec (*.toml);;any file (*)")
+        if path:
+            self.open_spec(path)
+
+    def table_of(self, spec_path) -> Path:
+        """Where Run writes a spec's table: ``sweeps/<spec>.sweep`` beside the sessions
+        folder (the command line's default, beside ``sessions/``)."""
+        from labbench.sweep.table import SUFFIX
+
+        return self.session_dir.parent / "sweeps" / f"{Path(spec_path).stem}{SUFFIX}"
+
+    def open_spec(self, path) -> bool:
+        """Read spec ``path`` (False and the reason shown when it is not one); show its
+        table if it has one already, and offer Run."""
+        from labbench.sweep.spec import load_spec
+        from labbench.sweep.table import done_keys, is_table
+
+        try:
+            spec = load_spec(path)
+            n = len({p.key(spec) for p in spec.points()})
+        except Exception as exc:  # noqa: BLE001 - a bad spec is a message, not a crash
+            self._say(f"{path}: {describe_error(exc)}", error=True)
+            return False
+        self.spec_path = Path(path)
+        table = self.table_of(path)
+        done = len(done_keys(table)) if is_table(table) else 0
+        if done:
+            self.open_table(table)
+        what = spec.protocol or spec.analysis
+        self.table_label.setText(f"spec {self.spec_path.name}: {spec.name}, {n} points of "
+                                 f"{spec.kind} {what}; table {table}")
+        self._show_progress(done, n, "" if not done else "already in the table; Run computes the rest")
+        self._say(f"spec {self.spec_path.name} read: press Run sweep")
+        self._sync_buttons()
+        return True
+
+    def run_spec(self) -> None:
+        """Compute the spec's points missing from its table, in a child process."""
+        if self.spec_path is None or self.run is not None:
+            return
+        table = self.table_of(self.spec_path)
+        table.parent.mkdir(parents=True, exist_ok=True)
+        self.run = SweepRun(self.spec_path, table, self.workers.value(),
+                            lambda kind, value: self.mailbox.put(f"sweep {kind}", value))
+        self.poll.start()
+        self._say(f"running {self.spec_path.name} into {table} ...")
+        self._sync_buttons()
+
+    def cancel_run(self) -> None:
+        if self.run is not None:
+            self.run.cancel()
+            self.cancel_button.setEnabled(False)
+            self._say("cancelling: the points under way finish first ...")
+
+    def _show_progress(self, done: int, total: int, text: str = "") -> None:
+        self.progress.setValue(int(1000 * done / total) if total else 0)
+        self.progress_text.setText(f"{done} of {total} points" + (f", {text}" if text else ""))
+
+    def _on_run_progress(self, p: dict) -> None:
+        eta = p.get("eta_s")
+        self._show_progress(p["done"], p["total"], f"{p['failed']} not ok, {p['elapsed_s']:.0f} s"
+                            + (f", about {eta:.0f} s left" if eta is not None else ""))
+        now = time.monotonic()
+        if now - self._reread >= REREAD_S:  # the map fills in as rows reach the table
+            self._reread = now
+            table = self.table_of(self.spec_path)
+            from labbench.sweep.table import is_table
+
+            if is_table(table):
+                self.open_table(table)
+
+    def _on_run_end(self, kind: str, value) -> None:
+        self.run = None
+        self._sync_buttons()
+        if kind == "error":
+            self._say(f"sweep failed: {value}", error=True)
+            return
+        done = value["before"] + value["computed"]
+        state = "stopped" if value["stopped"] else "complete"
+        self._show_progress(done, value["total"], f"{value['failed']} not ok, {state}")
+        self.open_table(value["table"])
+        self._say(f"sweep {state}: {done} of {value['total']} points in {value['table']} "
+                  f"({value['computed']} computed now in {value['wall_s']:.0f} s)"
+                  + ("; Run computes the rest" if value["stopped"] else ""))
+
+    def close_run(self) -> None:
+        """The window closes: a sweep under way stops as Cancel stops it."""
+        if self.run is not None:
+            self.run.close()
+            self.run = None
+
     # ----- the table ------------------------------------------------------------------------
-    def _choose(self):
+    def _choose_table(self):
+        from labbench.gui.dialogs import choose_folder
+
         start = str(self.folder.parent) if self.folder else str(Path.cwd())
-        d = QtWidgets.QFileDialog.getExistingDirectory(self, "Sweep table (NAME.sweep)", start)
+        d = choose_folder(self, "Sweep table: a NAME.sweep folder (labbench sweep writes one)", start)
         if d:
             self.open_table(d)
 
@@ -195,16 +385,19 @@ class SweepView(QtWidgets.QWidget):
         except Exception as exc:  # noqa: BLE001 - an unreadable table is a message, not a crash
             self._say(describe_error(exc), error=True)
             return False
-        keep = (self.x.currentText(), self.y.currentText(), self.color.currentText()) \
-            if folder == self.folder else None
+        keep = (self.x.currentData(), self.y.currentData(), self.color.currentData()) \
+            if folder == self.folder and self._picked else None
+        self._picked = self._picked and folder == self.folder
         self.folder, self.cols, self.spec = folder, cols, spec
         self.hovered = self.selected = None
         n = len(cols.get("key", []))
         name = (spec or {}).get("sweep", {}).get("name", folder.stem)
-        self.table_label.setText(f"{folder}: {name}, {n} rows")
+        if self.run is None:
+            self.table_label.setText(f"table {folder}: {name}, {n} rows")
         self._fill_axes(keep)
         self._show_row(None)
-        self._say(f"{n} rows read from {folder.name}")
+        if self.run is None:
+            self._say(f"{n} rows read from {folder.name}")
         return True
 
     def _fill_axes(self, keep) -> None:
@@ -215,30 +408,43 @@ class SweepView(QtWidgets.QWidget):
                                    (self.color, colour, c)):
             combo.blockSignals(True)
             combo.clear()
-            combo.addItems(items)
-            combo.setCurrentText(pick if pick in items else (items[0] if items else ""))
+            for item in items:
+                combo.addItem(column_label(item) if item != NONE else NONE, item)
+            index = combo.findData(pick)
+            combo.setCurrentIndex(index if index >= 0 else 0)
             combo.blockSignals(False)
         self._axes_changed()
 
     def _default_axes(self, names: list[str]) -> tuple[str, str, str]:
-        """The spec's first chart with numeric x and y, else its first two numeric
-        parameters, else the first two numeric columns."""
+        """The spec's first chart with numeric x and y (a lines chart's first y; a failure
+        chart's metric), else the first varied parameter (not a seed, if another varies)
+        against the first varied result (``truth.*``, then ``res.*``)."""
         for c in (self.spec or {}).get("chart", []):
-            ys = c.get("y") if isinstance(c.get("y"), str) else None
-            if c.get("x") in names and ys in names:
-                return c["x"], ys, c.get("color") or c.get("metric") or "status"
+            y = c.get("y") if c.get("kind") != "failure" else c.get("metric")
+            y = y[0] if isinstance(y, list) and y else y
+            if c.get("x") in names and y in names:
+                return c["x"], y, c.get("color") or c.get("series") or "status"
+        varied = [n for n in names if len(set(self.cols[n])) > 1]
         params = []
         if self.cols.get("params_json"):
-            params = [p for p in json.loads(self.cols["params_json"][0])["params"]
-                      if p in names and len(set(self.cols[p])) > 1]
-        pick = [*dict.fromkeys(params + [n for n in names if n != "index"] + names)][:2]
+            params = [p for p in json.loads(self.cols["params_json"][0])["params"] if p in varied]
+        params.sort(key=lambda p: "seed" in p)  # a seed last: what varies on purpose first
+        results = [n for n in varied if n.startswith("truth.")] + \
+                  [n for n in varied if n.startswith("res.")]
+        others = [n for n in varied if n not in params and n not in results and n != "index"]
+        pick = [*dict.fromkeys(params[:1] + results[:1] + params[1:] + others + names)][:2]
         pick += ["", ""]
-        return pick[0], pick[1], "status"
+        colour = params[1] if len(params) > 1 else "status"
+        return pick[0], pick[1], colour
+
+    def _axes_picked(self, *_):
+        self._picked = True
+        self._axes_changed()
 
     def _axes_changed(self, *_):
         for axis, combo, box in (("x", self.x, self.log_x), ("y", self.y, self.log_y)):
             box.blockSignals(True)
-            box.setChecked(self._log_default(axis, combo.currentText()))
+            box.setChecked(self._log_default(axis, combo.currentData()))
             box.blockSignals(False)
         self.redraw()
 
@@ -253,7 +459,7 @@ class SweepView(QtWidgets.QWidget):
     # ----- the map -------------------------------------------------------------------------
     def redraw(self, *_):
         """Plot the rows with a value on both axes (a positive one on a log axis)."""
-        xname, yname = self.x.currentText(), self.y.currentText()
+        xname, yname = self.x.currentData(), self.y.currentData()
         if xname not in self.cols or yname not in self.cols:
             self.points.setData([], [])
             return
@@ -269,8 +475,8 @@ class SweepView(QtWidgets.QWidget):
         status = self.cols.get("status", ["ok"] * len(x))
         ok = np.array([status[i] == "ok" for i in rows], bool)
         legend = "red crosses: status not ok"
-        if self.color.currentText() in self.cols:
-            brushes, legend = colours([self.cols[self.color.currentText()][i] for i in rows])
+        if self.color.currentData() in self.cols:
+            brushes, legend = colours([self.cols[self.color.currentData()][i] for i in rows])
             legend += "; red crosses: status not ok"
         else:
             brushes = [pg.mkBrush("#1f5fa8")] * len(rows)
@@ -280,8 +486,8 @@ class SweepView(QtWidgets.QWidget):
         self.plot.getPlotItem().setLogMode(*logs)
         self.points.setData(x=px, y=py, data=rows, brush=brushes, symbol=symbols,
                             pen=pg.mkPen(None))
-        self.plot.setLabel("bottom", xname)
-        self.plot.setLabel("left", yname)
+        self.plot.setLabel("bottom", column_label(xname))
+        self.plot.setLabel("left", column_label(yname))
         self.plot.getPlotItem().enableAutoRange()
         hidden = len(x) - len(rows)
         self.legend.setText(legend + (f"; {hidden} rows without a value to plot" if hidden else ""))
@@ -323,10 +529,16 @@ class SweepView(QtWidgets.QWidget):
         return Path(p) if p else None
 
     def _sync_buttons(self) -> None:
-        busy = self.poll.isActive()
+        busy = bool(self._rerun_of)
         self.open_button.setEnabled(self._kept_session() is not None and not busy)
         runs = (self.spec or {}).get("sweep", {}).get("kind") == "run"
         self.rerun_button.setEnabled(self.selected is not None and runs and not busy)
+        running = self.run is not None
+        self.run_button.setEnabled(self.spec_path is not None and not running)
+        self.cancel_button.setEnabled(running)
+        self.workers.setEnabled(not running)
+        for w in (self.open_spec_button, self.open_table_button):
+            w.setEnabled(not running)
         if self.spec is not None and not runs:
             self.rerun_button.setToolTip("an analysis sweep's points are analyses of exact "
                                          "records, not runs: there is no session to record")
@@ -358,20 +570,24 @@ class SweepView(QtWidgets.QWidget):
         self._say(f"re-running point {r['index']} ...")
 
     def _drain(self) -> None:
-        for kind, (tag, value) in self.mailbox.drain():
-            if tag != "rerun":
-                continue
+        for kind, value in self.mailbox.drain():
+            if kind == "sweep progress":
+                self._on_run_progress(value)
+            elif kind in ("sweep done", "sweep error"):
+                self._on_run_end(kind.split()[1], value)
+            elif value[0] == "rerun":  # ("result" | "error", ("rerun", row or message))
+                old, self._rerun_of = self._rerun_of, {}
+                self._sync_buttons()
+                if kind == "error":
+                    self._say(f"re-run failed: {value[1]}", error=True)
+                else:
+                    self._rerun_done(old, value[1])
+        if self.run is None and not self._rerun_of:
             self.poll.stop()
-            self._sync_buttons()
-            if kind == "error":
-                self._say(f"re-run failed: {value}", error=True)
-            else:
-                self._rerun_done(value)
 
-    def _rerun_done(self, row: dict) -> None:
+    def _rerun_done(self, old: dict, row: dict) -> None:
         from labbench.sweep.point import TIME_COLUMNS
 
-        old = self._rerun_of
         differ = [k for k in dict.fromkeys([*old, *row])
                   if k not in (*TIME_COLUMNS, "session") and old.get(k) != row.get(k)]
         same = ("its row equals the table's (times aside)" if not differ else

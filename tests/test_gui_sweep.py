@@ -47,9 +47,9 @@ def view(qtbot, tmp_path):
 
 
 def pick(view, x, y, color="(none)", log_x=False, log_y=False):
-    view.x.setCurrentText(x)
-    view.y.setCurrentText(y)
-    view.color.setCurrentText(color)
+    """Choose the columns named (the lists show their labels, with units)."""
+    for combo, name in ((view.x, x), (view.y, y), (view.color, color)):
+        combo.setCurrentIndex(combo.findData(name))
     view.log_x.setChecked(log_x)
     view.log_y.setChecked(log_y)
 
@@ -88,8 +88,9 @@ def test_picked_axes_plot_the_tables_values(view, small_table):
     assert view.open_table(folder)
     assert "6 rows" in view.table_label.text()
     # first shown as the spec's chart draws it (K spans 250x, but the chart says linear)
-    assert (view.x.currentText(), view.y.currentText(), view.color.currentText()) == \
+    assert (view.x.currentData(), view.y.currentData(), view.color.currentData()) == \
         ("K", "truth.k_max", "seed")
+    assert view.x.currentText() == "K [N/m]" and view.y.currentText() == "truth: K_max [N/m]"
     assert not view.log_x.isChecked() and not view.log_y.isChecked()
     # K spans 250x: its axis starts as log; the refused rows have no truth.median_rel
     pick(view, "K", "truth.median_rel")

@@ -1,0 +1,67 @@
+"""The E-STOP keys: one rule for the whole application, dialogs and pop-up lists included.
+
+While a device is connected (or connecting, or a run or replay goes on), **Esc** is E-STOP
+wherever the keyboard focus is: the main window, a file dialog, a completion list, a
+drop-down list, a message box. It never closes a dialog or a list then (dialogs close by
+their buttons, lists by clicking away), so the same key cannot mean "close" in one place
+and "stop" in the next. **Space** is E-STOP too, except while typing in a text field.
+With no device and nothing running, both keys keep their usual meaning.
+
+One event filter on the application sees every key press before any widget (a dialog's
+own Esc handling, a completer's event filter, a shortcut) does: Qt runs the
+application's filters first for every object. A ``QShortcut`` could not give this rule:
+a dialog accepts Esc as an override and a completer's pop-up eats it, so Esc latched the
+E-STOP in one state of a dialog and closed it in another (issue 31).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from PySide6 import QtCore, QtWidgets
+
+KEYS = "Esc / Space"
+ARMED_HINT = "Esc / Space: E-STOP everywhere, dialogs and lists too (close those with the mouse)"
+UNARMED_HINT = "Esc / Space: E-STOP once a device is connected"
+
+
+def typing_in(widget) -> bool:
+    """A field where a space is text: an editable line, text box, spin box or list."""
+    if isinstance(widget, QtWidgets.QComboBox):
+        return widget.isEditable()
+    if isinstance(widget, (QtWidgets.QLineEdit, QtWidgets.QTextEdit, QtWidgets.QPlainTextEdit)):
+        return not widget.isReadOnly()
+    return isinstance(widget, QtWidgets.QAbstractSpinBox)
+
+
+class EStopKeys(QtCore.QObject):
+    """Installed on the QApplication: Esc, and Space outside text fields, call ``stop``
+    (once per press) while ``armed()``; the key goes no further then."""
+
+    def __init__(self, armed: Callable[[], bool], stop: Callable[[], None], parent=None):
+        super().__init__(parent)
+        self.armed, self.stop = armed, stop
+        QtWidgets.QApplication.instance().installEventFilter(self)
+
+    def remove(self) -> None:
+        app = QtWidgets.QApplication.instance()
+        if app is not None:
+            app.removeEventFilter(self)
+
+    def eventFilter(self, obj, event) -> bool:  # noqa: N802 - Qt override
+        kind = event.type()
+        if kind not in (QtCore.QEvent.Type.KeyPress, QtCore.QEvent.Type.ShortcutOverride):
+            return False
+        key = event.key()
+        if key == QtCore.Qt.Key.Key_Space:
+            if typing_in(QtWidgets.QApplication.focusWidget()):
+                return False
+        elif key != QtCore.Qt.Key.Key_Escape:
+            return False
+        if not self.armed():
+            return False
+        if kind == QtCore.QEvent.Type.ShortcutOverride:
+            event.accept()  # "the focus widget takes this key": no shortcut fires, the press follows
+            return True
+        if not event.isAutoRepeat():
+            self.stop()
+        return True

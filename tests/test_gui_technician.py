@@ -1,0 +1,220 @@
+"""Issue 31: the window as a technician uses it. Each test drives one of the issue's
+defects as a person meets it (clicks, keys, dialogs) and asserts what is on screen after."""
+import os
+
+os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from PySide6 import QtCore, QtWidgets  # noqa: E402
+
+from labbench.gui.main_window import MainWindow  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+
+RUN_MS = 120_000
+
+
+@pytest.fixture
+def window(qtbot, tmp_path):
+    def make(rig=None, **options):
+        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=False, **options)
+        qtbot.addWidget(win)
+        win.show()
+        return win
+
+    return make
+
+
+def _connect(qtbot, win):
+    win.device_panel.connect_button.click()
+    qtbot.waitUntil(lambda: win.device is not None, timeout=30_000)
+
+
+def _in_modal(qtbot, act):
+    """Call ``act(dialog)`` once a modal dialog is up (a file dialog's exec returns only when
+    it closes, so the test's clicks inside it run from the event loop); what it raised is
+    returned in the list, and a dialog it left open is cancelled."""
+    raised = []
+
+    def poll():
+        dialog = QtWidgets.QApplication.activeModalWidget()
+        if dialog is None:
+            QtCore.QTimer.singleShot(20, poll)
+            return
+        try:
+            act(dialog)
+        except BaseException as exc:  # noqa: BLE001 - reported by the test after exec returns
+            raised.append(exc)
+        if dialog.isVisible():
+            dialog.reject()
+
+    QtCore.QTimer.singleShot(0, poll)
+    return raised
+
+
+def _completion_popup(qtbot, dialog, typed: str):
+    """Type ``typed`` into the file dialog's name field until its completion list shows (the
+    path up to its last letter put in at once: the field reads a typed "/" as a new name)."""
+    edit = dialog.findChild(QtWidgets.QLineEdit, "fileNameEdit")
+    edit.setFocus()
+    edit.setText(typed[:-1])
+    qtbot.keyClicks(edit, typed[-1])
+    popup = edit.completer().popup()
+    qtbot.waitUntil(popup.isVisible, timeout=10_000)
+    return edit, popup
+
+
+# ----- defect 2: one Esc rule, in dialogs and pop-up lists too -------------------------------
+def test_esc_is_estop_inside_a_dialog_and_its_completion_list(qtbot, window, tmp_path):
+    (tmp_path / "specs-here").mkdir()
+    win = window()
+    assert "once a device is connected" in win.keys_hint.text()
+    _connect(qtbot, win)
+    assert "E-STOP everywhere" in win.keys_hint.text()  # the rule in force, on screen
+    win.tabs.setCurrentWidget(win.sweeps)
+    seen = {}
+
+    def inside(dialog):
+        edit, popup = _completion_popup(qtbot, dialog, f"{tmp_path}/spec")
+        qtbot.keyClick(popup, QtCore.Qt.Key.Key_Escape)  # the list has the keyboard
+        seen["latched in list"] = win.estop.latched
+        seen["dialog open after list Esc"] = dialog.isVisible()
+        popup.hide()  # the list closed by clicking away
+        qtbot.keyClick(edit, QtCore.Qt.Key.Key_Escape)  # the dialog itself
+        seen["dialog open after Esc"] = dialog.isVisible()
+        seen["estops"] = sum("E-STOP: force zeroed" in t for t in win.log.texts("warning"))
+
+    raised = _in_modal(qtbot, inside)
+    win.sweeps.open_table_button.click()  # returns when the dialog has closed
+    assert not raised, raised
+    assert seen == {"latched in list": True, "dialog open after list Esc": True,
+                    "dialog open after Esc": True, "estops": 2}
+    assert "LATCHED" in win.estop.text() and win.mode == "idle"
+    qtbot.waitUntil(lambda: win.estop_confirmed, timeout=10_000)  # the device's own stop
+
+    # a drop-down list of the main window: the same
+    win.device_panel.connect_button.click()  # Disconnect clears the latch ...
+    _connect(qtbot, win)  # ... and a new connection arms the keys again
+    combo = win.protocol_panel.choice
+    combo.showPopup()
+    qtbot.waitUntil(lambda: combo.view().isVisible(), timeout=5_000)
+    qtbot.keyClick(combo.view(), QtCore.Qt.Key.Key_Escape)
+    assert win.estop.latched
+    combo.hidePopup()
+
+
+def test_without_a_device_esc_keeps_its_usual_meaning(qtbot, window, tmp_path):
+    (tmp_path / "specs-here").mkdir()
+    win = window()
+    win.tabs.setCurrentWidget(win.sweeps)
+    seen = {}
+
+    def inside(dialog):
+        edit, popup = _completion_popup(qtbot, dialog, f"{tmp_path}/spec")
+        qtbot.keyClick(popup, QtCore.Qt.Key.Key_Escape)
+        seen["list closed"] = not popup.isVisible()
+        seen["dialog open"] = dialog.isVisible()
+        qtbot.keyClick(edit, QtCore.Qt.Key.Key_Escape)
+        seen["dialog closed"] = not dialog.isVisible()
+
+    raised = _in_modal(qtbot, inside)
+    win.sweeps.open_table_button.click()
+    assert not raised, raised
+    assert seen == {"list closed": True, "dialog open": True, "dialog closed": True}
+    assert not win.estop.latched and not any("E-STOP" in t for t in win.log.texts())
+
+
+def test_space_types_in_a_text_field_and_stops_elsewhere(qtbot, window):
+    win = window()
+    _connect(qtbot, win)
+    field = win.protocol_panel.form.fields["duration_s"].widget
+    field.setFocus()
+    field.clear()
+    qtbot.keyClicks(field, "1 2")
+    assert field.text() == "1 2" and not win.estop.latched  # typed, not a stop
+    win.protocol_panel.start_button.setFocus()
+    qtbot.keyClick(win.protocol_panel.start_button, QtCore.Qt.Key.Key_Space)
+    assert win.estop.latched and win.mode == "idle"  # a stop, not a click on Start
+
+
+# ----- defect 9: the Sweeps tab runs a spec -----------------------------------------------------
+SPEC = """[sweep]
+name = "springs"
+protocol = "etfe"
+
+[fixed]
+duration_s = 1.0
+
+[grid]
+K = [20.0, 50.0, 80.0, 110.0]
+seed = [1, 2]
+"""
+
+
+def test_the_sweeps_tab_runs_a_spec_with_progress_cancel_and_resume(qtbot, window, tmp_path):
+    from labbench.sweep.table import done_keys
+
+    spec = tmp_path / "springs.toml"
+    spec.write_text(SPEC)
+    win = window()
+    view = win.sweeps
+    win.tabs.setCurrentWidget(view)
+    assert not view.run_button.isEnabled() and "Open spec" in view.table_label.text()
+    raised = _in_modal(qtbot, lambda d: (d.selectFile(str(spec)), d.accept()))
+    view.open_spec_button.click()
+    assert not raised, raised
+    assert "8 points of run etfe" in view.table_label.text() and view.run_button.isEnabled()
+    table = tmp_path / "sweeps" / "springs.sweep"  # beside the sessions folder, as the CLI's
+    assert str(table) in view.table_label.text()
+
+    view.workers.setValue(0)  # computed in the sweep's own process, no Dask cluster
+    view.run_button.click()
+    assert not view.run_button.isEnabled() and view.cancel_button.isEnabled()
+    qtbot.waitUntil(lambda: view.progress.value() > 0, timeout=RUN_MS)
+    view.cancel_button.click()
+    qtbot.waitUntil(lambda: view.run is None, timeout=RUN_MS)
+    first = len(done_keys(table))
+    assert 0 < first < 8
+    assert "stopped" in view.progress_text.text() and "Run computes the rest" in view.note.text()
+    assert view.progress_text.text().startswith(f"{first} of 8 points")
+
+    view.run_button.click()  # resumes: only the rest is computed
+    qtbot.waitUntil(lambda: view.run is None, timeout=RUN_MS)
+    assert "complete" in view.progress_text.text() and view.progress.value() == 1000
+    assert f"({8 - first} computed now" in view.note.text()
+    assert len(done_keys(table)) == 8 and len(view.cols["key"]) == 8
+
+    # default axes: the varied parameter against a varied result, the seed as colour
+    assert view.x.currentData() == "K" and view.color.currentData() == "seed"
+    y = view.y.currentData()
+    assert y.startswith("truth.") and len(set(view.cols[y])) > 1
+    bottom = view.plot.getAxis("bottom")
+    assert bottom.labelText == "K [N/m]" and not bottom.autoSIPrefix
+
+
+def test_a_file_that_is_not_a_spec_is_one_line(qtbot, window, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[sweep]\nname = 3\n")
+    view = window().sweeps
+    assert not view.open_spec(bad)
+    assert str(bad) in view.note.text() and "\n" not in view.note.text()
+    assert not view.run_button.isEnabled()
+
+
+@pytest.mark.parametrize("column, label", [
+    ("K", "K [N/m]"),
+    ("K_frac_k_max", "K / K_max"),
+    ("duration_s", "duration [s]"),
+    ("res.loop_fit.ci95.m.0", "loop fit: m, 95 % low [kg]"),
+    ("res.loop_fit.ci95.m.n", "loop fit: m, 95 % (count)"),
+    ("truth.k_max", "truth: K_max [N/m]"),
+    ("truth.median_rel", "truth: median rel (fraction)"),
+    ("res.bandwidths.ws_star_measured", "bandwidths: ws* measured [rad/s]"),
+    ("noise_seed", "noise seed"),
+    ("status", "status"),
+])
+def test_sweep_columns_are_labelled_with_their_units(column, label):
+    from labbench.gui.sweep_view import column_label
+
+    assert column_label(column) == label
