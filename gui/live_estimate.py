@@ -32,6 +32,12 @@ LIVE_BUDGET = 2**15  # samples transformed per live update: one 33 s segment tra
 # Live identification uses the newest ID_SAMPLES only and is redone when the data have
 # doubled: l2 with intervals costs ~0.5 s on 120 000 samples, the plant does not change.
 ID_SAMPLES = 20_000
+# A frequency band whose excitation power is under this fraction of the strongest
+# frequency's has not been excited (a chirp that has not reached it yet, a band-limited
+# noise above its band): what the estimate shows there is the leakage of lower
+# frequencies through the window, not the device; it is masked. The Hann window's
+# leakage is under it from about two bins off an excited one.
+EXCITED_FRACTION = 1e-3
 
 
 @dataclass
@@ -54,6 +60,8 @@ class Estimate:
     w_nyquist: float = np.inf  # pi / T [rad/s]
     identified_now: bool = False  # this estimate ran the identification
     estimator: str = ""  # the ETFE estimator used
+    excited: np.ndarray | None = None  # bool per w: the excitation reached it (None: all)
+    renders_ve: bool = False  # the run rendered a VE (w_s*, w_b* are its bandwidths)
 
     def band(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of ES, ED or EM from the 95 % radius Z_err (Re and Im each move by at most it)."""
@@ -87,10 +95,17 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         if res is None:
             return None
         fs = live.fs
+        # each frequency's own bin (its band is wide at the bottom of a short segment and
+        # averages in the excited bins below it), against the strongest bin of all
+        level = live.level()
+        k = np.clip(np.rint(np.asarray(res.w) * level.n / (2 * np.pi * fs)).astype(int), 0,
+                    level.sff.size - 1)
+        power, peak = level.sff[k], float(np.max(level.sff[1:]))
     else:
         rec = recording_from_arrays(data["t"], data["excitation"], data["position"], meta)
         res = etfe(rec, estimator=estimator, window=window)
         fs = rec.fs
+        power, peak = res.force_power, None
     w = np.asarray(res.w, float)
     Z = np.asarray(res.Z, complex)
     Z_err = np.asarray(res.Z_err, float) if res.Z_err is not None else np.zeros_like(w)
@@ -112,12 +127,25 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
         plant=plant, plant_source=source, w_nyquist=np.pi * fs,
         identified_now=identified_now, estimator=res.estimator,
+        excited=excited_bands(power, peak),
+        renders_ve=ve is not None and ve.kind != "none",
     )
     if plant is not None and ve is not None:
         latency = from_meta(meta)
         out.theory = _theory(plant, ve, w, latency)
         out.predicted = bandwidths(plant, ve, latency)
     return out
+
+
+def excited_bands(force_power, peak: float | None = None) -> np.ndarray | None:
+    """Which frequencies the excitation reached: force power at least EXCITED_FRACTION of
+    ``peak`` (default the strongest frequency's). None when the estimator does not say its
+    force power (every frequency is taken as excited)."""
+    if force_power is None:
+        return None
+    p = np.nan_to_num(np.asarray(force_power, float), nan=0.0)
+    top = peak if peak is not None else (p.max() if p.size else 0.0)
+    return p >= EXCITED_FRACTION * top if top > 0 else np.zeros(p.shape, bool)
 
 
 def _identify_l2(rec) -> Plant | None:

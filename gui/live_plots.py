@@ -235,17 +235,21 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves[key + "_theory"] = _add_curve(p, _pen("theory", QtCore.Qt.PenStyle.DashLine),
                                                       (True, False))
             self.plots[key] = p
-        legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
-        legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")  # one legend serves all rows
-        legend.addItem(self.curves["ES_theory"], "theory")
+        # one legend serves all rows; "theory" only while a theory curve is drawn
+        self.legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
+        self.legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")
         for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.85)):
+            # the label on a white ground: a curve behind it does not cross its numbers
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
-                                   label="", labelOpts={"position": at, "color": "#222222"})
+                                   label="", labelOpts={"position": at, "color": "#222222",
+                                                        "fill": pg.mkBrush(255, 255, 255, 220)})
             line.setVisible(False)
             self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
         self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
+        self.bode_legend = self.bode_plots["mag"].addLegend(offset=(-10, 5),
+                                                           brush=pg.mkBrush(255, 255, 255, 200))
         self._setup(self.bode_plots["phase"], "phase of Z", "rad")
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
         for k, p in self.bode_plots.items():
@@ -253,6 +257,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_" + k] = _add_curve(p, pg.mkPen(COLOURS["measured"], width=3), log)
             self.curves["bode_" + k + "_theory"] = _add_curve(
                 p, _pen("theory", QtCore.Qt.PenStyle.DashLine), log)
+        self.bode_legend.addItem(self.curves["bode_mag"], "measured (ETFE)")
+        self._legend_theory = False  # whether the legends list the theory now
         _cheap_repaint(self.effective)
         _cheap_repaint(self.bode)
         keep_plots(self.effective, self.bode)
@@ -279,6 +285,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             band.setPath(QtGui.QPainterPath())
         for m in self.marks.values():
             m.setVisible(False)
+        self._show_theory_in_legend(False)
         self.title.setText("effective impedances: waiting for data")
         self.last = self._theory_shown = self._bode_shown = None
 
@@ -290,10 +297,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         fx = self.units.frequency_of(1.0)  # the x axis in the display unit of frequency
         w = est.w[ok] * fx
         lw = np.log10(w)  # view x coordinates on a log axis
+        excited = _excited(est)[ok]  # not reached by the excitation: not drawn
         # ES reads as stiffness where Im Z < 0, EM as mass where Im Z > 0 (paper Figure 2).
-        shown = {"ES": np.where(est.Z.imag[ok] < 0, est.ES[ok], np.nan),
-                 "ED": est.ED[ok],
-                 "EM": np.where(est.Z.imag[ok] > 0, est.EM[ok], np.nan)}
+        shown = {"ES": np.where(excited & (est.Z.imag[ok] < 0), est.ES[ok], np.nan),
+                 "ED": np.where(excited, est.ED[ok], np.nan),
+                 "EM": np.where(excited & (est.Z.imag[ok] > 0), est.EM[ok], np.nan)}
         bands = {}
         for key, y in shown.items():
             self.curves[key].setData(w, y, connect="finite")
@@ -311,11 +319,13 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 else:
                     self.curves[key + "_theory"].setData([], [])
             self._theory_shown = (th or {}).get("key")
+        self._show_theory_in_legend(bool(th))
         trusted = (np.abs(est.Z_err) <= TRUSTED_REL_ERR * np.abs(est.Z))[ok]
         self._fit_ranges(lw, shown, bands, trusted)
         for key, value in (("ws", est.ws_measured), ("wb", est.wb_measured)):
             line = self.marks[key]
-            if value:
+            # a VE's bandwidths: none without one, none where the excitation has not been
+            if value and est.renders_ve and _excited_at(est, value):
                 line.setVisible(True)  # first: a hidden label ignores new text
                 if line.value() != np.log10(value * fx):  # moving it re-lays out its label
                     line.setValue(np.log10(value * fx))  # view coordinates are log10 on a log axis
@@ -329,8 +339,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 line.setVisible(False)
         plant = (f"theory: m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m ({est.plant_source})"
                  if est.plant else "plant unknown: no theory overlay")
+        masked = int(np.count_nonzero(~excited))
+        unexcited = (f"; {masked} of {excited.size} frequencies not excited (yet): not drawn"
+                     if masked else "")
         # two lines: one long line set the plot column's minimum width past the window's
-        title = f"effective impedances from {est.n_samples} samples<br>{plant}"
+        title = f"effective impedances from {est.n_samples} samples{unexcited}<br>{plant}"
         if title != self.title.text:  # a new text re-lays out the whole plot column
             self.title.setText(title)
         self.last = est
@@ -367,14 +380,27 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                  *_finite_span(y[keep], bands[key][0][keep], bands[key][1][keep],
                                [] if yt is None else yt, [0.0]))
 
+    def _show_theory_in_legend(self, shown: bool) -> None:
+        """The legends name the theory only while a theory curve is drawn."""
+        if shown == self._legend_theory:
+            return
+        for legend, curve in ((self.legend, "ES_theory"), (self.bode_legend, "bode_mag_theory")):
+            if shown:
+                legend.addItem(self.curves[curve], "theory (exact sampled model)")
+            else:
+                legend.removeItem(self.curves[curve])
+        self._legend_theory = shown
+
     def _draw_bode(self) -> None:
         est = self.last
         if est is None or self.currentWidget() is not self.bode or est is self._bode_shown:
             return
         ok = (est.w > 0) & (est.w <= W_SHOWN_OF_NYQUIST * est.w_nyquist)
         fx, u = self.units.frequency_of(1.0), self.units
-        self.curves["bode_mag"].setData(est.w[ok] * fx, np.abs(est.Z[ok]), connect="finite")
-        self.curves["bode_phase"].setData(est.w[ok] * fx, u.angle_of(np.unwrap(np.angle(est.Z[ok]))),
+        Z = np.where(_excited(est), est.Z, np.nan)[ok]
+        phase = np.unwrap(np.angle(Z[np.isfinite(Z)]))  # unwrapped along what is drawn
+        self.curves["bode_mag"].setData(est.w[ok] * fx, np.abs(Z), connect="finite")
+        self.curves["bode_phase"].setData(est.w[ok][np.isfinite(Z)] * fx, u.angle_of(phase),
                                           connect="finite")
         th = est.theory
         if th:
@@ -387,6 +413,16 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_mag_theory"].setData([], [])
             self.curves["bode_phase_theory"].setData([], [])
         self._bode_shown = est
+
+
+def _excited(est: Estimate) -> np.ndarray:
+    """Which frequencies of ``est`` the excitation reached (all when it does not say)."""
+    return est.excited if est.excited is not None else np.ones(est.w.shape, bool)
+
+
+def _excited_at(est: Estimate, w: float) -> bool:
+    """Whether the excitation reached the frequency band nearest ``w``."""
+    return bool(_excited(est)[np.argmin(np.abs(np.log(est.w.clip(1e-12) / w)))])
 
 
 def _add_rules(p: pg.PlotItem, zero_line: bool) -> None:

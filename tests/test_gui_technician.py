@@ -17,8 +17,8 @@ RUN_MS = 120_000
 
 @pytest.fixture
 def window(qtbot, tmp_path):
-    def make(rig=None, **options):
-        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=False, **options)
+    def make(rig=None, realtime=False, **options):
+        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=realtime, **options)
         qtbot.addWidget(win)
         win.show()
         return win
@@ -218,3 +218,79 @@ def test_sweep_columns_are_labelled_with_their_units(column, label):
     from labbench.gui.sweep_view import column_label
 
     assert column_label(column) == label
+
+
+# ----- defect 3: the live view shows only what the run can measure -----------------------------
+def _drawn(win, key: str):
+    """(w, y) of what the effective-impedance curve ``key`` draws (finite points, SI w)."""
+    import numpy as np
+
+    w, y = win.live.impedance.curves[key].getOriginalDataset()
+    keep = np.isfinite(y)
+    return w[keep], y[keep]
+
+
+def _legend(plots) -> list[str]:
+    return [label.text for _sample, label in plots.legend.items]
+
+
+def test_a_chirp_shows_only_the_frequencies_it_has_reached_and_no_ve_marks(qtbot, window):
+    import numpy as np
+
+    win = window(realtime=True, rig=Rig(sections={"safety": {"watchdog_s": 1.0}}))
+    f0, f1, T = 0.2, 25.0, 10.0
+    win.protocol_panel.choice.setCurrentText("chirp-id")
+    for name, value in (("f0_hz", f0), ("f1_hz", f1), ("duration_s", T)):
+        win.protocol_panel.set_value(name, value)
+    seen = []
+
+    def watch():  # every estimate drawn while the chirp runs: what it drew, and when
+        est = win.live.impedance.last
+        if win.mode == "running" and est is not None and (not seen or seen[-1][0] != est.n_samples):
+            seen.append((est.n_samples, *_drawn(win, "ED")))
+        return win.mode == "idle" and win.last_run is not None
+
+    win.protocol_panel.start_button.click()
+    qtbot.waitUntil(watch, timeout=RUN_MS)
+    assert win.last_run.status == "success", win.last_run.reason
+    assert len(seen) >= 4, seen
+    for n, w, _ed in seen:  # the log sweep's frequency when the estimate's data ended
+        reached = 2 * np.pi * f0 * (f1 / f0) ** (n / 1000 / T)
+        # within the window's leakage: 5 bins of the shortest segment (2048 samples)
+        assert w.size == 0 or w.max() <= max(1.5 * reached, reached + 15.0), (n, w.max(), reached)
+    assert any(w.size for _n, w, _ed in seen)  # something drawn before the end
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None
+                    and win.live.impedance.last.n_samples == win.live.buffer.n
+                    and win.live.impedance.last.estimator != "live-welch", timeout=RUN_MS)
+    plots = win.live.impedance
+    w, _ = _drawn(win, "ED")
+    assert w.max() <= 1.5 * 2 * np.pi * f1  # the chirp's top, not the leakage above it
+    assert "not excited" in plots.title.text
+    # VE off: no stiffness or damping bandwidth to mark
+    assert not plots.marks["ws"].isVisible() and not plots.marks["wb"].isVisible()
+    # the legend names what is drawn: the theory (the plant's own Z) only with its curve
+    theory_drawn = np.isfinite(plots.curves["ED_theory"].getOriginalDataset()[1]).any()
+    assert ("theory (exact sampled model)" in _legend(plots)) == theory_drawn
+
+
+def test_a_white_noise_etfe_is_drawn_whole_with_its_marks(qtbot, window):
+    import numpy as np
+
+    win = window()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value("duration_s", 6.0)
+    win.protocol_panel.start_button.click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.last_run is not None, timeout=RUN_MS)
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None
+                    and win.live.impedance.last.n_samples == win.live.buffer.n
+                    and win.live.impedance.last.estimator != "live-welch", timeout=RUN_MS)
+    est, plots = win.live.impedance.last, win.live.impedance
+    shown = (est.w > 0) & (est.w <= est.w_nyquist / 3)
+    assert est.excited[shown].all()  # white noise reaches every frequency: nothing masked
+    assert "not excited" not in plots.title.text
+    assert plots.marks["ws"].isVisible() and plots.marks["wb"].isVisible()
+    assert _legend(plots) == ["measured (ETFE), 95 % band", "theory (exact sampled model)"]
+    plots.setCurrentIndex(1)  # the Bode tab has a legend too
+    assert [label.text for _s, label in plots.bode_legend.items] == [
+        "measured (ETFE)", "theory (exact sampled model)"]
+    assert np.isfinite(plots.curves["bode_mag"].getOriginalDataset()[1]).all()
