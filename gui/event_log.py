@@ -1,7 +1,11 @@
 """The event log: every message, safety trip and error of the session, newest last.
 
-It follows its newest line unless the user has scrolled up to read an older one (then
-it stays there until they scroll back to the bottom)."""
+It follows its newest line unless the person has scrolled up to read an older one (then
+it stays there until they scroll back to the bottom). Whether it follows is decided by
+the person's own scrolling, not by where the scroll bar happens to be after a long entry
+(a table of results grows the document after its layout, and reading the bar then left
+the log behind for good). An E-STOP line is always brought into view.
+"""
 from __future__ import annotations
 
 import time
@@ -21,9 +25,16 @@ class EventLog(QtWidgets.QPlainTextEdit):
         self.setMaximumBlockCount(max_lines)
         self.setFont(QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.SystemFont.FixedFont))
         self.entries: list[tuple[float, str, str]] = []
+        self._follow = True
+        self._moving = False  # the log itself moves the bar (not the person)
+        bar = self.verticalScrollBar()
+        bar.valueChanged.connect(self._scrolled)
+        bar.rangeChanged.connect(lambda *_: self._follow and self._to_end())
 
-    def add(self, level: str, text: str, rows: list[tuple[str, str]] | None = None) -> None:
-        """One line; ``rows`` (label, value) follow it as an aligned two-column table."""
+    def add(self, level: str, text: str, rows: list[tuple[str, str]] | None = None,
+            show: bool = False) -> None:
+        """One line; ``rows`` (label, value) follow it as an aligned two-column table.
+        ``show``: bring it into view even if the person had scrolled up (an E-STOP)."""
         now = time.time()
         self.entries.append((now, level, text))
         stamp = time.strftime("%H:%M:%S", time.localtime(now))
@@ -32,18 +43,25 @@ class EventLog(QtWidgets.QPlainTextEdit):
         if rows:
             width = max(len(label) for label, _ in rows)
             lines += [f"    {label.ljust(width)}  {value}" for label, value in rows]
-        following = self.following()
         safe = "<br>".join(escape(line, quote=False).replace("  ", "&nbsp;&nbsp;") for line in lines)
         self.appendHtml(f'<span style="color:{colour}">{safe}</span>')
-        if following:
-            bar = self.verticalScrollBar()
-            bar.setValue(bar.maximum())
+        self._follow = self._follow or show
+        if self._follow:
+            self._to_end()
 
     def following(self) -> bool:
-        """Whether the view is at the bottom: the newest line in view (or nothing to scroll)."""
+        """Whether the log follows its newest line (the person has not scrolled up)."""
+        return self._follow
+
+    def _to_end(self) -> None:
+        self._moving = True
         bar = self.verticalScrollBar()
-        return bar.value() >= bar.maximum() - 2
+        bar.setValue(bar.maximum())
+        self._moving = False
+
+    def _scrolled(self, value: int) -> None:
+        if not self._moving:  # the person scrolled: follow again once at the bottom
+            self._follow = value >= self.verticalScrollBar().maximum() - 2
 
     def texts(self, level: str | None = None) -> list[str]:
         return [t for _, lv, t in self.entries if level is None or lv == level]
-

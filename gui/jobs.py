@@ -58,14 +58,20 @@ def session_label(path) -> str:
     return Path(path).stem.rsplit("_", 1)[0]
 
 
-def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None):
+def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
+                      progress=None, cancel=None):
     """ETFE (with ``estimator``) and identification of a recorded session; runs on a worker.
     ``run_plant`` given: the theory uses the session's own plant (``recorded_plant``), this
-    one when it names none; None: the plant identified on the session's data."""
+    one when it names none; None: the plant identified on the session's data.
+    ``progress(fraction, phrase)``, ``cancel`` (a threading.Event: ``Cancelled`` at the
+    analyses' next check): as ``labbench.analysis.progress``."""
+    from labbench.analysis.progress import Steps
     from labbench.session_content import load_analysis_arrays, load_session
 
+    steps = Steps(progress, cancel)
+    steps.report(0.0, "reading the session")
     arrays = load_analysis_arrays(path)
-    start, _desc, ch, _ev, stop, _problem = load_session(path)
+    start, desc, ch, _ev, stop, _problem = load_session(path)
     meta = arrays["meta"]
     data = {"t": ch["t"], "excitation": ch["excitation"], "position": ch["position"],
             "command": ch["command"]}
@@ -74,11 +80,16 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None)
         plant = recorded_plant(start, (stop or {}).get("results"))
         source = plant_source(start) if plant else "the window's rig nominal model"
         plant = plant or run_plant
-    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source)
-    return est, identify_all(data, meta), plant_data(data, meta), analyze_etfe(path, estimator, meta)
+    est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source,
+                   progress=steps.part(0.05, 0.3), cancel=cancel)
+    ident = identify_all(data, meta, progress=steps.part(0.3, 0.6), cancel=cancel)
+    again = analyze_etfe(path, estimator, meta, progress=steps.part(0.6, 1.0), cancel=cancel)
+    steps.report(1.0, "done")
+    return (est, ident, plant_data(data, meta), again,
+            (start, desc, ch, stop))  # the record too: the Live page shows its traces
 
 
-def analyze_etfe(path: str, estimator: str | None, meta: dict) -> dict:
+def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, cancel=None) -> dict:
     """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
     (``Session.etfe(fit=True)``): the ETFE's verdict and the closed-loop fit (or why none);
     for a session without a VE only its path."""
@@ -88,7 +99,7 @@ def analyze_etfe(path: str, estimator: str | None, meta: dict) -> dict:
     if ve_from_meta(meta) is None:
         return out
     try:
-        fr = load(path).etfe(estimator=estimator, fit=True)
+        fr = load(path).etfe(estimator=estimator, fit=True, progress=progress, cancel=cancel)
     except UserError as exc:
         out["fit"] = {"error": str(exc)}
         return out
@@ -123,17 +134,24 @@ def used_method(ident: dict) -> str | None:
     return "l2" if "l2" in ident else next(iter(ident), None)
 
 
-def identify_all(data: dict, meta: dict) -> dict:
+def identify_all(data: dict, meta: dict, progress=None, cancel=None) -> dict:
     """l2 and l1 fits of the net force on the device (the ``command`` channel, after the
-    device's own delay: as chirp-ID's analysis fits it)."""
+    device's own delay: as chirp-ID's analysis fits it); a fit the data refuse is
+    ``{"error": why}``."""
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.identify import identify
+    from labbench.analysis.progress import Steps
 
+    steps = Steps(progress, cancel)
     felt = plant_data(data, meta)
     rec = recording_from_arrays(felt["t"], felt["command"], felt["position"], meta)
     out = {}
-    for method in ("l2", "l1"):
-        out[method] = identify(rec, model="auto", method=method).as_dict()
+    for i, method in enumerate(("l2", "l1")):
+        try:
+            out[method] = identify(rec, model="auto", method=method,
+                                   progress=steps.part(i / 2, (i + 1) / 2), cancel=cancel).as_dict()
+        except UserError as exc:
+            out[method] = {"error": str(exc)}
     return out
 
 

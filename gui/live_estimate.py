@@ -74,12 +74,14 @@ class Estimate:
 
 def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,
              plant: Plant | None, window: int = 200, estimator: str | None = None,
-             plant_source: str = "given", live: LiveEtfe | None = None) -> Estimate | None:
+             plant_source: str = "given", live: LiveEtfe | None = None, progress=None,
+             cancel=None) -> Estimate | None:
     """ETFE of force (excitation) to position so far; None while too short to estimate.
 
     ``estimator`` LIVE: the samples of ``data`` beyond ``live.n`` are added to the
     incremental ``live`` and its estimate is used; else the batch ETFE of the whole
     record. Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
+    ``progress``, ``cancel``: the batch ETFE's (``labbench.analysis.progress``).
     """
     from labbench.device_delay import from_meta
     from labbench.analysis.dataio import recording_from_arrays
@@ -103,7 +105,7 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         power, peak = level.sff[k], float(np.max(level.sff[1:]))
     else:
         rec = recording_from_arrays(data["t"], data["excitation"], data["position"], meta)
-        res = etfe(rec, estimator=estimator, window=window)
+        res = etfe(rec, estimator=estimator, window=window, progress=progress, cancel=cancel)
         fs = rec.fs
         power, peak = res.force_power, None
     w = np.asarray(res.w, float)

@@ -34,17 +34,18 @@ def _pen(name: str, style=QtCore.Qt.PenStyle.SolidLine):
     return pg.mkPen(COLOURS[name], width=1, style=style)
 
 
-def _fit(set_range, current, lo: float, hi: float) -> None:
+def _fit(set_range, current, lo: float, hi: float, fresh: bool = False) -> None:
     """Show [lo, hi] (padded by 5 %) unless the ``current`` range still holds it and half
     of that range is used: a range that moves every frame makes pyqtgraph re-render the
-    axis (and, with autoRange, re-scan every item's bounds) on each paint."""
+    axis (and, with autoRange, re-scan every item's bounds) on each paint. ``fresh``: the
+    first data after a clear, set whatever the range was (another record's)."""
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return
     if hi - lo <= 0:  # flat data: a span around the value
         half = abs(lo) * 0.1 or 1.0
         lo, hi = lo - half, hi + half
     a, b = current
-    if a <= lo and hi <= b and hi - lo >= 0.5 * (b - a):
+    if not fresh and a <= lo and hi <= b and hi - lo >= 0.5 * (b - a):
         return
     set_range(lo, hi, padding=0.05)
 
@@ -107,6 +108,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             self.plots[key] = p
         self.plots["force"].setLabel("bottom", "time before the newest sample", units="s")
         self._span = None
+        self._fresh = True  # no data drawn since the last clear: the next set the ranges
         legend = self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.curves = {}
         for name, key in (("position", "position"), ("velocity", "velocity"),
@@ -131,6 +133,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
 
     def clear_data(self) -> None:
         self._buffer = None
+        self._fresh = True
         self._empty()
 
     def _empty(self) -> None:
@@ -172,7 +175,8 @@ class TimeTraces(pg.GraphicsLayoutWidget):
                 xs, connect = x, "all"
             for n, y in zip(names, ys):
                 self.curves[n].setData(xs, y, connect=connect)
-            _fit(vb.setYRange, vb.viewRange()[1], ys.min(), ys.max())
+            _fit(vb.setYRange, vb.viewRange()[1], ys.min(), ys.max(), self._fresh)
+        self._fresh = False
 
     def _device_columns(self, vb: pg.ViewBox, span: float):
         """(device pixel coordinate of x = -span, pixels per second) of ``vb``, or None
@@ -263,6 +267,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         _cheap_repaint(self.bode)
         keep_plots(self.effective, self.bode)
         self.last: Estimate | None = None
+        self._fresh = True  # no estimate since the last clear: the next one sets the ranges
         self._theory_shown = None
         self._bode_shown = None
         self.updates = 0
@@ -288,6 +293,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self._show_theory_in_legend(False)
         self.title.setText("effective impedances: waiting for data")
         self.last = self._theory_shown = self._bode_shown = None
+        self._fresh = True
 
     def show_estimate(self, est: Estimate) -> None:
         # Up to a third of Nyquist (the paper's figures end near 1000 rad/s at 1 kHz):
@@ -371,14 +377,15 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             wt, _ = self.curves["ES_theory"].getOriginalDataset()
             lw_theory = [np.log10(wt[wt > 0])]
         es = self.plots["ES"].getViewBox()
-        _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory))
+        fresh, self._fresh = self._fresh, False
+        _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory), fresh)
         for key, y in shown.items():
             _, yt = self.curves[key + "_theory"].getOriginalDataset()
             keep = np.isfinite(y) & trusted
             vb = self.plots[key].getViewBox()
             _fit(vb.setYRange, vb.viewRange()[1],
                  *_finite_span(y[keep], bands[key][0][keep], bands[key][1][keep],
-                               [] if yt is None else yt, [0.0]))
+                               [] if yt is None else yt, [0.0]), fresh)
 
     def _show_theory_in_legend(self, shown: bool) -> None:
         """The legends name the theory only while a theory curve is drawn."""

@@ -76,6 +76,21 @@ class LiveView(QtWidgets.QWidget):
     def feed(self, record: dict) -> None:
         self.buffer(record)
 
+    def show_record(self, start: dict, descriptor: dict, channels: dict, stop: dict | None) -> None:
+        """A recorded session whole (a re-analysis shows its traces, its estimate comes
+        with it: the page does not estimate it again by itself)."""
+        import numpy as np
+        from labbench.records import CHANNELS
+
+        self.reset()
+        n = len(channels.get("t", ()))
+        self.buffer.on_start(start)
+        self.buffer.on_descriptor(descriptor)
+        self.buffer.on_page({"data": {c: channels.get(c, np.zeros(n)) for c in CHANNELS}})
+        if stop is not None:
+            self.buffer.on_stop(stop)
+        self._estimated_version = self.buffer.version
+
     def redraw(self) -> None:
         """New samples into the traces, a finished estimate into the plots (redraw timer)."""
         if self.buffer.version != self._drawn_version:

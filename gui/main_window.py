@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from html import escape
 import threading
 import time
 from pathlib import Path
@@ -37,7 +38,7 @@ from labbench.gui.jobs import (catalogue, load_identification, plant_data, reana
 from labbench.gui.live_view import LiveView
 from labbench.gui.loop_status import LoopStatus
 from labbench.gui.protocol_panel import ProtocolPanel, precheck_text, settings_rows
-from labbench.gui.run_state import IDLE, RUNNING, RunState
+from labbench.gui.run_state import IDLE, REPLAY, RUNNING, RunState
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
@@ -138,7 +139,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self._halted = ""  # Stop or E-STOP pressed: what the progress line says until the end
         self._run_protocol: str | None = None  # the protocol of the run under way (or last)
         self._replay_path: str | None = None
+        self._replay_length = 0  # samples in the session being replayed (0: not known yet)
         self._live_timing = False  # the acquisition process sends the loop's timing live
+        self._reanalysis: threading.Event | None = None  # cancels the re-analysis under way
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -253,6 +256,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.replay_requested.connect(self.replay)
         self.sessions.reanalyse_requested.connect(self.reanalyse)
         self.sessions.export_requested.connect(self.export)
+        self.sessions.cancel_requested.connect(self.cancel_reanalysis)
         self.sweeps.session_requested.connect(lambda path: self.replay(path, None))
         self.units_choice.changed.connect(self.set_units)
 
@@ -262,6 +266,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol_panel.follow(state)
         self.commission.follow(state)
         self.device_panel.follow(state)
+        self.sessions.follow(state)
         self.estop.set_latched(state.latched)
         self.keys_hint.setText(ARMED_HINT if state.armed else UNARMED_HINT)
         self.loop_status.show_mode(state.name)
@@ -360,7 +365,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device_panel.set_enabled(False)
         self.state.latch()  # until a reconnect clears it
         self.log.add("warning", "E-STOP: force zeroed, run stopped" if had_device
-                     else "E-STOP: no device connected; any run or replay stopped")
+                     else "E-STOP: no device connected; any run or replay stopped", show=True)
 
     def _poll_health(self):
         buf = self.live.buffer
@@ -580,6 +585,8 @@ class MainWindow(QtWidgets.QMainWindow):
         try:
             for kind, payload in self.mailbox.drain():
                 self._handle(kind, payload)
+            if self.mode == REPLAY and self._replay_length:
+                self._show_progress(self.live.buffer.n / self._replay_length, "replay")
             self.live.redraw()
         except Exception as exc:  # noqa: BLE001 - a bad record must not stop the display
             log.exception("redraw failed")
@@ -597,7 +604,13 @@ class MainWindow(QtWidgets.QMainWindow):
                     self.device_panel.set_enabled(False)  # and disables it at the run's end
                 self.log.add("info", f"stream stop: {payload.get('status')} {payload.get('reason', '')}")
         elif kind == "progress":
-            self._show_progress(*payload)
+            if self.mode == RUNNING:
+                self._show_progress(*payload)
+        elif kind == "replay length":
+            self._replay_length = payload
+        elif kind == "reanalyse progress":
+            if self._reanalysis is not None:  # not a late one from a cancelled job
+                self.sessions.show_analysis(*payload)
         elif kind == "timing":
             self._live_timing = True
             self.loop_status.show_timing(payload, live=True)
@@ -617,7 +630,8 @@ class MainWindow(QtWidgets.QMainWindow):
         elif kind == "estopped":
             self.estop_confirmed = True
             self.log.add("warning", "E-STOP: device emergency-stopped by the acquisition process"
-                         if payload else "E-STOP: acquisition process stopped, no device open")
+                         if payload else "E-STOP: acquisition process stopped, no device open",
+                         show=True)
         elif kind == "acquisition died":
             self.device = None
             self.device_panel.set_connected(None)
@@ -628,7 +642,8 @@ class MainWindow(QtWidgets.QMainWindow):
                             "reconnect the device")
 
     def _show_progress(self, frac: float, text: str) -> None:
-        if self.mode != RUNNING or self._halted:
+        """The progress bar and line of the run or replay under way (at most twice a second)."""
+        if self.mode == IDLE or self._halted:
             return  # queued before the run ended or was stopped: the end state stays
         self._progress = frac
         now = time.monotonic()
@@ -646,6 +661,15 @@ class MainWindow(QtWidgets.QMainWindow):
         if tag == "timing":
             self.device_panel.set_checking(False)
             self.device_panel.timing_label.setText("check failed: see the log")
+        if tag == "reanalyse":
+            cancelled = self._reanalysis is not None and self._reanalysis.is_set()
+            self._reanalysis = None
+            self.sessions.analysis_ended(
+                "re-analysis cancelled: the window shows what it showed before" if cancelled
+                else f"re-analysis failed: {message}", self.sessions.progress.value() / 1000)
+            if cancelled:
+                self.log.add("info", "re-analysis cancelled")
+                return
         if tag == "connect":
             self.device_panel.set_connected(None)
             self.state.disconnected()
@@ -687,15 +711,15 @@ class MainWindow(QtWidgets.QMainWindow):
                            ran_here=status == "success")
         done = f"{100 * self._progress:.0f} %" if status != "success" else "100 %"
         self._run_finished(f"run {status} at {done}" + (f": {reason}" if status != "success" else ""))
-        self.refresh_sessions()
-        if self.session_path:
-            self.sessions.select_path(self.session_path)
+        self.refresh_sessions()  # the run's session selected once the list has it
 
     def _on_replay_done(self, status):
         from labbench.records import protocol_name
 
         self.log.add("info", f"replay {status}")
         buf = self.live.buffer
+        if self._replay_length:  # all of it (completed), or as far as it went (stopped)
+            self._progress = min(buf.n / self._replay_length, 1.0)
         results = (buf.stop or {}).get("results")
         if isinstance(results, dict) and buf.start:
             self._show_results(results, self._replay_path, protocol_name(buf.start), replayed=True)
@@ -785,18 +809,34 @@ class MainWindow(QtWidgets.QMainWindow):
         self._rate = (time.monotonic(), 0)
         self.stop_event = threading.Event()
         self._replay_path, self._run_protocol = path, None
-        self._progress, self._halted = 0.0, ""
+        self._progress, self._halted, self._replay_length = 0.0, "", 0
+        self._run_started = time.monotonic()
+        self.protocol_panel.set_progress(0.0, "replay: starting ...")
         self.tabs.setCurrentWidget(self.live)
         self.log.add("info", f"replay {Path(path).name} at {'1x' if speed == 1.0 else 'full speed'}")
         self._replay = start_replay(self.mailbox, path, speed, self.stop_event)
 
     @guarded
     def reanalyse(self, path: str, estimator: str):
+        """``labbench analyze`` on a recorded session, on a worker thread, with its progress
+        on the Sessions page and Cancel there (``labbench.analysis.progress``)."""
         self._new_action()
-        self.log.add("info", f"re-analyse {Path(path).name} with estimator {estimator}")
+        if self._reanalysis is not None:
+            raise UserError("a re-analysis is under way: wait for it or cancel it")
+        name = Path(path).name
+        self.log.add("info", f"re-analyse {name} with estimator {estimator}")
         fallback = self.rig.nominal_plant if self.live.uses_run_plant() else None
+        self._reanalysis = threading.Event()
+        self.sessions.show_analysis(0.0, f"re-analysing {name} ...")
         run_in_background(self.mailbox, "reanalyse", reanalyse_session, path,
-                          None if estimator == "default" else estimator, fallback)
+                          None if estimator == "default" else estimator, fallback,
+                          progress=lambda frac, phrase: self.mailbox.put(
+                              "reanalyse progress", (frac, f"re-analysing {name}: {phrase}")),
+                          cancel=self._reanalysis)
+
+    def cancel_reanalysis(self) -> None:
+        if self._reanalysis is not None:
+            self._reanalysis.set()
 
     @guarded
     def export(self, path: str, fmt: str):
@@ -807,24 +847,45 @@ class MainWindow(QtWidgets.QMainWindow):
         run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
 
     def _on_reanalyse_done(self, value):
-        est, id_results, data, again = value
+        """A re-analysis' results where they show; one that failed never replaces a good
+        one silently: what was kept, and why, is said on the Live page and in the log."""
+        est, id_results, data, again, record = value
+        self._reanalysis = None
         name = Path(again["path"]).name
-        if self.mode == IDLE:  # what the Live page showed was another record's
-            self.live.reset()
-        if est is not None:
-            self.live.show_estimate(est)
-        if id_results:
-            self.id_view.show_results(id_results, data, source=f"re-analysis of {name}: l2 and l1 "
-                                      "on the command force")
+        kept = []  # what the re-analysis did not replace, and why
+        if self.mode == IDLE:
+            self.live.show_record(*record)  # its traces and axes, not the last record's
+            if est is not None:
+                self.live.show_estimate(est)
+        else:
+            kept.append(f"the Live page still shows the {self._activity} under way")
+        good = {m: r for m, r in id_results.items() if "error" not in r}
+        kept += [f"identification ({m}) failed: {r['error']}" for m, r in id_results.items()
+                 if "error" in r]
+        if good:
+            self.id_view.show_results(good, data, source=f"re-analysis of {name}: "
+                                      f"{' and '.join(good)} on the command force")
             self._id_session_shown = None
-        if again.get("fit"):
-            self.id_view.show_loop_fit(again["fit"], f"labbench analyze etfe --fit {again['options']}"
+        fit = again.get("fit")
+        shown = self.id_view.loop_fit
+        if fit and "error" in fit and shown and "error" not in shown:
+            kept.append(f"closed-loop fit failed: {fit['error']}; the fit shown is still "
+                        f"the one of {self.id_view.fit_source.text()}")
+        elif fit:
+            self.id_view.show_loop_fit(fit, f"labbench analyze etfe --fit {again['options']}"
                                        f"{name}: the delay model chosen by cross-validation")
         verdicts = [(w, v) for w, v in again.get("verdicts", [])]
-        verdicts += [(f"identification ({m})", r.get("verdict")) for m, r in (id_results or {}).items()]
-        self.live.verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>")
+        verdicts += [(f"identification ({m})", r.get("verdict")) for m, r in good.items()]
+        notes = "".join(f'<br><span style="color:#a86b00">not replaced: {escape(k)}</span>'
+                        for k in kept)
+        self.live.verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>{notes}",
+                                         always=bool(kept))
         self.tabs.setCurrentWidget(self.live)
+        for k in kept:
+            self.log.add("warning", f"re-analysis of {name}: not replaced: {k}")
         self.log.add("info", "re-analysis done")
+        self.sessions.analysis_ended(f"re-analysis of {name} done" + (
+            f"; {len(kept)} result(s) not replaced (see the Live page)" if kept else ""), 1.0)
 
     def _on_export_done(self, paths):
         self.info("exported: " + ", ".join(str(p) for p in paths))
@@ -832,6 +893,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_sessions_done(self, value):
         summaries, found = value
         self.sessions.set_sessions(summaries)
+        if self.session_path and self.mode == IDLE:  # the newest run of this window
+            self.sessions.select_path(self.session_path)
         self._set_identified(found)
 
     # ----- the plant the next runs take ---------------------------------------------------------

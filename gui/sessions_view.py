@@ -1,12 +1,39 @@
-"""Sessions browser: recorded runs (date, rig, protocol, status); replay, re-analyse, export."""
+"""Sessions browser: the recorded runs of a folder, told apart by what they rendered (VE,
+K, B), how long they ran and what their analysis said (the worst verdict), filterable;
+replay, re-analyse (with progress and Cancel), export."""
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
-COLUMNS = ("date", "rig", "protocol", "status", "samples", "file")
+from labbench.gui.verdict_view import COLOURS
+from labbench.numfmt import fmt
+
+COLUMNS = ("date", "protocol", "VE", "K [N/m]", "B [N s/m]", "duration [s]", "status",
+           "verdict", "samples", "rig", "file")
+NUMBERS = ("K [N/m]", "B [N s/m]", "duration [s]", "samples")  # the filter matches them whole
+
+
+def matches(row: tuple[str, ...], words: list[str]) -> bool:
+    """Whether a row holds every word: a number column equal to it ("200" is K = 200, not
+    2000 samples), or any other cell containing it (case aside)."""
+    cells_ = [c.lower() for c in row]
+    exact = {c for name, c in zip(COLUMNS, cells_) if name in NUMBERS}
+    text = " ".join(c for name, c in zip(COLUMNS, cells_) if name not in NUMBERS)
+    return all(w in exact or w in text for w in words)
+
+
+def cells(s) -> tuple[str, ...]:
+    """The row of a ``SessionSummary`` as a person reads it (blank: not recorded, or not
+    applicable: an open-loop run, VE "none", has no K, B)."""
+    date = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s.time)) if s.time else "?"
+    ve = s.ve or ("none" if s.protocol else "")  # a run's start names no VE: it rendered none
+    return (date, s.protocol or "?", ve, fmt(s.K) if s.K is not None else "",
+            fmt(s.B) if s.B is not None else "",
+            f"{s.duration_s:.1f}" if s.duration_s is not None else "", s.status,
+            s.verdict or "", str(s.n_samples), s.rig_name or "?", Path(s.path).name)
 
 
 class SessionsView(QtWidgets.QWidget):
@@ -15,6 +42,7 @@ class SessionsView(QtWidgets.QWidget):
     refresh_requested = QtCore.Signal()
     replay_requested = QtCore.Signal(str, object)  # path, speed (1.0, 10.0 or None = as fast as read)
     reanalyse_requested = QtCore.Signal(str, str)  # path, estimator
+    cancel_requested = QtCore.Signal()  # the re-analysis under way
     export_requested = QtCore.Signal(str, str)  # path, "hdf5" | "csv" | "report"
 
     def __init__(self, directory: Path, estimators=("default",), parent=None):
@@ -23,16 +51,30 @@ class SessionsView(QtWidgets.QWidget):
         self.dir_label = QtWidgets.QLabel()
         choose = QtWidgets.QPushButton("Folder...")
         refresh = QtWidgets.QPushButton("Refresh")
+        self.filter = QtWidgets.QLineEdit()
+        self.filter.setPlaceholderText("filter: words every row shown has (numbers whole), "
+                                       "e.g. etfe 200 failed")
+        self.filter.setClearButtonEnabled(True)
+        self.count = QtWidgets.QLabel("")
         self.table = QtWidgets.QTableWidget(0, len(COLUMNS))
         self.table.setHorizontalHeaderLabels(COLUMNS)
         self.table.horizontalHeader().setStretchLastSection(True)
         self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.verticalHeader().setVisible(False)
         self.table.doubleClicked.connect(lambda *_: self._emit_replay(1.0))
         self.estimator = QtWidgets.QComboBox()
         self.estimator.addItems(list(estimators))
         self.estimator.setToolTip("ETFE estimator used by Re-analyse")
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setRange(0, 1000)
+        self.progress.setTextVisible(False)
+        self.progress_line = QtWidgets.QLabel("")
+        self.cancel_button = QtWidgets.QPushButton("Cancel")
+        self.cancel_button.setToolTip("stop the re-analysis; what the window shows stays as it was")
+        self.cancel_button.setEnabled(False)
+        self.cancel_button.clicked.connect(self.cancel_requested)
 
         buttons = [("Replay 1x", lambda: self._emit_replay(1.0)),
                    ("Replay fast", lambda: self._emit_replay(None)),
@@ -46,6 +88,9 @@ class SessionsView(QtWidgets.QWidget):
         top.addWidget(self.dir_label, 1)
         top.addWidget(choose)
         top.addWidget(refresh)
+        find = QtWidgets.QHBoxLayout()
+        find.addWidget(self.filter, 1)
+        find.addWidget(self.count)
         row = QtWidgets.QHBoxLayout()
         for text, slot in buttons:
             b = QtWidgets.QPushButton(text)
@@ -55,13 +100,22 @@ class SessionsView(QtWidgets.QWidget):
             if text == "Re-analyse":
                 row.addWidget(self.estimator)
         row.addStretch(1)
+        busy = QtWidgets.QHBoxLayout()
+        busy.addWidget(self.progress, 1)
+        busy.addWidget(self.progress_line, 3)
+        busy.addWidget(self.cancel_button)
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(top)
+        lay.addLayout(find)
         lay.addWidget(self.table, 1)
         lay.addLayout(row)
+        lay.addLayout(busy)
         choose.clicked.connect(self._choose)
         refresh.clicked.connect(self.refresh_requested)
+        self.filter.textChanged.connect(lambda *_: self._apply_filter())
         self.paths: list[str] = []
+        self._analysing = False
+        self._idle = True
         self._set_dir_label()
 
     def _set_dir_label(self):
@@ -77,30 +131,86 @@ class SessionsView(QtWidgets.QWidget):
             self.refresh_requested.emit()
 
     def set_sessions(self, summaries) -> None:
-        """``summaries``: SessionSummary list (newest shown first)."""
+        """``summaries``: SessionSummary list (newest shown first); the selection and the
+        filter stay."""
+        was = self.selected()
         rows = sorted(summaries, key=lambda s: s.time or 0.0, reverse=True)
         self.table.setRowCount(len(rows))
         self.paths = [str(s.path) for s in rows]
         for i, s in enumerate(rows):
-            date = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s.time)) if s.time else "?"
-            cells = (date, s.rig_name or "?", s.protocol or "?", s.status, str(s.n_samples),
-                     Path(s.path).name)
-            for j, text in enumerate(cells):
-                self.table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
+            for j, text in enumerate(cells(s)):
+                item = QtWidgets.QTableWidgetItem(text)
+                if COLUMNS[j] == "verdict" and text in COLOURS:
+                    item.setForeground(QtGui.QBrush(QtGui.QColor(COLOURS[text])))
+                self.table.setItem(i, j, item)
         self.table.resizeColumnsToContents()
-        if rows:
-            self.table.selectRow(0)
+        self._apply_filter()
+        if was in self.paths:
+            self.select_path(was)
+        elif rows:
+            self._select_first_shown()
+
+    def shown_rows(self) -> list[list[str]]:
+        """The rows the filter lets through, as shown (for tests)."""
+        return [[self.table.item(r, c).text() for c in range(len(COLUMNS))]
+                for r in range(self.table.rowCount()) if not self.table.isRowHidden(r)]
+
+    def _apply_filter(self) -> None:
+        words = self.filter.text().lower().split()
+        shown = 0
+        for r in range(self.table.rowCount()):
+            row = tuple(self.table.item(r, c).text() for c in range(len(COLUMNS)))
+            hide = not matches(row, words)
+            self.table.setRowHidden(r, hide)
+            shown += not hide
+        total = self.table.rowCount()
+        self.count.setText(f"{shown} of {total} sessions" if words else f"{total} sessions")
+        if self.selected() is None:
+            self._select_first_shown()
+
+    def _select_first_shown(self) -> None:
+        for r in range(self.table.rowCount()):
+            if not self.table.isRowHidden(r):
+                self.table.selectRow(r)
+                return
+        self.table.clearSelection()
 
     def selected(self) -> str | None:
-        rows = self.table.selectionModel().selectedRows()
+        rows = [i for i in self.table.selectionModel().selectedRows()
+                if not self.table.isRowHidden(i.row())]
         return self.paths[rows[0].row()] if rows else None
 
     def select_path(self, path: str) -> None:
         if path in self.paths:
             self.table.selectRow(self.paths.index(path))
 
+    # ----- what the window tells the page ---------------------------------------------------
+    def follow(self, state) -> None:
+        """The run's state (``RunState``): Replay and Re-analyse while nothing streams in
+        (the Live page shows the run or replay under way)."""
+        self._idle = state.activity == "idle"
+        self._sync()
+
+    def show_analysis(self, frac: float, text: str) -> None:
+        """A re-analysis under way (``frac`` 0..1): its progress, and Cancel."""
+        self._analysing = True
+        self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))
+        self.progress_line.setText(text)
+        self._sync()
+
+    def analysis_ended(self, text: str, frac: float) -> None:
+        self._analysing = False
+        self.progress.setValue(int(1000 * frac))
+        self.progress_line.setText(text)
+        self._sync()
+
+    def _sync(self) -> None:
+        self.cancel_button.setEnabled(self._analysing)
+        for name in ("Replay 1x", "Replay fast", "Re-analyse"):
+            self.buttons[name].setEnabled(self._idle and not self._analysing)
+
     def _emit_replay(self, speed):
-        if p := self.selected():
+        if (p := self.selected()) and self.buttons["Replay 1x"].isEnabled():
             self.replay_requested.emit(p, speed)
 
     def _emit_reanalyse(self):

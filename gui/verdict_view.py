@@ -52,11 +52,15 @@ class VerdictLabel(QtWidgets.QLabel):
         self.shown: list[tuple[str, dict]] = []
         self.setVisible(False)
 
-    def show_verdicts(self, verdicts: list[tuple[str, dict]], prefix: str = "") -> None:
+    def show_verdicts(self, verdicts: list[tuple[str, dict]], prefix: str = "",
+                      always: bool = False) -> None:
+        """One line per verdict under ``prefix``; ``always``: the prefix is shown even with
+        no verdict (it says something by itself)."""
         self.shown = [(w, v) for w, v in verdicts if from_dict(v) is not None]
         lines = [verdict_html(w, v) for w, v in self.shown]
-        self.setText((prefix + "<br>" if prefix and lines else "") + "<br>".join(lines))
-        self.setVisible(bool(lines))
+        self.setText((prefix + "<br>" if prefix and lines else prefix if always else "")
+                     + "<br>".join(lines))
+        self.setVisible(bool(lines) or always)
 
     def levels(self) -> dict[str, str]:
         """what -> level of the verdicts shown (for tests and screenshots' checks)."""

@@ -19,6 +19,14 @@ class SessionSummary:
     protocol: str | None
     status: str  # the stop record's status, or "incomplete"
     n_samples: int
+    # what tells runs of one protocol apart (the window's Sessions list): the VE rendered
+    # ("none": open loop), its K [N/m] and B [N s/m], the record's length [s], and the
+    # worst of the verdicts its results carry (ok, doubtful, failed; None: none recorded)
+    ve: str | None = None
+    K: float | None = None
+    B: float | None = None
+    duration_s: float | None = None
+    verdict: str | None = None
 
 
 class _HeaderCollector(records.StreamCollector):
@@ -38,6 +46,13 @@ def summarize(path) -> SessionSummary:
         records.fan_out(reader, [got])
     start, stop, n = got.start, got.stop, got.n_samples
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
+    try:
+        from labbench.session_content import session_ve
+
+        ve = session_ve(start) if start else None
+    except (LabbenchError, TypeError, ValueError):
+        ve = None  # a VE the record does not state readably: left blank
+    T = _number(got.descriptor.get("sample_time_s")) or _number(rig.get("sample_time_s"))
     return SessionSummary(
         path=Path(path),
         uid=start.get("uid"),
@@ -46,7 +61,33 @@ def summarize(path) -> SessionSummary:
         protocol=records.protocol_name(start) if start else None,
         status=str(stop.get("status")) if stop else "incomplete",
         n_samples=n,
+        ve=ve.kind if ve is not None else None,
+        K=ve.K if ve is not None and ve.kind != "none" else None,
+        B=ve.B if ve is not None and ve.kind != "none" else None,
+        duration_s=n * T if T else None,
+        verdict=worst_level((stop or {}).get("results")),
     )
+
+
+def _number(x) -> float | None:
+    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0 else None
+
+
+def worst_level(results) -> str | None:
+    """The worst level of the verdicts a run's results carry: its own, each analysis's
+    (``etfe``, ``loop_fit``, each check), each identification fit's; None when there are
+    none (what is not a verdict is left out: recorded results are not trusted)."""
+    from labbench.verdict import from_dict, worst
+
+    if not isinstance(results, dict):
+        return None
+    found = [from_dict(results.get("verdict"))]
+    for value in results.values():
+        if isinstance(value, dict):
+            found.append(from_dict(value.get("verdict")))
+            found += [from_dict(v.get("verdict")) for v in value.values() if isinstance(v, dict)]
+    found = [v for v in found if v is not None]
+    return worst(found).level if found else None
 
 
 def list_sessions(directory, on_skip=None) -> list[SessionSummary]:

@@ -121,7 +121,9 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     assert win.last_run.status == "success" and panel.time_left.text() == "run success at 100 %"
     qtbot.waitUntil(lambda: len(win.sessions.paths) == 3, timeout=10_000)
     table = win.sessions.table
-    statuses = sorted(table.item(r, 3).text() for r in range(table.rowCount()))
+    from labbench.gui.sessions_view import COLUMNS
+
+    statuses = sorted(table.item(r, COLUMNS.index("status")).text() for r in range(table.rowCount()))
     assert statuses == ["aborted", "aborted", "success"]
     assert win.sessions.selected() == win.session_path
     recorded = win.live.buffer.snapshot()
@@ -291,7 +293,8 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert rows["mass m (kg)"] == [fmt(fit["m"], 5), _interval(fit["ci95"]["m"])]
     assert rows["delay model"][0] == fit["delay_model"]
     assert again.live.verdicts.levels()["closed-loop fit"] == fit["verdict"]["level"]
-    assert again.live.buffer.n == 0  # the Live tab no longer shows another record's traces
+    # the Live page shows the record re-analysed, not another's
+    assert again.live.buffer.n == 8000 and again.live.buffer.start["uid"][:8] in etfe_path
     again.close()
 
 

@@ -294,3 +294,149 @@ def test_a_white_noise_etfe_is_drawn_whole_with_its_marks(qtbot, window):
     assert [label.text for _s, label in plots.bode_legend.items] == [
         "measured (ETFE)", "theory (exact sampled model)"]
     assert np.isfinite(plots.curves["bode_mag"].getOriginalDataset()[1]).all()
+
+
+# ----- defect 7: nothing stale left on screen --------------------------------------------------
+def _run(qtbot, win, protocol, **settings):
+    win.last_run = None
+    win.protocol_panel.choice.setCurrentText(protocol)
+    for name, value in settings.items():
+        win.protocol_panel.set_value(name, value)
+    win.protocol_panel.start_button.click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.last_run is not None, timeout=RUN_MS)
+    assert win.last_run.status == "success", win.last_run.reason
+    return win.session_path
+
+
+def _sessions_listed(qtbot, win, n):
+    qtbot.waitUntil(lambda: len(win.sessions.paths) == n, timeout=20_000)
+
+
+def test_reanalyse_shows_the_records_traces_and_axes_and_replay_ends_full(qtbot, window):
+    import numpy as np
+
+    win = window()
+    chirp = _run(qtbot, win, "chirp-id", f0_hz=1.0, duration_s=4.0)  # a narrow record
+    _run(qtbot, win, "etfe", duration_s=30.0, seed=1)  # then a long, wide one
+    _sessions_listed(qtbot, win, 2)
+    es = win.live.impedance.plots["ES"].getViewBox()
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None
+                    and win.live.impedance.last.n_samples == 30_000, timeout=RUN_MS)
+    wide = es.viewRange()[0]
+
+    win.tabs.setCurrentWidget(win.sessions)
+    win.sessions.select_path(chirp)
+    win.sessions.buttons["Re-analyse"].click()
+    qtbot.waitUntil(lambda: "re-analysis of" in win.sessions.progress_line.text()
+                    and win.sessions.cancel_button.isEnabled() is False, timeout=RUN_MS)
+    assert win.tabs.currentWidget() is win.live
+    # the traces are the chirp's, the header counts its samples
+    assert win.live.buffer.n == 4000 and "from 4000 samples" in win.live.impedance.title.text
+    x, y = win.live.traces.curves["position"].getOriginalDataset()
+    assert x.size > 0 and np.isfinite(y).all()
+    # the frequency axis spans the chirp's estimate, not the 30 s ETFE's wider one
+    w, _ = win.live.impedance.curves["ED"].getOriginalDataset()
+    lo, hi = np.log10(w[w > 0].min()), np.log10(w.max())
+    x0, x1 = es.viewRange()[0]
+    assert x0 > wide[0] and x1 - x0 <= 1.2 * (hi - lo) + 0.2
+    assert win.sessions.progress.value() == 1000
+
+    # Replay fast: the bar full at completion, under "replay completed"
+    win.sessions.buttons["Replay fast"].click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.live.buffer.stop is not None, timeout=RUN_MS)
+    assert win.protocol_panel.time_left.text() == "replay completed"
+    assert win.protocol_panel.progress.value() == 1000
+
+
+def test_the_log_follows_after_long_entries_and_always_shows_an_estop(qtbot, window):
+    win = window()
+    _connect(qtbot, win)
+    log, bar = win.log, win.log.verticalScrollBar()
+    for i in range(40):  # tables of results, as after runs: the log keeps following
+        log.add("info", f"results {i}:", rows=[(f"row {j}", str(j)) for j in range(12)])
+        assert log.following() and bar.value() == bar.maximum()
+    bar.setValue(0)  # the person scrolls up to read: it stays there ...
+    log.add("info", "another table:", rows=[("a", "1")] * 12)
+    assert bar.value() == 0 and not log.following()
+    win.activateWindow()
+    qtbot.keyClick(win, QtCore.Qt.Key.Key_Escape)  # ... but an E-STOP is brought into view
+    assert bar.value() == bar.maximum() and log.following()
+    assert "E-STOP" in log.toPlainText().splitlines()[-1]
+
+
+# ----- section "long analyses": progress, cancel, and no silent replacement ---------------------
+def test_a_reanalysis_shows_progress_can_be_cancelled_and_never_replaces_a_good_fit(
+        qtbot, window, monkeypatch):
+    from labbench.gui import jobs
+    from labbench.gui.id_view import cells
+
+    win = window()
+    path = _run(qtbot, win, "etfe", duration_s=20.0, seed=3)
+    _sessions_listed(qtbot, win, 1)
+    fit_before = cells(win.id_view.fit_table)
+    source_before = win.id_view.fit_source.text()
+    assert "the run's own analysis" in source_before
+
+    # cancel: the window keeps what it showed
+    phrases = []
+    win.sessions.select_path(path)
+    win.sessions.estimator.setCurrentText("lpm")
+    win.sessions.buttons["Re-analyse"].click()
+    assert win.sessions.cancel_button.isEnabled() and not win.sessions.buttons["Re-analyse"].isEnabled()
+    qtbot.waitUntil(lambda: phrases.append(win.sessions.progress_line.text())
+                    or win.sessions.progress.value() > 0, timeout=RUN_MS)
+    win.sessions.cancel_button.click()
+    qtbot.waitUntil(lambda: "cancelled" in win.sessions.progress_line.text(), timeout=RUN_MS)
+    assert cells(win.id_view.fit_table) == fit_before and win.id_view.fit_source.text() == source_before
+    assert win.sessions.buttons["Re-analyse"].isEnabled() and not win.sessions.cancel_button.isEnabled()
+    assert any("re-analysing" in p for p in phrases)
+
+    # a re-analysis whose loop fit fails (injected) leaves the good fit shown, and says so
+    real = jobs.analyze_etfe
+
+    def failing_fit(*args, **kwargs):
+        out = real(*args, **kwargs)
+        return {**out, "fit": {"error": "too few coherent frequencies (injected)"}}
+
+    monkeypatch.setattr(jobs, "analyze_etfe", failing_fit)
+    win.sessions.estimator.setCurrentText("default")
+    win.sessions.buttons["Re-analyse"].click()
+    qtbot.waitUntil(lambda: "done" in win.sessions.progress_line.text(), timeout=RUN_MS)
+    assert cells(win.id_view.fit_table) == fit_before and win.id_view.fit_source.text() == source_before
+    shown = win.live.verdicts.text()
+    assert "not replaced: closed-loop fit failed: too few coherent frequencies (injected)" in shown
+    assert "not replaced" in win.sessions.progress_line.text()
+    assert any("not replaced" in t for t in win.log.texts("warning"))
+
+
+# ----- defect 8: sessions told apart, and filtered ------------------------------------------------
+def test_sessions_show_ve_k_b_duration_and_verdict_and_filter(qtbot, window):
+    from labbench.gui.sessions_view import COLUMNS
+
+    win = window()
+    _run(qtbot, win, "chirp-id", f0_hz=1.0, duration_s=3.0)
+    _run(qtbot, win, "etfe", duration_s=2.0, K=50.0)
+    _run(qtbot, win, "etfe", duration_s=3.0, K=200.0, B=0.5)
+    win.protocol_panel.set_value("K", 5000.0)
+    win.protocol_panel.start_button.click()  # refused: no session
+    assert "refusing unstable" in win.banner.text()
+    _sessions_listed(qtbot, win, 3)
+    win.tabs.setCurrentWidget(win.sessions)
+    col = {name: i for i, name in enumerate(COLUMNS)}
+    rows = {(r[col["protocol"]], r[col["K [N/m]"]]): r for r in win.sessions.shown_rows()}
+    assert set(rows) == {("chirp-id", ""), ("etfe", "50"), ("etfe", "200")}
+    chirp, k50, k200 = rows[("chirp-id", "")], rows[("etfe", "50")], rows[("etfe", "200")]
+    assert chirp[col["VE"]] == "none" and chirp[col["B [N s/m]"]] == ""  # open loop: no K, B
+    assert (k50[col["VE"]], k50[col["B [N s/m]"]], k50[col["duration [s]"]]) == ("spring-damper", "1", "2.0")
+    assert (k200[col["B [N s/m]"]], k200[col["duration [s]"]]) == ("0.5", "3.0")
+    for r in (chirp, k50, k200):
+        assert r[col["verdict"]] in ("ok", "doubtful", "failed")
+    win.sessions.filter.setText("etfe 200")
+    assert [r[col["K [N/m]"]] for r in win.sessions.shown_rows()] == ["200"]
+    assert win.sessions.count.text() == "1 of 3 sessions"
+    assert win.sessions.selected() == win.sessions.paths[
+        next(i for i in range(3) if not win.sessions.table.isRowHidden(i))]
+    win.sessions.filter.setText("chirp")
+    assert [r[col["protocol"]] for r in win.sessions.shown_rows()] == ["chirp-id"]
+    win.sessions.filter.clear()
+    assert len(win.sessions.shown_rows()) == 3 and win.sessions.count.text() == "3 sessions"
