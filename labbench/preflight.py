@@ -45,12 +45,14 @@ load, and what the OS granted.
   allows, rounded up to 0.1 ms;
 * real-time scheduling refused while requests came late: grant it (``realtime.hint``);
 * a simulated peer shares this machine, so a stall of the whole machine (a period beyond
-  T) is one of its answer too: it counts against the stale limit (measured: a 210 ms stall
-  in a 60 s preflight's pacing, none in its waits, and the run then faulted when one fell
-  between a SYNC and the in-process drive's answer). A hardware drive's answer waits in
-  the socket through a host stall; but a stall trips the loop's own watchdog (hardware)
-  and the drive's watch on the host (its RPDO timer, heartbeat consumer or life time:
-  ``details["host_silence_limit"]``), judged as the stale limit is.
+  T) delays its answer when it falls while the loop waits for it: each such stall beyond
+  the limit counts as that share of a fault (measured at 60 s: one 210 ms stall in the
+  preflight's pacing, none in its waits, and the run faulted when one fell between a SYNC
+  and the in-process drive's answer; six 30 ms stalls against 3 ms, the run did not).
+  A hardware drive's answer waits in the socket through a host stall; but a stall trips
+  the loop's own watchdog (hardware) and the drive's watch on the host (its RPDO timer,
+  heartbeat consumer or life time: ``details["host_silence_limit"]``), judged as the
+  stale limit is.
 
 ``write_rig`` puts the suggested limits into the rig file (tomlkit, comments kept,
 backup: ``labbench.commissioning.write_tables``).
@@ -198,6 +200,7 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
         # a simulated peer shares this machine: a stall of the host is one of its answer
         "shares_host": bool(desc.simulated),
         "stalls_over_stale": int(np.sum(stalls > stale_s)) if stale_s else 0,
+        "answer_share": float(np.nanmean(answer - start) / T) if m else 0.0,
         "host_stall": _stats(stalls),
         "host_silence_limits": silences,
         "host_stalls_over": {name: int(np.sum(stalls > limit))
@@ -255,25 +258,31 @@ def judge(m: dict) -> dict:
     stall = m.get("host_stall") or {}
     if wait and stale:
         longest = wait["max_s"]
-        over = m["over_stale"]
+        # Faults to expect in a run as long: each wait beyond the limit is one; with a
+        # simulated peer on this machine, a stall of the machine beyond it is one when it
+        # falls while the loop waits for the answer (that share of the period).
+        expected = float(m["over_stale"])
         if m.get("shares_host") and stall.get("max_s", 0.0) > longest:
-            longest = stall["max_s"]  # the whole machine stalled: the simulated peer too
-            over = max(over, m.get("stalls_over_stale", 0))
+            longest = stall["max_s"]
+            expected += m.get("stalls_over_stale", 0) * min(1.0, m.get("answer_share", 1.0))
         periods = max(math.ceil(STALE_MARGIN * longest / T - 1e-9), 1)
-        level = (OK if longest * STALE_MARGIN <= stale else DOUBTFUL if over < SURE_FAULTS
-                 else FAILED)
-        word = "holds" if level == OK else "too tight" if over else "marginal"
+        level = (OK if longest * STALE_MARGIN <= stale else
+                 FAILED if expected >= SURE_FAULTS else DOUBTFUL)
+        word = "holds" if level == OK else "too tight" if expected else "marginal"
         text = (f"stale limit {ms(stale)} ({stale / T:.3g} periods): {word}, longest wait "
                 f"{ms(wait['max_s'])} (p99.9 {ms(wait['p999_s'])}"
                 + (", on the bus" if m.get("stale_clock", "").startswith("the bus") else "")
                 + ")")
         if longest > wait["max_s"]:
-            text += (f", longest host stall {ms(longest)} (the simulated peer shares this "
-                     "machine: a stall of it delays the answer)")
-        if over:
-            text += (f", {over} wait(s) longer: a run as long faults" + (
-                "" if level == FAILED else f" with a chance of about "
-                f"{100 * (1 - math.exp(-over)):.0f} %"))
+            text += (f", longest stall of this machine {ms(longest)} ("
+                     f"{m.get('stalls_over_stale', 0)} beyond the limit: the simulated peer "
+                     "shares it, and one that falls while the loop waits delays the answer)")
+        if m["over_stale"]:
+            text += f", {m['over_stale']} wait(s) longer"
+        if expected:
+            text += ": a run as long faults" + (
+                "" if level == FAILED else
+                f" with a chance of about {100 * (1 - math.exp(-expected)):.0f} %")
         if level != OK:
             if periods <= top:
                 suggest["stale_periods"] = periods

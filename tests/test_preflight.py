@@ -306,11 +306,13 @@ def test_a_stall_of_the_whole_machine_counts_against_a_simulated_peer():
     waits; the run then faulted when such a stall fell between a SYNC and the in-process
     drive's answer. A simulated peer shares the machine: its stalls are the answer's."""
     m = synthetic(0.0109, T=0.001, stale=0.020)
-    m.update(shares_host=True, stalls_over_stale=1,
+    m.update(shares_host=True, stalls_over_stale=1, answer_share=0.5, over_stale=0,
              host_stall={"p50_s": 0.0, "p99_s": 1e-4, "p999_s": 1e-3, "max_s": 0.210, "n": 999})
     j = judge(m)
-    assert j["verdict"]["level"] == "doubtful" and "longest host stall 210 ms" in \
-        j["findings"][0] and "chance of about 63 %" in j["findings"][0]
+    text = j["findings"][0]
+    assert j["verdict"]["level"] == "doubtful" and "longest stall of this machine 210 ms (1 " \
+        "beyond the limit" in text and "chance of about 39 %" in text, text  # 1 - e^-0.5
+    assert judge({**m, "stalls_over_stale": 12})["verdict"]["level"] == "failed"  # 6 expected
     assert judge({**m, "shares_host": False})["findings"][0].startswith(
         "stale limit 20 ms (20 periods): holds")  # hardware: its answer waits in the socket
 
