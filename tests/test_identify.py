@@ -1,5 +1,6 @@
 """Identification against exact simulated data (tests/truthdata.py)."""
 import re
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -311,9 +312,16 @@ def test_l1_never_solves_an_lp_over_all_samples(monkeypatch):
 
     monkeypatch.setattr(l1.optimize, "linprog", spy)
     monkeypatch.setattr(l1, "_working_set", lambda *a: pytest.fail("the steps stalled"))
-    r = identify(chirp_recording(n=60000), method="l1")
+    rec = chirp_recording(n=60000)
+    tracemalloc.start()
+    try:
+        r = identify(rec, method="l1")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
     assert abs(r.m / PAPER_M - 1) < 1e-6 and abs(r.b / PAPER_B - 1) < 1e-4
     assert max(sizes, default=0) < 100, sizes
+    assert peak < 48e6, peak  # memory linear in the record: ~11 MB measured (a column is 0.5 MB)
 
 
 def test_l1_line_search():

@@ -201,9 +201,9 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     steps = Steps(progress, cancel)
     fit = _fitter(method, solver, steps.check)
     steps.report(0.0, "reading how the force was held")
-    hold_info = _force_hold(rec, hold, cutoff_hz, method, fit)
+    hold_info = _force_hold(rec, hold, cutoff_hz, method, fit, steps.check)
     steps.report(0.3, "derivatives")
-    data = _prepare(rec, cutoff_hz, hold_info["value"])
+    data = _prepare(rec, cutoff_hz, hold_info["value"], check=steps.check)
     if not _identifiable(data, "mb"):
         raise UserError(f"{rec.source}: the position hardly moves (x' and x'' are not independent): "
                         "nothing to identify")
@@ -215,7 +215,7 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
         raise UserError(f"model {chosen} cannot be identified from this record: the velocity never "
                         "changes sign, so Coulomb friction and a force offset look alike; use --model mbc or mb")
     closed = response is not None and method == "l2"
-    inst = _instruments(data, response, fit, method, chosen) if closed else None
+    inst = _instruments(data, response, fit, method, chosen, steps.check) if closed else None
     theta, resid, ci = _estimate(data, fit, method, chosen, inst=inst)
     # a model step the data cannot decide (within UNDECIDED_SE of its threshold) leaves both
     # models standing: the intervals cover the parameters under either (module doc)
@@ -285,7 +285,7 @@ def _estimate(data: _Data, fit, method: str, model: str, keep=None,
     return theta, resid, dict(zip(TERMS[model], ci))
 
 
-def _instruments(data: _Data, response, fit, method: str, model: str) -> dict:
+def _instruments(data: _Data, response, fit, method: str, model: str, check=lambda: None) -> dict:
     """Instrument columns for a closed-loop record: the regressors of the loop's response to
     the exogenous force alone (refined instrumental variables, Soderstrom & Stoica, System
     Identification, 1989, ch. 8): uncorrelated with any force the record lacks, which the
@@ -294,8 +294,11 @@ def _instruments(data: _Data, response, fit, method: str, model: str) -> dict:
     theta = fit(data.design(model), data.y)
     inst = None
     for _ in range(IV_PASSES):
+        check()
         x = response(max(theta[0], 1e-9), max(theta[1], 0.0))
+        check()
         d = differentiate(x, data.fs, data.cutoff_hz, data.hold)
+        check()
         inst = {**data.cols, "m": d.a, "b": d.v}
         theta, _, _ = _estimate(data, fit, method, model, inst=inst)
     return inst
@@ -363,7 +366,7 @@ def _residual_delay(res: IdResult, data: _Data) -> tuple[float, float]:
     return tau, float(tau**2 * jj / (r @ r))
 
 
-def _force_hold(rec: Recording, hold, cutoff_hz, method: str, fit) -> dict:
+def _force_hold(rec: Recording, hold, cutoff_hz, method: str, fit, check=lambda: None) -> dict:
     """How the force reached the plant: given, from the metadata, or chosen by the data."""
     if hold is not None:
         return {"value": _check_hold(hold), "source": "given"}
@@ -371,7 +374,7 @@ def _force_hold(rec: Recording, hold, cutoff_hz, method: str, fit) -> dict:
         return {"value": _check_hold(rec.meta["force_hold"]), "source": "metadata"}
     losses = {}
     for h in HOLDS:
-        data = _prepare(rec, cutoff_hz, h, filter_force=True)
+        data = _prepare(rec, cutoff_hz, h, filter_force=True, check=check)
         models = [m for m in MODELS if _identifiable(data, m)]
         if not models:
             return {"value": "zoh", "source": "default: the record cannot tell (it hardly moves)"}
@@ -397,14 +400,19 @@ def _check_hold(hold) -> str:
     return hold
 
 
-def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False) -> _Data:
+def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False,
+             check=lambda: None) -> _Data:
+    """Regressors and force of a record (module doc); ``check`` between its passes over the
+    data (it raises to cancel)."""
     _check_hold(hold)
     fs = rec.fs
     if cutoff_hz is None:
         cutoff_hz = default_cutoff(rec.force, fs)
     elif not 0 < cutoff_hz < fs / 2:
         raise UserError(f"--cutoff must be between 0 and fs/2 = {fs / 2:g} Hz, got {cutoff_hz}")
+    check()
     d = differentiate(rec.position, fs, cutoff_hz, hold)
+    check()
     f = np.asarray(rec.force, float)
     if filter_force or force_band(f, fs) > cutoff_hz / CUTOFF_FACTOR:
         # force has power the derivatives will not see: filter it the same way, so the
@@ -416,6 +424,7 @@ def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False) -
     q = position_quantum(rec.position) or 0.0
     v_sigma = q / np.sqrt(12) * d.noise_gain[0]  # velocity noise the encoder step leaves
     sign = special.erf(d.v_all / (np.sqrt(2) * v_sigma)) if v_sigma else np.sign(d.v_all)
+    check()
     coulomb = lowpass(sign, fs, d.cutoff_hz)[d.keep]  # L sign(x'): see module doc
     cols = {"m": d.a, "b": d.v, "coulomb": coulomb, "offset": np.ones_like(d.v)}
     enc = q**2 / 12  # white quantisation noise of the position
@@ -451,16 +460,19 @@ def _cv_losses(data: _Data, fit, method: str, model: str) -> np.ndarray:
     losses = []
     for k in range(CV_FOLDS):
         test = np.concatenate(blocks[k::CV_FOLDS])
-        train = np.setdiff1d(np.arange(len(y)), test, assume_unique=True)
+        keep = np.ones(len(y), bool)
+        keep[test] = False
+        train = np.flatnonzero(keep)  # in order, as setdiff1d gave it (without sorting n)
         theta = fit(X[train], y[train])
         losses.append(_loss(method, y[test] - X[test] @ theta))
     return np.array(losses)
 
 
 def _identifiable(data: _Data, model: str) -> bool:
+    """Whether no regressor of ``model`` is a linear combination of the others (the rank
+    test of ``l1.independent_columns``, columns scaled)."""
     X = data.design(model)
-    scale = np.sqrt(np.mean(X**2, axis=0))
-    return bool(np.all(scale > 0)) and np.linalg.matrix_rank(X / scale) == X.shape[1]
+    return len(l1.independent_columns(X)) == X.shape[1]
 
 
 def _select(data: _Data, fit, method: str) -> dict:

@@ -38,6 +38,7 @@ from labbench.errors import missing_extra
 IRLS_STEPS = 6
 MAX_STEPS = 500
 XI_TOL = 1e-9
+START_ROWS = 1 << 17  # rows of the least-squares and IRLS start (a regular subset beyond)
 BASIS_TOL = 1e-4  # least new direction a row must bring to the initial basis (columns scaled to max 1)
 WS_ROWS = 32  # rows per parameter in the first working set of the fallback LP
 
@@ -53,15 +54,21 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None,
     check = check or _no_check
     X = np.asarray(X, float)
     y = np.asarray(y, float)
-    keep = _independent_columns(X)
+    keep = independent_columns(X)
     if len(keep) < X.shape[1]:
         theta = np.zeros(X.shape[1])
         theta[keep] = lad(X[:, keep], y, None if theta0 is None else np.asarray(theta0)[keep], check)
         return theta
-    theta = np.linalg.lstsq(X, y, rcond=None)[0] if theta0 is None else np.asarray(theta0, float)
-    theta = _irls(X, y, theta, IRLS_STEPS, check)
+    # the start needs no more rows than a 2-minute record has: beyond, a regular subset
+    start = slice(None, None, max(1, len(y) // START_ROWS))
+    theta = (np.linalg.lstsq(X[start], y[start], rcond=None)[0] if theta0 is None
+             else np.asarray(theta0, float))
+    theta = _irls(X[start], y[start], theta, IRLS_STEPS, check)
     vertex, certified = _simplex(X, y, _initial_basis(X, np.abs(y - X @ theta)), check)
-    return vertex if certified else _working_set(X, y, theta if vertex is None else vertex, check)
+    if certified:
+        return vertex
+    usable = vertex is not None and np.all(np.isfinite(y - X @ vertex))
+    return _working_set(X, y, vertex if usable else theta, check)
 
 
 def _no_check() -> None:
@@ -70,24 +77,25 @@ def _no_check() -> None:
 
 def _simplex(X, y, B, check=_no_check):
     """Descent steps from basis B to the certified optimum (module doc): (theta, True), or
-    when they stall (the lowest vertex met or None, False)."""
+    when they stall (the last vertex met, the lowest as every step descends, or None, False)."""
     seen: set[tuple[int, ...]] = set()
     peak = np.max(np.abs(y)), np.max(np.abs(X), axis=0)
-    best, best_f = None, np.inf
+    theta = None
     for _ in range(MAX_STEPS):
         check()
         if (key := tuple(sorted(B))) in seen:
             break  # a basis came back: a step "descended" by rounding only
         seen.add(key)
         try:
-            theta = np.linalg.solve(X[B], y[B])
+            vertex = np.linalg.solve(X[B], y[B])
+            if not np.all(np.isfinite(vertex)):
+                break  # the basis solve overflowed (rows at rest)
+            theta = vertex  # every step descends: the last vertex is the lowest met
             r = y - X @ theta
             # residuals within rounding of zero are zero (a tie): left signed, a step
             # along an edge "descended" by 1e-16 and the next step came back (cycling)
-            _zero_rounding(r, X, y, theta, peak)
+            tie = _zero_rounding(r, X, y, theta, peak)
             r[B] = 0.0  # exactly, so the basis rows never show up as breakpoints
-            if (f := np.sum(np.abs(r))) < best_f:
-                best, best_f = theta, f
             g = -(np.sign(r) @ X)
             xi = np.linalg.solve(X[B].T, g)
             if np.max(np.abs(xi)) <= 1.0 + XI_TOL:
@@ -95,8 +103,7 @@ def _simplex(X, y, B, check=_no_check):
             U = np.linalg.solve(X[B], np.diag(-np.sign(xi)))  # column j: the edge leaving row B[j]
         except np.linalg.LinAlgError:
             break  # singular basis: leave it to the working-set LP
-        tie = r == 0.0
-        tie[B] = False
+        tie = np.setdiff1d(tie, B)
         # slope of the objective along each edge at t = 0+: 1 - |xi_j|, plus |X_i u| for each
         # other zero residual (sign(0) = 0 left it out of xi); ties make a degenerate vertex
         slope = 1.0 - np.abs(xi) + np.abs(X[tie] @ U).sum(axis=0)
@@ -114,12 +121,12 @@ def _simplex(X, y, B, check=_no_check):
         if i_new < 0:
             break  # no breakpoint ahead: the basis solve overflowed (inf/nan residuals)
         B = np.append(keep, i_new)
-    return best, False
+    return theta, False
 
 
 def _zero_rounding(r, X, y, theta, peak):
     """Set to 0 the residuals r_i = y_i - X_i theta within rounding of zero (a few ulps of
-    their largest term). Only residuals under a bound for all samples, from the peaks
+    their largest term) and return their indices. Only residuals under a bound for all samples, from the peaks
     (max |y|, max |X_j|), are looked at: the per-sample bound over all n cost a fifth of
     the whole fit."""
     ulps = 16 * np.finfo(float).eps
@@ -127,6 +134,7 @@ def _zero_rounding(r, X, y, theta, peak):
     near = np.flatnonzero(np.abs(r) <= bound)
     near = near[np.abs(r[near]) <= ulps * (np.abs(y[near]) + np.abs(X[near]) @ np.abs(theta))]
     r[near] = 0.0
+    return near
 
 
 def _initial_basis(X, absr) -> np.ndarray:
@@ -166,17 +174,23 @@ def _initial_basis(X, absr) -> np.ndarray:
     return np.array(B)
 
 
-def _independent_columns(X) -> list[int]:
+def independent_columns(X) -> list[int]:
     """Columns, in order, that are not linear combinations of earlier kept ones.
 
     Ranks of columns scaled to largest magnitude 1: unscaled, a column far smaller
-    than the next (units) made that next column look dependent and dropped it.
+    than the next (units) made that next column look dependent and dropped it. The ranks
+    are those of the R factor of one QR of X, its columns scaled after (Householder QR is
+    backward stable column by column, and the singular values of X[:, cols] are those of
+    R[:, cols]): a copy and p SVDs of all n rows cost a fifth of a long record's fit.
+    The tolerance is numpy's matrix_rank's: largest singular value x n x eps.
     """
+    n, p = X.shape
     scale = np.max(np.abs(X), axis=0)
-    Xs = X / np.where(scale > 0, scale, 1.0)
+    R = np.linalg.qr(X, mode="r") / np.where(scale > 0, scale, 1.0)
     keep: list[int] = []
-    for j in range(X.shape[1]):
-        if np.linalg.matrix_rank(Xs[:, keep + [j]]) == len(keep) + 1:
+    for j in range(p):
+        sv = np.linalg.svd(R[:, keep + [j]], compute_uv=False)
+        if len(sv) == len(keep) + 1 and sv[-1] > sv[0] * max(n, len(sv)) * np.finfo(float).eps:
             keep.append(j)
     return keep
 
@@ -187,7 +201,8 @@ def _line_search(r, a, need):
     Each breakpoint t_i = r_i / a_i > 0 raises the slope by 2|a_i|; the optimum is
     the first at which the raised slope reaches zero (a weighted median). Rows
     with r_i = 0 (basis, ties) are not breakpoints: ``need`` includes them.
-    Only the smallest breakpoints are sorted, growing the batch as needed.
+    Only the smallest breakpoints are sorted, growing the batch as needed (a long record's
+    step passes more of them).
     Returns the sample index of that breakpoint, or -1 if there is none.
     """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -196,7 +211,8 @@ def _line_search(r, a, need):
     if len(cand) == 0:
         return -1
     tc, wc = t[cand], np.abs(a[cand])
-    k = 64
+    # first batch: twice the breakpoints of average weight that ``need`` takes (64 at least)
+    k = int(min(len(tc), max(64.0, 2.0 * need / max(float(np.mean(wc)), np.finfo(float).tiny))))
     while True:
         if k >= len(tc):
             order = np.argsort(tc)
@@ -221,7 +237,7 @@ def _tied_edge(X, B, tie, g):
     Returns (the p - 1 rows kept, u, need) for the line search, None when certified, or ()
     when no edge can be trusted (the LP's or the edge's numbers at rounding level).
     """
-    Z = np.r_[B, np.flatnonzero(tie)]
+    Z = np.r_[B, tie]
     p, nz = X.shape[1], len(Z)
     if not np.any(g):
         return None
