@@ -17,7 +17,8 @@ point, or proves that none exists (optimal). Without it, near-noise-free records
 (a simulated chirp: residuals of 1e-13 beside forces of 1, ties at every few
 steps) stalled at such vertices.
 
-Start: least squares, a few IRLS steps (weights 1/|r|), then the vertex
+Start: least squares, a few IRLS steps (weights 1/|r|; both on at most START_ROWS rows,
+a regular subset of a long record), then the vertex
 through small residuals whose rows are well apart (_initial_basis). Each step
 costs a few passes over the data, and a handful of steps reach the certified
 optimum, so the answer is the exact LAD vertex (to floating point), not a
