@@ -222,6 +222,10 @@ class ProtocolBase:
 
     name: str = ""
     Config: type = None  # the frozen config dataclass (a ``Config`` subclass)
+    # The device's own delay [s] on this run (``labbench.device_delay``), set by ``precheck``
+    # before ``check_plan`` and ``segments``: what a protocol that plans from the exact
+    # boundary (the stability probe) must know of the rig.
+    device_delay_s: float = 0.0
 
     def __init__(self, config):
         self.config = config
@@ -311,5 +315,6 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m: "
                 f"spectral radius {st.spectral_radius:.6f} >= 1; {bound}{approx}")
     report["stable"] = all(c["stable"] for c in report["checks"])
+    protocol.device_delay_s = latency
     report.update(protocol.check_plan(plant, rig))
     return report

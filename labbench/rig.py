@@ -21,6 +21,7 @@ from pathlib import Path
 
 from labbench.errors import UserError, unknown_name
 from labbench.input_files import read_text
+from labbench.campaign.settings import CampaignSettings
 from labbench.realtime import RealtimeConfig
 from labbench.safety import SafetyConfig
 from labbench.ve import DEFAULT_PLANT, Plant
@@ -110,10 +111,11 @@ MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a ri
 
 def _tables() -> tuple[str, ...]:
     """Tables a rig file may hold: [rig], [safety], [realtime], [preflight] (the timing
-    preflight, ``labbench.preflight``), and one per device backend (its name)."""
+    preflight, ``labbench.preflight``), [campaign] (``labbench.campaign.settings``), and one
+    per device backend (its name)."""
     from labbench.registry import device_names  # names only: no backend is imported
 
-    return ("rig", "safety", "realtime", "preflight", *device_names())
+    return ("rig", "safety", "realtime", "preflight", "campaign", *device_names())
 
 
 def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
@@ -168,6 +170,7 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     from labbench.preflight import PreflightConfig
 
     PreflightConfig.from_rig(rig)  # and for a bad [preflight] one
+    CampaignSettings.from_rig(rig)  # and for a bad [campaign] one
     return rig
 
 

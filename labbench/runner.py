@@ -252,7 +252,8 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
                 "label": segment.label, "role": segment.role, "ve": segment.ve.as_dict(),
                 "start": first,
                 "stop": run_state.n_samples, "status": outcome.status, "reason": outcome.reason,
-                "timing": dict(t), "device_counters": run_state.counters()})
+                "timing": dict(t), "device_counters": run_state.counters(),
+                "energy_max_j": outcome.stats.get("energy_max_j")})
             if outcome.status == "aborted":
                 run_state.finish("aborted", _stop_reason(stop, outcome.reason))
                 return meta

@@ -120,17 +120,14 @@ def list_sessions(directory, on_skip=None) -> list[SessionSummary]:
 OWN_PLANT = ("chirp-id", "commission")
 
 
-def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
-    """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
-    ``{"m", "b", "session"}``, or None (no folder, no such session). The plant a run uses
-    when none is given (``labbench run --plant-from last-id``, the window): what it was
-    identified as, and where."""
-    from labbench.ve import Plant
-
+def _newest_results(directory, rig_name: str, protocol: str, on_skip=None):
+    """(results, path) of each successful ``protocol`` session of rig ``rig_name`` in
+    ``directory``, newest first; the results as the stop record holds them ({} when it holds
+    none). An unreadable stop record is passed over (``on_skip``)."""
     if not Path(directory).is_dir():
-        return None
+        return
     for s in reversed(list_sessions(directory, on_skip=on_skip)):
-        if s.protocol != "chirp-id" or s.status != "success" or s.rig_name != rig_name:
+        if s.protocol != protocol or s.status != "success" or s.rig_name != rig_name:
             continue
         try:
             with SessionReader(s.path, decode_pages=False) as reader:
@@ -139,10 +136,27 @@ def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
             if on_skip is not None:
                 on_skip(s.path, str(exc) or type(exc).__name__)
             continue
-        res = stop.get("results") if isinstance(stop.get("results"), dict) else {}
+        res = stop.get("results")
+        yield (res if isinstance(res, dict) else {}), str(s.path)
+
+
+def last_results(directory, rig_name: str, protocol: str, on_skip=None) -> tuple[dict, str] | None:
+    """The results of the newest successful ``protocol`` session of rig ``rig_name`` in
+    ``directory`` and its path (e.g. the rig's last commissioning); None when there is none."""
+    return next(_newest_results(directory, rig_name, protocol, on_skip), None)
+
+
+def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
+    """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
+    ``{"m", "b", "session"}``, or None (no folder, no such session). The plant a run uses
+    when none is given (``labbench run --plant-from last-id``, the window): what it was
+    identified as, and where."""
+    from labbench.ve import Plant
+
+    for res, path in _newest_results(directory, rig_name, "chirp-id", on_skip):
         try:
             plant = Plant(res.get("m"), res.get("b"))  # a number within the physical range, or not used
         except (UserError, TypeError):
             continue
-        return {"m": plant.m, "b": plant.b, "session": str(s.path)}
+        return {"m": plant.m, "b": plant.b, "session": path}
     return None

@@ -1,13 +1,31 @@
 """Stability probe: step K (or td) up until the loop grows or the safety envelope trips.
 
-Each step renders the VE for a few oscillation periods after a small half-sine
-force pulse and measures the growth rate sigma [1/s] of the free response
+Each step renders the VE for a few oscillation periods after a half-sine force
+pulse and measures the growth rate sigma [1/s] of the free response
 (least-squares line through the log of its half-cycle peaks). The first step
-with sigma > 0, or ended by a safety trip (energy observer), is unstable; the
-measured boundary is where sigma crosses zero, interpolated linearly between
-the last stable and the first unstable step. It is compared with the exact
-sampled boundary ``labbench.theory.k_max`` and the paper's ``k_max_approx``
-(b = K (T/2 + td) for the spring).
+with sigma > 0, or ended by a safety trip (energy observer), is unstable and
+ends the bracketing; the bracket crossing is where sigma crosses zero,
+interpolated linearly between the last stable and the first unstable step.
+
+Probing K, ``refine`` long steps (``refine_s`` each) then sit at the bracket
+crossing times ``1 - refine_span`` .. ``1 + refine_span``, and the measured
+boundary is the zero of the line through their growth rates, weighted by their
+standard errors, with a 95 % interval from those errors (delta method). Near
+the boundary sigma is small (a 1 % error in K is about 0.005 /s for the paper's
+spring), so the bracket's short steps, whose sigma a quantised encoder or
+torque blurs by as much, cannot place it within 1 %; the long steps can.
+
+The pulse is sized (``swing``) so that the free response uses a fixed share of
+the rig's tightest limit: force, position window or velocity. A fixed small
+pulse left the response a few tens of encoder counts high at the boundary,
+where the quantisation of position and force biased sigma by up to 2 % of K.
+
+Everything is compared with the exact sampled boundary ``labbench.theory.k_max``
+of the plant *with the device's own delay* (``device_delay_s``: the run's
+``labbench.device_delay``) and the paper's ``k_max_approx`` (b = K (T/2 + td)
+for the spring). Each step also keeps the peak energy the loop's passivity
+observer saw (``labbench.loop``: the energy the VE generated beyond what its
+spring stores and the rig's nominal damping dissipates).
 
 Steps beyond the exact boundary are the point of this protocol: the starting
 VE must be stable (precheck), and the highest step is capped at ``max_over``
@@ -22,6 +40,7 @@ from itertools import pairwise
 import numpy as np
 
 from labbench.errors import UserError
+from labbench.rig import Rig
 from labbench.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
@@ -41,6 +60,8 @@ VARIABLES = ("K", "td")
 HOME_K_MAX = 20.0  # N/m, stiffest homing spring
 HOME_W0 = 200.0  # rad/s, velocity filter of the homing damper
 PROBE_KINDS = ("spring", "spring-damper")
+PULSE_AT_S = 0.05  # the pulse starts this long into a step
+Z95 = 1.959963984540054  # two-sided 95 % point of the normal distribution
 
 
 @dataclass(frozen=True)
@@ -65,9 +86,17 @@ class StabilityConfig(Config):
                             "at least 2, within min_step_s to max_step_s")
     min_step_s: float = setting(1.0, "shortest step", "s")
     max_step_s: float = setting(10.0, "longest step (at most 60 s)", "s")
-    pulse_n: float = setting(0.5, "peak of the half-sine force pulse that starts each step",
-                             "N")
+    pulse_n: float | None = setting(None, "peak of the half-sine force pulse that starts each "
+                                    "step; none: sized by swing", "N")
     pulse_s: float = setting(0.02, "duration of that pulse", "s")
+    swing: float = setting(0.3, "share of the rig's tightest limit (force, position window, "
+                           "velocity) the free response after the pulse uses (pulse_n none; "
+                           "at most 0.8)")
+    refine: int = setting(2, "long steps placed around the bracket's zero crossing of the "
+                          "growth rate (variable K; 0: none, else 2 to 10)")
+    refine_s: float = setting(10.0, "length of each refining step (min_step_s to 60 s)", "s")
+    refine_span: float = setting(0.02, "the refining steps sit at the crossing times "
+                                 "1 - refine_span .. 1 + refine_span (at most 0.2)")
     sample_time_s: float = 0.001
     plant_m_kg: float | None = None
     plant_b: float | None = None
@@ -87,8 +116,19 @@ class StabilityConfig(Config):
                                               hi=60.0))
         self._set("max_step_s", number("max_step_s", self.max_step_s, "s", lo=self.min_step_s,
                                               hi=60.0))
-        self._set("pulse_n", number("pulse_n", self.pulse_n, "N", lo=0, lo_open=True))
+        self._set("pulse_n", number("pulse_n", self.pulse_n, "N", lo=0, lo_open=True,
+                                    none_ok=True))
         self._set("pulse_s", number("pulse_s", self.pulse_s, "s", lo=self.sample_time_s))
+        self._set("swing", number("swing", self.swing, "1", lo=0, lo_open=True, hi=0.8))
+        self._set("refine", integer("refine", self.refine, lo=0))
+        if self.refine == 1:
+            raise UserError("refine must be 0 or at least 2 (a line needs two steps)")
+        if self.refine > 10:
+            raise UserError(f"refine must be at most 10, got {self.refine}")
+        self._set("refine_s", number("refine_s", self.refine_s, "s", lo=self.min_step_s,
+                                     hi=60.0))
+        self._set("refine_span", number("refine_span", self.refine_span, "1", lo=0,
+                                        lo_open=True, hi=0.2))
         if self.K <= 0:
             raise UserError(f"K must be > 0 N/m for a stability probe, got {self.K:g}")
         if self.K_stop is not None and self.K_stop <= self.K:
@@ -108,7 +148,15 @@ class StabilityConfig(Config):
 
 def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
                 rel_floor: float = 0.02) -> float | None:
-    """Growth rate sigma [1/s] of an oscillation: slope of the log of its half-cycle peaks.
+    """Growth rate sigma [1/s] of an oscillation (``growth_fit`` without its error)."""
+    fit = growth_fit(t, x, floor_m, rel_floor)
+    return None if fit is None else fit[0]
+
+
+def growth_fit(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
+               rel_floor: float = 0.02) -> tuple[float, float | None] | None:
+    """Growth rate sigma [1/s] of an oscillation and its standard error: slope of the log
+    of its half-cycle peaks.
 
     The offset (friction, quantisation) is the mean of the last fifth: a decay has
     settled there and a growth is a near zero-mean oscillation. Between
@@ -118,6 +166,12 @@ def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     or ``rel_floor`` of the largest are dropped (a decay that reached the noise
     floor would bias sigma towards zero), and so are the partial first and last
     half-cycles. None with fewer than 3 peaks.
+
+    The error is the least-squares slope's standard error from the residuals, times
+    sqrt(2): each peak enters two neighbouring sums, so neighbouring residuals share
+    half their noise (correlation 1/2), which doubles the slope's variance against
+    independent residuals (sum over lags of the correlation: 1 + 2 x 1/2). None with
+    fewer than 4 sums (no residual left to judge).
     """
     x = np.asarray(x, float)
     t = np.asarray(t, float)
@@ -138,8 +192,15 @@ def growth_rate(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     ok = yp > max(2 * floor_m, rel_floor * yp.max(), 1e-12)
     if ok.sum() < 3:
         return None
-    slope, _ = np.polyfit(tp[ok], np.log(yp[ok]), 1)
-    return float(slope)
+    tk, ly = tp[ok], np.log(yp[ok])
+    slope, icept = np.polyfit(tk, ly, 1)
+    se = None
+    if tk.size >= 4:
+        resid = ly - (slope * tk + icept)
+        spread = np.sum((tk - tk.mean()) ** 2)
+        if spread > 0:
+            se = float(math.sqrt(2.0 * np.sum(resid**2) / (tk.size - 2) / spread))
+    return float(slope), se
 
 
 class StabilityProbe(ProtocolBase):
@@ -152,10 +213,14 @@ class StabilityProbe(ProtocolBase):
     def ve(self) -> VirtualEnvironment:
         return self.config.make_ve()
 
-    def k_ceiling(self, plant: Plant) -> float:
+    def k_exact(self, plant: Plant) -> float | None:
+        """The exact sampled K_max of the starting VE on ``plant`` with the device's delay."""
         from labbench import theory
 
-        km = theory.k_max(plant, self.ve)
+        return theory.k_max(plant, self.ve, latency=self.device_delay_s)
+
+    def k_ceiling(self, plant: Plant) -> float:
+        km = self.k_exact(plant)
         ceiling = self.config.max_over * km if km is not None else math.inf
         stop = self.config.K_stop if self.config.K_stop is not None else ceiling
         if stop > ceiling and not self.allow_unstable:
@@ -166,7 +231,8 @@ class StabilityProbe(ProtocolBase):
         return stop
 
     def plan(self, plant: Plant) -> list[VirtualEnvironment]:
-        """The VEs of every step, in order (the probe stops at the first unstable one)."""
+        """The VEs of the bracketing steps, in order (it stops at the first unstable one;
+        the refining steps follow from what the bracket found)."""
         c = self.config
         if c.variable == "K":
             stop = self.k_ceiling(plant)
@@ -185,30 +251,78 @@ class StabilityProbe(ProtocolBase):
     @property
     def n_samples(self) -> int:
         plant = self.plant()
-        return sum(self.step_samples(ve, plant) for ve in self.plan(plant))
+        n = sum(self.step_samples(ve, plant) for ve in self.plan(plant))
+        if self.config.variable == "K":
+            n += self.config.refine * round(self.config.refine_s / self.config.sample_time_s)
+        return n
 
     def check_plan(self, plant: Plant, rig=None) -> dict:
         if rig is not None:
             self._floor = 3 * rig.metres_per_count
+            self._limits = _limits(rig)
         ves = self.plan(plant)
-        return {"plan": {"steps": len(ves), "first": ves[0].as_dict(), "last": ves[-1].as_dict()}}
+        pulses = [self.pulse_n(ve, plant) for ve in ves]
+        return {"plan": {"steps": len(ves), "refine": self.config.refine
+                         if self.config.variable == "K" else 0,
+                         "first": ves[0].as_dict(), "last": ves[-1].as_dict(),
+                         "pulse_n": [min(pulses), max(pulses)]}}
 
-    def pulse(self, n: int) -> np.ndarray:
+    def pulse_n(self, ve: VirtualEnvironment, plant: Plant) -> float:
+        """Peak of the step's half-sine pulse [N]: ``pulse_n`` when given, else sized so the
+        free response spends ``swing`` of the tightest limit of the rig.
+
+        A half-sine of peak P and length tau gives the impulse I = 2 P tau / pi; on the
+        free mass-spring m x'' = -K x (damping and the sampling aside) it starts an
+        oscillation of velocity amplitude I / m and position amplitude I / sqrt(K m),
+        whose VE force K x + B v has amplitude (I / m) sqrt(K m + B^2) (x and v in
+        quadrature). The pulse itself is held below ``swing`` x the force limit too.
+        """
         c = self.config
-        return excitation.pulse(n, c.sample_time_s, c.pulse_n, c.pulse_s, at_s=0.05)
+        if c.pulse_n is not None:
+            return c.pulse_n
+        f_lim, x_lim, v_lim = self._limits or _limits(Rig())
+        km = ve.K * plant.m
+        impulse = c.swing * min(x_lim * math.sqrt(km), v_lim * plant.m,
+                                f_lim * plant.m / math.sqrt(km + ve.B**2))
+        return min(impulse * math.pi / (2 * c.pulse_s), c.swing * f_lim)
+
+    def pulse(self, n: int, peak_n: float | None = None) -> np.ndarray:
+        c = self.config
+        peak = c.pulse_n if peak_n is None else peak_n
+        return excitation.pulse(n, c.sample_time_s, peak, c.pulse_s, at_s=PULSE_AT_S)
 
     def segments(self, plant: Plant):
         self._last = None
+        c = self.config
+        bracket = []
         for ve in self.plan(plant):
-            yield from self._home(plant, ve)
-            label = f"K={ve.K:.6g}" if self.config.variable == "K" else f"td={ve.td:.6g}"
-            out = yield Segment(label, ve, self.pulse(self.step_samples(ve, plant)),
-                                trip_expected=True)
-            self._last = out.data
-            if self._unstable(out.status, self._sigma(out.data)):
-                return
+            label = f"K={ve.K:.6g}" if c.variable == "K" else f"td={ve.td:.6g}"
+            sigma, unstable = yield from self._step(plant, ve, label,
+                                                    self.step_samples(ve, plant))
+            bracket.append({"K": ve.K, "sigma_per_s": sigma, "unstable": unstable})
+            if unstable:
+                break
+        if c.variable != "K" or not c.refine:
+            return
+        crossing = _crossing(bracket, "K")
+        if crossing is None:
+            return
+        top = self.k_ceiling(plant)
+        n = round(c.refine_s / c.sample_time_s)
+        for K in refine_points(crossing, c.refine, c.refine_span):
+            yield from self._step(plant, c.make_ve(K=min(K, top)), f"{REFINE}K={K:.6g}", n)
+
+    def _step(self, plant: Plant, ve: VirtualEnvironment, label: str, n: int):
+        """Home, then one probe step; returns (sigma, unstable)."""
+        yield from self._home(plant, ve)
+        out = yield Segment(label, ve, self.pulse(n, self.pulse_n(ve, plant)),
+                            trip_expected=True)
+        self._last = out.data
+        sigma = self._sigma(out.data)
+        return sigma, self._unstable(out.status, sigma)
 
     _last: dict | None = None  # data of the last segment (where the handle was left)
+    _limits = None  # (force, position, velocity) limits of the rig, set by check_plan
 
     def _home(self, plant: Plant, next_ve: VirtualEnvironment):
         """Bring the handle back to rest near x = 0 before a step.
@@ -232,20 +346,24 @@ class StabilityProbe(ProtocolBase):
             K_h = min(HOME_K_MAX, 0.1 / max(abs(x), 1e-6))
             B_h = max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0)
             ve = VirtualEnvironment("spring-damper", K_h, B_h, HOME_W0, T, 0.0)
-            if not theory.stability(plant, ve).stable:
+            if not theory.stability(plant, ve, self.device_delay_s).stable:
                 raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {B_h:.3g} N s/m is unstable "
                                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m")
             dur = min(max(6.0 / math.sqrt(K_h / plant.m), 0.3), 3.0)
             out = yield Segment("home", ve, np.zeros(round(dur / T)), role="home")
             self._last = out.data
 
-    def _sigma(self, data: dict) -> float | None:
-        start = 0.05 + self.config.pulse_s + 0.05
+    def _fit(self, data: dict) -> tuple[float, float | None] | None:
+        start = PULSE_AT_S + self.config.pulse_s + 0.05
         t = np.asarray(data["t"], float)
         if t.size == 0:
             return None
         keep = t - t[0] >= start
-        return growth_rate(t[keep], np.asarray(data["position"])[keep], self._floor)
+        return growth_fit(t[keep], np.asarray(data["position"])[keep], self._floor)
+
+    def _sigma(self, data: dict) -> float | None:
+        fit = self._fit(data)
+        return None if fit is None else fit[0]
 
     _floor = 0.0  # envelope floor [m]: 3 encoder counts once the rig is known
 
@@ -254,11 +372,13 @@ class StabilityProbe(ProtocolBase):
         return status == "tripped" or (sigma is not None and sigma > 0)
 
     def analyze(self, data: dict, meta: dict) -> dict:
-        """Per-step growth rates from the recorded position, the measured boundary
-        (zero crossing of sigma), and the exact and approximate predictions."""
-        from labbench import theory
+        """Per-step growth rates (with errors) and observer energy from the recording, the
+        measured boundary (refined: the zero of the long steps' line; else the bracket's
+        crossing), and the exact and approximate predictions with the device's delay."""
+        from labbench import device_delay, theory
 
         plant = Plant(**meta["plant"]) if "plant" in meta else self.plant()
+        latency = device_delay.from_meta(meta)
         self._floor = 3 * float(meta.get("metres_per_count", 0.0))
         var = self.config.variable
         steps = []
@@ -266,37 +386,119 @@ class StabilityProbe(ProtocolBase):
             if seg.get("role", "probe") != "probe":
                 continue
             part = {k: np.asarray(v)[seg["start"]:seg["stop"]] for k, v in data.items()}
-            sigma = self._sigma(part)
+            fit = self._fit(part)
+            sigma, se = (None, None) if fit is None else fit
             ve = VirtualEnvironment.from_dict(seg["ve"])
             steps.append({"K": ve.K, "td_s": ve.td, "status": seg["status"], "sigma_per_s": sigma,
-                          "unstable": self._unstable(seg["status"], sigma)})
-        crossing = _crossing(steps, "K" if var == "K" else "td_s")
+                          "sigma_se_per_s": se, "unstable": self._unstable(seg["status"], sigma),
+                          "phase": "refine" if str(seg.get("label", "")).startswith(REFINE)
+                          else "bracket", "energy_max_j": seg.get("energy_max_j")})
+        bracket = [s for s in steps if s["phase"] == "bracket"]
+        crossing = _crossing(bracket, "K" if var == "K" else "td_s")
+        refined = _refined(steps) if var == "K" else None
         # K is continuous: the zero crossing of sigma is the boundary. td exists in whole
         # samples only: the boundary is the first unstable step (the crossing is kept too).
-        measured = crossing if var == "K" else next(
-            (s["td_s"] for s in steps if s["unstable"]), None)
+        if var == "K":
+            measured = refined["k"] if refined else crossing
+        else:
+            measured = next((s["td_s"] for s in steps if s["unstable"]), None)
         base = self.ve
         if var == "K":
-            exact = theory.k_max(plant, base)
-            approx = theory.k_max_approx(plant, base)
+            exact = theory.k_max(plant, base, latency=latency)
+            approx = theory.k_max_approx(plant, base, latency)
         else:
-            exact, approx = _td_boundaries(plant, base, self.config)
+            exact, approx = _td_boundaries(plant, base, self.config, latency)
+        interval = refined["ci95"] if refined else None
         return {
             "variable": var,
             "steps": steps,
             "plant": {"m": plant.m, "b": plant.b},
+            "device_delay_s": latency,
             "measured_boundary": measured,
+            "measured_ci95": interval,
             "measured_crossing": crossing,
+            "bracket": _bracket(steps, "K" if var == "K" else "td_s"),
             "exact_boundary": exact,
             "approx_boundary": approx,
             "rel_error_vs_exact": _rel(measured, exact),
             "rel_error_approx_vs_measured": _rel(approx, measured),
+            "energy": _energy(steps, "K" if var == "K" else "td_s"),
         }
 
     def report_sections(self, session):
         """Page 1: the measured stability boundary against the exact sampled and the paper's
         predictions; details: every step's growth rate."""
         return _report_sections(self, session)
+
+
+REFINE = "refine "  # label prefix of the refining steps
+
+
+def _limits(rig) -> tuple[float, float, float]:
+    """(force, position, velocity) limits the free response must stay inside: the force
+    limit, the nearer edge of the position window from x = 0, the velocity limit."""
+    lo, hi = rig.position_limits_m
+    reach = min(abs(lo), abs(hi)) if lo < 0 < hi else max(abs(lo), abs(hi))
+    return rig.force_limit_n, reach, rig.velocity_limit_m_s
+
+
+def refine_points(crossing: float, n: int, span: float) -> list[float]:
+    """``n`` values of K spread evenly over crossing x [1 - span, 1 + span], lowest first
+    (the unstable ones last)."""
+    return [crossing * (1 - span + 2 * span * i / (n - 1)) for i in range(n)]
+
+
+def _refined(steps: list[dict]) -> dict | None:
+    """The zero of sigma(K) from the refining steps: weighted least-squares line through
+    (K_i, sigma_i) with weights 1 / se_i^2 (equal weights when an error is missing), K* =
+    -a / b for sigma = a + b K; its 95 % interval by the delta method (the line's
+    covariance from the errors, so the interval is as honest as they are). None with fewer
+    than two fitted steps or a slope that is not positive (noise larger than the span)."""
+    pts = [s for s in steps if s["phase"] == "refine" and s["sigma_per_s"] is not None]
+    if len({s["K"] for s in pts}) < 2:
+        return None
+    K = np.array([s["K"] for s in pts])
+    sig = np.array([s["sigma_per_s"] for s in pts])
+    se = np.array([s["sigma_se_per_s"] or np.nan for s in pts])
+    known = np.isfinite(se) & (se > 0)
+    w = 1.0 / se**2 if known.all() else np.ones_like(K)
+    X = np.column_stack([np.ones_like(K), K])
+    cov = np.linalg.inv(X.T @ (X * w[:, None]))
+    a, b = cov @ (X.T @ (w * sig))
+    if not b > 0:
+        return None
+    k = float(-a / b)
+    if not known.all():
+        return {"k": k, "ci95": None}
+    grad = np.array([-1.0 / b, a / b**2])  # d(-a/b)/d(a, b)
+    half = Z95 * math.sqrt(float(grad @ cov @ grad))
+    return {"k": k, "ci95": [k - half, k + half]}
+
+
+def _bracket(steps: list[dict], key: str) -> list[float] | None:
+    """[largest stable, smallest unstable] value of ``key`` among every step, when both
+    exist in that order: what the steps alone say about the boundary."""
+    stable = [s[key] for s in steps if not s["unstable"]]
+    unstable = [s[key] for s in steps if s["unstable"]]
+    if not stable or not unstable:
+        return None
+    lo, hi = max(stable), min(unstable)
+    return [lo, hi] if lo < hi else None
+
+
+def _energy(steps: list[dict], key: str) -> dict:
+    """What the passivity observer saw: its largest energy in a stable step, and the first
+    step (by ``key``) in which it exceeded 10 % of the most any step reached (the VE
+    generating energy there: not passive), or None."""
+    e = [(s[key], s["energy_max_j"]) for s in steps if s.get("energy_max_j") is not None]
+    if not e:
+        return {"max_stable_j": None, "first_generating": None}
+    top = max(v for _, v in e)
+    stable = [s["energy_max_j"] for s in steps
+              if not s["unstable"] and s.get("energy_max_j") is not None]
+    first = min((k for k, v in e if top > 0 and v > 0.1 * top), default=None)
+    return {"max_stable_j": max(stable) if stable else None, "first_generating": first}
+
 
 
 def _rel(a, b):
@@ -314,18 +516,20 @@ def _crossing(steps: list[dict], key: str) -> float | None:
     return None
 
 
-def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig):
-    """Smallest td (whole samples) the exact sampled model calls unstable at this K, and the
-    paper's continuous estimate td = b/K - T/2 (spring: b = K (T/2 + td))."""
+def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig,
+                   latency: float = 0.0):
+    """Smallest td (whole samples) the exact sampled model calls unstable at this K with the
+    device's delay ``latency``, and the paper's continuous estimate td = b/K - T/2 - latency
+    (spring: b = K (T/2 + td + latency))."""
     from labbench import theory
 
     exact = None
     n1 = round(cfg.td_stop_s / cfg.sample_time_s)
     for n in range(n1 + 1):
-        if not theory.stability(plant, ve.with_(td=n * cfg.sample_time_s)).stable:
+        if not theory.stability(plant, ve.with_(td=n * cfg.sample_time_s), latency).stable:
             exact = n * cfg.sample_time_s
             break
-    approx = plant.b / ve.K - ve.T / 2 if ve.kind == "spring" else None
+    approx = plant.b / ve.K - ve.T / 2 - latency if ve.kind == "spring" else None
     return exact, approx
 
 

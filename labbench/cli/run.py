@@ -8,6 +8,7 @@ identified m, b as theory overlay, then writes the report of both sessions.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -153,8 +154,13 @@ def last_identified(directory, rig) -> dict | None:
     return newest(directory, rig.name, on_skip=skipped)
 
 
-def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
-    """Make the protocol, open the device, run with a session writer; (result, session path)."""
+def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=None,
+             consumers=(), device_options: dict | None = None):
+    """Make the protocol, open the device, run with a session writer; (result, session path).
+
+    ``progress``: the runner's callback (default: a progress bar on stderr); ``consumers``:
+    more record consumers after the session writer; ``device_options``: more options for
+    the device (a simulator's). ``labbench campaign`` runs each point through here."""
     from labbench.realtime import RealtimeConfig
     from labbench.runner import run_recorded
     from labbench.registry import make_protocol
@@ -172,7 +178,7 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
             print(f"labbench run: using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
                   f"identified in {found['session']}", file=sys.stderr)
     protocol = make_protocol(name, sample_time_s=rig.sample_time_s, **options)
-    dev_opts = {"seed": protocol.seed}
+    dev_opts = {"seed": protocol.seed, **(device_options or {})}
     if args.realtime:
         dev_opts["realtime"] = True
     if args.can_log:
@@ -193,10 +199,10 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest):
     session_folder(args.out)  # a folder that takes no new file: refused before the device opens
     device = open_device(args.device, rig, **dev_opts)
     _print_device_notes(device.describe().details)
-    with ProgressBar(name) as bar:
+    with ProgressBar(name) if progress is None else contextlib.nullcontext(progress) as bar:
         # the start record says where the plant came from (the window shows it)
-        return run_recorded(device, protocol, args.out, stop=stop, progress=bar, rig=rig,
-                            realtime=rt,  # simulated or not: the description says
+        return run_recorded(device, protocol, args.out, consumers, stop=stop, progress=bar,
+                            rig=rig, realtime=rt,  # simulated or not: the description says
                             skip_commissioning=args.skip_commissioning,
                             start_extra={"plant_from": plant_from} if plant_from else None)
 

@@ -1,0 +1,231 @@
+"""``labbench campaign SPEC.toml --device DEV``: a sweep spec's points run one after another on
+one device (real or simulated), each as ``labbench run`` runs it, one row each in a table.
+
+The plan is checked whole before anything moves (settings, the commissioning gate, the
+pre-check of every point); on real hardware it is printed (points, estimated time, the
+largest force and stiffness commanded) and the operator asked once (``--yes`` for
+scripts), and ``--confirm`` asks before each point. Force zero and the rig's
+``[campaign] pause_s`` between points. Ctrl-C, SIGTERM, a closed terminal or a device
+fault end the campaign with the finished points kept; the same command again runs the
+rest (the interrupted point again, no finished one twice). docs/campaign.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from labbench.cli.progress import ProgressBar, clock_text
+from labbench.errors import UserError
+from labbench.interrupts import StopRequest, stopping
+from labbench.numfmt import fmt
+
+EXIT_STRICT = 3
+
+
+def register(subparsers) -> None:
+    from labbench.registry import device_names
+
+    p = subparsers.add_parser("campaign", help="run a sweep spec's points on one device, "
+                              "one after another, resumable", description=__doc__.splitlines()[0])
+    p.add_argument("spec", metavar="SPEC.toml", help="the spec (docs/campaign.md, docs/sweep.md)")
+    p.add_argument("--device", choices=device_names(), required=True, help="the device")
+    p.add_argument("--rig", metavar="FILE", help="rig TOML file (default: simulated Phantom-like)")
+    p.add_argument("--table", metavar="DIR",
+                   help="table folder (default campaigns/<spec>-<device>.sweep)")
+    p.add_argument("--out", metavar="DIR", default="sessions",
+                   help="session directory, one session per point (./sessions); also where the "
+                        "rig's last chirp-ID and commissioning are looked for")
+    p.add_argument("--plant-from", choices=("last-id", "nominal"), default="last-id",
+                   help="plant of the pre-checks and predictions: the rig's newest chirp-ID in "
+                        "--out (default), else its nominal; or always the nominal")
+    p.add_argument("--plant-m-kg", type=float, metavar="M", help="plant mass (with --plant-b)")
+    p.add_argument("--plant-b", type=float, metavar="B", help="plant damping [N s/m]")
+    p.add_argument("--yes", action="store_true",
+                   help="real hardware: start without asking (the plan is still printed)")
+    p.add_argument("--confirm", action="store_true", help="ask before each point")
+    p.add_argument("--realtime", action="store_true", help="pace a simulator in real time")
+    p.add_argument("--no-rt", dest="rt", action="store_false", default=None,
+                   help="do not ask for real-time scheduling")
+    p.add_argument("--rt-priority", type=int, metavar="N", help="SCHED_FIFO priority (default 80)")
+    p.add_argument("--port", metavar="PORT", help="with --device serial: the serial port")
+    p.add_argument("--skip-commissioning", action="store_true",
+                   help="render springs and dampers on real hardware before the rig passed "
+                        "`labbench run commission`")
+    p.add_argument("--report", action="store_true",
+                   help="when complete, write the campaign's report (HTML and PDF) in the table")
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit {EXIT_STRICT} when a point's status is not ok")
+    p.add_argument("--json", action="store_true", help="print one JSON object: the summary")
+    p.set_defaults(func=cmd_campaign)
+
+
+def cmd_campaign(args) -> int:
+    from labbench.campaign.engine import run_campaign
+    from labbench.campaign.plan import make_plan
+    from labbench.sweep import table as tables
+    from labbench.sweep.spec import load_spec
+
+    spec = load_spec(args.spec)
+    context = make_context(args)
+    plan = make_plan(spec, context)
+    out = Path(args.table) if args.table else (
+        Path("campaigns") / f"{Path(args.spec).stem}-{args.device}{tables.SUFFIX}")
+    if not args.table:
+        out.parent.mkdir(exist_ok=True)
+    done = tables.done_keys(out) if tables.is_table(out) else set()
+    print_plan(plan, done, out)
+    if not context.simulated and not args.yes:
+        ask(f"start on {args.device} (real hardware)?")
+    stop = StopRequest()
+    progress = CampaignProgress(spec.name)
+    confirm = _confirm if args.confirm else None
+    try:
+        with stopping(stop):
+            summary = run_campaign(plan, out, point_runner(args, context), stop, progress, confirm)
+    finally:
+        progress.close()
+    result = summary.as_dict()
+    result["charts"] = []
+    if summary.complete:
+        result["charts"] = [str(p) for p in write_charts(spec, out)]
+        if args.report:
+            from labbench.campaign.report import write_campaign_report
+
+            html, pdf = write_campaign_report(out)
+            result["report"] = {"html": str(html), "pdf": str(pdf)}
+    print_summary(args, spec, summary, result)
+    if summary.exit_code:
+        return summary.exit_code
+    if summary.interrupted:
+        return 1
+    return EXIT_STRICT if args.strict and summary.not_ok else 0
+
+
+def make_context(args):
+    """The campaign's device, rig, plant and commissioning facts (``labbench.campaign.plan.Context``)."""
+    from labbench.campaign.plan import Context, is_simulator
+    from labbench.campaign.settings import CampaignSettings
+    from labbench.rig import load_rig
+    from labbench.session_catalogue import last_identified, last_results
+    from labbench.ve import Plant
+
+    rig = load_rig(args.rig)
+    simulated = is_simulator(args.device)
+
+    def skipped(path, reason):
+        print(f"labbench campaign: warning: skipped {path}: {reason}", file=sys.stderr)
+
+    if (args.plant_m_kg is None) != (args.plant_b is None):
+        raise UserError("give --plant-m-kg and --plant-b together")
+    if args.plant_m_kg is not None:
+        plant, source = Plant(args.plant_m_kg, args.plant_b), "given"
+    else:
+        found = last_identified(args.out, rig.name, on_skip=skipped) \
+            if args.plant_from == "last-id" else None
+        plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant
+        source = f"chirp-ID {found['session']}" if found else "nominal"
+    commission = {}
+    got = last_results(args.out, rig.name, "commission", on_skip=skipped)
+    if got is not None:
+        res, path = got
+        commission = {"session": path,
+                      "coulomb_n": (res.get("friction") or {}).get("coulomb_n"),
+                      "counts_per_rev": (res.get("scale") or {}).get("counts_per_rev_if_encoder"),
+                      "delay_samples": (res.get("delay") or {}).get("delay_samples")}
+    return Context(args.device, rig, plant, source, simulated,
+                   CampaignSettings.from_rig(rig, simulated), commission,
+                   args.skip_commissioning)
+
+
+def point_runner(args, context):
+    """Each point through ``labbench run``'s own path (``labbench.cli.run._run_one``)."""
+    from labbench.cli.run import _run_one
+
+    def run_point(pp, stop, progress, consumers):
+        ns = argparse.Namespace(**{**vars(args), "protocol": pp.protocol_name, "can_log": None,
+                                   "plant_from": "nominal"})
+        return _run_one(ns, pp.rig, pp.protocol_name, dict(pp.options), stop, progress=progress,
+                        consumers=consumers, device_options=pp.device_options)
+
+    return run_point
+
+
+def print_plan(plan, done: set, out: Path) -> None:
+    s = plan.summary(done)
+    c = plan.context
+    lines = [f"campaign {plan.spec.name} on {c.device} ({'simulator' if c.simulated else 'real hardware'}), "
+             f"rig {c.rig.name!r}: {s['points']} points, {s['done']} already in {out}, "
+             f"{s['to_run']} to run, {s['skipped']} skipped by the pre-check",
+             f"  estimated {clock_text(s['est_s'])} ({clock_text(s['device_s'])} device time, "
+             f"pause {fmt(c.settings.pause_s)} s between points)",
+             f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
+             f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
+             f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_from})"]
+    for line in lines:
+        print(f"labbench campaign: {line}", file=sys.stderr)
+
+
+def ask(question: str) -> None:
+    """One yes from the operator, or UserError."""
+    if not (sys.stdin and sys.stdin.isatty()):
+        raise UserError(f"{question} stdin is not a terminal: give --yes to start without asking")
+    print(f"labbench campaign: {question} [y/N] ", end="", file=sys.stderr, flush=True)
+    if sys.stdin.readline().strip().lower() not in ("y", "yes"):
+        raise UserError("not started: the operator said no")
+
+
+def _confirm(pp) -> bool:
+    print(f"labbench campaign: run {pp.label}? [y/N] ", end="", file=sys.stderr, flush=True)
+    return sys.stdin.readline().strip().lower() in ("y", "yes")
+
+
+class CampaignProgress:
+    """Points done, the running point and the ETA: a bar on a terminal, else a line per point."""
+
+    def __init__(self, name: str, stream=None):
+        self.stream = stream if stream is not None else sys.stderr
+        self.bar = ProgressBar(f"campaign {name}", self.stream)
+
+    def __call__(self, p) -> None:
+        if self.bar.enabled:
+            self.bar((p.done + p.fraction) / max(p.total, 1), f"{p.done}/{p.total} {p.point}")
+        elif p.phase != "run":
+            eta = "?" if p.eta_s is None else clock_text(p.eta_s)
+            print(f"labbench campaign: {p.done}/{p.total} points, {p.point}: {p.message}, "
+                  f"{clock_text(p.elapsed_s)} elapsed, ETA {eta}", file=self.stream, flush=True)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def write_charts(spec, out: Path) -> list[Path]:
+    """The spec's charts into the table folder (as ``labbench sweep`` draws them; the table's
+    own charts are replaced)."""
+    from labbench.sweep import charts, table as tables
+
+    tab = tables.read_table(out)
+    if not spec.charts or not tab.num_rows:
+        return []
+    cols = charts.columns(tab)
+    return [charts.write(cols, c, out / charts.default_file(c, i), force=True)
+            for i, c in enumerate(spec.charts, 1)]
+
+
+def print_summary(args, spec, summary, result: dict) -> None:
+    if args.json:
+        print(json.dumps(result, allow_nan=False))
+        return
+    state = "complete" if summary.complete else f"stopped ({summary.interrupted})"
+    print(f"campaign {spec.name}: {state}; {summary.already + summary.ran + summary.skipped}/"
+          f"{summary.total} points in {summary.table} ({summary.ran} run now, "
+          f"{summary.rerun} of them again after an interruption, {summary.skipped} skipped, "
+          f"{summary.not_ok} not ok, {summary.wall_s:.1f} s)")
+    for path in result["charts"]:
+        print(f"  chart {path}")
+    if "report" in result:
+        print(f"  report {result['report']['html']}  {result['report']['pdf']}")
+    if not summary.complete:
+        print("  run the same command again to run the rest")
+    sys.stdout.flush()
