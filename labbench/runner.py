@@ -15,7 +15,8 @@ how well the loop kept time. A device that reports its link counters
 (``StatusReporting``: stray frames, EMCYs, late SYNCs, CRC errors, ...) has them
 as they stand at each segment's start (its ``segment`` event), at its end (its
 row in the segment table) and after the run (the stop record), as
-``device_counters``.
+``device_counters``. Each row of the segment table also keeps the peak energy the loop's
+passivity observer saw in it (``energy_max_j``, ``labbench.loop``).
 """
 from __future__ import annotations
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from labbench.errors import UserError
 from labbench.rig import Rig
+from labbench.safety import CLAMP, FADE, RATE, TRIPPED
 from labbench.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
@@ -61,6 +62,8 @@ HOME_K_MAX = 20.0  # N/m, stiffest homing spring
 HOME_W0 = 200.0  # rad/s, velocity filter of the homing damper
 PROBE_KINDS = ("spring", "spring-damper")
 PULSE_AT_S = 0.05  # the pulse starts this long into a step
+LOOK_S = 0.05  # zero force this long before the first step: where the handle is
+NONLINEAR = CLAMP | RATE | FADE | TRIPPED  # flags after which a step's loop is not linear
 Z95 = 1.959963984540054  # two-sided 95 % point of the normal distribution
 
 
@@ -89,7 +92,7 @@ class StabilityConfig(Config):
     pulse_n: float | None = setting(None, "peak of the half-sine force pulse that starts each "
                                     "step; none: sized by swing", "N")
     pulse_s: float = setting(0.02, "duration of that pulse", "s")
-    swing: float = setting(0.3, "share of the rig's tightest limit (force, position window, "
+    swing: float = setting(0.5, "share of the rig's tightest limit (force, position window, "
                            "velocity) the free response after the pulse uses (pulse_n none; "
                            "at most 0.8)")
     refine: int = setting(2, "long steps placed around the bracket's zero crossing of the "
@@ -292,8 +295,13 @@ class StabilityProbe(ProtocolBase):
         return excitation.pulse(n, c.sample_time_s, peak, c.pulse_s, at_s=PULSE_AT_S)
 
     def segments(self, plant: Plant):
-        self._last = None
         c = self.config
+        # where is the handle, and is it moving? (a real one is where the last run left it,
+        # perhaps still swinging): a moment of zero force tells, and the first step homes
+        look = yield Segment("home", VirtualEnvironment("none", 0.0, 0.0, math.inf,
+                                                        c.sample_time_s, 0.0),
+                             np.zeros(max(round(LOOK_S / c.sample_time_s), 2)), role="home")
+        self._last = look.data
         bracket = []
         for ve in self.plan(plant):
             label = f"K={ve.K:.6g}" if c.variable == "K" else f"td={ve.td:.6g}"
@@ -327,11 +335,13 @@ class StabilityProbe(ProtocolBase):
     def _home(self, plant: Plant, next_ve: VirtualEnvironment):
         """Bring the handle back to rest near x = 0 before a step.
 
-        The loop disables the device between segments, so the handle coasts; a
+        The loop disables the device between segments, so the handle coasts (and
+        before the first step it is where the last run left it: the probe looks first); a
         step's spring would then start far off centre and its enable gate
         (|command| small) would never open. Each homing stage renders a
         critically damped spring-damper soft enough to enable where the handle
-        is (K_h |x| <= 0.1 N), until K_next |x| <= 0.05 N.
+        is (K_h |x| <= 0.1 N, and B_h |v| <= 0.1 N: a handle still coasting fast gets
+        less than critical damping), until K_next |x| <= 0.05 N and |v| <= 0.01 m/s.
         """
         from labbench import theory
 
@@ -343,8 +353,10 @@ class StabilityProbe(ProtocolBase):
             v = float(self._last["velocity"][-1])
             if abs(next_ve.K * x) <= 0.05 and abs(v) <= 0.01:
                 return
+            # soft enough that the enable gate opens here: |K_h x| and |B_h v| each <= 0.1 N
+            # (a fast coasting handle gets less than critical damping at first)
             K_h = min(HOME_K_MAX, 0.1 / max(abs(x), 1e-6))
-            B_h = max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0)
+            B_h = min(max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0), 0.1 / max(abs(v), 1e-6))
             ve = VirtualEnvironment("spring-damper", K_h, B_h, HOME_W0, T, 0.0)
             if not theory.stability(plant, ve, self.device_delay_s).stable:
                 raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {B_h:.3g} N s/m is unstable "
@@ -354,11 +366,19 @@ class StabilityProbe(ProtocolBase):
             self._last = out.data
 
     def _fit(self, data: dict) -> tuple[float, float | None] | None:
+        """The step's growth fit, from after the pulse to the first sample at which the
+        envelope bent the force (clamp, rate limit, energy fade, trip): past it the loop is
+        no longer the linear one whose growth is asked (a clamped growth looks slower)."""
         start = PULSE_AT_S + self.config.pulse_s + 0.05
         t = np.asarray(data["t"], float)
         if t.size == 0:
             return None
         keep = t - t[0] >= start
+        flags = data.get("flags")
+        if flags is not None:
+            bent = np.flatnonzero(np.asarray(flags) & NONLINEAR)
+            if bent.size:
+                keep[bent[0]:] = False
         return growth_fit(t[keep], np.asarray(data["position"])[keep], self._floor)
 
     def _sigma(self, data: dict) -> float | None:

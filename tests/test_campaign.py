@@ -66,19 +66,26 @@ def etfe_spec(n=3, duration_s=1.0):
 
 
 # --------------------------------------------------------------------------- Z-width
-def test_zwidth_on_sim_finds_every_k_max_within_1_percent(tmp_path):
-    """The shipped Z-width spec's five B (w0 = 125 rad/s) on the plain simulator: every
-    K_max within 1 % of the exact sampled boundary (measured here: within 0.05 %), inside
-    its interval's reach, no command above the force limit, one session per point."""
+@pytest.fixture(scope="module")
+def zwidth(tmp_path_factory):
+    """The shipped Z-width spec's five B at w0 = 125 rad/s on the plain simulator."""
     d = spec_from_dict_file("z-width.toml")
     d["grid"] = {"B": [0.0, 0.25, 0.5, 1.0, 2.0]}
     d["fixed"]["w0_rad_s"] = 125.0
-    summary, rows = run(d, tmp_path)
+    tmp = tmp_path_factory.mktemp("zwidth")
+    summary, rows = run(d, tmp)
+    return summary, rows, tmp / "t.sweep"
+
+
+def test_zwidth_on_sim_finds_every_k_max_within_1_percent(zwidth):
+    """Every K_max within 1 % of the exact sampled boundary (measured here: within 0.02 %),
+    no command above the force limit, one session per point, the rig's facts on each row."""
+    from labbench import theory
+
+    summary, rows, _ = zwidth
     assert summary.complete and summary.ran == 5 and len(rows) == 5
     for r in rows:
         ve = VirtualEnvironment("spring-damper", 1.0, r["B"], 125.0, 1e-3, 0.0)
-        from labbench import theory
-
         exact = theory.k_max(PLANT, ve)  # the truth, computed here
         assert r["status"] == "ok", r["error"]
         assert r["pred.k_max"] == pytest.approx(exact)
@@ -88,7 +95,33 @@ def test_zwidth_on_sim_finds_every_k_max_within_1_percent(tmp_path):
         assert Path(r["session"]).is_file() and r["attempts"] == 1
         assert r["rig.loop_rate_hz"] == 1000.0 and r["ve.w0_rad_s"] == 125.0
         assert r["plant.b"] == PLANT.b and r["rig.metres_per_count"] == Rig().metres_per_count
+        assert r["pred.k_passive"] == pytest.approx(passive_k_max(PLANT, ve.with_(K=1.0)))
     assert len({r["session"] for r in rows}) == 5
+    # the damper helps stability and hurts passivity: K_max grows with B, the passive bound falls
+    k, passive = [r["zw.k_max"] for r in rows], [r["pred.k_passive"] for r in rows]
+    assert k == sorted(k) and passive == sorted(passive, reverse=True)
+    assert all("passive (sampled-data)" in r["zw.crossed"] for r in rows[1:])
+
+
+def test_the_campaign_report_has_the_chart_then_the_points_then_the_sessions(zwidth):
+    from labbench.campaign.figures import write_figures, zwidth_figure
+    from labbench.campaign.report import write_campaign_report
+    from labbench.sweep.charts import columns
+
+    _, rows, table = zwidth
+    fig = zwidth_figure(columns(tables.read_table(table)))
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    for wanted in ("stable, exact sampled", "paper's approximation", "Colgate & Schenkel",
+                   "sampled-data condition", "measured K_max"):
+        assert any(wanted in t for t in labels), (wanted, labels)
+    assert [p.name for p in write_figures(table)] == ["zwidth.png"]
+    html, pdf = write_campaign_report(table)
+    text = html.read_text()
+    chart, points, sessions = (text.index(f"<h1>{h}</h1>") for h in ("Chart", "Points", "Sessions"))
+    assert chart < text.index("<img") < points < sessions
+    assert text.count("<tr>") >= 2 * len(rows)
+    assert all(Path(r["session"]).name in text[sessions:] for r in rows)
+    assert pdf.read_bytes().startswith(b"%PDF")
 
 
 def spec_from_dict_file(name):

@@ -26,9 +26,11 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
   (their b > K T / 2 + |B|) and ``pred.k_passive_quantised`` (Abbott & Okamura's
   2 f_c / Delta with the commissioning's f_c);
 * the stability probe: ``zw.k_max`` (measured), ``zw.ci_lo`` / ``zw.ci_hi`` (its 95 %
-  interval), ``zw.rel_error`` (against ``pred.k_max``), ``zw.observer_k`` (the first step
-  in which the passivity observer saw the VE generate energy) and ``zw.crossed`` (which
-  bounds the measured K_max lies above);
+  interval), ``zw.k_max_above`` (when no step grew: the stiffest step, a lower bound),
+  ``zw.rel_error`` (against ``pred.k_max``), ``zw.observer_k`` (the first step
+  in which the passivity observer saw the VE generate energy) and ``zw.crossed`` (the
+  bounds the device certainly went beyond: below the low end of the interval, or below
+  the lower bound ``zw.k_max_above``);
 * ETFE: the rendering error against the designed impedance, Z_ideal = (m s^2 + (b + B) s
   + K) / s (no sampling, delay or filter), over the accuracy band 2-100 rad/s:
   ``acc.es_median`` / ``acc.es_max`` of |ES - (K - m w^2)| / K and ``acc.ed_median`` /
@@ -49,6 +51,7 @@ import numpy as np
 
 from labbench import device_delay, theory
 from labbench.campaign import passivity
+from labbench.errors import UserError
 from labbench.sweep.point import flatten, typed_row, verdict_columns
 from labbench.ve import Plant
 
@@ -137,13 +140,19 @@ BOUNDS = (("pred.k_passive", "passive (sampled-data)"),
 def _zwidth(res: dict, pred: dict) -> dict:
     k = res.get("measured_boundary")
     ci = res.get("measured_ci95") or [None, None]
+    steps = res.get("steps") or []
+    # no step grew (friction, a ceiling below the device's boundary): K_max is above them all
+    above = max((s["K"] for s in steps), default=None) \
+        if k is None and steps and not any(s["unstable"] for s in steps) else None
+    # what the device certainly reached: the interval's low end, or the lower bound
+    level = (ci[0] if ci[0] is not None else k) if k is not None else above
     exact = pred.get("pred.k_max")
     crossed = [name for col, name in BOUNDS
-               if k is not None and pred.get(col) is not None and k > pred[col]]
-    return {"zw.k_max": k, "zw.ci_lo": ci[0], "zw.ci_hi": ci[1],
+               if level is not None and pred.get(col) is not None and level > pred[col]]
+    return {"zw.k_max": k, "zw.ci_lo": ci[0], "zw.ci_hi": ci[1], "zw.k_max_above": above,
             "zw.rel_error": None if k is None or not exact else k / exact - 1,
             "zw.observer_k": (res.get("energy") or {}).get("first_generating"),
-            "zw.crossed": "; ".join(crossed) if k is not None else None}
+            "zw.crossed": "; ".join(crossed) if level is not None else None}
 
 
 def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:
@@ -179,6 +188,6 @@ def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:
         try:
             out["acc.k_max_fit"] = theory.k_max(Plant(fit["m"], fit["b"]), ve,
                                                 latency=max(fit["td_s"], 0.0))
-        except Exception:  # noqa: BLE001 - a fit outside the physical range has no K_max
+        except UserError:  # a fit outside the physical range (b < 0): no plant, no K_max
             out["acc.k_max_fit"] = None
     return out

@@ -201,16 +201,19 @@ class CampaignProgress:
 
 
 def write_charts(spec, out: Path) -> list[Path]:
-    """The spec's charts into the table folder (as ``labbench sweep`` draws them; the table's
-    own charts are replaced)."""
+    """The campaign's own figures (``labbench.campaign.figures``: the Z-width, rate vs
+    accuracy) and the spec's charts (as ``labbench sweep`` draws them) into the table
+    folder, replacing its earlier ones."""
+    from labbench.campaign.figures import write_figures
     from labbench.sweep import charts, table as tables
 
+    written = write_figures(out)
     tab = tables.read_table(out)
     if not spec.charts or not tab.num_rows:
-        return []
+        return written
     cols = charts.columns(tab)
-    return [charts.write(cols, c, out / charts.default_file(c, i), force=True)
-            for i, c in enumerate(spec.charts, 1)]
+    return written + [charts.write(cols, c, out / charts.default_file(c, i), force=True)
+                      for i, c in enumerate(spec.charts, 1)]
 
 
 def print_summary(args, spec, summary, result: dict) -> None:
