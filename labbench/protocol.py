@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from labbench.errors import UserError
+from labbench.errors import UnstableVEError, UserError
 from labbench.ve import DEFAULT_PLANT, VE_KINDS, Plant, VirtualEnvironment
 
 # Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
@@ -289,7 +289,7 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
     and ``k_max`` / ``k_max_approx`` for the numbers shown, with the device's own
     delay (``delay``, a ``labbench.device_delay.DeviceDelay``; None: the rig's, by
     ``device_delay.resolve(rig)``) as the loop's actuator latency, so K_max is the
-    one the rig has. Raises UserError for an unstable VE unless the protocol's
+    one the rig has. Raises UnstableVEError (a UserError) for an unstable VE unless the protocol's
     ``allow_unstable`` is set (the runner allows that on a simulator only). Returns
     the numbers for the start record (``device_delay`` says which delay was used and
     where it came from).
@@ -309,7 +309,7 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
         if not st.stable and not protocol.allow_unstable:
             bound = f"K_max = {km:.4g} N/m (exact sampled)" if km is not None else "no stable K"
             approx = f", paper approx. {ka:.4g} N/m" if ka is not None else ""
-            raise UserError(
+            raise UnstableVEError(
                 f"refusing unstable {ve.kind} VE K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
                 f"td = {ve.td * 1e3:g} ms (+ {latency * 1e3:g} ms device delay) "
                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m: "

@@ -124,6 +124,19 @@ def test_the_campaign_report_has_the_chart_then_the_points_then_the_sessions(zwi
     assert pdf.read_bytes().startswith(b"%PDF")
 
 
+def test_a_campaign_table_is_read_as_a_sweep_table_but_not_rerun_as_one(zwidth):
+    """The sweep table's reader (the Sweeps tab's) reads it; a sweep's re-run of a point
+    refuses it in one line (its points ran on a device, one after another)."""
+    from labbench.sweep.point import compute_row
+
+    _, rows, table = zwidth
+    assert tables.read_table(table).num_rows == len(rows) and tables.is_table(table)
+    spec = tables.read_spec(table)
+    assert spec["campaign"]["device"] == "sim" and spec["sweep"]["protocol"] == "stability"
+    with pytest.raises(UserError, match="a campaign's table: its points ran on sim"):
+        compute_row(spec, {"index": 0, **json.loads(rows[0]["params_json"])})
+
+
 def spec_from_dict_file(name):
     import tomllib
 

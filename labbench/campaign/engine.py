@@ -9,7 +9,10 @@ not in it yet, in the spec's order:
   (the caller's: the CLI's is ``labbench run``'s own path) and returns (RunResult, session
   path). A run that ends on its own (success, or a safety trip it did not expect, or an
   analysis error: its row says so) is a row, written at once (one part file per row: a
-  row on hardware is minutes of work);
+  row on hardware is minutes of work); so is a point the runner's pre-check refuses once
+  the device declared a delay the rig does not state (status ``refused``);
+* a device that does not open or run (an exception) ends the campaign with no row for
+  the point, raised to the caller;
 * a run that was stopped (Ctrl-C, SIGTERM, the stop button, an E-STOP) or ended by a
   device fault ends the campaign: its session is kept and named in the table's
   ``_attempts.json`` (key -> the sessions of runs that did not finish, and why), it gets
@@ -31,7 +34,7 @@ from pathlib import Path
 
 from labbench import records
 from labbench.campaign import rows
-from labbench.errors import UserError
+from labbench.errors import UnstableVEError, UserError
 from labbench.safe_write import replacing
 from labbench.sweep import table as tables
 
@@ -178,13 +181,14 @@ def run_campaign(plan, table_dir, run_point: Callable, stop,
             try:
                 result, session = run_point(pp, stop,
                                             lambda f, m, _pp=pp: report(_pp, "run", f, m), [peak])
-            except UserError as exc:  # refused by the runner (e.g. the device's own delay)
+            except UnstableVEError as exc:  # the runner's pre-check, with the device's delay
                 row = rows.base_row(pp, plan.context)
                 row.update(status="refused", error=str(exc), attempts=len(earlier) + 1)
                 writer.append(rows.typed_row(row))
                 summary.ran += 1
                 continue
-            except Exception as exc:  # a device that failed to open or run: kept, then raised
+            except Exception as exc:  # a device that did not open or run (a wrong port, a
+                # dead bus): no row, the point runs again next time; raised to the caller
                 attempts.add(pp.key, None, f"{type(exc).__name__}: {exc}")
                 summary.interrupted = f"{pp.label}: {exc}"
                 raise

@@ -27,7 +27,7 @@ import numpy as np
 
 from labbench import commissioning, device_delay
 from labbench.campaign.settings import CampaignSettings
-from labbench.errors import UserError
+from labbench.errors import UnstableVEError, UserError
 from labbench.rig import Rig, rig_from_dict
 from labbench.sweep.point import DEVICE_DELAY, K_FRACTION, route
 from labbench.sweep.spec import Point, Spec, point_key
@@ -170,7 +170,7 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
                       {**dev, **({"seed": seed} if seed is not None else {})}, protocol)
     try:
         report = precheck(protocol, plant, rig, delay)
-    except UserError as exc:  # the probe's first step is vetted, its later ones are its point
+    except UnstableVEError as exc:  # the probe's first step is vetted, its later ones its point
         pp.skipped = f"pre-check: {exc}"
         return pp
     pp.est_s = float(protocol.n_samples) * rig.sample_time_s

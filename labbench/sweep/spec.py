@@ -197,6 +197,12 @@ def spec_from_dict(d: dict, source: str = "<dict>") -> Spec:
     """Validate a parsed spec; one UserError naming the file and the field."""
     if not isinstance(d, dict):
         raise UserError(f"{source}: a spec is a table")
+    if "campaign" in d:  # the _spec.json of a table labbench campaign wrote
+        c = d["campaign"]
+        device = c.get("device") if isinstance(c, dict) else None
+        raise UserError(f"{source}: a campaign's table: its points ran on {device or 'a device'} "
+                        "one after another; run them again with labbench campaign "
+                        "(docs/campaign.md)")
     for k in d:
         if k not in TABLES:
             raise UserError(f"{source}: {unknown_name('table', k, TABLES)}")
