@@ -18,7 +18,7 @@ from labbench.interrupts import StopRequest
 from labbench.sweep import table as tables
 from labbench.sweep.spec import spec_from_dict
 from test_campaign import args_for, sessions_by_status
-from test_canopennode import CALM, drive, no_process_left, stack  # noqa: F401 - fixtures
+from test_canopennode import drive, no_process_left, stack  # noqa: F401 - fixtures
 
 # the hardware watchdog above a loaded machine's stalls; a short pause between points
 TABLES = {"safety": {"watchdog_s": 2.0}, "campaign": {"pause_s": 0.2}}
