@@ -61,7 +61,7 @@ def campaign(device: str, rig, d: dict, work: Path, lockstep: bool = False):
     args = argparse.Namespace(device=device, rig=None, out=str(work / "s"), realtime=False,
                                rt=None, rt_priority=None, port=None, can_log=None,
                                plant_from="nominal", skip_commissioning=not simulated)
-    run_point = point_runner(args, ctx)
+    run_point = point_runner(args)
     if lockstep:  # the CANopen driver paces SYNC by default; the test drive runs lock-step
         inner = run_point
 
@@ -130,7 +130,9 @@ def main() -> int:
             errs = [abs(r["zw.rel_error"]) for r in rows if r.get("zw.rel_error") is not None]
             worst[device] = (max(errs) if len(errs) == len(rows) else None,
                              max(r.get("device_s", 0) for r in rows), summary.complete)
-            lines += ["", f"Complete: {summary.complete}; largest |error| "
+            lines += ["", f"Complete: {summary.complete}"
+                      + (f" (stopped: {summary.interrupted})" if summary.interrupted else "")
+                      + "; largest |error| "
                       f"{pct(worst[device][0])}; longest point {worst[device][1]:.0f} s of device "
                       f"time; campaign wall time {wall:.0f} s.", ""]
             print("\n".join(lines[-len(rows) - 6:]), flush=True)

@@ -51,7 +51,7 @@ def run(spec_dict, tmp_path, ctx=None, stop=None, **kw):
     plan = make_plan(spec_from_dict(spec_dict), ctx)
     args = args_for(tmp_path / "sessions", ctx.device)
     (tmp_path / "sessions").mkdir(exist_ok=True)
-    summary = engine.run_campaign(plan, tmp_path / "t.sweep", point_runner(args, ctx),
+    summary = engine.run_campaign(plan, tmp_path / "t.sweep", point_runner(args),
                                   stop or StopRequest(), **kw)
     return summary, tables.read_table(tmp_path / "t.sweep").to_pylist()
 
@@ -379,6 +379,21 @@ def cli(*argv, stdin=None):
     return code, out.getvalue(), err.getvalue()
 
 
+class Terminal:
+    """stdin as a terminal that answers ``text``."""
+
+    def __init__(self, text):
+        import io
+
+        self._lines = io.StringIO(text)
+
+    def isatty(self):
+        return True
+
+    def readline(self):
+        return self._lines.readline()
+
+
 def test_real_hardware_asks_once_and_refuses_without_a_terminal(tmp_path, monkeypatch):
     rig = tmp_path / "rig.toml"
     rig.write_text('[rig]\nname = "bench"\ndirection_checked = "2026-01-01"\n')
@@ -386,9 +401,14 @@ def test_real_hardware_asks_once_and_refuses_without_a_terminal(tmp_path, monkey
     spec.write_text('[sweep]\nprotocol = "etfe"\n[grid]\nK = [10.0, 20.0]\n')
     monkeypatch.chdir(tmp_path)
     code, out, err = cli("campaign", str(spec), "--device", "serial", "--rig", str(rig))
-    assert code == 2
-    assert "real hardware" in err and "2 points" in err and "largest force planned" in err
-    assert "give --yes" in err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "real hardware" in err and "give --yes" in err
+    assert not (tmp_path / "campaigns" / "k-serial.sweep").exists()
+    # a terminal that says no: the plan first, then one question, nothing started
+    monkeypatch.setattr("sys.stdin", Terminal("n\n"))
+    code, out, err = cli("campaign", str(spec), "--device", "serial", "--rig", str(rig))
+    assert code == 2 and "2 points" in err and "largest force planned" in err
+    assert "start on serial (real hardware)? [y/N]" in err and "the operator said no" in err
     assert not (tmp_path / "campaigns" / "k-serial.sweep").exists()
 
 

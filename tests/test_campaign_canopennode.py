@@ -30,7 +30,7 @@ def campaign(r, spec: dict, tmp_path, stop=None, progress=None):
     plan = make_plan(spec_from_dict(spec), ctx)
     (tmp_path / "s").mkdir(exist_ok=True)
     args = args_for(tmp_path / "s", "canopen", skip_commissioning=True)
-    run_point = point_runner(args, ctx)
+    run_point = point_runner(args)
 
     def lockstep(pp, *rest):  # SYNC when the loop asks (the driver's default is paced)
         return run_point(replace(pp, device_options={**pp.device_options, "realtime": False}),

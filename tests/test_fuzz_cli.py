@@ -38,7 +38,10 @@ def files(tmp_path_factory):
     fifo = d / "fifo"
     os.mkfifo(fifo)
     (d / "folder").mkdir()
-    return {"session": w.path, "csv": csv, "fifo": fifo, "dir": d}
+    spec = d / "k.toml"
+    spec.write_text('[sweep]\nprotocol = "etfe"\n[fixed]\nduration_s = 0.5\nve = "spring"\n'
+                    '[grid]\nK = [10.0, 20.0]\n')
+    return {"session": w.path, "csv": csv, "fifo": fifo, "dir": d, "spec": spec}
 
 
 def _paths(f):
@@ -79,6 +82,10 @@ def _entries(f):
         "report": (["report", str(f["session"]), "-o", str(d / "rep"), "--force"], [],
                    ["FILE", "-o"]),
         "devices": (["devices", "--json"], [], ["--rig"]),
+        "campaign": (["campaign", str(f["spec"]), "--device", "sim", "--table",
+                      str(d / "c.sweep"), "--out", out, "--json", "--plant-from", "nominal"],
+                     ["--plant-m-kg", "--plant-b", "--rt-priority", "--device"],
+                     ["FILE", "--rig", "--table", "--out"]),
     }
 
 
@@ -119,7 +126,8 @@ def _fuzz(files, n_cases: int, seed: int) -> Tally:
         rng = random.Random(f"{seed}:{entry}")
         for _ in range(n_cases):
             argv = _mutate(rng, base, numeric, paths, hostile_paths)
-            tally.add(entry, run_cli(argv), allow_failed_run=argv[0] in ("run", "devices"))
+            tally.add(entry, run_cli(argv),
+                      allow_failed_run=argv[0] in ("run", "devices", "campaign"))
     print("\n" + tally.report())
     return tally
 

@@ -75,15 +75,19 @@ def cmd_campaign(args) -> int:
     if not args.table:
         out.parent.mkdir(exist_ok=True)
     done = tables.done_keys(out) if tables.is_table(out) else set()
+    asking = not context.simulated and not args.yes
+    if asking and not (sys.stdin and sys.stdin.isatty()):
+        raise UserError(f"{args.device} is real hardware and stdin is not a terminal to ask "
+                        "on: give --yes to start without asking (the plan is printed)")
     print_plan(plan, done, out)
-    if not context.simulated and not args.yes:
+    if asking:
         ask(f"start on {args.device} (real hardware)?")
     stop = StopRequest()
     progress = CampaignProgress(spec.name)
     confirm = _confirm if args.confirm else None
     try:
         with stopping(stop):
-            summary = run_campaign(plan, out, point_runner(args, context), stop, progress, confirm)
+            summary = run_campaign(plan, out, point_runner(args), stop, progress, confirm)
     finally:
         progress.close()
     result = summary.as_dict()
@@ -139,7 +143,7 @@ def make_context(args):
                    args.skip_commissioning)
 
 
-def point_runner(args, context):
+def point_runner(args):
     """Each point through ``labbench run``'s own path (``labbench.cli.run._run_one``)."""
     from labbench.cli.run import _run_one
 
@@ -168,9 +172,7 @@ def print_plan(plan, done: set, out: Path) -> None:
 
 
 def ask(question: str) -> None:
-    """One yes from the operator, or UserError."""
-    if not (sys.stdin and sys.stdin.isatty()):
-        raise UserError(f"{question} stdin is not a terminal: give --yes to start without asking")
+    """One yes from the operator (on the terminal), or UserError."""
     print(f"labbench campaign: {question} [y/N] ", end="", file=sys.stderr, flush=True)
     if sys.stdin.readline().strip().lower() not in ("y", "yes"):
         raise UserError("not started: the operator said no")
