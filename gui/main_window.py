@@ -27,6 +27,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
+from labbench.gui.campaign_view import CampaignView, table_and_chart
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.estop_keys import ARMED_HINT, KEYS, UNARMED_HINT, EStopKeys
@@ -142,6 +143,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._replay_length = 0  # samples in the session being replayed (0: not known yet)
         self._live_timing = False  # the acquisition process sends the loop's timing live
         self._reanalysis: threading.Event | None = None  # cancels the re-analysis under way
+        self.campaign_plan = None  # labbench.campaign.plan.Plan of the spec opened
+        self.campaign_table: Path | None = None  # its table folder
+        self.campaign_stop = None  # StopRequest of the campaign under way
+        self._point = None  # the point running: (planned point, consumers, answer, Event)
 
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
@@ -189,6 +194,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.commission = CommissionView(self.settings)
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
         self.sweeps = SweepView(self.session_dir)  # a re-run point's session goes with the runs
+        self.campaign = CampaignView()
         self.units_choice = UnitsChoice()
         self.log = EventLog()
         self.banner = QtWidgets.QLabel()
@@ -211,7 +217,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs = QtWidgets.QTabWidget()
         for page, title in ((self.live, "Live"), (self.id_view, "Identification"),
                             (self.commission, "Commissioning"), (self.sessions, "Sessions"),
-                            (self.sweeps, "Sweeps")):
+                            (self.sweeps, "Sweeps"), (self.campaign, "Campaign")):
             self.tabs.addTab(page, title)
         self.tabs.setCornerWidget(self.units_choice, QtCore.Qt.Corner.TopRightCorner)
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
@@ -258,6 +264,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.export_requested.connect(self.export)
         self.sessions.cancel_requested.connect(self.cancel_reanalysis)
         self.sweeps.session_requested.connect(lambda path: self.replay(path, None))
+        self.campaign.open_requested.connect(self.open_campaign)
+        self.campaign.start_requested.connect(self.start_campaign)
+        self.campaign.stop_requested.connect(self.stop_campaign)
+        self.campaign.session_requested.connect(lambda path: self.replay(path, None))
         self.units_choice.changed.connect(self.set_units)
 
     def _follow_state(self) -> None:
@@ -265,6 +275,7 @@ class MainWindow(QtWidgets.QMainWindow):
         state = self.state
         self.protocol_panel.follow(state)
         self.commission.follow(state)
+        self.campaign.follow(state)
         self.device_panel.follow(state)
         self.sessions.follow(state)
         self.estop.set_latched(state.latched)
@@ -296,21 +307,23 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- device ---------------------------------------------------------------------------
     @guarded
-    def connect_device(self, backend: str, opener=None):
+    def connect_device(self, backend: str, opener=None, rig=None, options: dict | None = None):
         """Open ``backend`` in the acquisition process (``opener(rig, **options)`` instead of the
-        registry's factory when given: a picklable callable, e.g. for an injected fault)."""
+        registry's factory when given: a picklable callable, e.g. for an injected fault);
+        ``rig`` and ``options``: a campaign point's own (default the window's rig)."""
         self._new_action()
         from labbench.registry import open_device
 
         self.state.connecting()
-        options = {"realtime": self.realtime} if backend == "sim" else {}
+        options = {**({"realtime": self.realtime} if backend == "sim" else {}), **(options or {})}
         self.log.add("info", f"connecting to {backend} ...")
         self._backend_connected = backend
         self.device = None
         self.estop_confirmed = False
         self.health = {}
         self.device_panel.set_connected(None)
-        self.acquisition.connect(opener or functools.partial(open_device, backend), self.rig, options)
+        self.acquisition.connect(opener or functools.partial(open_device, backend),
+                                 rig or self.rig, options)
 
     @guarded
     def disconnect_device(self):
@@ -359,6 +372,8 @@ class MainWindow(QtWidgets.QMainWindow):
         the GUI or for the loop."""
         self.acquisition.emergency_stop()
         self.stop_event.set()
+        if self.campaign_stop is not None:
+            self.campaign_stop.set("emergency stop (E-STOP)")
         had_device = self.state.link != "none"
         if self.mode != IDLE:
             self._halt(f"E-STOP: force zeroed, {self._activity} stopped at {100 * self._progress:.0f} %")
@@ -468,6 +483,21 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.state.wait_for_device()  # no second Start while the first waits
                 self.protocol_panel.set_progress(0.0, f"connecting to {backend} ...")
             return
+        values, plant_from = self.protocol_values(name)
+        if plant_from:
+            self.log.add("info", f"using m = {plant_from['m']:.5g} kg, b = "
+                                 f"{plant_from['b']:.5g} N s/m identified in {plant_from['session']}")
+        shown = self.commission.shown() if name == COMMISSION else self.protocol_panel.state()
+        extra = {"gui_settings": shown}
+        if plant_from:
+            extra["plant_from"] = plant_from  # as labbench run records it
+        if name == COMMISSION:
+            self.commission.show_state("commissioning ...")
+        self._launch(protocol, values, self.rig, extra, plant_from)
+
+    def _launch(self, protocol, values: dict, rig, extra: dict, plant_from: dict | None = None):
+        """Start ``protocol`` (made from ``values``) on the connected device: the one way a run
+        leaves the window (a Start, commissioning, a campaign's point)."""
         self.live.reset()
         self._rate = (time.monotonic(), 0)
         self.stop_event = threading.Event()
@@ -476,22 +506,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self._progress, self._halted = 0.0, ""
         self._live_timing = False
         self._run_started = time.monotonic()
-        values, self._plant_from = self.protocol_values(name)
+        self._plant_from = plant_from
         self.state.run()
         self.protocol_panel.set_progress(0.0, "starting ...")
-        if self._plant_from:
-            found = self._plant_from
-            self.log.add("info", f"using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
-                                 f"identified in {found['session']}")
         self.log.add("info", f"start {protocol.name} with these settings:",
                      rows=settings_rows(protocol.config.as_dict()))
-        shown = self.commission.shown() if name == COMMISSION else self.protocol_panel.state()
-        extra = {"gui_settings": shown}
-        if self._plant_from:
-            extra["plant_from"] = self._plant_from  # as labbench run records it
-        if name == COMMISSION:
-            self.commission.show_state("commissioning ...")
-        self.acquisition.run(name, values, self.rig, self.session_dir, start_extra=extra,
+        self.acquisition.run(protocol.name, values, rig, self.session_dir, start_extra=extra,
                              simulated=self.simulated, skip_commissioning=self.skip_commissioning)
 
     @guarded
@@ -544,6 +564,161 @@ class MainWindow(QtWidgets.QMainWindow):
             self.log.add("info", f"stop requested ({self.mode})")
             self._halt(f"stopping the {self._activity} at {100 * self._progress:.0f} % ...")
 
+
+    # ----- campaign -----------------------------------------------------------------------
+    @guarded
+    def open_campaign(self, path: str):
+        """Plan the spec at ``path`` on the backend chosen, with the window's rig, the plant
+        its runs use (the rig's newest chirp-ID, else its nominal) and the rig's last
+        commissioning; the Campaign page shows the plan, or why there is none."""
+        from labbench.campaign.plan import Context, commission_facts, describe, make_plan
+        from labbench.campaign.settings import CampaignSettings
+        from labbench.sweep import table as tables
+        from labbench.sweep.spec import load_spec
+
+        self._new_action()
+        backend = self.device_panel.backend.currentText()
+        found = self.identified
+        try:
+            plant = Plant(found["m"], found["b"]) if found else self.rig.nominal_plant
+            context = Context(backend, self.rig, plant,
+                              f"chirp-ID {found['session']}" if found else "nominal",
+                              self.simulated, CampaignSettings.from_rig(self.rig, self.simulated),
+                              commission_facts(self.session_dir, self.rig.name),
+                              self.skip_commissioning)
+            plan = make_plan(load_spec(path), context)
+        except UserError as exc:
+            self.campaign_plan = None
+            self.campaign.show_plan(None, str(exc))
+            return
+        table_dir = self.session_dir / "campaigns" / f"{Path(path).stem}-{backend}{tables.SUFFIX}"
+        done = tables.done_keys(table_dir) if tables.is_table(table_dir) else set()
+        self.campaign_plan, self.campaign_table = plan, table_dir
+        self.campaign.show_plan(describe(plan, done, table_dir))
+        self._show_campaign_table()
+
+    @guarded
+    def start_campaign(self):
+        """Run the plan's points still to run, each through the same launch as a Start (on
+        real hardware the plan is asked about once first)."""
+        from labbench.campaign.engine import run_campaign
+        from labbench.campaign.plan import describe
+        from labbench.interrupts import StopRequest
+
+        self._new_action()
+        plan = self.campaign_plan
+        if plan is None:
+            raise UserError("open a campaign spec first")
+        self.state.check_start()
+        if not plan.context.simulated:
+            lines = describe(plan, set(), self.campaign_table)
+            yes = QtWidgets.QMessageBox.question(
+                self, "Start the campaign", "\n".join(lines) + "\n\nStart on real hardware?")
+            if yes != QtWidgets.QMessageBox.StandardButton.Yes:
+                return
+        self.campaign_stop = StopRequest()
+        self.state.campaign_started()
+        self.campaign.set_running(True)
+        self.campaign.show_state("starting ...")
+        self.campaign_table.parent.mkdir(parents=True, exist_ok=True)
+        self.log.add("info", f"campaign {plan.spec.name}: {len(plan.points)} points into "
+                             f"{self.campaign_table}")
+        run_in_background(self.mailbox, "campaign", run_campaign, plan, self.campaign_table,
+                          self._campaign_point, self.campaign_stop,
+                          progress=lambda p: self.mailbox.put("result", ("campaign_progress", p)))
+
+    @guarded
+    def stop_campaign(self):
+        """Stop the campaign: the point running is stopped (it runs again next time)."""
+        if self.campaign_stop is not None:
+            self.campaign_stop.set("stopped in the window")
+            self.campaign.show_state("stopping ...")
+        if self.mode == RUNNING:
+            self.stop_run()
+
+    def _campaign_point(self, pp, stop, progress, consumers):
+        """The campaign thread's point runner (``labbench.campaign.engine``): hands the point
+        to the GUI thread, which connects the device with the point's rig and runs it, and
+        waits for its (RunResult, session) or its failure."""
+        from labbench.errors import DeviceError
+
+        answer, done = {}, threading.Event()
+        self.mailbox.put("result", ("campaign_point", (pp, consumers, answer, done)))
+        done.wait()
+        if "error" in answer:
+            raise DeviceError(answer["error"])
+        return answer["result"], answer["session"]
+
+    def _on_campaign_point_done(self, point) -> None:
+        pp, _consumers, answer, done = point
+        self._point = point
+        if self.campaign_stop is None or self.campaign_stop.is_set():
+            from labbench.runner import RunResult
+
+            self._finish_point(result=RunResult("aborted", "campaign stopped"), session=None)
+            return
+        self.campaign.show_state(f"point {pp.point.index + 1} of {len(self.campaign_plan.points)}: "
+                                 f"{pp.label}")
+        try:  # a fresh device per point, opened with the point's rig (as labbench campaign)
+            self.connect_device(self.campaign_plan.context.device, rig=pp.rig,
+                                options=pp.device_options)
+        except Exception as exc:  # noqa: BLE001 - the campaign thread hears it
+            self._finish_point(error=describe_error(exc))
+
+    def _launch_point(self) -> None:
+        from labbench.registry import make_protocol
+
+        pp = self._point[0]
+        try:
+            protocol = make_protocol(pp.protocol_name, sample_time_s=pp.rig.sample_time_s,
+                                     **pp.options)
+            self._launch(protocol, dict(pp.options), pp.rig,
+                         {"campaign": {"name": self.campaign_plan.spec.name, "key": pp.key,
+                                       "params": pp.point.params}})
+        except Exception as exc:  # noqa: BLE001 - the campaign thread hears it
+            self._finish_point(error=describe_error(exc))
+
+    def _finish_point(self, error: str | None = None, result=None, session=None) -> None:
+        """The point's run is over (or could not start): the campaign thread goes on."""
+        if self._point is None:
+            return
+        _pp, _consumers, answer, done = self._point
+        self._point = None
+        if error is not None:
+            answer["error"] = error
+        else:
+            answer.update(result=result, session=session)
+        done.set()
+
+    def _on_campaign_progress_done(self, p) -> None:
+        if p.phase == "done":
+            self._show_campaign_table()
+        eta = "" if p.eta_s is None else f", about {p.eta_s / 60:.1f} min left"
+        self.campaign.show_state(f"{p.done} of {p.total} points; {p.point}: {p.message}{eta}")
+
+    def _on_campaign_done(self, summary) -> None:
+        state = "complete" if summary.complete else f"stopped: {summary.interrupted}"
+        self._campaign_over(f"campaign {state}; {summary.ran} run now ({summary.rerun} again "
+                            f"after an interruption), {summary.skipped} skipped, "
+                            f"{summary.not_ok} not ok")
+
+    def _campaign_over(self, line: str) -> None:
+        self._finish_point(error="the campaign ended")
+        self.campaign_stop = None
+        self.state.campaign_ended()
+        self.campaign.set_running(False)
+        self.campaign.show_state(line)
+        self.log.add("info", line)
+        self._show_campaign_table()
+
+    def _show_campaign_table(self) -> None:
+        if self.campaign_table is not None:
+            run_in_background(self.mailbox, "campaign_table", table_and_chart, self.campaign_table)
+
+    def _on_campaign_table_done(self, value) -> None:
+        rows, png = value
+        self.campaign.show_table(rows, png)
+
     # ----- remembered state -----------------------------------------------------------------
     def _restore_state(self) -> None:
         s = self.settings
@@ -595,6 +770,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def _handle(self, kind: str, payload):
         if kind == "record":
             self.live.feed(payload)
+            if self._point is not None and self.mode == RUNNING:
+                for consume in self._point[1]:
+                    consume(payload)
             if payload.get("kind") == EVENT:
                 self.log.add("event", f"{payload.get('name')}: {payload.get('reason')}")
                 if payload.get("name") == "segment" and self.mode == RUNNING:
@@ -638,6 +816,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if self.mode == RUNNING:
                 self._run_finished("run ended: the acquisition process died")
             self.state.disconnected()
+            self._finish_point(error=f"the acquisition process ended (exit code {payload})")
             self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
                             "reconnect the device")
 
@@ -675,6 +854,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self.state.disconnected()
         if tag in ("run", "replay"):
             self._run_finished(f"{tag} failed: {message}")
+        if tag in ("connect", "run"):
+            self._finish_point(error=f"{tag}: {message}")
+        if tag == "campaign":
+            self._campaign_over(f"campaign ended: {message}")
         self.show_error(f"{tag}: {message}")
 
     def _on_connect_done(self, desc):
@@ -687,6 +870,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log.add("info", f"connected: {desc.name} ({desc.kind})")
         if self.state.take_pending_start():
             self.start_protocol(self._pending_protocol)
+        elif self._point is not None and self.state.link == "connected":
+            self._launch_point()
 
     def _on_disconnect_done(self, _):
         self.log.add("info", "disconnected")
@@ -712,6 +897,7 @@ class MainWindow(QtWidgets.QMainWindow):
         done = f"{100 * self._progress:.0f} %" if status != "success" else "100 %"
         self._run_finished(f"run {status} at {done}" + (f": {reason}" if status != "success" else ""))
         self.refresh_sessions()  # the run's session selected once the list has it
+        self._finish_point(result=result, session=self.session_path)
 
     def _on_replay_done(self, status):
         from labbench.records import protocol_name
@@ -953,6 +1139,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_keys.remove()  # the application's filter: a closed window stops nothing
         self.save_state()
         self.stop_event.set()
+        if self.campaign_stop is not None:
+            self.campaign_stop.set("the window closed")
+        self._finish_point(error="the window closed")
         for t in (self.redraw_timer, self.estimate_timer, self.health_timer):
             t.stop()
         if self._replay is not None:

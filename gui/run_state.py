@@ -10,6 +10,8 @@ one line a person can act on (``UserError``); pages only read the state and foll
                (connecting --failed--> none; any --disconnect/died--> none)
     activity:  idle --run (link connected)--> running --ended--> idle
                idle --replay--> replay --ended--> idle
+    campaign:  off --campaign_started--> on --campaign_ended--> off; while on, only the
+               campaign's own points run (Start and the pages' runs are refused)
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ class RunState(QtCore.QObject):
         self.activity = IDLE
         self.start_when_connected = False  # Start pressed before the device was open
         self.stopping = False  # Stop or E-STOP pressed: the run or replay is ending
+        self.campaign = False  # a campaign is under way (its points are the only runs)
 
     # ----- what pages read --------------------------------------------------------------------
     @property
@@ -41,6 +44,8 @@ class RunState(QtCore.QObject):
         """One word for the status bar: the activity while there is one, else the link."""
         if self.activity != IDLE:
             return self.activity
+        if self.campaign:
+            return "campaign"
         return {NONE: "idle"}.get(self.link, self.link)
 
     @property
@@ -50,7 +55,8 @@ class RunState(QtCore.QObject):
     @property
     def can_start(self) -> bool:
         """Start (a run, commissioning) may be pressed: nothing under way, no latch."""
-        return self.activity == IDLE and not self.start_when_connected and self.link != LATCHED
+        return (self.activity == IDLE and not self.start_when_connected and self.link != LATCHED
+                and not self.campaign)
 
     @property
     def armed(self) -> bool:
@@ -65,6 +71,8 @@ class RunState(QtCore.QObject):
             return LATCH_HINT
         if self.start_when_connected:
             return "waiting for the device to connect"
+        if self.campaign:
+            return "a campaign is in progress; stop it first"
         return ""
 
     # ----- transitions ------------------------------------------------------------------------
@@ -126,6 +134,15 @@ class RunState(QtCore.QObject):
     def ended(self) -> None:
         self.stopping = False
         self._set(activity=IDLE)
+
+    def campaign_started(self) -> None:
+        self.check_start()
+        self.campaign = True
+        self.changed.emit()
+
+    def campaign_ended(self) -> None:
+        self.campaign = False
+        self.changed.emit()
 
     def latch(self) -> None:
         """E-STOP: a device (being) connected latches; with none, nothing to latch."""

@@ -28,6 +28,7 @@ import numpy as np
 from labbench import commissioning, device_delay
 from labbench.campaign.settings import CampaignSettings
 from labbench.errors import UnstableVEError, UserError
+from labbench.numfmt import fmt
 from labbench.rig import Rig, rig_from_dict
 from labbench.sweep.point import DEVICE_DELAY, K_FRACTION, route
 from labbench.sweep.spec import Point, Spec, point_key
@@ -111,6 +112,37 @@ class Plan:
                 "peak_force_n": max((p.peak_force_n for p in run), default=0.0),
                 "force_limit_n": max((p.rig.force_limit_n for p in run), default=0.0),
                 "max_k": max((p.max_k for p in run), default=0.0)}
+
+
+def describe(plan: Plan, done: set, where) -> list[str]:
+    """What a person sees before a campaign starts (the CLI prints it, the window shows it):
+    the points, those already in the table ``where``, the time, the largest force and
+    stiffness it will command, the plant."""
+    s = plan.summary(done)
+    c = plan.context
+    kind = "simulator" if c.simulated else "real hardware"
+    return [f"campaign {plan.spec.name} on {c.device} ({kind}), rig {c.rig.name!r}: "
+            f"{s['points']} points, {s['done']} already in {where}, {s['to_run']} to run, "
+            f"{s['skipped']} skipped by the pre-check",
+            f"  estimated {fmt(s['est_s'] / 60, 3)} min ({fmt(s['device_s'] / 60, 3)} min "
+            f"device time, pause {fmt(c.settings.pause_s)} s between points)",
+            f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
+            f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
+            f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_from})"]
+
+
+def commission_facts(directory, rig_name: str, on_skip=None) -> dict:
+    """What the rig's newest successful commissioning in ``directory`` found (``{}``: none):
+    its session, Coulomb estimate, counts/rev (if the encoder is wrong) and delay."""
+    from labbench.session_catalogue import last_results
+
+    got = last_results(directory, rig_name, "commission", on_skip=on_skip)
+    if got is None:
+        return {}
+    res, path = got
+    return {"session": path, "coulomb_n": (res.get("friction") or {}).get("coulomb_n"),
+            "counts_per_rev": (res.get("scale") or {}).get("counts_per_rev_if_encoder"),
+            "delay_samples": (res.get("delay") or {}).get("delay_samples")}
 
 
 def target(spec: Spec, context: Context) -> dict:

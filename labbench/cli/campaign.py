@@ -19,7 +19,6 @@ from pathlib import Path
 from labbench.cli.progress import ProgressBar, clock_text
 from labbench.errors import UserError
 from labbench.interrupts import StopRequest, stopping
-from labbench.numfmt import fmt
 
 EXIT_STRICT = 3
 
@@ -109,10 +108,10 @@ def cmd_campaign(args) -> int:
 
 def make_context(args):
     """The campaign's device, rig, plant and commissioning facts (``labbench.campaign.plan.Context``)."""
-    from labbench.campaign.plan import Context, is_simulator
+    from labbench.campaign.plan import Context, commission_facts, is_simulator
     from labbench.campaign.settings import CampaignSettings
     from labbench.rig import load_rig
-    from labbench.session_catalogue import last_identified, last_results
+    from labbench.session_catalogue import last_identified
     from labbench.ve import Plant
 
     rig = load_rig(args.rig)
@@ -130,14 +129,7 @@ def make_context(args):
             if args.plant_from == "last-id" else None
         plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant
         source = f"chirp-ID {found['session']}" if found else "nominal"
-    commission = {}
-    got = last_results(args.out, rig.name, "commission", on_skip=skipped)
-    if got is not None:
-        res, path = got
-        commission = {"session": path,
-                      "coulomb_n": (res.get("friction") or {}).get("coulomb_n"),
-                      "counts_per_rev": (res.get("scale") or {}).get("counts_per_rev_if_encoder"),
-                      "delay_samples": (res.get("delay") or {}).get("delay_samples")}
+    commission = commission_facts(args.out, rig.name, on_skip=skipped)
     return Context(args.device, rig, plant, source, simulated,
                    CampaignSettings.from_rig(rig, simulated), commission,
                    args.skip_commissioning)
@@ -157,17 +149,9 @@ def point_runner(args):
 
 
 def print_plan(plan, done: set, out: Path) -> None:
-    s = plan.summary(done)
-    c = plan.context
-    lines = [f"campaign {plan.spec.name} on {c.device} ({'simulator' if c.simulated else 'real hardware'}), "
-             f"rig {c.rig.name!r}: {s['points']} points, {s['done']} already in {out}, "
-             f"{s['to_run']} to run, {s['skipped']} skipped by the pre-check",
-             f"  estimated {clock_text(s['est_s'])} ({clock_text(s['device_s'])} device time, "
-             f"pause {fmt(c.settings.pause_s)} s between points)",
-             f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
-             f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
-             f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_from})"]
-    for line in lines:
+    from labbench.campaign.plan import describe
+
+    for line in describe(plan, done, out):
         print(f"labbench campaign: {line}", file=sys.stderr)
 
 
