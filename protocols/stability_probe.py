@@ -485,7 +485,7 @@ def _refined(steps: list[dict]) -> dict | None:
     X = np.column_stack([np.ones_like(K), K])
     cov = np.linalg.inv(X.T @ (X * w[:, None]))
     a, b = cov @ (X.T @ (w * sig))
-    if not b > 0:
+    if not (b > 0 and math.isfinite(a) and math.isfinite(-a / b)):
         return None
     k = float(-a / b)
     if not known.all():
