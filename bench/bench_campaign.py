@@ -52,7 +52,8 @@ def spec(name: str, **changes) -> dict:
 
 
 def campaign(device: str, rig, d: dict, work: Path, lockstep: bool = False):
-    """One campaign in ``work``: (summary, rows, wall seconds)."""
+    """One campaign in ``work``: (summary, rows, wall seconds, a note on an interruption:
+    stopped early, it is run again once, as a lab would)."""
     simulated = is_simulator(device)
     ctx = Context(device, rig, rig.nominal_plant, "nominal", simulated,
                   CampaignSettings.from_rig(rig, simulated), skip_commissioning=not simulated)
@@ -71,7 +72,13 @@ def campaign(device: str, rig, d: dict, work: Path, lockstep: bool = False):
 
     t0 = time.perf_counter()
     summary = run_campaign(plan, work / "t.sweep", run_point, StopRequest())
-    return summary, tables.read_table(work / "t.sweep").to_pylist(), time.perf_counter() - t0
+    note = ""
+    if summary.interrupted:  # as a lab would: the same campaign again runs the rest
+        note = f"stopped ({summary.interrupted}), then resumed: "
+        summary = run_campaign(plan, work / "t.sweep", run_point, StopRequest())
+        note += f"stopped again ({summary.interrupted})" if summary.interrupted else \
+            f"{summary.ran} point(s) run, {summary.already} kept"
+    return summary, tables.read_table(work / "t.sweep").to_pylist(), time.perf_counter() - t0, note
 
 
 def zwidth_on(device: str, work: Path):
@@ -114,7 +121,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for device in [d for d in args.devices.split(",") if d]:
-            summary, rows, wall = zwidth_on(device, tmp / device)
+            summary, rows, wall, note = zwidth_on(device, tmp / device)
             if device == "sim-canopen":
                 for f in write_figures(tmp / device / "t.sweep"):
                     shutil.copy(f, ROOT / "docs" / "campaign-zwidth.png")
@@ -138,14 +145,15 @@ def main() -> int:
             worst[device] = (max(errs) if len(errs) == len(rows) else None,
                              max(r.get("device_s", 0) for r in rows), summary.complete)
             lines += ["", f"Complete: {summary.complete}"
-                      + (f" (stopped: {summary.interrupted})" if summary.interrupted else "")
+                      + (f" ({note})" if note else "")
                       + "; largest |error| "
                       f"{pct(worst[device][0])}; longest point {worst[device][1]:.0f} s of device "
                       f"time; campaign wall time {wall:.0f} s.", ""]
             print("\n".join(lines[-len(rows) - 6:]), flush=True)
         for device in [d for d in args.rate_devices.split(",") if d]:
             d = spec("rate-vs-accuracy.toml", fixed={"duration_s": args.rate_s})
-            summary, rows, wall = campaign(device, rig_from_dict({}), d, tmp / f"rate-{device}")
+            summary, rows, wall, note = campaign(device, rig_from_dict({}), d,
+                                                 tmp / f"rate-{device}")
             if device == "sim-canopen":
                 for f in write_figures(tmp / f"rate-{device}" / "t.sweep"):
                     shutil.copy(f, ROOT / "docs" / "campaign-rate.png")
@@ -165,7 +173,8 @@ def main() -> int:
                     f"{fmt(r.get(b + 'ws_star_predicted'))} | {fmt(r.get(b + 'wb_star_measured'))} / "
                     f"{fmt(r.get(b + 'wb_star_predicted'))} | {fmt(r.get('acc.k_max_fit'))} / "
                     f"{fmt(r.get('pred.k_max'))} |")
-            lines += ["", f"Campaign wall time {wall:.0f} s.", ""]
+            lines += ["", f"Campaign wall time {wall:.0f} s" + (f"; {note}" if note else "") + ".",
+                      ""]
             print("\n".join(lines[-len(rows) - 5:]), flush=True)
     lines += ["## Summary", "", "| device | largest |K_max error| | longest point (device s) |",
               "|---|---:|---:|"]

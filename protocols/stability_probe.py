@@ -63,6 +63,7 @@ HOME_W0 = 200.0  # rad/s, velocity filter of the homing damper
 PROBE_KINDS = ("spring", "spring-damper")
 PULSE_AT_S = 0.05  # the pulse starts this long into a step
 LOOK_S = 0.05  # zero force this long before the first step: where the handle is
+GROWTH = 2.0  # an unstable step's oscillation may grow by this factor at most
 NONLINEAR = CLAMP | RATE | FADE | TRIPPED  # flags after which a step's loop is not linear
 Z95 = 1.959963984540054  # two-sided 95 % point of the normal distribution
 
@@ -305,8 +306,10 @@ class StabilityProbe(ProtocolBase):
         bracket = []
         for ve in self.plan(plant):
             label = f"K={ve.K:.6g}" if c.variable == "K" else f"td={ve.td:.6g}"
-            sigma, unstable = yield from self._step(plant, ve, label,
-                                                    self.step_samples(ve, plant))
+            n = self.step_samples(ve, plant)
+            if c.variable == "K" and len(bracket) >= 2:
+                n = self._growth_capped(n, _line_at(bracket[-2], bracket[-1], ve.K))
+            sigma, unstable = yield from self._step(plant, ve, label, n)
             bracket.append({"K": ve.K, "sigma_per_s": sigma, "unstable": unstable})
             if unstable:
                 break
@@ -316,9 +319,23 @@ class StabilityProbe(ProtocolBase):
         if crossing is None:
             return
         top = self.k_ceiling(plant)
-        n = round(c.refine_s / c.sample_time_s)
+        below, above = bracket[-2], bracket[-1]
         for K in refine_points(crossing, c.refine, c.refine_span):
-            yield from self._step(plant, c.make_ve(K=min(K, top)), f"{REFINE}K={K:.6g}", n)
+            K = min(K, top)
+            n = self._growth_capped(round(c.refine_s / c.sample_time_s), _line_at(below, above, K))
+            yield from self._step(plant, c.make_ve(K=K), f"{REFINE}K={K:.6g}", n)
+
+    def _growth_capped(self, n: int, sigma: float | None) -> int:
+        """``n`` samples, or fewer for a step expected to grow (``sigma`` > 0, from the steps
+        before it): its oscillation may at most double (from ``swing`` of the rig's limit to
+        the limit at the default 0.5), so it ends before the force clamps or the energy
+        observer fades and trips it, and the handle is left with no more than that to coast
+        with before the next step's homing catches it; never below ``min_step_s``."""
+        if sigma is None or not sigma > 0:
+            return n
+        c = self.config
+        return max(min(n, round(math.log(GROWTH) / sigma / c.sample_time_s)),
+                   round(c.min_step_s / c.sample_time_s))
 
     def _step(self, plant: Plant, ve: VirtualEnvironment, label: str, n: int):
         """Home, then one probe step; returns (sigma, unstable)."""
@@ -493,6 +510,14 @@ def _refined(steps: list[dict]) -> dict | None:
     grad = np.array([-1.0 / b, a / b**2])  # d(-a/b)/d(a, b)
     half = Z95 * math.sqrt(float(grad @ cov @ grad))
     return {"k": k, "ci95": [k - half, k + half]}
+
+
+def _line_at(a: dict, b: dict, K: float) -> float | None:
+    """sigma at ``K`` on the line through two steps (None when either has no sigma)."""
+    s0, s1 = a["sigma_per_s"], b["sigma_per_s"]
+    if s0 is None or s1 is None or a["K"] == b["K"]:
+        return None
+    return s0 + (s1 - s0) * (K - a["K"]) / (b["K"] - a["K"])
 
 
 def _bracket(steps: list[dict], key: str) -> list[float] | None:
