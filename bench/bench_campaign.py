@@ -176,7 +176,7 @@ def main() -> int:
             lines += ["", f"Campaign wall time {wall:.0f} s" + (f"; {note}" if note else "") + ".",
                       ""]
             print("\n".join(lines[-len(rows) - 5:]), flush=True)
-    lines += ["## Summary", "", "| device | largest |K_max error| | longest point (device s) |",
+    lines += ["## Summary", "", "| device | largest K_max error (abs.) | longest point (device s) |",
               "|---|---:|---:|"]
     lines += [f"| {d} | {pct(e)} | {s:.0f} |" for d, (e, s, _) in worst.items()]
     Path(args.out).write_text("\n".join(lines) + "\n")
