@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 from labbench.campaign import figures
-from labbench.report.blocks import (Figure, Heading, PageBreak, Paragraph, Table, fmt,
-                                    interval, percent)
+from labbench.numfmt import fmt_ci
+from labbench.report.blocks import Figure, Heading, PageBreak, Paragraph, Table, fmt, percent
 
 HTML, PDF = "campaign.html", "campaign.pdf"
 
@@ -34,14 +34,15 @@ def _params(r: dict) -> str:
     return ", ".join(f"{k} = {v}" for k, v in {**p.get("tags", {}), **p.get("params", {})}.items())
 
 
-ZWIDTH = (["#", "B (N s/m)", "w0 (rad/s)", "status", "K_max measured (N/m)", "95 % interval",
+ZWIDTH = (["#", "B (N s/m)", "w0 (rad/s)", "status", "K_max measured, 95 % interval (N/m)",
            "exact sampled (N/m)", "measured / exact - 1", "paper approx. (N/m)",
            "passive, sampled-data (N/m)", "Colgate & Schenkel (N/m)", "observer first (N/m)",
            "lies above"],
           lambda r: [str(r["index"]), fmt(r.get("ve.B")), fmt(r.get("ve.w0_rad_s")), r["status"],
-                     fmt(r.get("zw.k_max")) if r.get("zw.k_max") is not None else (
+                     fmt_ci(r["zw.k_max"], r.get("zw.ci_lo"), r.get("zw.ci_hi"))
+                     if r.get("zw.k_max") is not None else (
                          f"> {fmt(r['zw.k_max_above'])}" if r.get("zw.k_max_above") else "-"),
-                     interval(r.get("zw.ci_lo"), r.get("zw.ci_hi")), fmt(r.get("pred.k_max")),
+                     fmt(r.get("pred.k_max")),
                      percent(r.get("zw.rel_error")), fmt(r.get("pred.k_max_approx")),
                      fmt(r.get("pred.k_passive")), fmt(r.get("pred.k_passive_line")),
                      fmt(r.get("zw.observer_k")), r.get("zw.crossed") or r.get("error") or "-"])
