@@ -94,6 +94,18 @@ def unvouched(name: str, value: float, interval: tuple[float, float], target: fl
             f"[{lo:.4g}, {hi:.4g}], +-{reach:.2g}{unit} at 99.9 %")
 
 
+def holds(value: float, interval: tuple[float, float], truth: float, target: float) -> bool:
+    """What an ``ok`` promises of a number with a 95 % ``interval``: it lies within ``target``
+    (absolute) of the ``truth``, or its interval stretched to 99.9 % (``VOUCH_STRETCH``) holds
+    the truth. A number that does neither misled whoever read it; the benchmarks and tests
+    count an ``ok`` on such a number as a silent failure, and anything but ``ok`` on one
+    that holds as a false alarm."""
+    if abs(value - truth) <= target:
+        return True
+    lo, hi = interval
+    return value - VOUCH_STRETCH * (value - lo) <= truth <= value + VOUCH_STRETCH * (hi - value)
+
+
 def precision(name: str, value: float, interval: tuple[float, float], target: float,
               unit: str = "") -> str | None:
     """A note when ``value``'s 95 % ``interval``, stretched to 99.9 % (``VOUCH_STRETCH``),

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from truthdata import PAPER_B, PAPER_M, chirp_recording, sensor_chirp_recording, with_noise
 
+from labbench.verdict import holds
 from labbench.analysis import l1
 from labbench.analysis.identify import identify
 from labbench.errors import UserError
@@ -432,8 +433,11 @@ def test_verdict_ok_on_clean_and_noisy_records_within_tolerance():
         assert abs(r.m / PAPER_M - 1) < 0.01 and abs(r.b / PAPER_B - 1) < 0.02
         assert r.verdict.level == "ok", r.verdict
         assert r.as_dict()["verdict"] == {"level": "ok", "reasons": []}
+    # 20 s under 0.2 N cannot pin b to 2 %: its interval says so, and a note says it against
+    # the target; the number is not in doubt (issue 30: precision is not a doubt)
     r = identify(with_noise(chirp_recording(n=20000), rng, force_noise=0.2))
-    assert r.verdict.level == "doubtful" and r.verdict.reasons[0].startswith("b not pinned"), r.verdict
+    assert r.verdict.level == "ok" and r.verdict.notes[0].startswith("b not pinned"), r.verdict
+    assert holds(r.b, r.ci95["b"], PAPER_B, 0.02 * PAPER_B)
 
 
 def test_verdict_names_an_unstated_device_delay():
@@ -506,13 +510,14 @@ def test_friction_intervals_cover_the_fit_away_from_velocity_reversals():
         assert r.model == "mbc" and abs(r.m / PAPER_M - 1) > 0.005
         for k, truth in (("m", PAPER_M), ("b", PAPER_B), ("coulomb", 0.2)):
             assert r.ci95[k][0] <= truth <= r.ci95[k][1], (n, k, r.ci95[k])
-        assert r.verdict.level == "doubtful" and any(s.startswith("b not pinned") for s in r.verdict.reasons)
+        assert any(s.startswith("b not pinned") for s in r.verdict.notes), r.verdict
 
 
 def test_intervals_cover_over_seeds_and_a_vouched_result_meets_its_target():
     # 20 records under 0.2 N of force noise: the sandwich intervals (influence function summed
     # over blocks, Satterthwaite's dof: a chirp's damping is told by its first seconds) cover,
-    # and every record outside the targets (m 1 %, b 2 %) says it is not pinned to them
+    # every record outside the targets (m 1 %, b 2 %) says it is not pinned to them, and an ok
+    # one holds (within its target or its 99.9 % interval: verdict.holds)
     base = chirp_recording(n=30000)
     hits = {"m": 0, "b": 0}
     for seed in range(20):
@@ -520,7 +525,9 @@ def test_intervals_cover_over_seeds_and_a_vouched_result_meets_its_target():
         for k, truth in (("m", PAPER_M), ("b", PAPER_B)):
             hits[k] += r.ci95[k][0] <= truth <= r.ci95[k][1]
         outside = abs(r.m / PAPER_M - 1) > 0.01 or abs(r.b / PAPER_B - 1) > 0.02
-        assert not outside or r.verdict.level != "ok", (seed, r.m, r.b)
+        assert not outside or any("not pinned" in n for n in r.verdict.notes), (seed, r.m, r.b)
+        held = holds(r.m, r.ci95["m"], PAPER_M, 0.01 * PAPER_M) and holds(r.b, r.ci95["b"], PAPER_B, 0.02 * PAPER_B)
+        assert held or r.verdict.level != "ok", (seed, r.m, r.b)
     assert hits["m"] >= 17 and hits["b"] >= 17, hits
 
 

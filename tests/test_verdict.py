@@ -69,7 +69,8 @@ def test_a_subset_of_the_method_map_grid_has_no_silent_failure():
         ("damper B 1.5", "VE path 1.75", "process 0.1 N", 20000))]
     for r in rows:
         assert not r["miss"] or (r["level"] != "ok" and r["why"]), r
-    assert sum(bool(r["miss"]) for r in rows) >= 4  # the grid does push them past their targets
+    # the grid does push them past their targets (where their intervals say so, that is no miss)
+    assert sum(bool(r["beyond"]) for r in rows) >= 4
     bands = [grid.etfe_task(ve, noise, "30 s", "lpm", seed) for seed in (0, 1) for ve, noise in (
         ("spring K 180 (0.9 K_max)", "position 1e-5 m"), ("spring-damper K 50", "sensor 0.05 N on 0.25 N"))]
     for r in bands:

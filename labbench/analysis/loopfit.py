@@ -44,11 +44,11 @@ estimated Z up by 1 + S_nn/S_ff, at most the ETFE's ``eiv_bound`` (from the cohe
 
 Verdict (``labbench.verdict``): failed when chi^2/dof > CHI2_FAILED against the noise
 the record shows (the model cannot describe the record: a delay or VE the metadata do
-not state, a nonlinearity); doubtful at a bound (b = 0, a delay at the grid's end),
-with residuals structured beyond the ETFE's own correlation, when force-sensor noise
-could shift a parameter past its target, or when a parameter is not pinned to its
-accuracy target (m 2 %, b 5 %, a delay 0.05 ms) at 99.9 % (``verdict.unvouched``): the
-record cannot vouch for the number to that accuracy.
+not state, a nonlinearity); doubtful at a bound (b = 0, a delay at the grid's end) or
+with residuals structured beyond the ETFE's own correlation. How precise the numbers are
+is a note, not a doubt (the intervals hold it): force-sensor noise that could shift a
+parameter past its target (inside the intervals), a parameter not pinned to its accuracy
+target (m 2 %, b 5 %, a delay 0.05 ms) at 99.9 % (``verdict.precision``).
 """
 from __future__ import annotations
 
@@ -423,15 +423,16 @@ def _judge(fit: LoopFit, structure: float, ve: VirtualEnvironment, shift: dict) 
     ]
     targets = {"m": M_TOLERANCE * fit.m, "b": B_TOLERANCE * fit.b, "td_s": TD_TOLERANCE_S,
                "tv_s": TD_TOLERANCE_S}
+    # how precise each number is, is its interval's to say: notes, not doubts (labbench.verdict)
+    notes = []
     eiv = {k: abs(d) > targets[k] / verdict.VOUCH_STRETCH for k, d in shift.items() if k in targets}
     if any(eiv.values()):
         moved = ", ".join(f"{k} by {_fmt(k, shift[k], getattr(fit, k))}" for k, big in eiv.items() if big)
-        findings.append((verdict.DOUBTFUL, f"the coherence allows force-sensor noise that would shift {moved} "
-                         "(in the intervals); state force_hold = zoh if the force is the command"))
-    for k, ci in fit.ci95.items():
-        if k in targets:
-            findings.append(verdict.unvouched(k, getattr(fit, k), ci, targets[k]))
-    return verdict.judge(findings)
+        notes.append(f"the coherence allows force-sensor noise that would shift {moved} (in the "
+                     "intervals); state force_hold = zoh if the force is the command")
+    notes += [verdict.precision(k, getattr(fit, k), ci, targets[k]) for k, ci in fit.ci95.items()
+              if k in targets]
+    return verdict.judge(findings, notes=notes)
 
 
 def _fmt(name: str, shift: float, value: float) -> str:
