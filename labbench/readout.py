@@ -206,11 +206,8 @@ def of_etfe_analysis(d: dict, start: dict | None = None) -> Readout:
     results = {"etfe": d, "loop_fit": d.get("fit"), "rendered": d.get("rendered"),
                "plant": (d.get("theory") or {}).get("plant"),
                "deviation_vs_sampled": _deviation_of_analysis(d)}
-    r = _etfe("etfe", results, start or {})
     source = (d.get("theory") or {}).get("plant_source")
-    if r.plant is not None and isinstance(source, str):
-        r.plant = PlantSource(r.plant.m, r.plant.b, source)
-    return r
+    return _etfe("etfe", results, start or {}, source if isinstance(source, str) else None)
 
 
 def of_identification(d: dict, method: str | None = None) -> Readout:
@@ -252,7 +249,7 @@ def _judged(what: str, d) -> list[Judged]:
     return [] if v is None else [Judged(what, v)]
 
 
-def _etfe(protocol: str, results: dict, start: dict) -> Readout:
+def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) -> Readout:
     e = results["etfe"]
     r = Readout(protocol, "Rendered impedance against the exact sampled theory",
                 headline=("|Z - Z_theory| / |Z_theory|", "w_s*", "w_b*", "device model of the theory"))
@@ -260,7 +257,7 @@ def _etfe(protocol: str, results: dict, start: dict) -> Readout:
     plant = results.get("plant") if isinstance(results.get("plant"), dict) else {}
     m, b = _num(plant.get("m")), _num(plant.get("b"))
     if m is not None and b is not None:
-        r.plant = PlantSource(m, b, plant_source(start))
+        r.plant = PlantSource(m, b, source or plant_source(start))
     r.rendered = _rendered(results.get("rendered"))
     dev = results.get("deviation_vs_sampled") if isinstance(results.get("deviation_vs_sampled"), dict) else {}
     band = dev.get("band_rad_s")

@@ -84,9 +84,17 @@ class Identification:
         """Force residual [N] of the fit, per used sample."""
         return self.result.residual
 
+    @property
+    def readout(self):
+        """What a person reads of it (``labbench.readout``: the words of the CLI, report, window)."""
+        from labbench import readout
+
+        return readout.of_identification({**self.result.as_dict(), "force_source": self.force_source})
+
     def as_dict(self) -> dict:
         """What ``labbench analyze id --json`` prints (before JSON encoding)."""
-        return {**self.result.as_dict(), "force_source": self.force_source}
+        return {**self.result.as_dict(), "force_source": self.force_source,
+                "readout": self.readout.as_dict()}
 
     def __repr__(self) -> str:
         return (f"Identification(model={self.model!r}, m={self.m:.6g} kg, b={self.b:.6g} N s/m, "
@@ -128,6 +136,8 @@ class FrequencyResponse:
     wb_star: float | None  # measured damping bandwidth [rad/s] (needs the device b)
     comparison: dict | None  # labbench.analysis.compare.compare(...) + plant_source, or None
     fit: object | None = None  # labbench.analysis.loopfit's fit of m, b, td (etfe(fit=True))
+    # the stiffness and damping rendered, beside commanded and theory (analysis.rendered)
+    rendered: dict | None = None
 
     @property
     def w(self) -> np.ndarray:
@@ -175,11 +185,25 @@ class FrequencyResponse:
     def flags(self) -> list[str]:
         return list(self.result.flags)
 
-    def as_dict(self) -> dict:
+    @property
+    def readout(self):
+        """What a person reads of it (``labbench.readout``: the words of the CLI, report, window)."""
+        from labbench import readout
+
+        return readout.of_etfe_analysis(self._dict())
+
+    def as_dict(self, units=None) -> dict:
         """What ``labbench analyze etfe --json`` prints (before JSON encoding)."""
+        from labbench import readout
+
+        d = self._dict()
+        return {**d, "readout": readout.of_etfe_analysis(d).as_dict(units)}
+
+    def _dict(self) -> dict:
         d = self.result.as_dict()
         if self.fit is not None:
             d["fit"] = self.fit.as_dict()
+        d["rendered"] = self.rendered
         d["wb_star"] = self.wb_star
         cmp = self.comparison
         if cmp is not None:
@@ -229,30 +253,35 @@ class FrequencyResponse:
 def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 200,
                    m: float | None = None, b: float | None = None, fit: bool = False,
                    fit_ve: bool = False, progress: Progress | None = None,
-                   cancel: threading.Event | None = None) -> FrequencyResponse:
+                   cancel: threading.Event | None = None,
+                   band_rad_s: tuple[float, float] | None = None) -> FrequencyResponse:
     """ETFE of a record; with a VE in the metadata, the theory curve and the deviation from
     it, on the device ``m``, ``b`` given (here or in the metadata) or identified from the
     closed-loop record itself (``labbench.analysis.compare``). ``fit``: fit m, b and the
     extra loop delay to Z with the exact sampled model (``labbench.analysis.loopfit``; with
     ``fit_ve`` the rendered K, B too); the theory then uses the fitted plant and delay.
     ``progress(fraction, phrase)`` hears how far it is; once ``cancel`` is set it raises
-    ``labbench.errors.Cancelled`` within about 0.5 s (``labbench.analysis.progress``)."""
+    ``labbench.errors.Cancelled`` within about 0.5 s (``labbench.analysis.progress``).
+    ``band_rad_s``: the band the verdict, the deviation and the rendered K, B speak of
+    (``labbench.analysis.etfe.analysis_band``; None: 2-100 rad/s)."""
     from labbench.analysis import compare
     from labbench.analysis.etfe import etfe
+    from labbench.analysis.rendered import rendered_impedance
     from labbench.effective import measured_wb_star
     from labbench.ve import Plant
 
     steps = Steps(progress, cancel)
     ve = compare.ve_from_meta(rec.meta, rec.fs)
     etfe_end, ident_end = (0.2, 0.5) if (fit or fit_ve) else (0.2, 0.95)
-    res = etfe(rec, estimator, window, progress=steps.part(0.0, etfe_end), cancel=cancel)
+    res = etfe(rec, estimator, window, band_rad_s=band_rad_s, progress=steps.part(0.0, etfe_end),
+               cancel=cancel)
     m = m if m is not None else compare.meta_number(rec.meta, "m")
     b = b if b is not None else compare.meta_number(rec.meta, "b")
     if (m is None) != (b is None):
         raise UserError("give both --m and --b (or neither, to identify them from the record)")
     if (fit or fit_ve) and ve is None:
         raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
-    cmp, wb_star, loop_fit = None, None, None
+    cmp, wb_star, loop_fit, rendered = None, None, None, None
     if ve is not None:
         source, latency = "given", device_delay.from_meta(rec.meta)
         if m is None:
@@ -271,13 +300,14 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
                 ve = ve.with_(td=n_tv * ve.T)  # the overlay's VE delay line: whole samples only
                 source += f" and VE-path delay {n_tv} samples"
         steps.report(0.95, "comparing with the theory")
-        cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency)
+        cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency, band_rad_s)
         cmp["plant_source"] = source
         wb_star = cmp["wb_star"]
+        rendered = rendered_impedance(res, ve, Plant(float(m), float(b)), latency, band_rad_s)
     elif m is not None:
         wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
     steps.report(1.0, "done")
-    return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit)
+    return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit, rendered)
 
 
 # ----------------------------------------------------------------------------- the session
@@ -320,12 +350,14 @@ class Session:
 
     def etfe(self, estimator: str | None = None, window: int = 200, m: float | None = None,
              b: float | None = None, fit: bool = False, fit_ve: bool = False,
-             progress: Progress | None = None, cancel: threading.Event | None = None) -> FrequencyResponse:
+             progress: Progress | None = None, cancel: threading.Event | None = None,
+             band_rad_s: tuple[float, float] | None = None) -> FrequencyResponse:
         """``labbench analyze etfe`` on this file (same options, same numbers); ``fit``:
         ``--fit`` (the loop fit in ``.fit``, its verdict in ``.fit.verdict``). ``progress``,
-        ``cancel``: as ``etfe_recording`` (a progress bar, a Cancel button)."""
+        ``cancel``, ``band_rad_s``: as ``etfe_recording`` (a progress bar, a Cancel button)."""
         return etfe_recording(self.recording, estimator=estimator, window=window, m=m, b=b,
-                              fit=fit, fit_ve=fit_ve, progress=progress, cancel=cancel)
+                              fit=fit, fit_ve=fit_ve, progress=progress, cancel=cancel,
+                              band_rad_s=band_rad_s)
 
     def plot(self, path=None, force: bool = False):
         """Position and forces against time; returns the matplotlib Figure (and writes it to

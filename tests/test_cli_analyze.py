@@ -53,7 +53,8 @@ def test_id_force_hold_option(chirp_csv, capsys):
 def test_id_human_output(chirp_csv, capsys):
     assert main(["analyze", "id", str(chirp_csv), "--model", "mbco"]) == 0
     out = capsys.readouterr().out
-    assert "model mbco" in out and "95 %" in out and "coulomb" in out
+    assert "model mbco" in out and "Coulomb friction Fc:" in out and "force offset f0:" in out
+    assert "mass m: " in out and " to " in out  # the value with its interval (labbench.readout)
     assert "force_hold: zoh (cross-validation, CV loss ratio" in out
 
 
@@ -186,7 +187,7 @@ def test_verdict_in_json_text_and_strict_exit(tmp_path, chirp_csv, capsys):
     d = run_json(capsys, "analyze", "id", chirp_csv, "--json", "--strict")
     assert d["verdict"] == {"level": "ok", "reasons": []}
     assert main(["analyze", "id", str(chirp_csv)]) == 0
-    assert "verdict: ok" in capsys.readouterr().out
+    assert "identification (l2): ok" in capsys.readouterr().out
     # a failed identification (no mass seen through the noise: tests/test_identify.py) exits
     # STRICT_EXIT under --strict only, after printing its result and reasons
     from truthdata import with_noise
@@ -196,6 +197,6 @@ def test_verdict_in_json_text_and_strict_exit(tmp_path, chirp_csv, capsys):
     write_csv(rec, p, {"force_hold": "zoh"})
     assert main(["analyze", "id", str(p), "--model", "mb"]) == 0
     out = capsys.readouterr().out
-    assert "verdict: failed" in out and "no mass identified" in out
+    assert "identification (l2): failed" in out and "no mass identified" in out
     assert main(["analyze", "id", str(p), "--model", "mb", "--strict"]) == STRICT_EXIT
     capsys.readouterr()

@@ -137,14 +137,17 @@ def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0)
     return {"model": model, "Z": sampled if sampled is not None else paper, "sampled": sampled, "paper": paper}
 
 
-def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> dict:
+def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: float = 0.0,
+            band_rad_s: tuple[float, float] | None = None) -> dict:
     """Measured against predicted: the theory curve (``theory_curves``) at the measured w
-    and the complex relative deviation |Z - Zt| / |Zt|, its median and max over W_BAND,
+    and the complex relative deviation |Z - Zt| / |Zt|, its median and max over ``band_rad_s``
+    (None: W_BAND),
     bandwidths measured and predicted. ``Z_paper``: eq. 2 as well, for plots."""
     curves = theory_curves(plant, ve, res.w, latency)
     model, Zt = curves["model"], curves["Z"]
     dev = np.abs(res.Z - Zt) / np.abs(Zt)
-    band = (res.w >= W_BAND[0]) & (res.w <= W_BAND[1])
+    lo, hi = W_BAND if band_rad_s is None else band_rad_s
+    band = (res.w >= lo) & (res.w <= hi)
     eff = effective_impedances(res.w, res.Z)
     return {
         "model": model,
@@ -156,7 +159,7 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
         "deviation": dev,
         "deviation_median": float(np.median(dev[band])) if band.any() else None,
         "deviation_max": float(np.max(dev[band])) if band.any() else None,
-        "band_rad_s": list(W_BAND),
+        "band_rad_s": [lo, hi],
         "wb_star": measured_wb_star(res.w, eff.ED, plant.b),
         "predicted_ws_star": theory.predicted_ws_star(plant, ve),
         "predicted_wb_star": theory.predicted_wb_star(ve),

@@ -10,7 +10,7 @@ import json
 import numpy as np
 
 from labbench.jsonutil import json_safe
-from labbench.numfmt import fmt
+
 
 
 def register(subparsers) -> None:
@@ -55,6 +55,9 @@ def register(subparsers) -> None:
                         "delays act chosen by cross-validation), with 95 %% intervals and a verdict")
     e.add_argument("--fit-ve", action="store_true",
                    help="with --fit: also fit the rendered K and B")
+    e.add_argument("--band", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="the band [rad/s] the verdict, the deviation from the theory and the rendered "
+                        "K, B speak of (default 2-100 rad/s, where the accuracy targets hold)")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--plot", metavar="FILE", help="paper-style figure (.png, .svg, .pdf)")
     e.add_argument("--csv", metavar="FILE", help="the frequency response as CSV: w in rad/s and "
@@ -88,19 +91,17 @@ def run_id(args) -> int:
     from labbench.analysis.dataio import load_recording
     from labbench.session_api import identify_recording
 
-    d = identify_recording(load_recording(args.file), model=args.model, method=args.method,
-                           cutoff_hz=args.cutoff, solver=args.solver,
-                           force_hold=args.force_hold).as_dict()
+
+    ident = identify_recording(load_recording(args.file), model=args.model, method=args.method,
+                               cutoff_hz=args.cutoff, solver=args.solver, force_hold=args.force_hold)
+    d, read = ident.as_dict(), ident.readout
     if args.json:
         print(json.dumps(json_safe(d)))
         return _exit(d, args)
     print(f"{args.file}: model {d['model']} by {d['method']}, {d['n_used']} samples, "
           f"derivative cut-off {d['cutoff_hz']:.3g} Hz; fitted to {d['force_source']}")
-    units = {"m": "kg", "b": "N s/m", "coulomb": "N", "offset": "N"}
-    for k, unit in units.items():
-        if d[k] is not None:
-            lo, hi = d["ci95"][k]
-            print(f"  {k:8s} = {d[k]:.6g} {unit}   95 % [{lo:.6g}, {hi:.6g}]")
+    for line in read.text_lines():
+        print(f"  {line}")
     print(f"  residual rms {d['rms_residual']:.4g} N, force variance explained {100 * d['explained']:.3f} %")
     hold = d["force_hold"]
     ratio = f", CV loss ratio {hold['loss_ratio']:.3g}" if "loss_ratio" in hold else ""
@@ -108,7 +109,6 @@ def run_id(args) -> int:
     print(f"  selection: {d['selection'].get('reason') or d['selection'].get('criterion')}")
     for f in d["flags"]:
         print(f"  flag: {f}")
-    print(f"  verdict: {d['verdict']['level']}" + "".join(f"\n    - {r}" for r in d["verdict"]["reasons"]))
     return _exit(d, args)
 
 
@@ -120,9 +120,12 @@ def run_etfe(args) -> int:
     for out in (args.plot, args.csv):
         if out:
             output_path(out, [args.file], args.force)  # before the work
+
     fr = etfe_recording(load_recording(args.file), args.estimator, args.window, m=args.m, b=args.b,
-                        fit=args.fit, fit_ve=args.fit_ve)
-    d = fr.as_dict()
+                        fit=args.fit, fit_ve=args.fit_ve,
+                        band_rad_s=tuple(args.band) if args.band else None)
+    d = fr.as_dict(args.units)
+    read = fr.readout
     if args.plot:
         fr.plot(args.plot, inputs=[args.file], force=args.force)
     if args.csv:
@@ -130,32 +133,28 @@ def run_etfe(args) -> int:
     if args.json:
         print(json.dumps(json_safe(d)))
     else:
-        _print_table(args.file, d, fr.comparison, args.units)
+        _print_table(args.file, d, fr.comparison, args.units, read)
     for out in (args.plot, args.csv):
         if out:
             print(f"wrote {out}")
     return _exit(d, args)
 
 
-def _print_table(path, d, cmp, units) -> None:
-    """The table in SI, frequencies in the display unit (``--units Hz``: Hz)."""
+def _print_table(path, d, cmp, units, read) -> None:
+    """What was found, in the words of ``labbench.readout`` (as ``labbench run`` and the
+    report say it), then the table in SI, frequencies in the display unit (``--units Hz``)."""
     f, fu = units.frequency_of, units.frequency
     w = f(np.asarray(d["w"]))
     print(f"{path}: estimator {d['estimator']}, {len(w)} frequencies "
-          f"{w[0]:.3g}-{w[-1]:.4g} {fu}; ws* = {fmt(f(d['ws_star']))} {fu}, "
-          f"wb* = {fmt(f(d['wb_star']))} {fu}")
+          f"{w[0]:.3g}-{w[-1]:.4g} {fu}")
+    for line in read.text_lines(units):
+        print(line)
     if cmp is not None:
-        print(f"theory ({cmp['model']} model, m = {cmp['plant']['m']:.4g} kg, b = {cmp['plant']['b']:.4g} "
-              f"N s/m {cmp['plant_source']}): deviation median {_pct(cmp['deviation_median'])}, "
-              f"max {_pct(cmp['deviation_max'])} over {f(cmp['band_rad_s'][0]):.4g}-"
-              f"{f(cmp['band_rad_s'][1]):.4g} {fu}")
+        print(f"theory: {cmp['model']} model")
     if "fit" in d:
         _print_fit(d["fit"])
-    for f in d["flags"]:
-        print(f"flag: {f}")
-    for path, v in (("verdict", d["verdict"]), ("fit.verdict", (d.get("fit") or {}).get("verdict"))):
-        if v:
-            print(f"{path}: {v['level']}" + "".join(f"\n  - {r}" for r in v["reasons"]))
+    for flag in d["flags"]:
+        print(f"flag: {flag}")
     print(f"{('w ' if fu == 'rad/s' else 'f ') + fu:>10} {'Re Z':>10} {'Im Z':>10} {'|dZ| 95%':>10} {'coh':>6} "
           f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}")
     step = max(1, len(w) // 40)
@@ -165,19 +164,18 @@ def _print_table(path, d, cmp, units) -> None:
 
 
 def _print_fit(fit: dict) -> None:
-    ci = fit["ci95"]
-    print(f"closed-loop fit ({fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-{fit['band_rad_s'][1]:.4g} "
-          f"rad/s, residual rms {100 * fit['residual_rms']:.2f} % of |Z|):")
-    rows = [("m", "m", "kg", 1.0), ("b", "b", "N s/m", 1.0)]
-    rows += [(k, k + "_s", "ms", 1e3) for k in ("td", "tv") if k + "_s" in ci]
-    rows += [(k, k, u, 1.0) for k, u in (("K", "N/m"), ("B", "N s/m")) if k in fit]
-    for name, key, unit, scale in rows:
-        lo, hi = ci[key]
-        print(f"  {name:3s} = {scale * fit[key]:.6g} {unit}   95 % [{scale * lo:.6g}, {scale * hi:.6g}]")
+    """What the readout's closed-loop fit row leaves out: where it was fitted, its delays."""
+    from labbench.numfmt import fmt_ci
+
+    print(f"closed-loop fit: {fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-"
+          f"{fit['band_rad_s'][1]:.4g} rad/s, residual rms {100 * fit['residual_rms']:.2f} % of |Z|, "
+          f"chi2/dof {fit['chi2_dof']:.3g}")
+    for key, unit in (("K", "N/m"), ("B", "N s/m")):
+        if key in fit:
+            print(f"  fitted {key} = {fmt_ci(fit[key], *fit['ci95'][key], unit)}")
     print(f"  delays: {fit['selection'].get('reason', fit['delay_model'])}")
     print(f"  VE-path delay tv {1e3 * fit['tv_s']:.4g} ms (metadata td {1e3 * fit['td_meta_s']:g} ms), "
           f"device latency td {1e3 * fit['td_s']:.4g} ms; loop delay {1e3 * fit['loop_delay_s']:.4g} ms")
-    print(f"  chi2/dof {fit['chi2_dof']:.3g}")  # its verdict: the fit.verdict lines after the flags
 
 
 def _pct(v) -> str:
