@@ -71,7 +71,7 @@ def test_cli_fit_json_and_text(tmp_path, capsys):
     assert d["theory"]["plant_source"].startswith("fitted") and d["theory"]["deviation_median"] < 1e-3
     assert main(["analyze", "etfe", str(p), "--fit-ve"]) == 0
     out = capsys.readouterr().out
-    assert "closed-loop fit" in out and "td  = " in out and "K   = " in out and "fit.verdict: ok" in out
+    assert "closed-loop fit: ok; m = " in out and "; td = " in out and "fitted K = " in out
 
 
 def test_fit_needs_a_ve(tmp_path, capsys):
@@ -274,7 +274,7 @@ def test_strict_exits_on_a_failed_loop_fit(tmp_path, capsys):
     assert d["fit"]["verdict"]["level"] == "failed", d["fit"]["verdict"]
     assert main(["analyze", "etfe", str(p), "--fit", "--strict"]) == STRICT_EXIT
     out = capsys.readouterr().out
-    assert "fit.verdict: failed\n  - chi2/dof" in out and out.count("chi2/dof") == 2, out  # fit line + reason
+    assert "closed-loop fit: failed: chi2/dof" in out, out  # the fit line of the readout, with its reason
     good = tmp_path / "good.csv"
     write_csv(delayed_loop_recording(SD, n=20000, seed=6), good)
     assert main(["analyze", "etfe", str(good), "--fit", "--strict"]) == 0

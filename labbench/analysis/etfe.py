@@ -63,6 +63,11 @@ W_BAND = (2.0, 100.0)  # rad/s, the band the accuracy targets speak of
 # impedance error starts to matter to a haptics lab): a noise-free simulator's bands are
 # 1e-8 wide, and a 1e-10 curvature bias beyond them is not a result to distrust.
 BIAS_MATTERS = 1e-3
+# ... nor one below this many of its band's standard errors: the error it adds still lies
+# inside the band's 1 - 1e-6 tail (|dZ| / se ~ 5.6 at 7 dof) unless the noise alone is beyond
+# 3.6 se (a chance of ~2e-6): the band still holds the truth (issue 30: at 0.5 se, the 0.9
+# coverage rule of BIAS_SE, 60 of 150 records within every band were called doubtful)
+BIAS_FAR = 2.0
 LITTLE_EXCITATION = 1e-3  # force power relative to its in-band median
 QUANT_SNR = 0.01  # quantisation noise power relative to position power
 LEAKAGE = 0.1  # edge-leakage amplitude relative to |X| that counts as drift
@@ -565,7 +570,7 @@ def _findings(res: EtfeResult, rec: Recording, F: np.ndarray, X: np.ndarray) -> 
                                "estimator (lpm removes it)" or None,
                                "record-edge leakage of the drift", "use the lpm estimator, which removes it"))
     if res.eiv_bound is not None:
-        biased = (res.eiv_bound * np.abs(res.Z) > BIAS_SE * res.Z_se) & (res.eiv_bound > BIAS_MATTERS)
+        biased = (res.eiv_bound * np.abs(res.Z) > BIAS_FAR * res.Z_se) & (res.eiv_bound > BIAS_MATTERS)
         if biased.any():
             most = 100 * float(np.max(res.eiv_bound[biased]))
             out.append(Finding("force-noise", biased, True, None,
@@ -591,11 +596,13 @@ def _needed_s(res: EtfeResult, lo: float) -> float:
 
 def _sharp(res: EtfeResult) -> tuple[np.ndarray, str]:
     """Frequencies where the band may not hold a local model's bias, and how it shows: the
-    estimator's own bias estimate where it has one (lpm), beyond ``BIAS_MATTERS`` of |Z|;
-    else Z moving by more than its band from bin to bin at low coherence."""
+    estimator's own bias estimate where it has one (lpm), beyond ``BIAS_MATTERS`` of |Z| and
+    ``BIAS_FAR`` standard errors; else Z moving by more than its band from bin to bin at low
+    coherence."""
     if res.unresolved is not None:
         bias = res.bias_rel if res.bias_rel is not None else np.full(len(res.w), np.inf)
-        return res.unresolved & (bias > BIAS_MATTERS), (
+        rel_se = res.Z_se / np.maximum(np.abs(res.Z), 1e-300)
+        return res.unresolved & (bias > np.maximum(BIAS_MATTERS, BIAS_FAR * rel_se)), (
             "G bends more than the local model follows even at its narrowest band (a sharp "
             "resonance, or the lowest bins of a short record)")
     Z = res.Z

@@ -421,6 +421,16 @@ def _judge(fit: LoopFit, structure: float, ve: VirtualEnvironment, shift: dict) 
         (verdict.DOUBTFUL if structure > RHO_DOUBTFUL else verdict.OK,
          f"residuals structured along frequency beyond the ETFE's own correlation (lag-one {structure:.2f})"),
     ]
+    # a delay the record cannot place within a sample trades against b (a spring's ED is
+    # b - K tv): the split the fit chose may be a false one that its intervals do not hold
+    # (issue 30, a spring of 10 N/m under 0.1 N of process noise: tv 11 +- 5 ms, b twice the
+    # truth outside its interval, chosen by cross-validation). Two free delays and b make the
+    # ridge; with one delay the split is fixed by the model chosen.
+    loose = [k for k in ("td_s", "tv_s") if k in fit.ci95 and (fit.ci95[k][1] - fit.ci95[k][0]) / 2 > ve.T]
+    if loose and fit.delay_model == "both":
+        findings.append((verdict.DOUBTFUL, f"{' and '.join(loose)} not placed within a sample (95 % "
+                         "interval wider than +-1 sample): b and the delays trade against each other, "
+                         "and the split may be wrong; record longer or with more force"))
     targets = {"m": M_TOLERANCE * fit.m, "b": B_TOLERANCE * fit.b, "td_s": TD_TOLERANCE_S,
                "tv_s": TD_TOLERANCE_S}
     # how precise each number is, is its interval's to say: notes, not doubts (labbench.verdict)
