@@ -247,7 +247,16 @@ def _holds(value, ci, truth, target) -> bool:
 
 def _why(v) -> list[str]:
     """The verdict's reasons by their first words (a flag name, or 'b not pinned', ...)."""
-    return [r.split(":")[0] if ":" in r[:40] else " ".join(r.split()[:3]) for r in v.reasons]
+    return _names(v.reasons)
+
+
+def _why_text(text: str) -> list[str]:
+    """``_why`` of reasons joined by "; " (a sweep table's verdict_reasons)."""
+    return _names([r for r in text.split("; ") if r])
+
+
+def _names(reasons) -> list[str]:
+    return [r.split(":")[0] if ":" in r[:40] else " ".join(r.split()[:3]) for r in reasons]
 
 
 # reasons that say a number is imprecise, not that its interval may miss (every other reason
