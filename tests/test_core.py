@@ -120,7 +120,7 @@ def test_closed_pipe_is_not_a_traceback():
     import subprocess
     import sys
 
-    w = ",".join(str(i) for i in range(1, 8000))
+    w = ",".join(str(i / 3) for i in range(1, 8000))  # below Nyquist (3142 rad/s at 1 kHz)
     proc = subprocess.Popen(
         [sys.executable, "-m", "labbench.cli", "theory", "--ve", "spring", "--m", "0.1",
          "--b", "0.1", "--K", "10", "--w", w],
