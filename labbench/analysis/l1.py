@@ -186,7 +186,7 @@ def independent_columns(X) -> list[int]:
     The tolerance is numpy's matrix_rank's: largest singular value x n x eps.
     """
     n, p = X.shape
-    scale = np.max(np.abs(X), axis=0)
+    scale = np.maximum(X.max(axis=0), -X.min(axis=0))  # max |X_j| without an |X| copy
     R = np.linalg.qr(X, mode="r") / np.where(scale > 0, scale, 1.0)
     keep: list[int] = []
     for j in range(p):
