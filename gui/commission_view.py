@@ -37,9 +37,18 @@ STEPS = (
 )
 
 
+NO_FILE = "no rig file loaded"
+
+
 def has_file(rig) -> bool:
     """Whether ``rig`` was read from a file the page can write."""
     return bool(rig.source) and Path(str(rig.source)).is_file()
+
+
+def rig_where(rig) -> str:
+    """Where the window's rig comes from, for a person: its file, or none loaded (the
+    built-in simulated rig's values)."""
+    return str(rig.source) if has_file(rig) else f"{NO_FILE} (the built-in simulated rig's values)"
 
 
 class CommissionView(QtWidgets.QWidget):
@@ -115,7 +124,8 @@ class CommissionView(QtWidgets.QWidget):
         """The rig file the page would write, and whether the gate holds springs back."""
         self._rig = rig
         where = f"rig file <tt>{escape(str(rig.source))}</tt>" if has_file(rig) else (
-            "the built-in simulated rig (no file to write: start with <tt>labbench gui --rig FILE</tt>)")
+            f"{NO_FILE}: nothing to write the results into (load one with <b>Rig file...</b> "
+            "on the Device panel)")
         if rig.direction_checked:
             gate = f"direction checked: {escape(rig.direction_checked)}"
         elif simulated:
@@ -190,8 +200,12 @@ class CommissionView(QtWidgets.QWidget):
         text = ("rig changes: " + ", ".join(f"<tt>{k} = {escape(str(v))}</tt>" for k, v in changes.items())
                 if changes else "rig changes: <b>nothing to change</b>")
         stamp = self.fields.get("direction_checked")
+        writable = self._rig is not None and has_file(self._rig)
         if stamp:
-            text += f"; the direction passed: Write stamps <tt>direction_checked = {escape(stamp)}</tt>"
+            text += (f"; the direction passed: Write stamps <tt>direction_checked = {escape(stamp)}</tt>"
+                     if writable else "; the direction passed")
+        if not writable:
+            text += f" ({NO_FILE}: nothing can be written; load one with <b>Rig file...</b> on the Device panel)"
         self.changes.setText(text)
         self._sync_write()
 
@@ -214,7 +228,7 @@ class CommissionView(QtWidgets.QWidget):
         can = self._rig is not None and has_file(self._rig) and bool(self.fields)
         self.write_button.setEnabled(can and self._idle)
         if self._rig is not None and not has_file(self._rig):
-            self.write_button.setToolTip("no rig file: start with labbench gui --rig FILE")
+            self.write_button.setToolTip(f"{NO_FILE}: load one with Rig file... on the Device panel")
         elif not self.fields:
             self.write_button.setToolTip("nothing to write: run commissioning first")
         else:

@@ -7,7 +7,7 @@ from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import COLOURS, DecadeAxis
-from labbench.gui.verdict_view import VerdictLabel
+from labbench.gui.verdict_view import VerdictLabel, judged
 from labbench.numfmt import fmt
 
 
@@ -230,6 +230,8 @@ class IdView(QtWidgets.QWidget):
         freq = "f" if units.frequency == "Hz" else "ω"
         self.impedance.setLabel("bottom", f"frequency {freq}", units=units.frequency)
         self.impedance.getAxis("bottom").enableAutoSIPrefix(False)
+        for label in (self.verdicts, self.fit_verdict):
+            label.set_units(units)
         if self.results and self._data is not None:
             self._show_data(self.results, self._data)
         if self.loop_fit:
@@ -266,7 +268,8 @@ class IdView(QtWidgets.QWidget):
                  *(cells_[key].get(m, "") for m in results))
                 for key, label, unit in ROWS if key in cells_]
         _table(self.table, [f"{m} fit" + (" (overlay)" if m == used else "") for m in results], rows)
-        self.verdicts.show_verdicts([(f"{m} fit", res.get("verdict")) for m, res in results.items()])
+        self.verdicts.show_judged([j for m, res in results.items()
+                                   for j in judged(f"{m} fit", res.get("verdict"))])
         self.flags.setText("<br>".join(f"<b>{m}</b>: {f}" for m, res in results.items()
                                        for f in res.get("flags") or []))
         first = next(iter(results.values()))
@@ -290,10 +293,10 @@ class IdView(QtWidgets.QWidget):
         self.fit_source.setText(source)
         if "error" in fit:
             _table(self.fit_table, ["value", "95 % interval"], [("no fit", str(fit["error"]), "")])
-            self.fit_verdict.show_verdicts([])
+            self.fit_verdict.show_judged([])
             return
         _table(self.fit_table, ["value", "95 % interval"], loop_fit_rows(fit, self.units))
-        self.fit_verdict.show_verdicts([("closed-loop fit", fit.get("verdict"))])
+        self.fit_verdict.show_judged(judged("closed-loop fit", fit.get("verdict")))
 
     def _show_data(self, results: dict, data: dict) -> None:
         fit = results.get("l2") or next(iter(results.values()))

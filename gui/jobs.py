@@ -13,6 +13,7 @@ from labbench.errors import UserError
 from labbench.gui.live_estimate import estimate
 from labbench.numfmt import fmt
 from labbench.predictions import recorded_plant
+from labbench.readout import plant_source
 from labbench.ve import Plant
 
 
@@ -28,34 +29,6 @@ def plant_data(data: dict, meta: dict) -> dict:
         return data
     rec = recording_from_arrays(data["t"], data["command"], data["position"], meta)
     return {**data, "command": plant_force(rec, None, latency)}
-
-
-def scalar_rows(results: dict, prefix: str = "", depth: int = 2) -> list[tuple[str, str]]:
-    """(key, value) of the numbers and words in a results dict, nested keys dotted (arrays,
-    lists, verdicts and the big tables left out: the window shows those itself)."""
-    rows = []
-    for k, v in results.items():
-        if isinstance(v, dict) and depth > 1 and k not in ("identification", "etfe", "theory", "verdict"):
-            rows += scalar_rows(v, f"{prefix}{k}.", depth - 1)
-        elif isinstance(v, (bool, int, float, str)) or v is None:
-            rows.append((f"{prefix}{k}", fmt(v)))
-    return rows
-
-
-def plant_source(start: dict) -> str:
-    """Where the plant of a run's theory came from, in words (from its start record)."""
-    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
-    if isinstance(found.get("session"), str):
-        return f"identified in {session_label(found['session'])}"
-    config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
-    if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
-        return "given in the run's settings"
-    return "the rig's nominal model"
-
-
-def session_label(path) -> str:
-    """A session's file name less its uid: ``20261203-063850_chirp-id`` (when and what)."""
-    return Path(path).stem.rsplit("_", 1)[0]
 
 
 def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
@@ -91,21 +64,23 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
 
 def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, cancel=None) -> dict:
     """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
-    (``Session.etfe(fit=True)``): the ETFE's verdict and the closed-loop fit (or why none);
-    for a session without a VE only its path."""
+    (``Session.etfe(fit=True)``): its readout (``labbench.readout``: verdicts, the rendered
+    impedance) and the closed-loop fit (or why none); for a session without a VE only its path."""
+    from labbench import readout
     from labbench.session_api import load
 
-    out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "verdicts": []}
+    out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "readout": None}
     if ve_from_meta(meta) is None:
         return out
+    session = load(path)
     try:
-        fr = load(path).etfe(estimator=estimator, fit=True, progress=progress, cancel=cancel)
+        fr = session.etfe(estimator=estimator, fit=True, progress=progress, cancel=cancel)
     except UserError as exc:
         out["fit"] = {"error": str(exc)}
         return out
     d = fr.as_dict()
     out["fit"] = d["fit"]
-    out["verdicts"] = [("ETFE", d.get("verdict")), ("closed-loop fit", d["fit"].get("verdict"))]
+    out["readout"] = readout.of_etfe_analysis(d, session.records.get("start"))
     return out
 
 

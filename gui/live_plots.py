@@ -21,6 +21,9 @@ from labbench.units import SI
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
 W_SHOWN_OF_NYQUIST = 1 / 3
+# Stacked plots below this height each had their axis titles printed over each other (the
+# log dragged taller): the splitters stop there instead.
+MIN_PLOT_HEIGHT = 110
 # The y ranges follow the estimate only where it is trustworthy: its 95 % radius within
 # this fraction of |Z|. Early in a run the wide-band points (6 s into white noise: ES of
 # +-400 000 N/m) would otherwise set the range and flatten the curve into a line.
@@ -107,6 +110,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
             p.getViewBox().sigResized.connect(self._redraw)
             self.plots[key] = p
         self.plots["force"].setLabel("bottom", "time before the newest sample", units="s")
+        self.setMinimumHeight(len(rows) * MIN_PLOT_HEIGHT)
         self._span = None
         self._fresh = True  # no data drawn since the last clear: the next set the ranges
         legend = self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
@@ -250,6 +254,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             line.setVisible(False)
             self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
+        self.effective.setMinimumHeight(len(rows) * MIN_PLOT_HEIGHT + 40)  # and the title
         self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
         self.bode_legend = self.bode_plots["mag"].addLegend(offset=(-10, 5),

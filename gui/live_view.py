@@ -13,7 +13,7 @@ from PySide6 import QtCore, QtWidgets
 
 from labbench.analysis.compare import ve_from_meta
 from labbench.gui.buffers import StreamBuffer
-from labbench.gui.jobs import plant_source
+from labbench.readout import plant_source
 from labbench.gui.live_estimate import LIVE, MIN_SAMPLES, LiveEstimator
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.verdict_view import VerdictLabel
@@ -42,7 +42,14 @@ class LiveView(QtWidgets.QWidget):
         self.theory_plant.addItems(PLANT_CHOICES)
         self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
                                      "its analysis and report use), or l2 identified on its data")
-        self.verdicts = VerdictLabel()  # the verdicts of the result shown
+        # the verdicts of the result shown, in room of their own (the plots never move)
+        self.verdicts = VerdictLabel(placeholder="the verdicts of a run, a replay or a "
+                                     "re-analysis show here once it ends")
+        room = QtWidgets.QScrollArea()
+        room.setWidgetResizable(True)
+        room.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        room.setWidget(self.verdicts)
+        room.setFixedHeight(5 * self.verdicts.fontMetrics().lineSpacing() + 8)
         self.traces = TimeTraces()
         self.impedance = ImpedancePlots()
         self.splitter = QtWidgets.QSplitter()
@@ -57,7 +64,7 @@ class LiveView(QtWidgets.QWidget):
         row.addWidget(self.theory_plant)
         row.addStretch(1)
         lay.addLayout(row)
-        lay.addWidget(self.verdicts)
+        lay.addWidget(room)
         lay.addWidget(self.splitter, 1)
         self.theory_plant.currentIndexChanged.connect(lambda *_: self.invalidate_estimate())
 
@@ -69,7 +76,7 @@ class LiveView(QtWidgets.QWidget):
         self.estimator.reset()
         self.traces.clear_data()
         self.impedance.clear_data()
-        self.verdicts.show_verdicts([])
+        self.verdicts.show_judged([])
         self._drawn_version = self._estimated_version = -1
         self._error_shown = None
 
@@ -156,6 +163,7 @@ class LiveView(QtWidgets.QWidget):
     def set_units(self, units) -> None:
         self.traces.set_units(units)
         self.impedance.set_units(units)
+        self.verdicts.set_units(units)
 
     def shutdown(self) -> None:
         self.estimator.shutdown()

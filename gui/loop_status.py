@@ -1,6 +1,8 @@
-"""The loop's health in the status bar: mode, loop rate, period p99, overruns, worst stall
-and bus load, live during a run (``labbench.timing``'s snapshots, sent by the acquisition
-process 4 times a second) and the run's totals at its end."""
+"""The loop's health in the status bar: mode, pacing and rate, period p99, overruns, worst
+stall and bus load, all from one timing summary (``labbench.timing.status_figures``): live
+during a run (the snapshots the acquisition process sends 4 times a second) and the run's
+totals at its end. A lock-step simulator says so ("lock-step (unpaced): 2.3x real time")
+instead of a loop rate it does not have, and has no overruns to count."""
 from __future__ import annotations
 
 from PySide6 import QtWidgets
@@ -19,24 +21,31 @@ class LoopStatus:
     def show_mode(self, mode: str) -> None:
         self.labels["mode"].setText(f"mode: {mode}")
 
-    def show_rate(self, rate: float | None) -> None:
-        self.labels["loop rate"].setText(f"loop rate: {'-' if rate is None else f'{rate:.0f} Hz'}")
+    def clear(self, why: str = "-") -> None:
+        """A new run or a replay: nothing of the last run's figures stays."""
+        for key in FIELDS[1:]:
+            self.labels[key].setText(f"{key}: {why if key == 'loop rate' else '-'}")
 
     def show_overruns(self, n: int) -> None:
         """Overruns counted from the samples' flags (a replay: no timing is sent)."""
-        self.labels["overruns"].setText(f"overruns: {n} (live)")
+        self.labels["overruns"].setText(f"overruns: {n} (recorded)")
 
     def show_timing(self, timing: dict, live: bool = False) -> None:
-        def ms(key):
-            v = timing.get(key)
+        from labbench.timing import status_figures
+
+        fig = status_figures(timing)
+
+        def ms(v):
             return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
 
         tag = " (live)" if live else ""
-        if not live:
-            self.labels["period p99"].setText(f"period p99: {ms('p99_s')}")
-        self.labels["overruns"].setText(f"overruns: {timing.get('overruns', '-')}{tag}")
-        when = timing.get("worst_t_s", (timing.get("worst") or {}).get("t_s"))
-        at = f" at {when:.1f} s" if isinstance(when, (int, float)) else ""
-        self.labels["worst stall"].setText(f"worst stall: {ms('max_s')}{at}{tag}")
+        self.labels["loop rate"].setText(f"loop: {fig['rate_text']}{tag}")
+        if fig["p99_s"] is not None or not live:
+            what = "period p99" if fig["paced"] else "compute per sample p99"
+            self.labels["period p99"].setText(f"{what}: {ms(fig['p99_s'])}")
+        overruns = "- (unpaced: no period to overrun)" if fig["overruns"] is None else fig["overruns"]
+        self.labels["overruns"].setText(f"overruns: {overruns}{tag}")
+        at = f" at {fig['worst_t_s']:.1f} s" if isinstance(fig["worst_t_s"], (int, float)) else ""
+        self.labels["worst stall"].setText(f"worst stall: {ms(fig['max_s'])}{at}{tag}")
         if "bus_load" in timing:
             self.labels["bus load"].setText(f"bus load: {100 * timing['bus_load']:.0f} %")

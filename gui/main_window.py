@@ -15,6 +15,7 @@ estimates and exports run on worker threads (``labbench.gui.worker``,
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from html import escape
@@ -28,14 +29,15 @@ from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
 from labbench.gui.campaign_view import CampaignView, table_and_chart
-from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView
+from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, rig_where
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.estop_keys import ARMED_HINT, KEYS, UNARMED_HINT, EStopKeys
 from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
+from labbench.gui.guide import Guide, RigState
 from labbench.gui.id_view import IdView
 from labbench.gui.jobs import (catalogue, load_identification, plant_data, reanalyse_session,
-                               scalar_rows, session_label, timing_preflight, used_method)
+                               timing_preflight, used_method)
 from labbench.gui.live_view import LiveView
 from labbench.gui.loop_status import LoopStatus
 from labbench.gui.protocol_panel import ProtocolPanel, precheck_text, settings_rows
@@ -43,10 +45,11 @@ from labbench.gui.run_state import IDLE, REPLAY, RUNNING, RunState
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
-from labbench.gui.verdict_view import verdicts_of
+from labbench.gui.verdict_view import judged
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.numfmt import fmt
+from labbench.readout import session_label
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
 from labbench.session_catalogue import OWN_PLANT
@@ -55,6 +58,12 @@ from labbench.ve import Plant
 log = logging.getLogger(__name__)
 
 SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
+# the commissioning gate's remedy in the window's own words (the CLI's names its options)
+GATE_REMEDY = ("on the Commissioning tab, Run commissioning, then Write to rig file (or start "
+               "the window with --skip-commissioning)")
+NO_CAN = ("no CAN interface chosen and none configured: choose the drive's CAN bus in the Device "
+          "panel (the CAN bus list; \u21bb looks for adapters)")
+NO_PORT = "choose the board's serial port in the Device panel (the port list; \u21bb looks again)"
 
 
 def guarded(slot):
@@ -120,6 +129,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.identified: dict | None = None  # the newest chirp-ID of this rig: the plant runs use
         self._plant_from: dict | None = None  # ... and the one the run under way uses
         self._id_session_shown: str | None = None  # whose identification the page shows
+        self._measured = False  # an ETFE of this rig succeeded in the sessions folder
         self.mailbox = Mailbox()
         self.acquisition = Acquisition(self.mailbox)
         self.state = RunState(self)
@@ -129,7 +139,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_event = threading.Event()  # stops a replay
         self.session_path: str | None = None
         self.last_run = None  # RunResult of the last run
-        self._rate = (time.monotonic(), 0)
         self._run_started = time.monotonic()
         self._replay: threading.Thread | None = None
         self._device_used = False  # a run has used the connected device
@@ -173,7 +182,7 @@ class MainWindow(QtWidgets.QMainWindow):
         # Esc and Space: E-STOP anywhere in the application while a device is connected
         self.estop_keys = EStopKeys(lambda: self.state.armed, self.emergency_stop, self)
         QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
-        self.log.add("info", f"rig: {rig.name} ({rig.source}); sessions in {self.session_dir}")
+        self.log.add("info", f"rig: {rig.name} ({rig_where(rig)}); sessions in {self.session_dir}")
         self._follow_state()
         self._rig_changed()
         self._show_overlay()  # the rig's nominal until the sessions folder is read
@@ -197,13 +206,18 @@ class MainWindow(QtWidgets.QMainWindow):
         self.campaign = CampaignView()
         self.units_choice = UnitsChoice()
         self.log = EventLog()
+        # one strip of fixed height above everything: the first-run path, or a failure's
+        # red banner in its place (click to dismiss): nothing below moves when one shows
+        self.guide = Guide()
         self.banner = QtWidgets.QLabel()
         self.banner.setWordWrap(True)
-        self.banner.setStyleSheet("QLabel { background: #fde0e0; color: #7a0010; padding: 6px;"
+        self.banner.setStyleSheet("QLabel { background: #fde0e0; color: #7a0010; padding: 4px;"
                                   " border: 1px solid #b00020; font-weight: bold; }")
-        self.banner.setVisible(False)
-        self.banner.mousePressEvent = lambda e: self.banner.setVisible(False)
-        self.banner.setToolTip("click to dismiss")
+        self.banner.mousePressEvent = lambda e: self._new_action()
+        self.strip = QtWidgets.QStackedWidget()
+        self.strip.addWidget(self.guide)
+        self.strip.addWidget(self.banner)
+        self.strip.setFixedHeight(3 * QtGui.QFontMetrics(self.banner.font()).lineSpacing() + 14)
 
         left = QtWidgets.QWidget()
         ll = QtWidgets.QVBoxLayout(left)
@@ -234,7 +248,7 @@ class MainWindow(QtWidgets.QMainWindow):
         central = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(central)
         cl.setContentsMargins(4, 4, 4, 4)
-        cl.addWidget(self.banner)
+        cl.addWidget(self.strip)
         cl.addWidget(body, 1)
         self.setCentralWidget(central)
         self.keys_hint = QtWidgets.QLabel()  # the E-STOP keys' rule, as it holds now
@@ -250,6 +264,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device_panel.enable_requested.connect(self.enable_device)
         self.device_panel.timing_requested.connect(self.check_timing)
         self.device_panel.backend.currentTextChanged.connect(lambda *_: self._rig_changed())
+        self.device_panel.rig_file_requested.connect(self.load_rig_file)
+        self.guide.step_requested.connect(self._guide_step)
         self.protocol_panel.protocol_changed.connect(self._protocol_chosen)
         self.protocol_panel.settings_changed.connect(self.update_precheck)
         self.protocol_panel.start_requested.connect(self.start_protocol)
@@ -280,6 +296,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions.follow(state)
         self.estop.set_latched(state.latched)
         self.keys_hint.setText(ARMED_HINT if state.armed else UNARMED_HINT)
+        self._follow_rig()
         self.loop_status.show_mode(state.name)
 
     @staticmethod
@@ -292,14 +309,36 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- messages -------------------------------------------------------------------------
     def show_error(self, text: str) -> None:
-        """A clear message in the window (banner + status bar) and in the event log."""
+        """A clear message in the window (the banner, in the first-run path's place) and in
+        the event log."""
         self.banner.setText(text)
-        self.banner.setVisible(True)
+        self.banner.setToolTip(f"{text}\n(click to dismiss)")
+        self.strip.setCurrentWidget(self.banner)
         self.log.add("error", text)
 
     def _new_action(self) -> None:
         """A new user action: an earlier failure's banner is history now (the log keeps it)."""
-        self.banner.setVisible(False)
+        self.strip.setCurrentWidget(self.guide)
+
+    # ----- the first-run path ------------------------------------------------------------------
+    def _follow_rig(self) -> None:
+        """The first-run path follows the rig: connected, commissioned, identified, measured."""
+        self.guide.show_state(RigState(
+            connected=self.state.link in ("connected", "latched"), simulated=self.simulated,
+            commissioned=self.rig.direction_checked,
+            identified=session_label(self.identified["session"]) if self.identified else "",
+            measured=self._measured))
+
+    def _guide_step(self, step: str) -> None:
+        """A step of the path clicked: it shows, or chooses what the person asked for
+        (never starts a run)."""
+        if step == "connect" and self.state.link == "none":
+            self.connect_device(self.device_panel.backend.currentText())
+        elif step == "commission":
+            self.tabs.setCurrentWidget(self.commission)
+        elif step in ("identify", "measure"):
+            self.protocol_panel.choice.setCurrentText("chirp-id" if step == "identify" else "etfe")
+            self.tabs.setCurrentWidget(self.live)
 
     def info(self, text: str) -> None:
         self.statusBar().showMessage(text, 8000)
@@ -314,16 +353,32 @@ class MainWindow(QtWidgets.QMainWindow):
         self._new_action()
         from labbench.registry import open_device
 
+        if rig is None:  # the window's rig, with the link chosen on the Device panel
+            rig, options = self._device_rig(backend)
+        else:
+            options = {**({"realtime": self.realtime} if backend == "sim" else {}), **(options or {})}
         self.state.connecting()
-        options = {**({"realtime": self.realtime} if backend == "sim" else {}), **(options or {})}
         self.log.add("info", f"connecting to {backend} ...")
         self._backend_connected = backend
         self.device = None
         self.estop_confirmed = False
         self.health = {}
         self.device_panel.set_connected(None)
-        self.acquisition.connect(opener or functools.partial(open_device, backend),
-                                 rig or self.rig, options)
+        self.acquisition.connect(opener or functools.partial(open_device, backend), rig, options)
+
+    def _device_rig(self, backend: str):
+        """(the rig, the factory's options) to open ``backend`` with: the link the person chose
+        on the Device panel (a serial port, a CAN interface) over the rig file's."""
+        choice = self.device_panel.link_choice()
+        if backend == "serial":
+            port = choice.get("port") or self.rig.section("serial").get("port")
+            if not port:
+                raise UserError(NO_PORT)
+            return self.rig, {"port": port}
+        if backend == "canopen" and choice:
+            sections = {**self.rig.sections, "canopen": {**self.rig.section("canopen"), **choice}}
+            return dataclasses.replace(self.rig, sections=sections), {}
+        return self.rig, ({"realtime": self.realtime} if backend == "sim" else {})
 
     @guarded
     def disconnect_device(self):
@@ -389,13 +444,8 @@ class MainWindow(QtWidgets.QMainWindow):
             if self.mode == RUNNING:
                 health["drops"] = str(_count_flag(buf, SEQ_GAP))
             self.device_panel.set_health(health)
-        if self.mode == RUNNING and not self._live_timing:  # a replay: from the flags
+        if self.mode == REPLAY:  # no loop runs: what the recording's flags say
             self.loop_status.show_overruns(_count_flag(buf, OVERRUN))
-        now = time.monotonic()
-        t0, n0 = self._rate
-        if now - t0 >= 1.0:
-            self.loop_status.show_rate((buf.n - n0) / (now - t0) if self.mode != IDLE else None)
-            self._rate = (now, buf.n)
 
     # ----- protocol ---------------------------------------------------------------------------
     def _protocol_chosen(self, _name: str) -> None:
@@ -438,7 +488,8 @@ class MainWindow(QtWidgets.QMainWindow):
 
         protocol = self.make_protocol(name)
         plant = protocol.plant(self.rig)
-        gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning)
+        gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning,
+             remedy=GATE_REMEDY, where=rig_where(self.rig))
         return protocol, precheck(protocol, plant, self.rig)
 
     def update_precheck(self):
@@ -499,7 +550,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """Start ``protocol`` (made from ``values``) on the connected device: the one way a run
         leaves the window (a Start, commissioning, a campaign's point)."""
         self.live.reset()
-        self._rate = (time.monotonic(), 0)
+        self.loop_status.clear()
         self.stop_event = threading.Event()
         self._device_used = True
         self._run_protocol, self.session_path = protocol.name, None
@@ -547,9 +598,26 @@ class MainWindow(QtWidgets.QMainWindow):
         self._rig_changed()
 
     def _rig_changed(self) -> None:
-        """The rig, or whether it is simulated, changed: the gate and the page follow."""
+        """The rig, or whether it is simulated, changed: the gate, the pages and the path follow."""
         self.commission.set_rig(self.rig, self.simulated)
+        self.device_panel.show_rig(self.rig, rig_where(self.rig))
+        self.setWindowTitle(f"labbench: {self.rig.name}")
         self.update_precheck()
+        self._follow_rig()
+
+    @guarded
+    def load_rig_file(self, path: str) -> None:
+        """A rig file the person chose on the Device panel replaces the rig (no device open)."""
+        from labbench.rig import load_rig
+
+        self._new_action()
+        if self.state.link != "none":
+            raise UserError("disconnect the device before loading another rig file")
+        self.rig = self.live.rig = load_rig(path)
+        self.identified = None
+        self.log.add("info", f"rig: {self.rig.name} ({rig_where(self.rig)})")
+        self._rig_changed()
+        self.refresh_sessions()  # this rig's newest chirp-ID, its ETFE runs
 
     def set_units(self, units) -> None:
         """Display units (``labbench.units.DisplayUnits``) of every plot and label at once."""
@@ -852,6 +920,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if tag == "connect":
             self.device_panel.set_connected(None)
             self.state.disconnected()
+            if message.startswith("no CAN interface"):
+                message = NO_CAN
         if tag in ("run", "replay"):
             self._run_finished(f"{tag} failed: {message}")
         if tag in ("connect", "run"):
@@ -938,15 +1008,18 @@ class MainWindow(QtWidgets.QMainWindow):
         their verdicts on the Live page, an identification and a closed-loop fit on the
         Identification page, a commissioning on its page (``ran_here``: a run of this window
         on this rig, whose measured values may be written into the rig file)."""
+        from labbench import readout
+
         if results.get("error"):
             self.show_error(str(results["error"]))
-        rows = scalar_rows(results)
-        if rows:
-            self.log.add("info", "results:", rows=rows)
-        name = Path(session).name if session else "this run (not recorded)"
-        self.live.verdicts.show_verdicts(verdicts_of(results), prefix=f"<b>{protocol}, {name}</b>")
-        ident = results.get("identification")
         buf = self.live.buffer
+        read = readout.of_results(protocol or "", results, buf.start or {})  # as the CLI, the report
+        if read.rows:
+            self.log.add("info", "results:", rows=read.row_texts(self.units_choice.units()))
+        name = Path(session).name if session else "this run (not recorded)"
+        self.live.verdicts.show_judged(read.verdicts, heading=f"<b>{escape(f'{protocol}, {name}')}</b>",
+                                       lines=[read.rendered.sentence] if read.rendered else [])
+        ident = results.get("identification")
         if isinstance(ident, dict) and ident:
             from labbench.session_content import analysis_meta
 
@@ -992,7 +1065,7 @@ class MainWindow(QtWidgets.QMainWindow):
             raise UserError(f"not a labbench session file: {path}")
         self.state.replay()
         self.live.reset()
-        self._rate = (time.monotonic(), 0)
+        self.loop_status.clear("replay (no loop runs)")
         self.stop_event = threading.Event()
         self._replay_path, self._run_protocol = path, None
         self._progress, self._halted, self._replay_length = 0.0, "", 0
@@ -1060,12 +1133,13 @@ class MainWindow(QtWidgets.QMainWindow):
         elif fit:
             self.id_view.show_loop_fit(fit, f"labbench analyze etfe --fit {again['options']}"
                                        f"{name}: the delay model chosen by cross-validation")
-        verdicts = [(w, v) for w, v in again.get("verdicts", [])]
-        verdicts += [(f"identification ({m})", r.get("verdict")) for m, r in good.items()]
-        notes = "".join(f'<br><span style="color:#a86b00">not replaced: {escape(k)}</span>'
-                        for k in kept)
-        self.live.verdicts.show_verdicts(verdicts, prefix=f"<b>re-analysis of {name}</b>{notes}",
-                                         always=bool(kept))
+        read = again.get("readout")  # labbench analyze etfe's, as the CLI says it
+        verdicts = list(read.verdicts) if read is not None else []
+        verdicts += [j for m, r in good.items() for j in judged(f"identification ({m})", r.get("verdict"))]
+        lines = [read.rendered.sentence] if read is not None and read.rendered else []
+        lines += [(f"not replaced: {k}", "#a86b00") for k in kept]
+        self.live.verdicts.show_judged(verdicts, heading=f"<b>re-analysis of {escape(name)}</b>",
+                                       lines=lines)
         self.tabs.setCurrentWidget(self.live)
         for k in kept:
             self.log.add("warning", f"re-analysis of {name}: not replaced: {k}")
@@ -1079,6 +1153,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_sessions_done(self, value):
         summaries, found = value
         self.sessions.set_sessions(summaries)
+        self._measured = any(s.protocol == "etfe" and s.status == "success"
+                             and s.rig_name == self.rig.name for s in summaries)
         if self.session_path and self.mode == IDLE:  # the newest run of this window
             self.sessions.select_path(self.session_path)
         self._set_identified(found)
@@ -1100,6 +1176,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.identified = found
         if changed:
             self.update_precheck()
+        self._follow_rig()
         if found and found["session"] != self._id_session_shown:
             self._id_session_shown = found["session"]
             run_in_background(self.mailbox, "identified", load_identification, found["session"])

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 from html import escape
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.errors import UserError
+from labbench.gui.labels import fixed_lines, set_text
 from labbench.numfmt import fmt
 from labbench.ve import VE_KINDS
 
@@ -230,6 +231,9 @@ def precheck_text(rep: dict) -> str:
     lines = []
     for c in rep.get("checks", []):
         ve = c["ve"]
+        if ve.get("kind") == "none":
+            lines.append("VE off (open loop): nothing is rendered, no stability bound to check")
+            continue
         km = c.get("k_max")
         margin = (f", margin K_max/K = {km / ve['K']:.1f}x" if km and ve.get("K") else "")
         # K_max depends on the VE's damping: say which (commissioning's is for B = 0)
@@ -294,18 +298,26 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.precheck = QtWidgets.QLabel("pre-check: -")
         self.precheck.setWordWrap(True)
         self.precheck.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        self.precheck.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
+        # the pre-check and the progress line in room of their own: a longer text scrolls
+        # or wraps there, never pushes Start (below the pre-check) or anything else
+        precheck_room = QtWidgets.QScrollArea()
+        precheck_room.setWidgetResizable(True)
+        precheck_room.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        precheck_room.setWidget(self.precheck)
+        precheck_room.setFixedHeight(5 * QtGui.QFontMetrics(self.precheck.font()).lineSpacing() + 6)
         self.start_button = QtWidgets.QPushButton("Start")
         self.stop_button = QtWidgets.QPushButton("Stop")
         self.stop_button.setEnabled(False)
         self.progress = QtWidgets.QProgressBar()
         self.progress.setRange(0, 1000)
         self.progress.setTextVisible(False)
-        self.time_left = QtWidgets.QLabel("")
+        self.time_left = fixed_lines(QtWidgets.QLabel(""), 3)
 
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(self.choice)
         lay.addWidget(self.forms, 1)
-        lay.addWidget(self.precheck)
+        lay.addWidget(precheck_room)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.start_button)
         row.addWidget(self.stop_button)
@@ -377,4 +389,4 @@ class ProtocolPanel(QtWidgets.QGroupBox):
 
     def set_progress(self, frac: float, text: str = "") -> None:
         self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))
-        self.time_left.setText(text)
+        set_text(self.time_left, text)

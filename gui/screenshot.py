@@ -130,7 +130,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
         settle_and_grab(win, "live-etfe-running.png")
     if not wait_until(lambda: demo_finished(win), 4 * seconds + 60):
         raise RuntimeError("demo run did not finish; log: " + " | ".join(win.log.texts()))
-    settle_and_grab(win, "demo-etfe.png", win.live.verdicts.isVisible()
+    settle_and_grab(win, "demo-etfe.png", bool(win.live.verdicts.shown)
                     and "identified in" in win.live.impedance.title.text)
     win.live.impedance.setCurrentIndex(1)
     settle_and_grab(win, "bode.png")
@@ -156,7 +156,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     win.disconnect_device()
     win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
     win.start_protocol()
-    settle_and_grab(win, "refused-uncommissioned.png", "labbench run commission" in win.banner.text())
+    settle_and_grab(win, "refused-uncommissioned.png", "Commissioning tab" in win.banner.text())
     win.close()
 
     rig_file = work / "bench3.toml"

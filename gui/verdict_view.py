@@ -1,67 +1,69 @@
-"""Verdicts in the window: ok / doubtful / failed with the reasons, wherever a result shows
-(``labbench.verdict``: each analysis judges its own result; the window says what it said)."""
+"""Verdicts in the window: ok / doubtful / failed with the band they speak of, their reasons
+and notes, wherever a result shows. The words are ``labbench.readout``'s (the one source of
+what the CLI, the report and the window say of a result) and follow the display units."""
 from __future__ import annotations
 
 from html import escape
 
 from PySide6 import QtCore, QtWidgets
 
+from labbench.readout import Judged
 from labbench.verdict import DOUBTFUL, FAILED, OK, from_dict
 
 COLOURS = {OK: "#206020", DOUBTFUL: "#a86b00", FAILED: "#b00020"}
 
 
-def verdicts_of(results: dict) -> list[tuple[str, dict]]:
-    """(what, verdict dict) of every verdict a run's results carry, in a person's words:
-    the result's own, each identification fit's, the ETFE's and the loop fit's, each
-    commissioning check's (recorded results are not trusted: what is not a verdict is left out)."""
-    if not isinstance(results, dict):
-        return []
-    names = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "k_max": "K_max"}
-    found = []
-    if from_dict(results.get("verdict")):
-        found.append(("commissioning" if "changes" in results else "result", results["verdict"]))
-    ident = results.get("identification")
-    for method, fit in (ident.items() if isinstance(ident, dict) else ()):
-        if isinstance(fit, dict) and from_dict(fit.get("verdict")):
-            found.append((f"identification ({method})", fit["verdict"]))
-    for key, value in results.items():
-        if key not in ("identification", "verdict") and isinstance(value, dict) \
-                and from_dict(value.get("verdict")):
-            found.append((names.get(key, key.replace("_", " ")), value["verdict"]))
-    return found
-
-
-def verdict_html(what: str, verdict: dict) -> str:
-    """``what: level`` in the level's colour, then its reasons (escaped)."""
+def judged(what: str, verdict) -> list[Judged]:
+    """A recorded verdict (a dict, not trusted) as a readout's ``Judged``; [] when it is none."""
     v = from_dict(verdict)
-    if v is None:
-        return ""
-    head = f'<b style="color:{COLOURS[v.level]}">{escape(what)}: {v.level}</b>'
-    return head + "".join(f"<br>&nbsp;&nbsp;- {escape(r)}" for r in v.reasons)
+    return [] if v is None else [Judged(what, v)]
+
+
+def verdict_html(j: Judged, units=None) -> str:
+    """``what: ok over 2-100 rad/s`` in the level's colour, then its reasons and notes."""
+    v = j.verdict
+    head = f'<b style="color:{COLOURS[v.level]}">{escape(j.what)}: {escape(v.head(units))}</b>'
+    return head + "".join(f"<br>&nbsp;&nbsp;- {escape(r)}" for r in (*v.reasons, *v.notes))
 
 
 class VerdictLabel(QtWidgets.QLabel):
-    """The verdicts of one result, one per line; hidden when there are none."""
+    """The verdicts of one result, one per line, under a heading and lines of its own (the
+    rendered impedance, what was not replaced); with none, hidden, or the ``placeholder``
+    (in grey) where the label keeps its room. ``set_units`` writes them again."""
 
-    def __init__(self, parent=None):
+    def __init__(self, parent=None, placeholder: str = ""):
         super().__init__(parent)
         self.setWordWrap(True)
         self.setTextFormat(QtCore.Qt.TextFormat.RichText)
         self.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        self.shown: list[tuple[str, dict]] = []
-        self.setVisible(False)
+        self.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
+        self.placeholder = placeholder
+        self.units = None
+        self.shown: list[Judged] = []
+        self._heading, self._lines = "", []
+        self.show_judged([])
 
-    def show_verdicts(self, verdicts: list[tuple[str, dict]], prefix: str = "",
-                      always: bool = False) -> None:
-        """One line per verdict under ``prefix``; ``always``: the prefix is shown even with
-        no verdict (it says something by itself)."""
-        self.shown = [(w, v) for w, v in verdicts if from_dict(v) is not None]
-        lines = [verdict_html(w, v) for w, v in self.shown]
-        self.setText((prefix + "<br>" if prefix and lines else prefix if always else "")
-                     + "<br>".join(lines))
-        self.setVisible(bool(lines) or always)
+    def show_judged(self, verdicts: list[Judged], heading: str = "",
+                    lines=()) -> None:
+        """``verdicts`` under ``heading`` (HTML) and ``lines``: plain text, a callable of the
+        display units giving it (a readout's ``rendered.sentence``), or (text, colour)."""
+        self.shown, self._heading, self._lines = list(verdicts), heading, list(lines)
+        self._write()
+
+    def set_units(self, units) -> None:
+        self.units = units
+        self._write()
+
+    def _write(self) -> None:
+        extra = [f'<span style="color:{x[1]}">{escape(x[0])}</span>' if isinstance(x, tuple)
+                 else escape(x(self.units) if callable(x) else x) for x in self._lines]
+        body = extra + [verdict_html(j, self.units) for j in self.shown]
+        text = "<br>".join(([self._heading] if self._heading and body else []) + body)
+        if not text and self.placeholder:
+            text = f'<span style="color:#777777">{escape(self.placeholder)}</span>'
+        self.setText(text)
+        self.setVisible(bool(text))
 
     def levels(self) -> dict[str, str]:
         """what -> level of the verdicts shown (for tests and screenshots' checks)."""
-        return {w: v["level"] for w, v in self.shown}
+        return {j.what: j.verdict.level for j in self.shown}

@@ -22,16 +22,22 @@ from labbench.errors import UserError
 WRITABLE = ("position_sign", "measured_td_s", "measured_td_from", "direction_checked")
 
 
-def gate(ves, rig, simulated: bool, skip: bool = False) -> None:
+# what to do about the gate, in the command line's words (the window names its own controls)
+CLI_REMEDY = "run `labbench run commission --rig FILE --write-rig` first (or --skip-commissioning)"
+
+
+def gate(ves, rig, simulated: bool, skip: bool = False, remedy: str = CLI_REMEDY,
+         where: str | None = None) -> None:
     """One UserError when real hardware would render a spring or damper before the rig
-    passed its direction check (module doc); ``ves``: every VE the run will render."""
+    passed its direction check (module doc); ``ves``: every VE the run will render;
+    ``remedy``: what the message says to do; ``where``: the rig named (default its source)."""
     if simulated or skip or rig.direction_checked:
         return
     for ve in ves:
         if ve.K > 0 or ve.B > 0:
-            raise UserError(f"{rig.source}: this rig has not passed its direction check: refusing "
-                            f"K = {ve.K:g} N/m, B = {ve.B:g} N s/m on real hardware; run `labbench "
-                            "run commission --rig FILE --write-rig` first (or --skip-commissioning)")
+            raise UserError(f"{where or rig.source}: this rig has not passed its direction check: "
+                            f"refusing K = {ve.K:g} N/m, B = {ve.B:g} N s/m on real hardware; "
+                            f"{remedy}")
 
 
 def changes_to_write(results: dict, session: str, when: str) -> dict:

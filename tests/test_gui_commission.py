@@ -12,7 +12,9 @@ import re  # noqa: E402
 
 import pytest  # noqa: E402
 
+from labbench.commissioning import CLI_REMEDY  # noqa: E402
 from labbench.errors import UserError  # noqa: E402
+from labbench.gui.main_window import GATE_REMEDY  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.registry import open_device  # noqa: E402
 from labbench.rig import Rig, load_rig  # noqa: E402
@@ -181,11 +183,13 @@ def test_real_hardware_renders_no_spring_until_commissioned(qtbot, tmp_path):
     assert "stable spring-damper" in panel.precheck.text()  # the simulator: no gate
     win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
     line = _cli_refusal(win.rig)
-    assert "labbench run commission" in line
-    assert line.replace("<", "&lt;").replace(">", "&gt;") in panel.precheck.text()
+    assert "labbench run commission" in line  # the command line names its command ...
+    shown = line.replace(CLI_REMEDY, GATE_REMEDY)  # ... the window its own controls
+    assert "Commissioning tab" in shown and "labbench run" not in shown
+    assert shown in panel.precheck.text()
 
     panel.start_button.click()  # refused before the device is touched
-    assert win.banner.isVisible() and win.banner.text() == line
+    assert win.banner.isVisible() and win.banner.text() == shown
     assert win.mode == "idle" and win.device is None and not (tmp_path / "sessions").exists()
 
     # commissioning renders no VE: allowed on the same device; it passes and stamps the rig
@@ -194,7 +198,7 @@ def test_real_hardware_renders_no_spring_until_commissioned(qtbot, tmp_path):
     assert not win.simulated
     _commission(qtbot, win)
     _write(win, path)
-    assert win.rig.direction_checked and "labbench run commission" not in panel.precheck.text()
+    assert win.rig.direction_checked and "direction check" not in panel.precheck.text()
 
     # now the spring renders on it
     win.connect_device("canopen", opener=SIM_AS_HARDWARE)

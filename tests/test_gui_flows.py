@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.id_view import cells  # noqa: E402
-from labbench.gui.jobs import session_label  # noqa: E402
+from labbench.readout import session_label  # noqa: E402
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.numfmt import fmt  # noqa: E402

@@ -4,13 +4,17 @@ import os
 
 os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
-from pathlib import Path  # noqa: E402
+import functools  # noqa: E402
 
 import pytest  # noqa: E402
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
-from labbench.gui.main_window import MainWindow  # noqa: E402
+from labbench.gui.device_panel import FROM_RIG  # noqa: E402
+from labbench.gui.main_window import NO_CAN, NO_PORT, MainWindow  # noqa: E402
+from labbench.registry import open_device  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
+
+SIM_AS_HARDWARE = functools.partial(open_device, "sim")  # the simulator behind a real backend's name
 
 RUN_MS = 120_000
 
@@ -440,3 +444,215 @@ def test_sessions_show_ve_k_b_duration_and_verdict_and_filter(qtbot, window):
     assert [r[col["protocol"]] for r in win.sessions.shown_rows()] == ["chirp-id"]
     win.sessions.filter.clear()
     assert len(win.sessions.shown_rows()) == 3 and win.sessions.count.text() == "3 sessions"
+
+
+# ----- defect 4: a first-run path on screen that follows the rig ---------------------------------
+def _next(win) -> str:
+    return win.guide.line.text()
+
+
+def test_the_first_run_path_says_what_to_do_next_and_follows_the_rig(qtbot, window):
+    win = window()
+    assert win.guide.isVisible() and win.guide.next_step() == "connect"
+    assert "next: Connect" in _next(win) and "Connect in the Device panel" in _next(win)
+    # chirp-id preselected: its pre-check says the VE is off, not a spectral radius of "none"
+    assert win.protocol_panel.name == "chirp-id"
+    assert "VE off (open loop)" in win.protocol_panel.precheck.text()
+    assert "spectral radius" not in win.protocol_panel.precheck.text()
+    win.guide.buttons["connect"].click()  # the step's button does what it says
+    qtbot.waitUntil(lambda: win.device is not None, timeout=30_000)
+    # a simulator needs no commissioning: identify is next
+    assert win.guide.next_step() == "identify" and "chirp-id" in _next(win)
+    assert "not needed on a simulator" in win.guide.buttons["commission"].toolTip()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.tabs.setCurrentWidget(win.sessions)
+    win.guide.buttons["identify"].click()  # chooses chirp-id and shows Live; starts nothing
+    assert win.protocol_panel.name == "chirp-id" and win.tabs.currentWidget() is win.live
+    assert win.mode == "idle" and win.last_run is None
+    _run(qtbot, win, "chirp-id", f0_hz=1.0, duration_s=3.0)
+    qtbot.waitUntil(lambda: win.guide.next_step() == "measure", timeout=20_000)
+    assert "identified in" in win.guide.buttons["identify"].toolTip()
+    win.guide.buttons["measure"].click()
+    assert win.protocol_panel.name == "etfe" and win.mode == "idle"
+    _run(qtbot, win, "etfe", duration_s=2.0)
+    qtbot.waitUntil(lambda: win.guide.next_step() is None, timeout=20_000)
+    assert "every step done" in _next(win)
+
+
+def test_on_real_hardware_commissioning_is_the_step_after_connect(qtbot, window, tmp_path):
+    from labbench.rig import load_rig
+
+    rig = tmp_path / "bench.toml"
+    rig.write_text('[rig]\nname = "bench"\n')
+    win = window(rig=load_rig(rig))
+    win.device_panel.backend.setCurrentText("canopen")
+    win.connect_device("canopen", opener=SIM_AS_HARDWARE)
+    qtbot.waitUntil(lambda: win.device is not None, timeout=30_000)
+    assert win.guide.next_step() == "commission" and "Commissioning tab" in _next(win)
+    chosen = win.protocol_panel.name
+    win.guide.buttons["commission"].click()  # shows the page, changes no choice
+    assert win.tabs.currentWidget() is win.commission and win.protocol_panel.name == chosen
+
+
+# ----- defect 5: the link chosen in the window, errors naming its controls ------------------------
+def test_the_serial_port_is_picked_on_the_device_panel(qtbot, window, monkeypatch):
+    from labbench.gui import device_panel
+
+    monkeypatch.setattr(device_panel, "serial_ports", lambda: [("/dev/ttyFAKE7", "Arduino Uno")])
+    win = window()
+    panel = win.device_panel
+    assert "no rig file loaded" in panel.rig_label.text()  # not "<defaults>"
+    assert not any("<defaults>" in t for t in win.log.texts())
+    panel.backend.setCurrentText("serial")
+    assert panel.link_title.text() == "port" and panel.port.isVisible()
+    qtbot.waitUntil(lambda: panel.port.findText("/dev/ttyFAKE7") >= 0, timeout=10_000)
+    panel.port.setCurrentText("")
+    panel.connect_button.click()  # no port: the window says where to choose one
+    assert win.banner.isVisible() and win.banner.text() == NO_PORT
+    assert "[serial]" not in win.banner.text() and "port =" not in win.banner.text()
+    assert win.state.link == "none"
+    panel.port.setCurrentIndex(panel.port.findText("/dev/ttyFAKE7"))
+    panel.connect_button.click()  # the port chosen is the one opened (it is not there)
+    qtbot.waitUntil(lambda: win.state.link == "none" and "ttyFAKE7" in win.banner.text(),
+                    timeout=30_000)
+    assert "cannot open serial port /dev/ttyFAKE7" in win.banner.text()
+
+
+def test_the_can_interface_is_picked_on_the_device_panel(qtbot, window, monkeypatch, tmp_path):
+    from labbench.gui import device_panel
+
+    monkeypatch.setattr(device_panel, "can_configs",
+                        lambda: [{"interface": "virtual", "channel": "bench-bus"}])
+    monkeypatch.delenv("CAN_INTERFACE", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.canrc
+    win = window()
+    panel = win.device_panel
+    panel.backend.setCurrentText("canopen")
+    assert panel.link_title.text() == "CAN bus"
+    qtbot.waitUntil(lambda: panel.interface.findText("virtual: bench-bus") >= 0, timeout=10_000)
+    assert panel.interface.currentText() == FROM_RIG
+    panel.connect_button.click()  # none in the rig, none configured: the window's list named
+    qtbot.waitUntil(lambda: win.banner.isVisible(), timeout=30_000)
+    assert win.banner.text() == f"connect: {NO_CAN}" and "~/.canrc" not in win.banner.text()
+    panel.interface.setCurrentIndex(panel.interface.findText("virtual: bench-bus"))
+    assert panel.link_choice() == {"interface": "virtual", "channel": "bench-bus"}
+    panel.connect_button.click()  # that bus is opened: no drive answers on it
+    qtbot.waitUntil(lambda: win.state.link == "none" and "no CAN interface" not in win.banner.text()
+                    and win.banner.isVisible(), timeout=60_000)
+
+
+def test_a_rig_file_is_loaded_from_the_device_panel(qtbot, window, tmp_path):
+    rig = tmp_path / "bench 4.toml"
+    rig.write_text('[rig]\nname = "bench 4"\nforce_limit_n = 3.0\n')
+    win = window()
+    raised = _in_modal(qtbot, lambda d: (d.selectFile(str(rig)), d.accept()))
+    win.device_panel.rig_button.click()
+    assert not raised, raised
+    assert win.rig.name == "bench 4" and str(rig) in win.device_panel.rig_label.text()
+    assert str(rig) in win.commission.rig_label.text() and win.windowTitle() == "labbench: bench 4"
+
+
+# ----- defect 6 (the window's side): simulators say so, one E-STOP wording, figures of one summary
+@pytest.mark.parametrize("backend", ["sim", "sim-serial"])
+def test_a_simulator_says_it_is_one_and_an_estop_reads_the_same(qtbot, window, backend):
+    from labbench.device import ESTOP_STATE
+
+    win = window()
+    win.device_panel.backend.setCurrentText(backend)
+    assert "no hardware" in win.device_panel.simulated.text()
+    _connect(qtbot, win)
+    name = win.device_panel.name_label.text()
+    assert "simulated" in name and ("lock-step" in name or "paced" in name)
+    qtbot.waitUntil(lambda: win.device_panel.health["state"].text() not in ("-", ""), timeout=5_000)
+    if backend == "sim-serial":  # its link's counters as words, from the connection: all 0
+        qtbot.waitUntil(lambda: win.device_panel.health["link"].text() != "-", timeout=5_000)
+        link = win.device_panel.health["link"].text()
+        assert link == "all zero" or ("{" not in link and all(
+            part.split()[-1] == "0" for part in link.split(", "))), link
+    _run(qtbot, win, "chirp-id", f0_hz=1.0, duration_s=2.0)
+    rate = win.loop_status.labels["loop rate"].text()
+    if "lock-step" in name:  # as fast as the host goes: no loop rate, no overruns to count
+        assert "lock-step (unpaced)" in rate and "Hz" not in rate.split(":", 1)[1].replace("real time", "")
+        assert "unpaced" in win.loop_status.labels["overruns"].text()
+    win.activateWindow()
+    qtbot.keyClick(win, QtCore.Qt.Key.Key_Escape)
+    qtbot.waitUntil(lambda: win.device_panel.health["state"].text() == ESTOP_STATE, timeout=10_000)
+    assert "LATCHED" in win.estop.text()
+
+
+# ----- defect 10: a fixed layout ------------------------------------------------------------------
+def _where(widget, win):
+    return widget.mapTo(win, QtCore.QPoint(0, 0))
+
+
+def test_nothing_moves_start_the_tabs_or_the_plots(qtbot, window):
+    win = window()
+    start, tabs, plots = (win.protocol_panel.start_button, win.tabs, win.live.splitter)
+    qtbot.waitUntil(lambda: start.isVisible(), timeout=5_000)
+    places = []
+
+    def look(what):
+        QtWidgets.QApplication.processEvents()
+        places.append((what, _where(start, win), _where(tabs, win), _where(plots, win)))
+
+    look("idle")
+    for backend in ("serial", "canopen", "sim-serial", "sim"):
+        win.device_panel.backend.setCurrentText(backend)
+        look(f"backend {backend}")
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value("K", 5000.0)  # the pre-check grows a line ...
+    win.protocol_panel.start_button.click()  # ... and a refusal shows the red banner
+    assert win.banner.isVisible()
+    look("refused, banner")
+    win.protocol_panel.set_value("K", 50.0)
+    win.protocol_panel.set_value("duration_s", 2.0)
+    _connect(qtbot, win)
+    look("connected")
+    _run(qtbot, win, "etfe", duration_s=2.0)
+    look("after a run, verdicts shown")
+    win.activateWindow()
+    qtbot.keyClick(win, QtCore.Qt.Key.Key_Escape)
+    look("latched")
+    first = places[0][1:]
+    assert all(p[1:] == first for p in places), places
+
+
+def test_long_lines_keep_their_room_and_say_all_in_their_tooltip(qtbot, window):
+    win = window()
+    line = ("run failed at 1 %: tripped: energy observer: 0.1514 J generated in 12 ms, more than "
+            "the 0.05 J the rig allows; the force was zeroed and the device disabled")
+    win.protocol_panel.set_progress(0.01, line)
+    label = win.protocol_panel.time_left
+    assert label.toolTip() == line and label.wordWrap()
+    needed = label.fontMetrics().boundingRect(label.contentsRect(),
+                                              int(QtCore.Qt.TextFlag.TextWordWrap), line)
+    assert needed.height() <= label.contentsRect().height()  # its three lines hold it here
+
+
+def test_the_write_hint_matches_the_write_button_without_a_rig_file(qtbot, window):
+    win = window()
+    win.tabs.setCurrentWidget(win.commission)
+    win.commission.run_button.click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.last_run is not None, timeout=RUN_MS)
+    assert not win.commission.write_button.isEnabled()
+    text = win.commission.changes.text()
+    assert "Write stamps" not in text and "no rig file loaded" in text
+    assert "Rig file..." in win.commission.write_button.toolTip()
+
+
+def test_display_units_apply_to_verdict_texts_too(qtbot, window):
+    import re
+
+    from labbench.units import DisplayUnits
+
+    win = window()
+    _run(qtbot, win, "etfe", duration_s=4.0)
+    text = win.live.verdicts.text()
+    band = re.search(r"ETFE: \w+ over ([0-9.\u2013-]+) (rad/s|Hz)", text)
+    assert band and band.group(2) == "rad/s", text
+    assert "renders K = " in text  # the readout's sentence: what the display rendered
+    win.units_choice.set_units(DisplayUnits("m", "rad", "Hz"))
+    again = win.live.verdicts.text()
+    band_hz = re.search(r"ETFE: \w+ over ([0-9.\u2013-]+) (rad/s|Hz)", again)
+    assert band_hz and band_hz.group(2) == "Hz", again
+    assert again.split("renders K", 1)[1].split(";")[0].endswith(" Hz")  # the sentence's band too
