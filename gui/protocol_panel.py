@@ -292,6 +292,10 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         # such an item whose wrapper it had already dropped, when a closed window was deleted
         self.forms = QtWidgets.QStackedWidget()
         self.forms.setMinimumHeight(220)
+        # the room left over, whatever a form's own size: another protocol's longer form
+        # scrolls in it instead of pushing Start down
+        self.forms.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred,
+                                 QtWidgets.QSizePolicy.Policy.Ignored)
         self.built: dict[str, tuple[QtWidgets.QScrollArea, SettingsForm]] = {}
         self.form = SettingsForm({})
         self.forms.addWidget(self.form)
