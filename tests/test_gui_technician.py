@@ -656,3 +656,24 @@ def test_display_units_apply_to_verdict_texts_too(qtbot, window):
     band_hz = re.search(r"ETFE: \w+ over ([0-9.\u2013-]+) (rad/s|Hz)", again)
     assert band_hz and band_hz.group(2) == "Hz", again
     assert again.split("renders K", 1)[1].split(";")[0].endswith(" Hz")  # the sentence's band too
+
+
+# ----- defect 1: tabs only show ---------------------------------------------------------------
+def test_looking_at_every_tab_never_changes_what_start_runs(qtbot, window):
+    win = window()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value("duration_s", 2.0)
+    bar = win.tabs.tabBar()
+    for i in [*range(win.tabs.count()), 0]:  # every page clicked, then Live again
+        qtbot.mouseClick(bar, QtCore.Qt.MouseButton.LeftButton, pos=bar.tabRect(i).center())
+        assert win.tabs.currentIndex() == i and win.protocol_panel.name == "etfe"
+    path = _run(qtbot, win, "etfe")
+    assert "_etfe_" in path and win.last_run.results.get("etfe")
+    # the Commissioning page runs its own protocol: the panel keeps its choice after it too
+    win.tabs.setCurrentWidget(win.commission)
+    win.commission.run_button.click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and "_commission_" in (win.session_path or ""),
+                    timeout=RUN_MS)
+    assert win.protocol_panel.name == "etfe"
+    win.tabs.setCurrentWidget(win.live)
+    assert "_etfe_" in _run(qtbot, win, "etfe")
