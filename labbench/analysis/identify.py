@@ -531,6 +531,7 @@ def _cv_losses_l2(X, y, blocks: list[slice], check) -> np.ndarray:
     """The l2 folds without copying their rows: each fold's normal equations are the sums of
     its training blocks' (computed once), refined with the residuals of the blocks in place
     (``least_squares``); the test loss from the test blocks in place."""
+    check()
     grams = [(X[b].T @ X[b], X[b].T @ y[b]) for b in blocks]
     losses = []
     for k in range(CV_FOLDS):
@@ -557,7 +558,11 @@ def _identifiable(data: _Data, model: str) -> bool:
 
 
 def _select(data: _Data, fit, method: str) -> dict:
-    models = [m for m in MODELS if _identifiable(data, m)]
+    models = []
+    for m in MODELS:
+        fit.check()  # each test is a QR over every sample
+        if _identifiable(data, m):
+            models.append(m)
     losses = {m: _cv_losses(data, fit, method, m) for m in models}
     floor = _loss(method, MIN_GAIN_FORCE * np.full(1, np.sqrt(np.mean(data.y**2))))
     if method == "l1":

@@ -55,7 +55,9 @@ def lad(X: np.ndarray, y: np.ndarray, theta0: np.ndarray | None = None,
     check = check or _no_check
     X = np.asarray(X, float)
     y = np.asarray(y, float)
+    check()
     keep = independent_columns(X)
+    check()
     if len(keep) < X.shape[1]:
         theta = np.zeros(X.shape[1])
         theta[keep] = lad(X[:, keep], y, None if theta0 is None else np.asarray(theta0)[keep], check)
