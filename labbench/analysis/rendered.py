@@ -80,16 +80,21 @@ def fit(w: np.ndarray, Z: np.ndarray, se: np.ndarray | None = None,
     if se is None:
         sd = np.ones(len(sel))
         cov = None
+    elif corr is None:  # independent errors: the covariance's diagonal, sd^2 / 2 (below), as a
+        # vector (as n x n matrices over the bins of a paper estimate of 1800 s it took 2 GB)
+        sd = np.maximum(np.asarray(se, float)[sel], ROUND_OFF * np.abs(Zs))
+        cov = sd**2 / 2
     else:  # a noise-free record's errors are floating-point round-off, not zero
         sd = np.maximum(np.asarray(se, float)[sel], ROUND_OFF * np.abs(Zs))
-        rho = np.eye(len(sel)) if corr is None else np.asarray(corr)[np.ix_(sel, sel)]
+        rho = np.asarray(corr)[np.ix_(sel, sel)]
         # errors of Z from those of G: dZ = -Z dG / G, Z / G = jw Z^2 (phase u); circular, so
         # Re and Im parts each carry half of Re E[dZ_i conj(dZ_l)]
         u = 1j * Zs**2 / np.maximum(np.abs(Zs) ** 2, 1e-300)
         gamma = rho * np.outer(sd * u, np.conj(sd * u))
         cov = np.real(gamma) / 2
     x = ws**2
-    K, K_half = _limit(x, -ws * Zs.imag, ws * sd, None if cov is None else cov * np.outer(ws, ws))
+    cov_k = None if cov is None else cov * ws**2 if cov.ndim == 1 else cov * np.outer(ws, ws)
+    K, K_half = _limit(x, -ws * Zs.imag, ws * sd, cov_k)
     B, B_half = _limit(x, Zs.real, sd, cov)
     return LowFrequency(K, (K - K_half, K + K_half), B, (B - B_half, B + B_half),
                         (float(ws[0]), float(ws[-1])), len(sel))
@@ -97,7 +102,8 @@ def fit(w: np.ndarray, Z: np.ndarray, se: np.ndarray | None = None,
 
 def _limit(x: np.ndarray, y: np.ndarray, sd: np.ndarray, cov: np.ndarray | None) -> tuple[float, float]:
     """y(0) of a weighted quadratic fit in x = w^2 and its 95 % half-width: the sandwich of the
-    fit with the error covariance ``cov`` (None: none) plus the truncation bias, the change of
+    fit with the error covariance ``cov`` (None: none; a vector: the variances of independent
+    errors) plus the truncation bias, the change of
     y(0) from the linear fit."""
     scale = x.max()
     t = x / scale  # conditioning: t in (0, 1]
@@ -109,8 +115,9 @@ def _limit(x: np.ndarray, y: np.ndarray, sd: np.ndarray, cov: np.ndarray | None)
         est.append((float(H[0] @ y), H[0]))
     (y0, h0), (y1, _) = est
     half = abs(y0 - y1)
-    if cov is not None:
-        half += Z95 * math.sqrt(max(float(h0 @ cov @ h0), 0.0))
+    if cov is not None:  # a matrix, or a vector: its diagonal (independent errors)
+        var = h0**2 @ cov if cov.ndim == 1 else h0 @ cov @ h0
+        half += Z95 * math.sqrt(max(float(var), 0.0))
     return y0, half
 
 
