@@ -48,7 +48,7 @@ def has_file(rig) -> bool:
 def rig_where(rig) -> str:
     """Where the window's rig comes from, for a person: its file, or none loaded (the
     built-in simulated rig's values)."""
-    return str(rig.source) if has_file(rig) else f"{NO_FILE} (the built-in simulated rig's values)"
+    return str(rig.source) if has_file(rig) else f"built-in values ({NO_FILE})"
 
 
 class CommissionView(QtWidgets.QWidget):

@@ -70,7 +70,7 @@ class DevicePanel(QtWidgets.QGroupBox):
 
     def __init__(self, default_device: str = "sim", parent=None):
         super().__init__("Device", parent)
-        self.rig_label = fixed_lines(QtWidgets.QLabel(), 2)
+        self.rig_label = fixed_lines(QtWidgets.QLabel(), 3)
         self.rig_button = QtWidgets.QPushButton("Rig file...")
         self.rig_button.setToolTip("load a rig file (TOML): the device's geometry, limits, link "
                                    "and commissioning; Write on the Commissioning page updates it")
@@ -110,7 +110,7 @@ class DevicePanel(QtWidgets.QGroupBox):
             self._pages[kind] = page
         self.link.setFixedHeight(max(self.simulated.height(), self.port.sizeHint().height()))
 
-        self.name_label = fixed_lines(QtWidgets.QLabel("not connected"), 2)
+        self.name_label = fixed_lines(QtWidgets.QLabel("not connected"), 3)
         self.health = {key: fixed_lines(QtWidgets.QLabel("-"), 1 if key != "link" else 2)
                        for key, _ in HEALTH_FIELDS}
         self.timing_button = QtWidgets.QPushButton("Check timing")
@@ -304,8 +304,9 @@ class DevicePanel(QtWidgets.QGroupBox):
                 set_text(lab, "-")
         else:
             d = description
-            set_text(self.name_label, f"{d.label()}; T = {d.sample_time_s * 1e3:g} ms, "
-                                      f"force limit {d.force_limit_n:g} N")
+            self.name_label.setText(d.label())
+            self.name_label.setToolTip(f"{d.label()}; T = {d.sample_time_s * 1e3:g} ms, "
+                                       f"force limit {d.force_limit_n:g} N")
 
     def set_enabled(self, enabled: bool) -> None:
         self.enabled = enabled

@@ -20,8 +20,12 @@ from typing import Callable
 from PySide6 import QtCore, QtWidgets
 
 KEYS = "Esc / Space"
-ARMED_HINT = "Esc / Space: E-STOP everywhere, dialogs and lists too (close those with the mouse)"
-UNARMED_HINT = "Esc / Space: E-STOP once a device is connected"
+ARMED_HINT = "Esc / Space = E-STOP everywhere (dialogs too)"
+UNARMED_HINT = "Esc / Space = E-STOP once a device is connected"
+RULE = ("While a device is connected, Esc (and Space outside a text field) is E-STOP wherever "
+        "the keyboard is: the window, file dialogs, completion and drop-down lists. It then never "
+        "closes a dialog or a list: close those with their buttons or by clicking away. With no "
+        "device, both keys do what they usually do.")
 
 
 def typing_in(widget) -> bool:

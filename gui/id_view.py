@@ -42,13 +42,14 @@ def model_force(t, force, position, fit: dict, hold: str = "zoh"):
 
 
 # table rows: result key -> (label, unit)
-ROWS = (("m", "mass m", "kg"), ("m_ci", "m, 95 % interval", "kg"),
-        ("b", "damping b", "N s/m"), ("b_ci", "b, 95 % interval", "N s/m"),
-        ("coulomb", "Coulomb friction Fc", "N"), ("coulomb_ci", "Fc, 95 % interval", "N"),
-        ("offset", "force offset f0", "N"), ("offset_ci", "f0, 95 % interval", "N"),
+# (m, b, Fc and f0 as labbench.readout writes them: value, unit, 95 % interval)
+ROWS = (("m", "mass m", ""), ("b", "damping b", ""),
+        ("coulomb", "Coulomb friction Fc", ""), ("offset", "force offset f0", ""),
         ("rms_residual", "rms force residual", "N"), ("explained", "force variance explained", "%"),
         ("n_used", "samples used", ""), ("cutoff_hz", "derivative cut-off", "Hz"),
         ("model", "model", ""), ("warnings", "warnings", ""), ("verdict", "verdict", ""))
+READOUT_ROWS = {"mass m": "m", "damping b": "b", "Coulomb friction Fc": "coulomb",
+                "force offset f0": "offset"}
 # the open-loop impedance is shown up to this fraction of Nyquist (where the ZOH plant
 # model and the ETFE both hold and the chirp still excites)
 W_MAX_NYQUIST = 0.3
@@ -74,42 +75,49 @@ def open_loop_impedance(t, force, position, fits: dict):
     return w, np.asarray(est.Z)[keep], models
 
 
-# the closed-loop fit's rows: key -> (label, unit, scale from SI)
-FIT_ROWS = (("m", "mass m", "kg", 1.0), ("b", "damping b", "N s/m", 1.0),
-            ("td_s", "device latency td", "ms", 1e3), ("tv_s", "VE-path delay tv", "ms", 1e3),
-            ("K", "rendered K", "N/m", 1.0), ("B", "rendered B", "N s/m", 1.0))
+# the closed-loop fit's rows: key -> (label, unit, scale from SI, the readout's part)
+FIT_ROWS = (("m", "mass m", "kg", 1.0, "m"), ("b", "damping b", "N s/m", 1.0, "b"),
+            ("td_s", "device latency td", "ms", 1e3, "td"), ("tv_s", "VE-path delay tv", "ms", 1e3, "tv"),
+            ("K", "rendered K", "N/m", 1.0, None), ("B", "rendered B", "N s/m", 1.0, None))
 
 
-def loop_fit_rows(fit: dict, units=None) -> list[tuple[str, str, str]]:
-    """(label with unit, value, 95 % interval) of a loop fit (``LoopFit.as_dict()``), as
-    ``labbench analyze etfe --fit`` prints it; the band in the display unit of frequency."""
+def loop_fit_rows(fit: dict, units=None) -> list[tuple[str, str]]:
+    """(label, value with its 95 % interval) of a loop fit (``LoopFit.as_dict()``): m, b and
+    the delays as ``labbench.readout`` writes them (the CLI's, the report's numbers), then
+    the model, the band (in the display unit of frequency) and the fit's quality."""
+    from labbench import readout
+    from labbench.numfmt import fmt_ci
     from labbench.units import SI
 
     units = units or SI
+    read = readout.of_results("etfe", {"etfe": {}, "loop_fit": fit})
+    parts = dict(next((v for label, v in read.rows if label == "closed-loop fit"), ()))
     ci = fit.get("ci95") or {}
     rows = []
-    for key, label, unit, scale in FIT_ROWS:
+    for key, label, unit, scale, part in FIT_ROWS:
         if fit.get(key) is None:
             continue
-        interval = ci.get(key)
-        rows.append((f"{label} ({unit})", fmt(scale * fit[key], 5),
-                     f"{fmt(scale * interval[0], 5)} to {fmt(scale * interval[1], 5)}" if interval
-                     else "held (not fitted)"))
+        if part in parts:
+            rows.append((label, parts[part].text(units)))
+        elif ci.get(key):
+            rows.append((label, fmt_ci(scale * fit[key], scale * ci[key][0], scale * ci[key][1], unit)))
+        else:  # given, not fitted (the run's own VE delay)
+            rows.append((label, f"{fmt(scale * fit[key])} {unit}, held (not fitted)"))
     sel = fit.get("selection") or {}
     why = sel.get("reason") or sel.get("criterion") or ""
     if why == "given":  # the protocol's own analysis: it rendered the VE, so tv is known
-        why = "given: the run's VE delay is known, the device latency is fitted"
-    rows.append(("delay model", str(fit.get("delay_model")), why))
+        why = "given (the VE's delay is known)"
+    rows.append(("delay model", f"{fit.get('delay_model')}" + (f": {why}" if why else "")))
     if fit.get("loop_delay_s") is not None:
-        rows.append(("loop delay tv + td (ms)", fmt(1e3 * fit["loop_delay_s"], 5), ""))
+        rows.append(("loop delay tv + td", f"{fmt(1e3 * fit['loop_delay_s'], 5)} ms"))
     band = fit.get("band_rad_s") or []
     if len(band) == 2:
         f = units.frequency_of
-        rows.append((f"band ({units.frequency})", f"{fmt(f(band[0]))} to {fmt(f(band[1]))}",
-                     f"{fit.get('n_freq')} coherent frequencies"))
-    rows.append(("chi2/dof", fmt(fit.get("chi2_dof"), 3), "1 when the model fits to the noise"))
+        rows.append(("band", f"{fmt(f(band[0]))} to {fmt(f(band[1]))} {units.frequency}, "
+                             f"{fit.get('n_freq')} coherent frequencies"))
+    rows.append(("chi2/dof", f"{fmt(fit.get('chi2_dof'), 3)} (1 when the model fits to the noise)"))
     if fit.get("residual_rms") is not None:
-        rows.append(("residual rms (% of |Z|)", fmt(100 * fit["residual_rms"], 3), ""))
+        rows.append(("residual rms", f"{fmt(100 * fit['residual_rms'], 3)} % of |Z|"))
     return rows
 
 
@@ -122,7 +130,9 @@ def _table(table: QtWidgets.QTableWidget, header: list[str], rows: list[tuple[st
     table.setVerticalHeaderLabels([r[0] for r in rows])
     for i, row in enumerate(rows):
         for j, text in enumerate(row[1:]):
-            table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
+            item = QtWidgets.QTableWidgetItem(text)
+            item.setToolTip(text)  # all of it, should the column be narrower than the text
+            table.setItem(i, j, item)
     table.resizeColumnsToContents()
     table.setVisible(True)
     # all rows at once (the side panel scrolls), and room for a horizontal scroll bar
@@ -217,7 +227,7 @@ class IdView(QtWidgets.QWidget):
         scroll.setWidgetResizable(True)
         scroll.setWidget(side)
         self.splitter.addWidget(scroll)
-        self.splitter.setSizes([600, 520])
+        self.splitter.setSizes([480, 720])  # the fits side by side, each value with its interval
         QtWidgets.QVBoxLayout(self).addWidget(self.splitter)
         self.results: dict = {}
         self.loop_fit: dict = {}
@@ -247,15 +257,15 @@ class IdView(QtWidgets.QWidget):
         ``data``: the record they were fitted on (t, command force, position); ``source``:
         where they come from (a session, this run); ``used``: the method whose m, b the
         theory overlay takes, if any."""
+        from labbench import readout
+
         self.results = results
         cells_ = {}
         for method, res in results.items():
-            for k in ("m", "b", "coulomb", "offset"):
-                if res.get(k) is not None:
-                    cells_.setdefault(k, {})[method] = fmt(res[k], 5)
-                    ci = (res.get("ci95") or {}).get(k)
-                    if ci:
-                        cells_.setdefault(f"{k}_ci", {})[method] = f"{fmt(ci[0], 5)} to {fmt(ci[1], 5)}"
+            read = readout.of_identification(res, method)
+            for label, value in read.rows:
+                if label in READOUT_ROWS and hasattr(value, "text"):
+                    cells_.setdefault(READOUT_ROWS[label], {})[method] = value.text(self.units)
             for k in ("rms_residual", "n_used", "cutoff_hz", "model"):
                 if k in res:
                     cells_.setdefault(k, {})[method] = fmt(res[k], 4)
@@ -292,10 +302,10 @@ class IdView(QtWidgets.QWidget):
         self.loop_fit = fit
         self.fit_source.setText(source)
         if "error" in fit:
-            _table(self.fit_table, ["value", "95 % interval"], [("no fit", str(fit["error"]), "")])
+            _table(self.fit_table, ["value (95 % interval)"], [("no fit", str(fit["error"]))])
             self.fit_verdict.show_judged([])
             return
-        _table(self.fit_table, ["value", "95 % interval"], loop_fit_rows(fit, self.units))
+        _table(self.fit_table, ["value (95 % interval)"], loop_fit_rows(fit, self.units))
         self.fit_verdict.show_judged(judged("closed-loop fit", fit.get("verdict")))
 
     def _show_data(self, results: dict, data: dict) -> None:

@@ -132,10 +132,13 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         excited=excited_bands(power, peak),
         renders_ve=ve is not None and ve.kind != "none",
     )
-    if plant is not None and ve is not None:
+    if plant is not None:
         latency = from_meta(meta)
-        out.theory = _theory(plant, ve, w, latency)
-        out.predicted = bandwidths(plant, ve, latency)
+        # a run without a VE (chirp-ID) is the plant's own Z: its theory is the plant's
+        out.theory = _theory(plant, ve if ve is not None else VirtualEnvironment("none", T=1.0 / fs),
+                             w, latency)
+        if out.renders_ve:
+            out.predicted = bandwidths(plant, ve, latency)
     return out
 
 

@@ -246,7 +246,9 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         # one legend serves all rows; "theory" only while a theory curve is drawn
         self.legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")
-        for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.85)):
+        # the labels where the curves are not: right of w_s* (ES is not drawn there), low
+        # beside w_b* (ED starts at B + b, at the top)
+        for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.3)):
             # the label on a white ground: a curve behind it does not cross its numbers
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
                                    label="", labelOpts={"position": at, "color": "#222222",
@@ -257,7 +259,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.effective.setMinimumHeight(len(rows) * MIN_PLOT_HEIGHT + 40)  # and the title
         self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
-        self.bode_legend = self.bode_plots["mag"].addLegend(offset=(-10, 5),
+        self.bode_legend = self.bode_plots["mag"].addLegend(offset=(-10, -10),  # bottom right: empty
                                                            brush=pg.mkBrush(255, 255, 255, 200))
         self._setup(self.bode_plots["phase"], "phase of Z", "rad")
         self.bode_plots["phase"].setXLink(self.bode_plots["mag"])
@@ -375,8 +377,9 @@ class ImpedancePlots(QtWidgets.QTabWidget):
 
     def _fit_ranges(self, lw, shown, bands, trusted) -> None:
         """x over the measured and theory frequencies; y over the trusted measured points
-        and their band, the theory and the zero line (as autoRange would give over those,
-        but computed once per estimate); the untrusted points are drawn, not ranged."""
+        and their band, the theory where something is measured (a chirp's plant theory runs
+        on past what it excited) and the zero line (as autoRange would give over those, but
+        computed once per estimate); the untrusted points are drawn, not ranged."""
         lw_theory = []
         if self._theory_shown is not None:
             wt, _ = self.curves["ES_theory"].getOriginalDataset()
@@ -384,8 +387,12 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         es = self.plots["ES"].getViewBox()
         fresh, self._fresh = self._fresh, False
         _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory), fresh)
+        drawn = lw[np.isfinite(np.column_stack(list(shown.values()))).any(axis=1)]
         for key, y in shown.items():
-            _, yt = self.curves[key + "_theory"].getOriginalDataset()
+            wt, yt = self.curves[key + "_theory"].getOriginalDataset()
+            if yt is not None and drawn.size:  # the theory where something is measured
+                lwt = np.log10(np.clip(wt, 1e-12, None))
+                yt = yt[(lwt >= drawn.min()) & (lwt <= drawn.max())]
             keep = np.isfinite(y) & trusted
             vb = self.plots[key].getViewBox()
             _fit(vb.setYRange, vb.viewRange()[1],

@@ -8,6 +8,7 @@ from __future__ import annotations
 from PySide6 import QtWidgets
 
 FIELDS = ("mode", "loop rate", "period p99", "overruns", "worst stall", "bus load")
+SHOWN_WHEN_MEASURED = ("bus load",)  # a CAN bus's: not shown for a backend without one
 
 
 class LoopStatus:
@@ -15,8 +16,9 @@ class LoopStatus:
 
     def __init__(self, status_bar: QtWidgets.QStatusBar):
         self.labels = {k: QtWidgets.QLabel(f"{k}: -") for k in FIELDS}
-        for lab in self.labels.values():
+        for key, lab in self.labels.items():
             status_bar.addPermanentWidget(lab)
+            lab.setVisible(key not in SHOWN_WHEN_MEASURED)
 
     def show_mode(self, mode: str) -> None:
         self.labels["mode"].setText(f"mode: {mode}")
@@ -39,7 +41,13 @@ class LoopStatus:
             return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
 
         tag = " (live)" if live else ""
-        self.labels["loop rate"].setText(f"loop: {fig['rate_text']}{tag}")
+        if fig["paced"]:
+            rate = fig["rate_text"]
+        else:  # a lock-step simulator: how fast the host simulates, not a loop rate
+            s = fig["speed"]
+            speed = "-" if s is None else f"{s:.0f}x real time" if s >= 10 else f"{s:.2g}x real time"
+            rate = f"lock-step (unpaced): {speed}"
+        self.labels["loop rate"].setText(f"loop: {rate}{tag}")
         if fig["p99_s"] is not None or not live:
             what = "period p99" if fig["paced"] else "compute per sample p99"
             self.labels["period p99"].setText(f"{what}: {ms(fig['p99_s'])}")
@@ -49,3 +57,4 @@ class LoopStatus:
         self.labels["worst stall"].setText(f"worst stall: {ms(fig['max_s'])}{at}{tag}")
         if "bus_load" in timing:
             self.labels["bus load"].setText(f"bus load: {100 * timing['bus_load']:.0f} %")
+            self.labels["bus load"].setVisible(True)

@@ -29,9 +29,9 @@ from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
 from labbench.gui.campaign_view import CampaignView, table_and_chart
-from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, rig_where
+from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, has_file, rig_where
 from labbench.gui.device_panel import DevicePanel, EStopButton
-from labbench.gui.estop_keys import ARMED_HINT, KEYS, UNARMED_HINT, EStopKeys
+from labbench.gui.estop_keys import ARMED_HINT, KEYS, RULE, UNARMED_HINT, EStopKeys
 from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
 from labbench.gui.guide import Guide, RigState
@@ -61,6 +61,7 @@ SIM_BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
 # the commissioning gate's remedy in the window's own words (the CLI's names its options)
 GATE_REMEDY = ("on the Commissioning tab, Run commissioning, then Write to rig file (or start "
                "the window with --skip-commissioning)")
+NO_FILE_GATE_REMEDY = "load the rig's file with Rig file... on the Device panel first; then " + GATE_REMEDY
 NO_CAN = ("no CAN interface chosen and none configured: choose the drive's CAN bus in the Device "
           "panel (the CAN bus list; \u21bb looks for adapters)")
 NO_PORT = "choose the board's serial port in the Device panel (the port list; \u21bb looks again)"
@@ -253,6 +254,7 @@ class MainWindow(QtWidgets.QMainWindow):
         body.addWidget(left)
         body.addWidget(right)
         body.setStretchFactor(1, 1)
+        body.setSizes([440, 1160])  # room for the device's own description
         self.splitters = {"live": self.live.splitter, "identification": self.id_view.splitter,
                           "log": right, "body": body}
         central = QtWidgets.QWidget()
@@ -262,6 +264,7 @@ class MainWindow(QtWidgets.QMainWindow):
         cl.addWidget(body, 1)
         self.setCentralWidget(central)
         self.keys_hint = QtWidgets.QLabel()  # the E-STOP keys' rule, as it holds now
+        self.keys_hint.setToolTip(RULE)
         self.statusBar().addPermanentWidget(self.keys_hint)
         self.loop_status = LoopStatus(self.statusBar())
 
@@ -313,7 +316,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _estimators() -> list[str]:
         try:
             from labbench.analysis.etfe import ESTIMATORS
-            return list(ESTIMATORS)
+            return ["default", *ESTIMATORS]  # default: the analysis' own
         except ImportError:
             return ["default"]
 
@@ -499,7 +502,8 @@ class MainWindow(QtWidgets.QMainWindow):
         protocol = self.make_protocol(name)
         plant = protocol.plant(self.rig)
         gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning,
-             remedy=GATE_REMEDY, where=rig_where(self.rig))
+             remedy=GATE_REMEDY if has_file(self.rig) else NO_FILE_GATE_REMEDY,
+             where=rig_where(self.rig))
         return protocol, precheck(protocol, plant, self.rig)
 
     def update_precheck(self):

@@ -60,9 +60,20 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, poll_ms: int = 20) ->
 
 
 # what docs/gui.md shows, in the order docs_screenshots makes them
-SHOTS = ("demo-etfe.png", "bode.png", "identification.png", "units-hz.png", "sessions.png",
-         "refused-unstable.png", "refused-uncommissioned.png", "commissioning.png",
-         "commissioning-fixed.png")
+SHOTS = ("first-run.png", "chirp-live.png", "demo-etfe.png", "bode.png", "identification.png",
+         "units-hz.png", "sessions.png", "refused-unstable.png", "refused-uncommissioned.png",
+         "serial-port.png", "sweeps.png", "commissioning.png", "commissioning-fixed.png")
+# the sweep of the Sweeps tab's picture: six short ETFE runs on the simulator
+SWEEP_SPEC = """[sweep]
+name = "springs"
+protocol = "etfe"
+
+[fixed]
+duration_s = 2.0
+
+[grid]
+K = [20.0, 50.0, 100.0, 200.0, 400.0, 800.0]
+"""
 # the lying rig of the commissioning pictures: its encoder counts the other way and the
 # device has 2 samples of delay the file does not state
 LYING_RIG = """# bench 3 by the window (comments stay when the window writes this file)
@@ -77,9 +88,10 @@ extra_delay_samples = 2
 
 def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> list[Path]:
     """The screenshots of docs/gui.md (``SHOTS``), made from the current build as a person
-    would click: chirp-ID, then the paper's ETFE (live view, Bode, identification with the
-    closed-loop fit, display units in Hz), the sessions, two refusals, and commissioning a
-    rig file that lies (then written and run again).
+    would click: the first launch, chirp-ID (its live view), then the paper's ETFE (live
+    view, Bode, identification with the closed-loop fit, display units in Hz), the
+    sessions, two refusals, a serial board without a port, a sweep spec run in the Sweeps
+    tab, and commissioning a rig file that lies (then written and run again).
 
     Runs real protocols on the simulator (``python -m labbench.gui.screenshot DIR``; under
     Xvfb for a real X server's rendering). Not paced by default: on a shared,
@@ -119,8 +131,12 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
 
     win = MainWindow(Rig(), work / "sessions", realtime=realtime)
     win.show()
+    settle_and_grab(win, "first-run.png", win.guide.next_step() == "connect")
     run(win, "chirp-id", f0_hz=0.2, duration_s=20.0)  # the plant the ETFE's theory then takes
-    win.tabs.setCurrentIndex(0)
+    win.tabs.setCurrentWidget(win.live)
+    wait_until(lambda: demo_finished(win), 60)
+    settle_and_grab(win, "chirp-live.png", not win.live.impedance.marks["ws"].isVisible()
+                    and "not excited" in win.live.impedance.title.text)
     win.last_run = None
     start_demo(win, {"duration_s": seconds, "seed": 1})
     if realtime:  # a mid-run picture needs a paced run
@@ -157,6 +173,21 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     win.device_panel.backend.setCurrentText("canopen")  # real hardware, never commissioned
     win.start_protocol()
     settle_and_grab(win, "refused-uncommissioned.png", "Commissioning tab" in win.banner.text())
+    win.device_panel.backend.setCurrentText("serial")  # a board: its port chosen in the window
+    win.device_panel.port.setCurrentText("")
+    win.device_panel.connect_button.click()
+    settle_and_grab(win, "serial-port.png", "serial port in the Device panel" in win.banner.text())
+    win.device_panel.backend.setCurrentText("sim")
+    win.banner.mousePressEvent(None)  # read: dismissed by a click
+
+    spec = work / "springs.toml"
+    spec.write_text(SWEEP_SPEC)
+    win.tabs.setCurrentWidget(win.sweeps)
+    win.sweeps.workers.setValue(0)
+    win.sweeps.open_spec(spec)
+    win.sweeps.run_button.click()
+    wait_until(lambda: win.sweeps.run is None, 300)
+    settle_and_grab(win, "sweeps.png", "complete" in win.sweeps.progress_text.text())
     win.close()
 
     rig_file = work / "bench3.toml"
