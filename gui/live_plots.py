@@ -381,9 +381,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         on past what it excited) and the zero line (as autoRange would give over those, but
         computed once per estimate); the untrusted points are drawn, not ranged."""
         lw_theory = []
-        if self._theory_shown is not None:
-            wt, _ = self.curves["ES_theory"].getOriginalDataset()
-            lw_theory = [np.log10(wt[wt > 0])]
+        if self._theory_shown is not None:  # where a theory curve is drawn
+            for key in shown:
+                wt, yt = self.curves[key + "_theory"].getOriginalDataset()
+                lw_theory.append(np.log10(wt[(wt > 0) & np.isfinite(yt)]))
         es = self.plots["ES"].getViewBox()
         fresh, self._fresh = self._fresh, False
         _fit(es.setXRange, es.viewRange()[0], *_finite_span(lw, *lw_theory), fresh)

@@ -54,7 +54,7 @@ def test_a_session_from_connect_to_restart(qtbot, tmp_path):
     dev.connect_button.click()
     qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
     assert dev.connect_button.text() == "Disconnect" and dev.enable_button.isEnabled()
-    assert "force limit" in dev.name_label.text()
+    assert "simulated" in dev.name_label.text() and "force limit" in dev.name_label.toolTip()
 
     # choose a protocol, edit a field: the pre-check follows the edit
     panel.choice.setCurrentText("etfe")
