@@ -159,7 +159,7 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200,
     dw = 2 * np.pi / (len(f) * T)
     steps.report(0.3, f"estimating ({estimator})")
     if estimator == "h1-welch":
-        res = _h1_welch(f, x, rec.fs)
+        res = _h1_welch(f, x, rec.fs, steps.check)
     else:
         if estimator == "paper":
             res = _paper(F, X, dw, window)
@@ -306,11 +306,13 @@ def _h1_err(Z, coh, n_avg):
     return se, radius95(n - 1) * se
 
 
-def _h1_welch(f, x, fs) -> EtfeResult:
+def _h1_welch(f, x, fs, check=lambda: None) -> EtfeResult:
     nper = min(WELCH_SEGMENT, len(f))
     kw = {"fs": fs, "nperseg": nper, "detrend": "linear"}
     freq, Sff = signal.welch(f, **kw)
+    check()  # each spectrum is a pass over the record
     _, Sxx = signal.welch(x, **kw)
+    check()
     _, Sfx = signal.csd(f, x, **kw)
     k = slice(1, None)
     w = 2 * np.pi * freq[k]
