@@ -211,7 +211,7 @@ def test_a_local_bias_is_a_doubt_only_beyond_the_band_and_the_noise_floor():
     w = np.geomspace(2, 100, 5)
     Z = np.full(5, 10.0 + 0j)
     se = np.full(5, 0.01 * 10.0)  # 1 % standard errors
-    bias = np.array([0.005, 0.015, 0.025, 0.0005, 0.5])  # 0.5, 1.5, 2.5, 0.05, 50 se
+    bias = np.array([0.005, 0.025, 0.035, 0.0005, 0.5])  # 0.5, 2.5, 3.5, 0.05, 50 se
     res = E.EtfeResult("lpm", w, Z, np.ones(5), 2 * se, se, np.zeros(5, bool),
                        unresolved=np.array([True, True, True, True, False]), bias_rel=bias)
     sharp, _ = E._sharp(res)
@@ -228,8 +228,8 @@ def test_a_local_bias_is_a_doubt_only_beyond_the_band_and_the_noise_floor():
 def test_force_sensor_noise_is_doubtful_where_it_could_bias_beyond_the_band():
     # sensor noise on a 0.25 N excitation, 2 min, biases |Z| up (errors in the variables) while
     # it widens the bands about as much: 0.05 N allows up to ~4 % against bands of ~6 %, still
-    # holding the truth (a note); 0.15 N allows ~34 %, beyond two standard errors of the band
-    # (a doubt). Process noise of the same size with the force stated to be the command
+    # holding the truth; 0.15 N allows ~34 % against ~17 %, beyond BIAS_FAR standard errors
+    # at some frequencies (a doubt). Process noise of the same size with the force stated to be the command
     # (force_hold = zoh) biases nothing: no such finding at all.
     for sensor, level in ((0.05, "ok"), (0.15, "doubtful")):
         rec = closed_loop_recording(SPRING_DAMPER, n=120000, seed=4, force_std=0.25)
@@ -239,8 +239,7 @@ def test_force_sensor_noise_is_doubtful_where_it_could_bias_beyond_the_band():
         far = np.abs(res.Z - z_truth(SPRING_DAMPER, res.w)) / res.Z_se > 5.6  # beyond the 1e-6 tail
         assert not far[(res.w >= 2) & (res.w <= 100)].any()
         said = [r for r in res.verdict.reasons if r.startswith("force-noise")]
-        noted = [n for n in res.verdict.notes if "force-sensor noise" in n]
-        assert res.verdict.level == level and (said if level == "doubtful" else noted), res.verdict
+        assert res.verdict.level == level and (level == "ok" or said), res.verdict
         assert np.all(res.eiv_bound > 0)
     commanded = closed_loop_recording(SPRING_DAMPER, n=120000, seed=4, force_std=0.25, process_noise=0.05)
     commanded.meta["force_hold"] = "zoh"

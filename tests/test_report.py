@@ -63,7 +63,7 @@ def test_report_of_real_runs(tmp_path, runs):
     stab = runs["stability"][1].results
     assert f"{stab['exact_boundary']:.4g}" in text and "Probe steps" in text
     for word in ("Rig", "Protocol settings (chirp-id)", "Pre-check", "Events", "Loop timing",
-                 "period p99 (ms)", "What ran", "Flags", "Bandwidths"):
+                 "period p99 (ms)", "What ran", "lags", "Bandwidths"):  # "Flags and what to do" or "No flags"
         assert word in text
     assert "<pre" not in text and "monospace" not in text  # typeset, not dumped
 
