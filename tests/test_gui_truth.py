@@ -94,3 +94,30 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
         value = shown[row][0].split(" ")[0]  # "0.094 kg (exact ...)": its number
         assert _same_number(value, report[name]), (name, shown[row][0], report[name])
     win.close()
+
+
+def test_the_window_says_what_the_cli_and_the_report_say(qtbot, tmp_path):
+    # issue 30's third surface: an ETFE run from the window shows the verdict lines and the
+    # rendered sentence of the session's readout, which the CLI and the report write
+    # (tests/test_readout.py: the CLI's JSON and text, replay and the report agree)
+    from labbench import readout
+
+    win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
+    qtbot.addWidget(win)
+    win.show()
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value("duration_s", 8.0)
+    win.protocol_panel.set_value("seed", 2)
+    win.start_protocol()
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
+    assert win.last_run.status == "success", win.last_run.reason
+    qtbot.waitUntil(lambda: bool(win.live.verdicts.shown), timeout=RUN_TIMEOUT_MS)
+    back = readout.of_session(win.session_path)
+    shown = win.live.verdicts
+    assert [j.line() for j in shown.shown] == [j.line() for j in back.verdicts]
+    text = shown.text()
+    assert back.rendered is not None and back.rendered.sentence() in text.replace("&amp;", "&")
+    html = _report_html(win.session_path)
+    for j in shown.shown:
+        assert j.verdict.line() in html
+    win.close()

@@ -129,3 +129,4 @@ def test_values_convert_for_display_and_say_exact():
     assert readout.Value(0.094, 0.094 - 1e-12, 0.094 + 1e-12, "kg").text() == \
         "0.094 kg (exact to the model's precision)"
     assert np.isfinite(readout.Value(1.0).as_dict()["value"])
+
