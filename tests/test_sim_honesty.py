@@ -54,8 +54,9 @@ def test_hardware_drivers_say_nothing_of_simulation():
 
 @pytest.mark.parametrize("backend", ["sim-canopen", "sim-serial"], indirect=True)
 def test_a_paced_simulated_run_keeps_the_wall_clock(backend):
-    """Paced by the rig, a 1 s run takes about 1 s of wall time (a few samples the board
-    sent while the run started may wait queued; a lock-step run takes a tenth of it) and
+    """Paced by the rig, a 1 s run's median period is the rig's and it takes most of 1 s of
+    wall time (samples the board sent while the run started wait queued and are read at
+    once: 0.36 s of them on a fresh CI machine; a lock-step run takes a tenth of it) and
     its timing is judged as a paced loop's. At 100 Hz: the board's 2.5-period stale limit
     outlasts a loaded machine's stalls (at 1 kHz it does not, which is why lock-step is the
     default)."""
@@ -65,7 +66,7 @@ def test_a_paced_simulated_run_keeps_the_wall_clock(backend):
     result = run(open_device(backend, rig), protocol, [], rig=rig)
     assert result.status == "success", result.reason
     t = result.timing
-    assert t["paced"] and t["wall_s"] >= 0.9
+    assert t["paced"] and 0.009 <= t["p50_s"] <= 0.011 and t["wall_s"] >= 0.5
     figures = status_figures(t)
     assert figures["paced"] and figures["overruns"] is not None
     assert figures["rate_text"].startswith("paced at 100 Hz")
