@@ -40,7 +40,8 @@ interval is cut at 0. Force-sensor noise (errors in the variables) scales the
 estimated Z up by 1 + S_nn/S_ff, at most the ETFE's ``eiv_bound`` (from the coherence;
 0 for a commanded force): the intervals also cover the fit with that shift taken out
 (``_eiv_shift``), and every delay model the cross-validation cannot reject
-(``_rejected``): ``selection["intervals_cover"]``.
+(``_rejected``), the two-delay model always (it holds the others):
+``selection["intervals_cover"]``.
 
 Verdict (``labbench.verdict``): failed when chi^2/dof > CHI2_FAILED against the noise
 the record shows (the model cannot describe the record: a delay or VE the metadata do
@@ -256,8 +257,13 @@ def fit_loop(res: EtfeResult, ve: VirtualEnvironment, start: Plant, fit_ve: bool
     ci = _intervals(names, theta, half, shift)
     if losses is not None:
         # a delay model the data cannot reject is as credible as the chosen one: every
-        # interval covers the parameter under each of them (module doc)
-        standing = [m for m in DELAY_MODELS if m != model and not _rejected(losses[m], losses[model])]
+        # interval covers the parameter under each of them (module doc). The two-delay model
+        # holds either one-delay model: doing no better on held-out frequencies only says its
+        # second delay is not resolved, not that it is absent (issue 30: a spring of 10 N/m
+        # with a VE-path delay, fitted as 'common' with 'both' rejected by 1 %, b 15-25 %
+        # low outside its interval, as ED = b - K tv)
+        standing = [m for m in DELAY_MODELS if m != model
+                    and (m == "both" or not _rejected(losses[m], losses[model]))]
         held = {"td_s": 0.0, "tv_s": ve.td}
         for other in standing:
             b_o, s_o = fits[other]
