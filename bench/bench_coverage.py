@@ -31,6 +31,7 @@ Writes docs/method-map-tables.md (the tables docs/method-map.md reads from).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections import Counter
@@ -410,24 +411,30 @@ def main() -> int:
     ap.add_argument("--only", default="id,etfe,loop", help="comma-separated: id, etfe, loop")
     ap.add_argument("--quick", action="store_true", help="3 seeds, no other ETFE estimators (a smoke run)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "method-map-tables.md"))
+    ap.add_argument("--save-rows", metavar="FILE",
+                    help="also write every result as JSON (bench_verdicts.py --grid-rows reads it)")
     args = ap.parse_args()
     seeds = 3 if args.quick else args.seeds
     parts = [p.strip() for p in args.only.split(",")]
     t0 = time.perf_counter()
-    sections, summary = [], []
+    sections, summary, saved = [], [], []
     for part in parts:
         t1 = time.perf_counter()
         if part == "id":
-            table, tot = id_table(_run(id_tasks(seeds), args.jobs))
+            rows = _run(id_tasks(seeds), args.jobs)
+            table, tot = id_table(rows)
             title = "Identification (`analyze id`, model auto, 30 s chirps 0.1-20 Hz of 1 N at 1 kHz)"
         elif part == "etfe":
-            table, tot = etfe_table(_run(etfe_tasks(seeds, args.quick), args.jobs))
+            rows = _run(etfe_tasks(seeds, args.quick), args.jobs)
+            table, tot = etfe_table(rows)
             title = "ETFE bands (`analyze etfe`, closed loop, white-noise force of 1 N rms at 1 kHz)"
         elif part == "loop":
-            table, tot = loop_table(_run(loop_tasks(3 if args.quick else args.loop_seeds), args.jobs))
+            rows = _run(loop_tasks(3 if args.quick else args.loop_seeds), args.jobs)
+            table, tot = loop_table(rows)
             title = "Loop fit (`analyze etfe --fit`, white-noise force of 1 N rms, delays undeclared)"
         else:
             raise SystemExit(f"unknown part {part!r}: id, etfe or loop")
+        saved += rows
         dt = time.perf_counter() - t1
         sections.append(f"## {title}\n\n{table}\n\n({tot['results']} results, {dt:.0f} s)\n")
         cov = ", ".join(f"{k} {_pct(*v)}" for k, v in tot.items() if isinstance(v, tuple) and k != "alarms")
@@ -443,6 +450,8 @@ def main() -> int:
             "coverage of the 95 % intervals |",
             "|---|---|---|---|---|---|", *summary, ""]
     Path(args.out).write_text("\n".join(head + sections))
+    if args.save_rows:
+        Path(args.save_rows).write_text(json.dumps(saved))
     print("\n".join(head[4:]))
     print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -19,6 +19,7 @@ Sources:
 Writes docs/verdicts-bench.md.
 
     .venv/bin/python bench/bench_verdicts.py [--seeds 20] [--points 60] [--jobs 2] [--only grid,sweep,runs]
+        [--grid-rows FILE]   # the grid as bench_coverage.py --save-rows FILE left it
 """
 from __future__ import annotations
 
@@ -50,10 +51,16 @@ def _tally(rows) -> dict:
             "reasons": Counter(w for r in held if r[2] != "ok" for w in r[3])}
 
 
-def grid_rows(seeds: int, jobs: int) -> list:
-    tasks = grid.id_tasks(seeds) + grid.etfe_tasks(seeds, quick=False) + grid.loop_tasks(max(seeds * 3 // 5, 3))
+def grid_rows(seeds: int, jobs: int, saved: str | None = None) -> list:
+    """The grid's results: run here, or ``saved`` by ``bench_coverage.py --save-rows`` (one
+    run of the grid for both documents)."""
+    if saved:
+        results = json.loads(Path(saved).read_text())
+    else:
+        tasks = grid.id_tasks(seeds) + grid.etfe_tasks(seeds, quick=False) + grid.loop_tasks(max(seeds * 3 // 5, 3))
+        results = grid._run(tasks, jobs)
     out = []
-    for r in grid._run(tasks, jobs):
+    for r in results:
         if "far" in r:
             out.append((not r["far"], r["far"], r["level"], r["why"]))
         else:
@@ -117,6 +124,8 @@ def main() -> int:
     ap.add_argument("--points", type=int, default=60)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--only", default="grid,sweep,runs")
+    ap.add_argument("--grid-rows", metavar="FILE", help="the grid's results saved by bench_coverage.py "
+                    "--save-rows (else the grid runs here)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "verdicts-bench.md"))
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -124,7 +133,7 @@ def main() -> int:
     for part in args.only.split(","):
         t1 = time.perf_counter()
         if part == "grid":
-            rows = grid_rows(args.seeds, args.jobs)
+            rows = grid_rows(args.seeds, args.jobs, args.grid_rows)
         elif part == "sweep":
             rows = sweep_rows(args.points)
         elif part == "runs":
