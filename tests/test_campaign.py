@@ -135,7 +135,13 @@ def test_the_campaign_report_has_the_chart_then_the_points_then_the_sessions(zwi
     for wanted in ("stable, exact sampled", "paper's approximation", "Colgate & Schenkel",
                    "sampled-data condition", "measured K_max"):
         assert any(wanted in t for t in labels), (wanted, labels)
-    assert [p.name for p in write_figures(table)] == ["zwidth.png"]
+    written = write_figures(table)
+    assert [p.name for p in written] == ["zwidth.png"]
+    # beside the table, not in it: Parquet readers take every file inside it for a part
+    assert written[0].parent == tables.charts_folder(table) and written[0].read_bytes()[:4] == b"\x89PNG"
+    import pandas
+    import pyarrow.parquet as pq
+    assert len(pandas.read_parquet(table)) == len(rows) == pq.read_table(table).num_rows
     html, pdf = write_campaign_report(table)
     text = html.read_text()
     chart, points, sessions = (text.index(f"<h1>{h}</h1>") for h in ("Chart", "Points", "Sessions"))
@@ -424,6 +430,10 @@ def test_cli_json_summary_and_charts(tmp_path, monkeypatch):
     assert (s["points"], s["ran"], s["complete"]) == (2, 2, True)
     assert [Path(c).name for c in s["charts"]] == ["lines-1.png"]  # no Z-width, no rate study
     assert Path(s["report"]["html"]).name == "campaign.html" and Path(s["report"]["pdf"]).is_file()
+    # charts and report beside the table: pandas reads the table folder as a Parquet dataset
+    assert {Path(c).parent for c in [*s["charts"], s["report"]["html"]]} == {Path(s["table"]).with_suffix(".charts")}
+    import pandas
+    assert len(pandas.read_parquet(s["table"])) == 2
     assert "K = 10.0" in Path(s["report"]["html"]).read_text()
     code, out, err = cli("campaign", str(spec), "--device", "sim", "--json")
     assert code == 0 and json.loads(out)["ran"] == 0 and json.loads(out)["already"] == 2

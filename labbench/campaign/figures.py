@@ -203,8 +203,10 @@ FIGURES = (("zwidth.png", zwidth_figure), ("rate.png", rate_figure))
 
 
 def write_figures(directory) -> list[Path]:
-    """The figures the table at ``directory`` holds, written into it (replaced)."""
-    from labbench.safe_write import replacing
+    """The figures the table at ``directory`` holds, written beside it in its charts folder
+    (``labbench.sweep.table.charts_folder``: Parquet readers take every file inside the
+    table for a part), replacing earlier ones."""
+    from labbench.safe_write import output_folder, replacing
     from labbench.sweep import charts, table as tables
 
     tab = tables.read_table(directory)
@@ -216,7 +218,7 @@ def write_figures(directory) -> list[Path]:
         fig = make(cols)
         if fig is None:
             continue
-        path = Path(directory) / name
+        path = output_folder(tables.charts_folder(directory)) / name
         with replacing(path, force=True) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
         out.append(path)

@@ -1,7 +1,8 @@
 """The report of a campaign: its chart first, then one row per point, then the sessions.
 
 Built from the table alone (``labbench.sweep.table``) with the report machinery's blocks
-(``labbench.report.blocks``) and renderers: ``<table>/campaign.html`` and ``campaign.pdf``.
+(``labbench.report.blocks``) and renderers: ``campaign.html`` and ``campaign.pdf`` in the
+table's charts folder beside it (``NAME.charts``).
 A Z-width and a rate study get their own columns (``labbench.campaign.rows``); any other
 campaign lists its parameters, status and the protocol's verdict.
 """
@@ -105,13 +106,16 @@ def build(directory) -> tuple[str, str, list]:
 
 
 def write_campaign_report(directory) -> tuple[Path, Path]:
-    """``campaign.html`` and ``campaign.pdf`` in the table folder (replaced)."""
+    """``campaign.html`` and ``campaign.pdf`` in the table's charts folder beside it, not in
+    the table (Parquet readers take every file inside it for a part); replaced."""
     from labbench.report.render_html import render_html
     from labbench.report.render_pdf import render_pdf
-    from labbench.safe_write import replacing
+    from labbench.safe_write import output_folder, replacing
+    from labbench.sweep.table import charts_folder
 
     title, subtitle, blocks = build(directory)
-    html_path, pdf_path = Path(directory) / HTML, Path(directory) / PDF
+    where = output_folder(charts_folder(directory))
+    html_path, pdf_path = where / HTML, where / PDF
     with replacing(html_path, force=True) as tmp:
         tmp.write_text(render_html(title, subtitle, blocks), encoding="utf-8")
     with replacing(pdf_path, force=True) as tmp:

@@ -188,8 +188,8 @@ class CampaignProgress:
 
 def write_charts(spec, out: Path) -> list[Path]:
     """The campaign's own figures (``labbench.campaign.figures``: the Z-width, rate vs
-    accuracy) and the spec's charts (as ``labbench sweep`` draws them) into the table
-    folder, replacing its earlier ones."""
+    accuracy) and the spec's charts (as ``labbench sweep`` draws them) into the table's
+    charts folder beside it, replacing its earlier ones."""
     from labbench.campaign.figures import write_figures
     from labbench.sweep import charts, table as tables
 
@@ -198,7 +198,10 @@ def write_charts(spec, out: Path) -> list[Path]:
     if not spec.charts or not tab.num_rows:
         return written
     cols = charts.columns(tab)
-    return written + [charts.write(cols, c, out / charts.default_file(c, i), force=True)
+    from labbench.safe_write import output_folder
+
+    where = output_folder(tables.charts_folder(out))
+    return written + [charts.write(cols, c, where / charts.default_file(c, i), force=True)
                       for i, c in enumerate(spec.charts, 1)]
 
 
