@@ -17,6 +17,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from labbench.gui.tables import row_list
 from labbench.numfmt import fmt
 
 COLUMNS = ("#", "point", "status", "result", "predicted", "error", "session")
@@ -95,12 +96,7 @@ class CampaignView(QtWidgets.QWidget):
         self.plan_label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
         self.state_label = QtWidgets.QLabel("")
         self.state_label.setWordWrap(True)
-        self.table = QtWidgets.QTableWidget(0, len(COLUMNS))
-        self.table.setHorizontalHeaderLabels(COLUMNS)
-        self.table.verticalHeader().setVisible(False)
-        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
-        self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
+        self.table = row_list(COLUMNS)
         self.table.horizontalHeader().setSectionResizeMode(
             QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.chart = QtWidgets.QLabel("")

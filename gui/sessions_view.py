@@ -8,6 +8,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from labbench.gui.tables import row_list
 from labbench.gui.verdict_view import COLOURS
 from labbench.numfmt import fmt
 
@@ -56,13 +57,8 @@ class SessionsView(QtWidgets.QWidget):
                                        "e.g. etfe 200 failed")
         self.filter.setClearButtonEnabled(True)
         self.count = QtWidgets.QLabel("")
-        self.table = QtWidgets.QTableWidget(0, len(COLUMNS))
-        self.table.setHorizontalHeaderLabels(COLUMNS)
+        self.table = row_list(COLUMNS)
         self.table.horizontalHeader().setStretchLastSection(True)
-        self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
-        self.table.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
-        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.verticalHeader().setVisible(False)
         self.table.doubleClicked.connect(lambda *_: self._emit_replay(1.0))
         self.estimator = QtWidgets.QComboBox()
         self.estimator.addItems(list(estimators))

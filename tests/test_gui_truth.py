@@ -21,6 +21,21 @@ from labbench.rig import Rig, rig_from_dict  # noqa: E402
 RUN_TIMEOUT_MS = 60_000
 
 
+def _etfe_in_window(qtbot, rig, tmp_path) -> MainWindow:
+    """An 8 s ETFE (seed 2) started from the window, finished successfully."""
+    win = MainWindow(rig, tmp_path / "sessions", realtime=False)
+    qtbot.addWidget(win)
+    win.show()
+    assert win.live.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
+    win.protocol_panel.choice.setCurrentText("etfe")
+    win.protocol_panel.set_value("duration_s", 8.0)
+    win.protocol_panel.set_value("seed", 2)
+    win.start_protocol()
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
+    assert win.last_run.status == "success", win.last_run.reason
+    return win
+
+
 def _report_html(path) -> str:
     report = build([path])
     return render_html(report.title, report.subtitle, report.blocks)
@@ -50,16 +65,7 @@ RIGS = {"no device delay": Rig(),
 
 @pytest.mark.parametrize("rig", list(RIGS))
 def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, rig):
-    win = MainWindow(RIGS[rig], tmp_path / "sessions", realtime=False)
-    qtbot.addWidget(win)
-    win.show()
-    assert win.live.theory_plant.currentIndex() == RUN_PLANT  # the default: as the report
-    win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value("duration_s", 8.0)
-    win.protocol_panel.set_value("seed", 2)
-    win.start_protocol()
-    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
-    assert win.last_run.status == "success", win.last_run.reason
+    win = _etfe_in_window(qtbot, RIGS[rig], tmp_path)
     qtbot.waitUntil(lambda: win.live.impedance.last is not None and win.live.impedance.last.n_samples == 8000
                     and win.live.impedance.last.estimator != LIVE_ESTIMATOR, timeout=RUN_TIMEOUT_MS)
     html = _report_html(win.session_path)
@@ -102,15 +108,7 @@ def test_the_window_says_what_the_cli_and_the_report_say(qtbot, tmp_path):
     # (tests/test_readout.py: the CLI's JSON and text, replay and the report agree)
     from labbench import readout
 
-    win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
-    qtbot.addWidget(win)
-    win.show()
-    win.protocol_panel.choice.setCurrentText("etfe")
-    win.protocol_panel.set_value("duration_s", 8.0)
-    win.protocol_panel.set_value("seed", 2)
-    win.start_protocol()
-    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=RUN_TIMEOUT_MS)
-    assert win.last_run.status == "success", win.last_run.reason
+    win = _etfe_in_window(qtbot, Rig(), tmp_path)
     qtbot.waitUntil(lambda: bool(win.live.verdicts.shown), timeout=RUN_TIMEOUT_MS)
     back = readout.of_session(win.session_path)
     shown = win.live.verdicts
