@@ -334,7 +334,12 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self._theory_shown = (th or {}).get("key")
         self._show_theory_in_legend(bool(th))
         trusted = (np.abs(est.Z_err) <= TRUSTED_REL_ERR * np.abs(est.Z))[ok]
-        self._fit_ranges(lw, shown, bands, trusted)
+        # ED ranged below w_b*, where the VE's damping holds: a damping of 1.1 N s/m must not
+        # share its axis with the roll-off to -50 near Nyquist (issue 30; the report's figure
+        # does the same, labbench.effective.focus_limits); the roll-off leaves the axes
+        wb = est.wb_measured if est.renders_ve and est.wb_measured else None
+        focus = {"ED": np.log10(wb * fx)} if wb and _excited_at(est, wb) else {}
+        self._fit_ranges(lw, shown, bands, trusted, focus)
         for key, value in (("ws", est.ws_measured), ("wb", est.wb_measured)):
             line = self.marks[key]
             # a VE's bandwidths: none without one, none where the excitation has not been
@@ -375,11 +380,12 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         if self.last is not None:
             self.show_estimate(self.last)
 
-    def _fit_ranges(self, lw, shown, bands, trusted) -> None:
+    def _fit_ranges(self, lw, shown, bands, trusted, focus: dict) -> None:
         """x over the measured and theory frequencies; y over the trusted measured points
         and their band, the theory where something is measured (a chirp's plant theory runs
         on past what it excited) and the zero line (as autoRange would give over those, but
-        computed once per estimate); the untrusted points are drawn, not ranged."""
+        computed once per estimate); the untrusted points are drawn, not ranged. ``focus``:
+        a curve's highest frequency to range over (log10, view coordinates)."""
         lw_theory = []
         if self._theory_shown is not None:  # where a theory curve is drawn
             for key in shown:
@@ -391,10 +397,11 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         drawn = lw[np.isfinite(np.column_stack(list(shown.values()))).any(axis=1)]
         for key, y in shown.items():
             wt, yt = self.curves[key + "_theory"].getOriginalDataset()
+            top = min(focus.get(key, np.inf), drawn.max()) if drawn.size else np.inf
             if yt is not None and drawn.size:  # the theory where something is measured
                 lwt = np.log10(np.clip(wt, 1e-12, None))
-                yt = yt[(lwt >= drawn.min()) & (lwt <= drawn.max())]
-            keep = np.isfinite(y) & trusted
+                yt = yt[(lwt >= drawn.min()) & (lwt <= top)]
+            keep = np.isfinite(y) & trusted & (lw <= top)
             vb = self.plots[key].getViewBox()
             _fit(vb.setYRange, vb.viewRange()[1],
                  *_finite_span(y[keep], bands[key][0][keep], bands[key][1][keep],

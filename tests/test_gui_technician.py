@@ -298,6 +298,11 @@ def test_a_white_noise_etfe_is_drawn_whole_with_its_marks(qtbot, window):
     assert [label.text for _s, label in plots.bode_legend.items] == [
         "measured (ETFE)", "theory (exact sampled model)"]
     assert np.isfinite(plots.curves["bode_mag"].getOriginalDataset()[1]).all()
+    # issue 30: the damping axis shows the rendered damping (B + b = 1.1 N s/m below w_b*)
+    # readably, not the roll-off to about -50 N s/m near Nyquist, which leaves the axes
+    lo, hi = plots.plots["ED"].getViewBox().viewRange()[1]
+    assert lo <= 0.0 and 1.1 < hi < 3.0 and hi - lo < 5.0, (lo, hi)
+    assert np.nanmin(plots.curves["ED"].getOriginalDataset()[1]) < lo  # drawn, beyond the axes
 
 
 # ----- defect 7: nothing stale left on screen --------------------------------------------------
