@@ -54,19 +54,27 @@ def test_hardware_drivers_say_nothing_of_simulation():
 
 @pytest.mark.parametrize("backend", ["sim-canopen", "sim-serial"], indirect=True)
 def test_a_paced_simulated_run_keeps_the_wall_clock(backend):
-    """Paced by the rig, a 1 s run's median period is the rig's and it takes most of 1 s of
-    wall time (samples the board sent while the run started wait queued and are read at
-    once: 0.36 s of them on a fresh CI machine; a lock-step run takes a tenth of it) and
-    its timing is judged as a paced loop's. At 100 Hz: the board's 2.5-period stale limit
-    outlasts a loaded machine's stalls (at 1 kHz it does not, which is why lock-step is the
-    default)."""
+    """Paced by the rig, a 1 s run keeps the wall clock (a lock-step run takes a tenth of it)
+    and its timing is judged as a paced loop's. Over CANopen the host paces the drive (its
+    SYNCs): the loop's own wall time is the run's. A serial board paces itself from the
+    moment it is opened, and samples it made while the run started wait queued and are read
+    at once (0.36 s of them in a whole-suite run on CI, where the simulated board shares the
+    process with the loop): the run cannot end before its 100 samples were made, 0.99 s after
+    the device was open. At 100 Hz: the board's 2.5-period stale limit outlasts a loaded
+    machine's stalls (at 1 kHz it does not, which is why lock-step is the default)."""
+    import time
+
     rig = rig_with({"paced": True}, rig={"sample_time_s": 0.01},
                    canopen={"stale_periods": 20}, safety={"watchdog_s": 2.0})
     protocol = make_protocol("etfe", duration_s=1.0, seed=3, sample_time_s=0.01)
-    result = run(open_device(backend, rig), protocol, [], rig=rig)
+    device = open_device(backend, rig)
+    opened = time.perf_counter()
+    result = run(device, protocol, [], rig=rig)
+    since_open = time.perf_counter() - opened
     assert result.status == "success", result.reason
     t = result.timing
-    assert t["paced"] and 0.009 <= t["p50_s"] <= 0.011 and t["wall_s"] >= 0.5
+    assert t["paced"] and t["periods"] == 99
+    assert (t["wall_s"] if backend == "sim-canopen" else since_open) >= 0.95, (since_open, t)
     figures = status_figures(t)
     assert figures["paced"] and figures["overruns"] is not None
     assert figures["rate_text"].startswith("paced at 100 Hz")
