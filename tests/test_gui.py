@@ -397,6 +397,36 @@ def test_cli_refuses_headless_window_without_screenshot(monkeypatch, capsys, tmp
     assert "no display" in capsys.readouterr().err
 
 
+def test_cli_names_the_library_qts_x11_plugin_lacks(monkeypatch, capsys, tmp_path):
+    # Qt 6.5+ aborts with "could not load the Qt platform plugin xcb" and no name on a fresh
+    # Ubuntu desktop (no libxcb-cursor0): the command says which library, in one line, first
+    import ctypes
+
+    from labbench.cli import main
+
+    def cdll(path, *args, **kwargs):
+        if path.endswith("libqxcb.so"):
+            raise OSError("libxcb-cursor.so.0: cannot open shared object file: No such file")
+        return real(path, *args, **kwargs)
+
+    def no_window(*args, **kwargs):  # a regression fails here, not in Qt's abort
+        raise AssertionError("the window was opened")
+
+    real = ctypes.CDLL
+    monkeypatch.setattr(ctypes, "CDLL", cdll)
+    monkeypatch.setattr("labbench.gui.app.run_app", no_window)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("DISPLAY", ":99")
+    monkeypatch.delenv("QT_QPA_PLATFORM", raising=False)
+    assert main(["gui"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "libxcb-cursor.so.0 is missing" in err
+    assert "apt install libxcb-cursor0" in err
+    monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")  # not X11: not checked
+    from labbench.cli.gui import check_x11_plugin
+    check_x11_plugin()
+
+
 @pytest.mark.slow
 def test_cli_demo_screenshot(tmp_path):
     shot = tmp_path / "demo.png"

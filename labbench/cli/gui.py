@@ -55,6 +55,8 @@ def run(args) -> int:
         raise UserError("no display found (DISPLAY unset); run under a desktop, or use --screenshot")
     if headless:
         os.environ["QT_QPA_PLATFORM"] = "offscreen"  # renders without a display
+    else:
+        check_x11_plugin()
     sessions = Path(sessions_dir)
     try:
         sessions.mkdir(parents=True, exist_ok=True)
@@ -69,3 +71,30 @@ def run(args) -> int:
     units = None if getattr(args, "units", SI) is SI else args.units
     return run_app(rig, sessions, demo=args.demo, screenshot=shot, timeout_s=args.timeout,
                    settings=settings, units=units, skip_commissioning=args.skip_commissioning)
+
+
+# what Qt's X11 plugin needs beyond a desktop's usual libraries (Qt 6.5 and later: xcb-cursor),
+# as Debian and Ubuntu package them; a fresh Ubuntu desktop lacks the first
+XCB_PACKAGES = "libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1 libxcb-image0 libxcb-render-util0 " \
+               "libxcb-shape0 libxcb-xkb1 libxkbcommon-x11-0"
+
+
+def check_x11_plugin() -> None:
+    """One line naming the missing library where Qt's X11 plugin cannot load: Qt itself aborts
+    the process with "could not load the Qt platform plugin xcb" and no name."""
+    import ctypes
+
+    if os.environ.get("QT_QPA_PLATFORM", "xcb") != "xcb" or not os.environ.get("DISPLAY"):
+        return
+    spec = importlib.util.find_spec("PySide6")
+    plugin = Path(spec.origin).parent / "Qt" / "plugins" / "platforms" / "libqxcb.so"
+    if not plugin.is_file():
+        return  # another build of Qt: let it say for itself
+    try:
+        ctypes.CDLL(str(plugin))
+    except OSError as exc:
+        missing = str(exc).split(":")[0].strip()
+        if "cannot open shared object file" in str(exc):
+            raise UserError(f"Qt's X11 plugin cannot load: {missing} is missing (Debian/Ubuntu: "
+                            f"sudo apt install {XCB_PACKAGES})") from None
+
