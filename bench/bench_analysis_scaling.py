@@ -19,7 +19,7 @@ goal about 0.5 s).
 
 Writes docs/analysis-scaling.md.
 
-    .venv/bin/python bench/bench_analysis_scaling.py [--lengths 120,600,1800] [--repeat 2]
+    .venv/bin/python bench/bench_analysis_scaling.py [--lengths 120,600,1800] [--repeat 3]
                                                       [--only id,etfe,live] [--out FILE]
                                                       [--keep DIR]  (reuse the records there)
 """
@@ -249,7 +249,7 @@ def write_doc(path: Path, lengths, floor, results, elapsed: float) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lengths", default="120,600,1800", help="record lengths [s], the first the reference")
-    ap.add_argument("--repeat", type=int, default=2, help="runs per case (best kept)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per case (best kept)")
     ap.add_argument("--only", default="id,etfe,live", help="comma-separated: id, etfe, live")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
     ap.add_argument("--out", default=str(ROOT / "docs" / "analysis-scaling.md"))

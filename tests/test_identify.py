@@ -368,6 +368,61 @@ def test_l1_exact_on_random_problems(problem):
     assert l1.objective(X, y, theta) <= f_ref + 1e-9 * (1 + np.abs(y).sum())
 
 
+def _long_lad_problem(kind: str, n: int = 40000):
+    """A long identification-like LAD problem (chirp regressors, sign and offset columns)."""
+    rng = np.random.default_rng(sum(map(ord, kind)))  # a seed per kind, the same every run
+    t = np.arange(n) / 1000.0
+    v = np.sin(2 * np.pi * (0.2 + 0.05 * t) * t)
+    a = np.gradient(v, t)
+    X = np.column_stack([a, v, np.sign(v), np.ones(n)])
+    y = X @ [0.094, 0.1, 0.02, -0.003]
+    if kind == "laplace":
+        y += rng.laplace(0, 0.01, n)
+    elif kind == "outliers":
+        y += rng.normal(0, 0.01, n) + np.where(rng.random(n) < 0.05, rng.normal(0, 2.0, n), 0.0)
+    elif kind == "quantised":  # integer forces: ties everywhere, degenerate vertices
+        y = np.round(100 * (y + rng.normal(0, 0.01, n))) / 100
+    elif kind == "at rest":  # a tenth of the samples at rest: subnormal regressors, zero force
+        y += rng.normal(0, 0.01, n)
+        X[: n // 10, :2] *= 1e-318
+        y[: n // 10] = 0.0
+    elif kind == "clean":  # residuals at rounding level
+        y += 1e-13 * rng.standard_normal(n)
+    return np.asfortranarray(X), y
+
+
+@pytest.mark.parametrize("kind", ["laplace", "outliers", "quantised", "at rest", "clean"])
+def test_l1_on_a_long_record_is_the_exact_lad_of_every_row(kind, monkeypatch):
+    # Portnoy-Koenker globbing (l1._globbed): the fit of a band of rows plus the globbed rows'
+    # linear term is the exact LAD of all rows, the steps running over far fewer than n of them
+    X, y = _long_lad_problem(kind)
+    n = len(y)
+    assert n >= l1.GLOB_ROWS
+    exact = l1._rows(X, y)  # the steps over every row, certified
+    fitted = []
+    real = l1._simplex
+
+    def spy(Xs, ys, B, check=l1._no_check, glob=None):
+        fitted.append(len(ys))
+        return real(Xs, ys, B, check, glob)
+
+    monkeypatch.setattr(l1, "_simplex", spy)
+    theta = l1.lad(X, y)
+    f, f_exact = l1.objective(X, y, theta), l1.objective(X, y, exact)
+    # to the rounding of the sum itself (the clean case's optimum is 3e-9 beside sum |y| = 4e3)
+    assert f <= f_exact * (1 + 1e-12) + 64 * np.finfo(float).eps * np.abs(y).sum(), (f, f_exact)
+    if kind != "clean":
+        assert max(fitted) < n // 4, fitted  # never the fit over every row
+
+
+def test_l1_from_a_far_start_on_a_long_record_is_still_exact():
+    # a start far from the fit: the band's problem is unbounded or many globbed rows change
+    # sign; the band grows and, at worst, every row is fitted
+    X, y = _long_lad_problem("laplace")
+    theta = l1.lad(X, y, theta0=np.array([5.0, -3.0, 1.0, 2.0]))
+    assert l1.objective(X, y, theta) <= l1.objective(X, y, l1._rows(X, y)) * (1 + 1e-12)
+
+
 ENCODER_Q = 2 * np.pi * 0.1 / 16384  # the default rig's encoder step at the handle [m]
 
 
