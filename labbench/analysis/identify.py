@@ -171,7 +171,9 @@ class _Data:
     noise_var: dict = field(default_factory=dict)  # name -> variance the encoder step adds to the column
 
     def design(self, model: str) -> np.ndarray:
-        return np.column_stack([self.cols[t] for t in TERMS[model]])
+        """The regressors of ``model``, column-major: X @ theta on a long row-major n x p
+        array took 7x as long (OpenBLAS's gemv, p <= 4)."""
+        return np.asfortranarray(np.column_stack([self.cols[t] for t in TERMS[model]]))
 
     def noise(self, model: str) -> np.ndarray:
         """Variance the encoder step adds to each regressor of ``model``."""
@@ -271,8 +273,10 @@ def _estimate(data: _Data, fit, method: str, model: str, keep=None,
     columns ``inst`` (name -> column) instrumental variables (module doc); intervals from
     ``_sandwich_ci``."""
     rows = np.arange(len(data.y)) if keep is None else np.flatnonzero(keep)
-    X, y = data.design(model)[rows], data.y[rows]
-    Z = None if inst is None else np.column_stack([inst[t] for t in TERMS[model]])[rows]
+    X, y = data.design(model), data.y
+    Z = None if inst is None else np.asfortranarray(np.column_stack([inst[t] for t in TERMS[model]]))
+    if keep is not None:
+        X, y, Z = np.asfortranarray(X[rows]), y[rows], None if Z is None else np.asfortranarray(Z[rows])
     noise = data.noise(model) if method == "l2" and Z is None else np.zeros(X.shape[1])
     if Z is not None:  # the instruments know nothing of the noise: no correction needed
         theta = np.linalg.solve(Z.T @ X, Z.T @ y)
