@@ -171,9 +171,7 @@ class _Data:
     noise_var: dict = field(default_factory=dict)  # name -> variance the encoder step adds to the column
 
     def design(self, model: str) -> np.ndarray:
-        """The regressors of ``model``, column-major: X @ theta on a long row-major n x p
-        array took 7x as long (OpenBLAS's gemv, p <= 4)."""
-        return np.asfortranarray(np.column_stack([self.cols[t] for t in TERMS[model]]))
+        return _columns(self.cols, TERMS[model])
 
     def noise(self, model: str) -> np.ndarray:
         """Variance the encoder step adds to each regressor of ``model``."""
@@ -266,6 +264,15 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     return result
 
 
+def _columns(cols: dict, names) -> np.ndarray:
+    """The n x p matrix of the named columns, column-major: X @ theta on a long row-major
+    n x p array took 7x as long (OpenBLAS's gemv, p <= 4)."""
+    X = np.empty((len(cols[names[0]]), len(names)), order="F")
+    for j, name in enumerate(names):
+        X[:, j] = cols[name]
+    return X
+
+
 def _estimate(data: _Data, fit, method: str, model: str, keep=None,
               inst=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """(theta, residual, 95 % intervals by name) of one model on the samples ``keep`` (all by
@@ -274,7 +281,7 @@ def _estimate(data: _Data, fit, method: str, model: str, keep=None,
     ``_sandwich_ci``."""
     rows = np.arange(len(data.y)) if keep is None else np.flatnonzero(keep)
     X, y = data.design(model), data.y
-    Z = None if inst is None else np.asfortranarray(np.column_stack([inst[t] for t in TERMS[model]]))
+    Z = None if inst is None else _columns(inst, TERMS[model])
     if keep is not None:
         X, y, Z = np.asfortranarray(X[rows]), y[rows], None if Z is None else np.asfortranarray(Z[rows])
     noise = data.noise(model) if method == "l2" and Z is None else np.zeros(X.shape[1])
