@@ -82,7 +82,7 @@ def z_paper(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> np
 # ----------------------------------------------------------------------------- sampled model
 # frequencies per block of z_sampled: its chain of complex temporaries stays in the cache (at
 # the 900 000 bins of a 30-minute record, all at once cost 23x their time at 60 000)
-BLOCK = 1 << 14
+FREQ_BLOCK = 1 << 14
 
 
 def zoh_matrices(m: float, b: float, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -174,9 +174,9 @@ def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0,
     ``P_{L+tv} = z^-n P_L`` and this is the td form above.
     """
     w = np.asarray(w, dtype=float)
-    if w.ndim == 1 and len(w) > BLOCK:  # block by block: a long record's every bin
-        return np.concatenate([z_sampled(plant, ve, w[i:i + BLOCK], latency, ve_delay)
-                               for i in range(0, len(w), BLOCK)])
+    if w.ndim == 1 and len(w) > FREQ_BLOCK:  # block by block: a long record's every bin
+        return np.concatenate([z_sampled(plant, ve, w[i:i + FREQ_BLOCK], latency, ve_delay)
+                               for i in range(0, len(w), FREQ_BLOCK)])
     jw = 1j * w
     p_l = _plant_response(plant, ve.T, w, latency)
     Z = 1.0 / (jw * p_l)

@@ -55,10 +55,16 @@ def stale_finding(p: dict) -> str:
     return text
 
 
-def assert_agrees(p: dict, result, *, too_tight: bool) -> None:
-    """The preflight's verdict on the stale limit and what the run did."""
+def assert_agrees(p: dict, result, *, too_tight: bool | None) -> None:
+    """The preflight's verdict on the stale limit and what the run did (``too_tight`` None:
+    the preflight called the limit doubtful, a chance of a fault, so the run may go either
+    way; what it did must still be the stale limit's doing or a success)."""
     text = stale_finding(p)
-    if too_tight:
+    if too_tight is None:
+        assert p["verdict"]["level"] == "doubtful", p["verdict"]
+        assert "marginal" in text or "too tight" in text, text
+        assert result.status == "success" or "stale" in result.reason, result.reason
+    elif too_tight:
         assert "too tight" in text and p["preflight"]["over_stale"] > 0, text
         assert p["verdict"]["level"] == "failed"
         assert result.status == "failed" and "stale" in result.reason, result.reason
@@ -84,7 +90,7 @@ def test_sim_canopen_preflight_agrees_with_the_run(tmp_path, capsys, sim_drive, 
         assert m["wait"]["p50_s"] == pytest.approx(0.015, abs=0.003)
         assert m["wire"]["p50_s"] == pytest.approx(0.015, abs=0.003)
     # too tight is certain (every answer late); holding, nearly (a stall over 130 ms, seen
-    # on this VM now and then, makes the preflight doubtful: skipped, saying so)
+    # on this VM now and then, makes the preflight doubtful: either outcome then)
     assert_agrees(p, paced_run(load_rig(rig_file), "sim-canopen"),
                   too_tight=True if too_tight else decided(p))
 
@@ -143,13 +149,13 @@ def test_canopennode_preflight_agrees_with_the_run(tmp_path, capsys, too_tight):
 
 
 # ------------------------------------------------------------ serial boards
-def decided(p: dict) -> bool:
-    """True (too tight) or False (holds) as the preflight says; a doubtful verdict on the
-    stale limit (marginal, or a rare wait beyond it) promises nothing about one run:
-    skipped, saying so."""
+def decided(p: dict) -> bool | None:
+    """True (too tight) or False (holds) as the preflight says; None where its verdict on
+    the stale limit is doubtful (marginal, or a rare wait beyond it: a machine's load now
+    and then), which promises neither outcome of one run (``assert_agrees``)."""
     text = stale_finding(p)
     if ": holds" not in text and p["verdict"]["level"] != "failed":
-        pytest.skip(f"the preflight calls it doubtful on this machine now: {text}")
+        return None
     return "too tight" in text
 
 

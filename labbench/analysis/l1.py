@@ -105,16 +105,16 @@ def _globbed(X, y, theta0=None, check=_no_check):
     A start (``theta0``, or the exact LAD of a regular subset of 2 n^(2/3) rows) leaves most
     residuals far from zero. Rows outside the band of the M smallest |r| are globbed: held
     at their signs s_i, they add sum_G s_i (y_i - X_i theta), a constant minus glob . theta
-    with glob = sum_G s_i X_i, and the band's rows plus that linear term are stepped to their
-    certified optimum (``_simplex``). Since |r_i| >= s_i r_i for every theta, that small objective is a lower bound
-    of the whole one, equal to it wherever no globbed row has changed sign: when none has at
-    its minimiser, that is the exact LAD of every row. Rows that did change sign join the
-    band while they are few (a tenth of it, GLOB_FIXES times); else the band grows around
-    the new fit (GLOB_GROWTH), as it does when the band's problem is unbounded (too few rows
-    to balance the globbed ones) or its steps stall; after GLOB_TRIES bands every row is
-    fitted. Each try costs a few
-    passes over the data; the steps run over M = 4 n^(2/3) rows, so the whole fit's cost
-    grows as n, not as n times the steps a longer record needs.
+    with glob = sum_G s_i X_i, and the band's rows plus that linear term are stepped to
+    their certified optimum (``_simplex``). Since |r_i| >= s_i r_i for every theta, that
+    small objective is a lower bound of the whole one, equal to it wherever no globbed row
+    has changed sign: when none has at its minimiser, that is the exact LAD of every row.
+    Rows that did change sign join the band while they are few (a tenth of it, GLOB_FIXES
+    times); else the band grows around the new fit (GLOB_GROWTH), as it does when the
+    band's problem is unbounded (too few rows to balance the globbed ones) or its steps
+    stall; after GLOB_TRIES bands every row is fitted. Each try costs a few passes over the
+    data and steps over M = 4 n^(2/3) rows, so the whole fit's cost grows as n, not as n
+    times the steps a longer record needs.
     """
     n = len(y)
     m = int(2 * n ** (2 / 3))
@@ -134,7 +134,8 @@ def _globbed(X, y, theta0=None, check=_no_check):
         for _ in range(GLOB_FIXES):
             check()
             rows = np.flatnonzero(near)
-            vertex, certified = _simplex(X[rows], y[rows], _initial_basis(X[rows], absr[rows]), check, s @ X)
+            Xb, yb = X[rows], y[rows]
+            vertex, certified = _simplex(Xb, yb, _initial_basis(Xb, absr[rows]), check, s @ X)
             if not certified:
                 break  # unbounded (too few rows to balance the globbed ones) or stalled
             theta, r = vertex, y - X @ vertex
