@@ -3,6 +3,7 @@ K, B), how long they ran and what their analysis said (the worst verdict), filte
 replay, re-analyse (with progress and Cancel), export."""
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -19,11 +20,21 @@ NUMBERS = ("K [N/m]", "B [N s/m]", "duration [s]", "samples")  # the filter matc
 
 def matches(row: tuple[str, ...], words: list[str]) -> bool:
     """Whether a row holds every word: a number column equal to it ("200" is K = 200, not
-    2000 samples), or any other cell containing it (case aside)."""
+    2000 samples), or any other cell containing it (case aside); a number, only whole in
+    those too ("2026" is a date's year; "200" is not in a file stamped 20:05:12)."""
     cells_ = [c.lower() for c in row]
     exact = {c for name, c in zip(COLUMNS, cells_) if name in NUMBERS}
     text = " ".join(c for name, c in zip(COLUMNS, cells_) if name not in NUMBERS)
-    return all(w in exact or w in text for w in words)
+    tokens = set(re.findall(r"[a-z0-9]+", text))
+    return all(w in exact or (w in tokens if _number(w) else w in text) for w in words)
+
+
+def _number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
 
 
 def cells(s) -> tuple[str, ...]:

@@ -346,8 +346,11 @@ def test_reanalyse_shows_the_records_traces_and_axes_and_replay_ends_full(qtbot,
     # the frequency axis spans the chirp's estimate, not the 30 s ETFE's wider one
     w, _ = win.live.impedance.curves["ED"].getOriginalDataset()
     lo, hi = np.log10(w[w > 0].min()), np.log10(w.max())
-    x0, x1 = es.viewRange()[0]
-    assert x0 > wide[0] and x1 - x0 <= 1.2 * (hi - lo) + 0.2
+    def spans_the_chirp():  # the range is set when the plot is next drawn
+        x0, x1 = es.viewRange()[0]
+        return x0 > wide[0] and x1 - x0 <= 1.2 * (hi - lo) + 0.2
+
+    qtbot.waitUntil(spans_the_chirp, timeout=5000)
     assert win.sessions.progress.value() == 1000
 
     # Replay fast: the bar full at completion, under "replay completed"
@@ -416,6 +419,17 @@ def test_a_reanalysis_shows_progress_can_be_cancelled_and_never_replaces_a_good_
     assert "not replaced: closed-loop fit failed: too few coherent frequencies (injected)" in shown
     assert "not replaced" in win.sessions.progress_line.text()
     assert any("not replaced" in t for t in win.log.texts("warning"))
+
+
+def test_a_number_in_the_filter_matches_whole_numbers_not_a_timestamp():
+    # "200" typed at 20:05 also showed every session whose file was stamped 20:05 (CI, 20:0x)
+    from labbench.gui.sessions_view import matches
+
+    row = ("2026-12-04 20:05:12", "etfe", "spring-damper", "50", "1", "2.0", "success", "ok",
+           "2000", "default", "etfe-20261204-200512.lbsession")
+    assert not matches(row, ["200"]) and not matches(row, ["etfe", "200"])
+    assert matches(row, ["50"]) and matches(row, ["2026"]) and matches(row, ["etfe", "50"])
+    assert matches(row, ["spring"]) and matches(row, ["2000"]) and not matches(row, ["512"])
 
 
 # ----- defect 8: sessions told apart, and filtered ------------------------------------------------
