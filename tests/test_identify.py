@@ -606,3 +606,27 @@ def test_closed_loop_identification_uses_instruments_against_process_noise():
     assert "instrumental" in iv.selection["estimator"]
     l1_fit = identify(plant, model="mb", method="l1", response=compare.loop_response(rec, ve))
     assert any(f.startswith("closed-loop-l1") for f in l1_fit.flags)
+
+
+def test_intervals_hold_a_parameter_whose_information_sits_in_a_few_windows():
+    # a chirp tells its damping in its slow first seconds: a few interval windows carry b, and
+    # their fitted residuals were pulled towards them. Here the second column lives in the
+    # first sixteenth of the record (about six windows) under serially correlated noise: the
+    # windows' sums without their leverage correction covered 90.3 % of 1000 draws, with it
+    # 93.3 % (on 300 chirps of the method map: b 93.7 -> 95.0 % with l2, 90.0 -> 93.7 % with l1)
+    from labbench.analysis.identify import _sandwich_ci, least_squares
+
+    rng = np.random.default_rng(0)
+    n, hits, widths, errors = 4000, 0, [], []
+    for _ in range(1000):
+        x2 = np.zeros(n)
+        x2[:n // 16] = rng.standard_normal(n // 16)
+        X = np.asfortranarray(np.column_stack([rng.standard_normal(n), x2]))
+        y = X @ [1.0, 2.0] + np.convolve(rng.standard_normal(n + 7), np.ones(8) / 8, "valid")
+        theta = least_squares(X, y)
+        lo, hi = _sandwich_ci(X, y - X @ theta, theta, "l2", np.zeros(2), 4.0, np.arange(n))[1]
+        hits += lo <= 2.0 <= hi
+        widths.append(hi - lo)
+        errors.append(theta[1] - 2.0)
+    assert hits >= 920, hits
+    assert np.mean(widths) < 1.3 * 2 * 1.96 * np.std(errors)  # and not by being wide
