@@ -641,9 +641,11 @@ def _sandwich_ci(X, r, theta, method: str, noise: np.ndarray, corr_samples: floa
                  rows: np.ndarray, Z=None) -> list[tuple[float, float]]:
     """95 % intervals from the estimator's estimating equations summed over windows of
     contiguous samples (module doc): l2 psi_k = x_k r_k (+ noise * theta, the corrected
-    equation), D = X'X - n noise; l1 psi_k = x_k sign(r_k) / 2, D = the density of the
-    residuals at 0 times X'X, Powell's kernel estimate sum_{|r_k| <= h} x_k x_k' / (2 h) with
-    the Hall-Sheather bandwidth h (Koenker, Quantile Regression, 2005, sec. 3.4); with
+    equation), D = X'X - n noise; l1 psi_k = x_k sign(r_k) / 2, D = f(0) X'X, f(0) the
+    residuals' density at 0, #{|r_k| <= h} / (2 h n) with the Hall-Sheather bandwidth h
+    (Koenker, Quantile Regression, 2005, sec. 3.4; Powell's local sum_{|r_k| <= h} x_k x_k' /
+    (2 h) read b's entry off the few near-zero residuals of the few windows that carry b: its
+    noise left l1's b intervals at 93.7 % on 300 records, one density 95.3 %); with
     instruments ``Z``: psi_k = z_k r_k, D = Z'X.
 
     Each window w contributes u_w = (I - D^-1 D_w)^(-1/2) D^-1 s_w, s_w and D_w its own sums
@@ -661,14 +663,14 @@ def _sandwich_ci(X, r, theta, method: str, noise: np.ndarray, corr_samples: floa
     windows carrying a chirp's damping: few dof)."""
     n, p = X.shape
     if Z is not None:
-        A, psi, weight = Z, Z * r[:, None], None
+        A, psi = Z, Z * r[:, None]
     elif method == "l2":
-        A, psi, weight = X, X * r[:, None] + noise * theta, None
+        A, psi = X, X * r[:, None] + noise * theta
     else:
         hs = n ** (-1 / 3) * stats.norm.ppf(0.975) ** (2 / 3) * (1.5 * stats.norm.pdf(0) ** 2) ** (1 / 3)
         scale = min(np.std(r), stats.iqr(r) / 1.349)
         h = max(2 * stats.norm.ppf(0.5 + hs) * scale, np.finfo(float).tiny)
-        A, psi, weight = X, X * (np.sign(r) / 2)[:, None], (np.abs(r) <= h) / (2 * h)
+        A, psi = X * (np.count_nonzero(np.abs(r) <= h) / (2 * h * n)), X * (np.sign(r) / 2)[:, None]
     span = int(rows[-1]) + 1  # samples in time order; a subset leaves zeros between its rows
     length = min(max(int(np.ceil(BLOCK_CORR * corr_samples)), 1), max(span // MIN_BLOCKS, 1))
     step = max(length // WINDOW_STEPS, 1)
@@ -678,11 +680,10 @@ def _sandwich_ci(X, r, theta, method: str, noise: np.ndarray, corr_samples: floa
     slot = rows // step
     s_steps = np.zeros((count, p))
     d_steps = np.zeros((count, p, p))
-    wA = A if weight is None else A * weight[:, None]
     for i in range(p):
         s_steps[:, i] = np.bincount(slot, psi[:, i], count)
         for j in range(p):
-            d_steps[:, i, j] = np.bincount(slot, wA[:, i] * X[:, j], count)
+            d_steps[:, i, j] = np.bincount(slot, A[:, i] * X[:, j], count)
     if noise.any():
         d_steps -= np.bincount(slot, minlength=count)[:, None, None] * np.diag(noise)
     D = d_steps.sum(axis=0)

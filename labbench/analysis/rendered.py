@@ -47,6 +47,14 @@ class LowFrequency:
     band_rad_s: tuple[float, float]
     n_freq: int
 
+    def reaching(self, other: LowFrequency) -> LowFrequency:
+        """These limits with intervals grown to hold ``other``'s values, each with an
+        interval as wide as this one's."""
+        def hull(v, ci, o):
+            return min(ci[0], o - (v - ci[0])), max(ci[1], o + (ci[1] - v))
+        return LowFrequency(self.K, hull(self.K, self.K_ci95, other.K), self.B,
+                            hull(self.B, self.B_ci95, other.B), self.band_rad_s, self.n_freq)
+
     def as_dict(self) -> dict:
         return {"K": self.K, "K_ci95": list(self.K_ci95), "B": self.B, "B_ci95": list(self.B_ci95),
                 "band_rad_s": list(self.band_rad_s), "n_freq": self.n_freq}
@@ -122,9 +130,16 @@ def _limit(x: np.ndarray, y: np.ndarray, sd: np.ndarray, cov: np.ndarray | None)
 
 
 def measured(res: EtfeResult, where: tuple[float, float]) -> LowFrequency | None:
-    """``fit`` of an ETFE over ``where`` with its own errors and their correlation."""
+    """``fit`` of an ETFE over ``where`` with its own errors and their correlation. Where a
+    force sensor's noise may sit in the record (``EtfeResult.Z_force``), the intervals also
+    reach the limits of the reading with the noise in the force, as its bands do, that
+    reading's interval taken as wide as this one's (same bins, same noise)."""
     corr = res.error_corr() if res.error_corr is not None else None
-    return fit(res.w, res.Z, res.Z_se, corr, where)
+    got = fit(res.w, res.Z, res.Z_se, corr, where)
+    if got is None or res.Z_force is None:
+        return got
+    other = fit(res.w, res.Z_force, res.Z_se, corr, where)
+    return got if other is None else got.reaching(other)
 
 
 def rendered_impedance(res: EtfeResult, ve, plant, latency: float = 0.0,
