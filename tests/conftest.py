@@ -19,6 +19,7 @@ LINUX_ONLY = {
 }
 POSIX_ONLY = {
     "test_session_kill.py": "SIGKILL of a recording process at random moments",
+    "test_device_death.py": "SIGKILL of the simulated drive's process",
 }
 
 # The firmware on the emulator needs Debian's AVR toolchain and simavr (`make avr-deps`,

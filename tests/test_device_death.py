@@ -14,13 +14,10 @@ import sys
 import threading
 import time
 
-import pytest
-
 from labbench.registry import make_protocol, open_device
 from labbench.rig import rig_from_dict
 from labbench.session_format import read_session
 
-pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="SIGKILL")
 RIG = {"canopen": {"sim_drive": "process"}}
 
 

@@ -173,7 +173,6 @@ def test_the_gui_settings_store_passes_a_planted_lock_link_over(tmp_path):
     into place, mode kept, umask applied; QLockFile: a stale lock, a planted link included,
     replaced): nothing in gui/settings.py needed changing. A link at the settings file
     itself is followed, as for a rig (an editor writes through it; it is the user's own)."""
-    pytest.importorskip("PySide6")
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from labbench.gui.settings import open_settings
 

@@ -618,15 +618,12 @@ def _findings(res: EtfeResult, rec: Recording, F: np.ndarray, X: np.ndarray) -> 
                     flag = None  # one flag for both parts
     if res.eiv_bound is not None:
         biased = (res.eiv_bound * np.abs(res.Z) > FORCE_NOISE_FAR * res.Z_se) & (res.eiv_bound > BIAS_MATTERS)
-        if biased.any() and res.Z_allow is not None:
-            out.append(Finding("force-noise", biased, False, None,
-                               "band widened to hold the reading that puts the noise in the force",
-                               "state force_hold = zoh if the recorded force is the command (no sensor)"))
-        elif biased.any():
-            most = 100 * float(np.max(res.eiv_bound[biased]))
-            out.append(Finding("force-noise", biased, True, None,
-                               f"the coherence allows force-sensor noise that would bias |Z| up by as "
-                               f"much as {most:.2g} %, beyond the band",
+        if biased.any():
+            held = res.Z_allow is not None  # lpm's bands reach the force reading
+            limit = ("band widened to hold the reading that puts the noise in the force" if held else
+                     f"the coherence allows force-sensor noise that would bias |Z| up by as much as "
+                     f"{100 * float(np.max(res.eiv_bound[biased])):.2g} %, beyond the band")
+            out.append(Finding("force-noise", biased, not held, None, limit,
                                "state force_hold = zoh if the recorded force is the command (no sensor)"))
     sharp, how = _sharp(res)
     if sharp.any():

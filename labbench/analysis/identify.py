@@ -52,9 +52,10 @@ uses instrumental variables, the regressors of the loop's response to the exogen
 force alone (``_instruments``).
 
 95 % intervals: the estimator's estimating equations summed over windows of contiguous
-samples, each window's share corrected for its leverage (``_sandwich_ci``): robust to the strong serial correlation of filtered residuals and to
-a record whose information sits in a few seconds (a chirp's damping); theta +-
-t(0.975, dof) * se with Satterthwaite's dof. They also cover what
+samples, each window's share corrected for its leverage (``_sandwich_ci``): robust to the
+strong serial correlation of filtered residuals and to a record whose information sits in
+a few seconds (a chirp's damping); theta +- t(0.975, dof) * se with Satterthwaite's dof.
+They also cover what
 the data cannot decide: both models of an undecided selection step, and for a model
 with Coulomb friction the fit away from velocity reversals (``_away_from_reversals``).
 """
