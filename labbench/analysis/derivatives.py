@@ -49,13 +49,14 @@ def force_band(force: np.ndarray, fs: float) -> float:
     return float(np.searchsorted(c, FORCE_POWER_FRACTION * c[-1]) * fs / len(f))
 
 
-def default_cutoff(force: np.ndarray, fs: float) -> float:
-    """Cut-off [Hz] from the data: CUTOFF_FACTOR x the band holding most force power.
+def default_cutoff(band_hz: float, fs: float) -> float:
+    """Cut-off [Hz] from the data: CUTOFF_FACTOR x the band holding most force power
+    (``force_band``).
 
     Clipped to [fs/2000, MAX_CUTOFF x fs]: a broadband (white) excitation gets
     a filter well below Nyquist, and the force is then filtered with it too.
     """
-    return float(np.clip(CUTOFF_FACTOR * force_band(force, fs), fs / 2000, MAX_CUTOFF * fs))
+    return float(np.clip(CUTOFF_FACTOR * band_hz, fs / 2000, MAX_CUTOFF * fs))
 
 
 def lowpass(values: np.ndarray, fs: float, cutoff_hz: float) -> np.ndarray:

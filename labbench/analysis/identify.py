@@ -450,15 +450,16 @@ def _prepare(rec: Recording, cutoff_hz, hold: str, filter_force: bool = False,
     data (it raises to cancel)."""
     _check_hold(hold)
     fs = rec.fs
+    f = np.asarray(rec.force, float)
+    band = force_band(f, fs)  # an FFT of the record: once
     if cutoff_hz is None:
-        cutoff_hz = default_cutoff(rec.force, fs)
+        cutoff_hz = default_cutoff(band, fs)
     elif not 0 < cutoff_hz < fs / 2:
         raise UserError(f"--cutoff must be between 0 and fs/2 = {fs / 2:g} Hz, got {cutoff_hz}")
     check()
     d = differentiate(rec.position, fs, cutoff_hz, hold)
     check()
-    f = np.asarray(rec.force, float)
-    if filter_force or force_band(f, fs) > cutoff_hz / CUTOFF_FACTOR:
+    if filter_force or band > cutoff_hz / CUTOFF_FACTOR:
         # force has power the derivatives will not see: filter it the same way, so the
         # linear terms stay exact (a zero-phase filter commutes with m x'' + b x')
         f = lowpass(f, fs, cutoff_hz)
