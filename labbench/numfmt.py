@@ -87,7 +87,18 @@ def plain(x: float, digits: int = 3) -> str:
 
 def band_text(band, units=None) -> str:
     """``2-3120 rad/s`` (or in Hz with ``units.frequency`` = Hz): three significant digits."""
-    if units is None:
-        from labbench.units import SI as units
+    units = _units(units)
     lo, hi = (units.frequency_of(b) for b in band)
     return f"{plain(lo)}-{plain(hi)} {units.frequency}"
+
+
+def frequency_text(w: float, units=None) -> str:
+    """``42.7 rad/s`` (or in Hz), as ``band_text`` writes a band's edges."""
+    units = _units(units)
+    return f"{plain(units.frequency_of(w))} {units.frequency}"
+
+
+def _units(units):
+    if units is None:
+        from labbench.units import SI as units
+    return units

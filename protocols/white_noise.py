@@ -160,8 +160,6 @@ class WhiteNoiseEtfe(ProtocolBase):
         latency = device_delay.from_meta(meta)
         curves = compare.theory_curves(plant, ve, w, latency)
         z_s, z_p = curves["sampled"], curves["paper"]
-        band = (w >= asked[0]) & (w <= asked[1])
-        rel = np.abs(Z[band] - z_s[band]) / np.abs(z_s[band])
         eff = effective_impedances(w, Z)
         try:
             # the protocol renders the VE itself, so its VE-path delay is known: only the
@@ -177,12 +175,7 @@ class WhiteNoiseEtfe(ProtocolBase):
             "rendered": rendered_impedance(est, ve, plant, latency, asked),
             "theory": {"sampled": {"Z_re": z_s.real, "Z_im": z_s.imag},
                        "paper": {"Z_re": z_p.real, "Z_im": z_p.imag}},
-            "deviation_vs_sampled": {
-                "band_rad_s": list(asked),
-                "median_rel": float(np.median(rel)) if rel.size else None,
-                "max_rel": float(np.max(rel)) if rel.size else None,
-                "n_points": int(rel.size),
-            },
+            "deviation_vs_sampled": compare.deviation(est, z_s, asked),
             # predicted = read off the exact sampled model's curves, which the data follow;
             # the continuous model's closed forms (eq. 5, w0) are kept beside them
             "bandwidths": {
