@@ -49,7 +49,7 @@ from labbench.gui.verdict_view import judged
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.numfmt import fmt
-from labbench.readout import session_label
+from labbench.readout import plant_source, session_label
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
 from labbench.session_catalogue import OWN_PLANT
@@ -128,7 +128,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.session_dir = Path(session_dir)
         self.realtime = realtime
         self.identified: dict | None = None  # the newest chirp-ID of this rig: the plant runs use
-        self._plant_from: dict | None = None  # ... and the one the run under way uses
         self._id_session_shown: str | None = None  # whose identification the page shows
         self._measured = False  # an ETFE of this rig succeeded in the sessions folder
         self.mailbox = Mailbox()
@@ -520,9 +519,7 @@ class MainWindow(QtWidgets.QMainWindow):
         text = precheck_text(rep)
         if "m" in plant and "b" in plant:  # the plant it was checked on, and whence
             values, found = self.protocol_values()
-            source = (f"identified in {session_label(found['session'])}" if found else
-                      "given in the settings" if values.get("plant_m_kg") is not None
-                      or values.get("plant_b") is not None else "the rig's nominal model")
+            source = plant_source({"plant_from": found, "protocol": values})  # as the run's record will say
             text += f" (plant m = {fmt(plant['m'])} kg, b = {fmt(plant['b'])} N s/m, {source})"
         self.protocol_panel.set_precheck(text, bool(rep.get("stable", True)))
 
@@ -558,9 +555,9 @@ class MainWindow(QtWidgets.QMainWindow):
             extra["plant_from"] = plant_from  # as labbench run records it
         if name == COMMISSION:
             self.commission.show_state("commissioning ...")
-        self._launch(protocol, values, self.rig, extra, plant_from)
+        self._launch(protocol, values, self.rig, extra)
 
-    def _launch(self, protocol, values: dict, rig, extra: dict, plant_from: dict | None = None):
+    def _launch(self, protocol, values: dict, rig, extra: dict):
         """Start ``protocol`` (made from ``values``) on the connected device: the one way a run
         leaves the window (a Start, commissioning, a campaign's point)."""
         self.live.reset()
@@ -571,7 +568,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self._progress, self._halted = 0.0, ""
         self._live_timing = False
         self._run_started = time.monotonic()
-        self._plant_from = plant_from
         self.state.run()
         self.protocol_panel.set_progress(0.0, "starting ...")
         self.log.add("info", f"start {protocol.name} with these settings:",
@@ -664,7 +660,7 @@ class MainWindow(QtWidgets.QMainWindow):
         try:
             plant = Plant(found["m"], found["b"]) if found else self.rig.nominal_plant
             context = Context(backend, self.rig, plant,
-                              f"chirp-ID {found['session']}" if found else "nominal",
+                              str(found["session"]) if found else "nominal",
                               self.simulated, CampaignSettings.from_rig(self.rig, self.simulated),
                               commission_facts(self.session_dir, self.rig.name),
                               self.skip_commissioning)
@@ -754,9 +750,11 @@ class MainWindow(QtWidgets.QMainWindow):
         try:
             protocol = make_protocol(pp.protocol_name, sample_time_s=pp.rig.sample_time_s,
                                      **pp.options)
-            self._launch(protocol, dict(pp.options), pp.rig,
-                         {"campaign": {"name": self.campaign_plan.spec.name, "key": pp.key,
-                                       "params": pp.point.params}})
+            extra = {"campaign": {"name": self.campaign_plan.spec.name, "key": pp.key,
+                                  "params": pp.point.params}}
+            if pp.plant_from:
+                extra["plant_from"] = pp.plant_from  # as labbench campaign records it
+            self._launch(protocol, dict(pp.options), pp.rig, extra)
         except Exception as exc:  # noqa: BLE001 - the campaign thread hears it
             self._finish_point(error=describe_error(exc))
 

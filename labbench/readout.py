@@ -221,6 +221,8 @@ def plant_source(start: dict) -> str:
     found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
     if isinstance(found.get("session"), str):
         return f"identified in {session_label(found['session'])}"
+    if found.get("nominal") is True:  # a campaign's point that ran the rig's nominal model
+        return "the rig's nominal model"
     config = start.get("protocol") if isinstance(start.get("protocol"), dict) else {}
     if config.get("plant_m_kg") is not None and config.get("plant_b") is not None:
         return "given in the run's settings"

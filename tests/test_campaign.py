@@ -198,6 +198,28 @@ def test_rate_vs_accuracy_agrees_with_the_sampled_theory_within_its_band(tmp_pat
     assert zwidth_figure(cols) is None and len(rate_figure(cols).axes) == 4
 
 
+def test_each_point_says_where_its_plant_came_from_as_a_run_does(tmp_path):
+    """A point's session names its theory's plant as ``labbench run`` would: the chirp-ID the
+    campaign found, the rig's nominal model, or the point's own settings."""
+    from labbench import readout
+
+    chirp = str(tmp_path / "20261205-093452_chirp-id_9c72e04a.lbsession")
+    d = etfe_spec(1)
+    for i, (ctx, words) in enumerate((
+            (context(), "the rig's nominal model"),
+            (Context("sim", Rig(), PLANT, chirp, True, CampaignSettings.from_rig(Rig(), True)),
+             "identified in 20261205-093452_chirp-id"))):
+        (tmp_path / str(i)).mkdir()
+        _summary, rows = run(d, tmp_path / str(i), ctx)
+        assert readout.of_session(rows[0]["session"]).plant.source == words
+        assert rows[0]["plant.from"] == ("nominal" if i == 0 else f"chirp-ID {chirp}")
+    d["fixed"].update(plant_m_kg=0.1, plant_b=0.2)
+    (tmp_path / "given").mkdir()
+    _summary, rows = run(d, tmp_path / "given")
+    assert readout.of_session(rows[0]["session"]).plant.source == "given in the run's settings"
+    assert rows[0]["plant.m"] == 0.1
+
+
 # ---------------------------------------------------------------------- plan and safety
 def test_a_point_the_precheck_calls_unstable_is_skipped_and_says_why(tmp_path):
     d = etfe_spec(2)

@@ -94,6 +94,9 @@ def test_demo_short_produces_sessions_and_report(tmp_path, capsys):
     assert etfe["plant"] == {"m": chirp["m"], "b": chirp["b"]}
     start = next(iter(read_session(out["sessions"][1])))
     assert start["protocol"]["plant_m_kg"] == chirp["m"]
+    assert start["plant_from"]["session"] == out["sessions"][0]  # and says whence, on record
+    label = Path(out["sessions"][0]).stem.rsplit("_", 1)[0]
+    assert out["readouts"]["etfe"]["plant"]["source"] == f"identified in {label}"
     assert start["protocol"]["K"] == 50.0 and start["protocol"]["w0_rad_s"] == 125.0
     assert etfe["deviation_vs_sampled"]["max_rel"] < 0.05
     assert Path(out["report"]["html"]).stat().st_size > 0

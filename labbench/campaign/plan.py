@@ -47,16 +47,30 @@ class Context:
     device: str
     rig: Rig
     plant: Plant
-    plant_from: str  # "given", "nominal", or the chirp-ID session it was identified in
+    plant_from: str  # "given", "nominal", or the path of the chirp-ID session it was identified in
     simulated: bool
     settings: CampaignSettings
     commission: dict = field(default_factory=dict)  # {"session", "coulomb_n", ...} or {}
     skip_commissioning: bool = False
 
+    @property
+    def plant_label(self) -> str:
+        """Where the plant came from, in words (the plan, the table's ``plant.from``)."""
+        return self.plant_from if self.plant_from in ("given", "nominal") else \
+            f"chirp-ID {self.plant_from}"
+
+    def plant_record(self) -> dict | None:
+        """The start record's ``plant_from`` of a point that runs this plant (None where the
+        campaign's own settings gave it: their options say so)."""
+        if self.plant_from == "given":
+            return None
+        where = {"nominal": True} if self.plant_from == "nominal" else {"session": self.plant_from}
+        return {"m": self.plant.m, "b": self.plant.b, **where}
+
     def as_dict(self) -> dict:
         delay = device_delay.resolve(self.rig)
         return {"device": self.device, "rig": self.rig.name, "rig_source": self.rig.source,
-                "plant": {"m": self.plant.m, "b": self.plant.b, "from": self.plant_from},
+                "plant": {"m": self.plant.m, "b": self.plant.b, "from": self.plant_label},
                 "device_delay": delay.as_dict(), "simulated": self.simulated,
                 "pause_s": self.settings.pause_s, "commission": self.commission}
 
@@ -73,6 +87,7 @@ class PlannedPoint:
     rig: Rig
     device_options: dict
     protocol: object
+    plant_from: dict | None = None  # where the plant in ``options`` came from (its start record's)
     skipped: str | None = None  # the pre-check's refusal: the point is not run
     est_s: float = 0.0  # device time [s] (an upper bound for an adaptive protocol)
     peak_force_n: float = 0.0  # largest exogenous force planned [N]
@@ -128,7 +143,7 @@ def describe(plan: Plan, done: set, where) -> list[str]:
             f"device time, pause {fmt(c.settings.pause_s)} s between points)",
             f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
             f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
-            f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_from})"]
+            f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_label})"]
 
 
 def commission_facts(directory, rig_name: str, on_skip=None) -> dict:
@@ -185,8 +200,10 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
     rig = point_rig(context.rig, r["rig"], where)
     fields = set(protocol_class(spec.protocol).Config.__dataclass_fields__)
     opts = {k: v for k, v in r["protocol"].items() if k != "sample_time_s"}  # the rig's
+    plant_from = None  # the start record's: a plant the point's own settings give says so itself
     if "plant_m_kg" in fields and "plant_m_kg" not in opts and "plant_b" not in opts:
         opts.update(plant_m_kg=context.plant.m, plant_b=context.plant.b)
+        plant_from = context.plant_record()
     plant = Plant(opts.get("plant_m_kg", context.plant.m), opts.get("plant_b", context.plant.b))
     delay = device_delay.resolve(rig)
     try:
@@ -199,7 +216,8 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
     commissioning.gate(protocol.vetted_ves(plant), rig, context.simulated,
                        context.skip_commissioning)
     pp = PlannedPoint(point, point_key(tgt, point.params, point.tags), spec.protocol, opts, rig,
-                      {**dev, **({"seed": seed} if seed is not None else {})}, protocol)
+                      {**dev, **({"seed": seed} if seed is not None else {})}, protocol,
+                      plant_from=plant_from)
     try:
         report = precheck(protocol, plant, rig, delay)
     except UnstableVEError as exc:  # the probe's first step is vetted, its later ones its point

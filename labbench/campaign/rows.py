@@ -72,7 +72,7 @@ def base_row(pp, context) -> dict:
         "rig.force_limit_n": rig.force_limit_n,
         "ve.kind": ve.kind, "ve.K": ve.K, "ve.B": ve.B,
         "ve.w0_rad_s": ve.w0 if math.isfinite(ve.w0) else None, "ve.td_s": ve.td,
-        "plant.m": plant.m, "plant.b": plant.b, "plant.from": context.plant_from,
+        "plant.m": plant.m, "plant.b": plant.b, "plant.from": context.plant_label,
         "commission.coulomb_n": context.commission.get("coulomb_n"),
         "commission.session": context.commission.get("session"),
     }

@@ -128,7 +128,7 @@ def make_context(args):
         found = last_identified(args.out, rig.name, on_skip=skipped) \
             if args.plant_from == "last-id" else None
         plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant
-        source = f"chirp-ID {found['session']}" if found else "nominal"
+        source = str(found["session"]) if found else "nominal"
     commission = commission_facts(args.out, rig.name, on_skip=skipped)
     return Context(args.device, rig, plant, source, simulated,
                    CampaignSettings.from_rig(rig, simulated), commission,
@@ -143,7 +143,8 @@ def point_runner(args):
         ns = argparse.Namespace(**{**vars(args), "protocol": pp.protocol_name, "can_log": None,
                                    "plant_from": "nominal"})
         return _run_one(ns, pp.rig, pp.protocol_name, dict(pp.options), stop, progress=progress,
-                        consumers=consumers, device_options=pp.device_options)
+                        consumers=consumers, device_options=pp.device_options,
+                        plant_from=pp.plant_from)
 
     return run_point
 

@@ -155,12 +155,14 @@ def last_identified(directory, rig) -> dict | None:
 
 
 def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=None,
-             consumers=(), device_options: dict | None = None):
+             consumers=(), device_options: dict | None = None, plant_from: dict | None = None):
     """Make the protocol, open the device, run with a session writer; (result, session path).
 
     ``progress``: the runner's callback (default: a progress bar on stderr); ``consumers``:
     more record consumers after the session writer; ``device_options``: more options for
-    the device (a simulator's). ``labbench campaign`` runs each point through here."""
+    the device (a simulator's); ``plant_from``: where the plant in ``options`` came from, for
+    the start record (``{"m", "b", "session"}`` or ``{"m", "b", "nominal": True}``).
+    ``labbench campaign`` runs each point through here."""
     from labbench.realtime import RealtimeConfig
     from labbench.runner import run_recorded
     from labbench.registry import make_protocol
@@ -168,7 +170,6 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=No
     from labbench.session_format import session_folder
 
     # commissioning checks the rig's nominal model itself: never an identified one
-    plant_from = None
     if (getattr(args, "plant_from", "nominal") == "last-id" and name not in OWN_PLANT
             and options.get("plant_m_kg") is None and options.get("plant_b") is None):
         found = last_identified(args.out, rig)
@@ -302,7 +303,7 @@ def cmd_demo(args) -> int:
         etfe, etfe_path = _run_one(args, rig, "etfe", {
             "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
             "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m,
-            "plant_b": b}, stop)
+            "plant_b": b}, stop, plant_from={"m": m, "b": b, "session": str(chirp_path)})
     _say_failure(etfe, etfe_path, rig.sample_time_s)
     runs.append(("etfe", etfe, etfe_path))
     out["sessions"].append(str(etfe_path))
