@@ -181,12 +181,11 @@ def etfe(rec: Recording, estimator: str | None = None, window: int = 200,
         elif estimator == "h1-log":
             res = _h1_log(F, X, dw)
         else:
-            res = _lpm(F, X, dw)
+            res, other = _lpm(F, X, dw, reverse=not force_is_command(rec.meta))
+            if other is not None:
+                _reach_force_reading(res, other)
     coh = np.clip(res.coherence, 1e-12, 1.0)
     res.eiv_bound = np.zeros_like(coh) if force_is_command(rec.meta) else (1 - coh) / coh
-    if estimator == "lpm" and not force_is_command(rec.meta):
-        steps.check()
-        _reach_force_reading(res, F, X, dw)
     steps.report(0.9, "checking the estimate")
     res.duration_s = len(f) * T
     findings = _findings(res, rec, F, X)
@@ -399,11 +398,17 @@ def _without_resolution_bias(G, w, half, dw) -> tuple[np.ndarray, np.ndarray]:
     return G - c * (at(w - d) - 2 * G + at(w + d)), np.sqrt((1 + 2 * c) ** 2 + 2 * c**2)
 
 
-def _lpm(F, X, dw) -> EtfeResult:
+def _lpm(F, X, dw, reverse: bool = False) -> tuple[EtfeResult, EtfeResult | None]:
+    """The local polynomial method's fit of X = G F + T, Z = 1 / (jw G); with ``reverse``
+    also the same fit of F = (jw Z) X + T (``_reach_force_reading``), from the same moments
+    and batches (the moments, the costly part, are gathered once)."""
     k, half = _grid(len(F))
-    half = half.copy()  # narrowed below; the grid is cached
     w = k * dw
-    fit = _lpm_bands(F, X, k, half)
+    pairs = [(F, X), (X, F)][:1 + reverse]
+    mom, n_in = _lpm_moments(F, X, k, half)
+    fits = _lpm_solve(np.concatenate([mom, _swapped(mom)][:len(pairs)]), np.tile(n_in, len(pairs)),
+                      len(pairs))
+    halves = [half.copy() for _ in pairs]  # narrowed below; the grid is cached
     # Where the band is wider than G is smooth (a sharp resonance: a quadratic cannot follow
     # a peak a few bins wide), the local model's bias is not in its band. Test such a band
     # against the same fit over a narrower band (LPM_NARROWING; Lepski's method, Goldenshluger
@@ -414,28 +419,54 @@ def _lpm(F, X, dw) -> EtfeResult:
     # tested (the cost of a second pass): near a pole the Taylor terms of G grow
     # geometrically, |g4| ~ |g2|^2 / |g0|, and a quadratic fit leaves about 3/35 of the
     # quartic term in g0 (Legendre projection of r^4).
+    plans = [_narrowing_steps(fit, half) for fit in fits]
+    sizes = [sum(len(b) for b, _ in steps) for steps in plans]
+    if sum(sizes):  # every step of every direction fitted in one batch (cheaper)
+        mom, n_in = _lpm_moments(F, X, np.concatenate([k[b] for steps in plans for b, _ in steps]),
+                                 np.concatenate([h for steps in plans for _, h in steps]))
+        if reverse:
+            mom[sizes[0]:] = _swapped(mom[sizes[0]:])
+        cand = _lpm_solve(mom, n_in)[0]
+        start = 0
+        for fit, h, steps in zip(fits, halves, plans):
+            start = _narrow(fit, h, steps, cand, start)
+    out = [_lpm_result(fit, h, k, w, *pair) for fit, h, pair in zip(fits, halves, pairs)]
+    return out[0], (out[1] if reverse else None)
+
+
+def _narrowing_steps(fit, half) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Lepski's steps for the bands ``_may_be_biased`` screens in: (bands, narrower
+    half-widths) per step, each step the bands still wider than MIN_HALF_BINS."""
     todo = np.flatnonzero((half > MIN_HALF_BINS) & _may_be_biased(fit, LPM_BIAS_SCREEN))
-    steps = []  # (bands, narrower half-widths) per step, all fitted in one batch (cheaper)
+    steps = []
     bands, h = todo, half[todo]
     while bands.size:
         h = np.maximum(h // LPM_NARROWING, MIN_HALF_BINS)
         steps.append((bands, h))
         bands, h = bands[h > MIN_HALF_BINS], h[h > MIN_HALF_BINS]
+    return steps
+
+
+def _narrow(fit, half, steps, cand, start: int) -> int:
+    """Replace each band of ``fit`` (and ``half``) its narrower fit shows biased, step by step
+    (``_lpm``): ``cand`` holds the steps' fits from index ``start``; returns where they end."""
+    live = np.zeros(len(half), bool)  # still narrowing: every step so far found a bias
     if steps:
-        cand = _lpm_bands(F, X, np.concatenate([k[b] for b, _ in steps]),
-                          np.concatenate([h for _, h in steps]))
-        live = np.zeros(len(k), bool)  # still narrowing: every step so far found a bias
-        live[todo] = True
-        start = 0
-        for bands, h in steps:
-            part = [c[start:start + len(bands)] for c in cand]
-            start += len(bands)
-            spread = np.sqrt(np.maximum(part[1] ** 2 - fit[1][bands] ** 2, 0.0))
-            biased = live[bands] & (np.abs(part[0] - fit[0][bands]) > radius95(part[4]) * spread)
-            for mine, theirs in zip(fit, part):
-                mine[bands[biased]] = theirs[biased]
-            half[bands[biased]] = h[biased]
-            live[bands[~biased]] = False
+        live[steps[0][0]] = True
+    for bands, h in steps:
+        part = [c[start:start + len(bands)] for c in cand]
+        start += len(bands)
+        spread = np.sqrt(np.maximum(part[1] ** 2 - fit[1][bands] ** 2, 0.0))
+        biased = live[bands] & (np.abs(part[0] - fit[0][bands]) > radius95(part[4]) * spread)
+        for mine, theirs in zip(fit, part):
+            mine[bands[biased]] = theirs[biased]
+        half[bands[biased]] = h[biased]
+        live[bands[~biased]] = False
+    return start
+
+
+def _lpm_result(fit, half, k, w, F, X) -> EtfeResult:
+    """lpm's estimate of Z = 1 / (jw G) from the fits of X = G F + T (``_lpm_solve``)."""
     G, sG, s2, Pf, dof = fit[:5]
     # at the narrowest band a sharp resonance can still bend G more than a quadratic follows
     unresolved = (half == MIN_HALF_BINS) & _may_be_biased(fit, BIAS_SE) & _curved(fit)
@@ -449,22 +480,22 @@ def _lpm(F, X, dw) -> EtfeResult:
                       bias_rel=3 / 35 * fit[5] / np.abs(G) ** 2)
 
 
-def _reach_force_reading(res: EtfeResult, F, X, dw) -> None:
+def _reach_force_reading(res: EtfeResult, other: EtfeResult) -> None:
     """Widen lpm's bands to reach the reading that puts the noise in the force.
 
     lpm fits X = G F + T: noise on the motion is its output noise, noise a force sensor adds
     is in its regressor and biases |Z| up by S_nn / S_ff (errors in the variables). The same
-    local fit of F = (jw Z) X + T has the opposite case: unbiased under force noise, biased
-    by motion noise. With noise on both, |Z| lies between the two readings (H1 and H2 of
-    Bendat & Piersol, Random Data, sec. 9.2.4), so each band (``Z_err``) grows to reach the
-    other reading's band; ``Z_force`` keeps that reading, ``Z_allow`` the growth. The second
-    fit also follows a sharp resonance of the display where the first cannot: there the
-    impedance is smooth and the admittance a peak a few bins wide (springs at 0.75 and 0.9
-    K_max, 30 s, sensor noise: lpm's errors reached 137 % of |Z|, the force reading's 27 %;
-    on issue 30's grid the bands held all 93 frequencies where the coherence's bound on the
-    noise exceeded two standard errors, 61 before)."""
-    other = _lpm(X, F, dw)  # its "Z" is 1 / (jw Y), Y = F / X = jw Z
-    with np.errstate(divide="ignore", invalid="ignore"):
+    local fit of F = (jw Z) X + T (``other``, ``_lpm``'s reverse) has the opposite case:
+    unbiased under force noise, biased by motion noise. With noise on both, |Z| lies between
+    the two readings (H1 and H2 of Bendat & Piersol, Random Data, sec. 9.2.4), so each band
+    (``Z_err``) grows to reach the other reading's band; ``Z_force`` keeps that reading,
+    ``Z_allow`` the growth. The second fit also follows a sharp resonance of the display
+    where the first cannot: there the impedance is smooth and the admittance a peak a few
+    bins wide (springs at 0.75 and 0.9 K_max, 30 s, sensor noise: lpm's errors reached
+    137 % of |Z|, the force reading's 27 %; on issue 30's grid the bands held all 93
+    frequencies where the coherence's bound on the noise exceeded two standard errors, 61
+    before)."""
+    with np.errstate(divide="ignore", invalid="ignore"):  # other's "Z" is 1 / (jw Y), Y = jw Z
         res.Z_force = -1.0 / (other.w ** 2 * other.Z)
         reach = np.abs(res.Z - res.Z_force) + np.abs(res.Z_force) * other.Z_err / np.abs(other.Z)
         res.Z_allow = np.where(np.isfinite(reach), np.maximum(reach - res.Z_err, 0.0), 0.0)
@@ -485,7 +516,7 @@ def _curved(fit) -> np.ndarray:
 
 
 def _lpm_correlation(F, X, k, half) -> np.ndarray:
-    """Correlation of the errors of the local estimates G_i = sum_j a_ij X_j (``_lpm_fit``'s
+    """Correlation of the errors of the local estimates G_i = sum_j a_ij X_j (``_lpm_weights``'s
     weights a): E[dG_i conj(dG_l)] = s^2 sum_j a_ij conj(a_lj) for DFT bins j carrying
     independent noise of a common local variance s^2, normalised to 1 on the diagonal."""
     from scipy import sparse
@@ -494,7 +525,7 @@ def _lpm_correlation(F, X, k, half) -> np.ndarray:
     group = np.searchsorted(LPM_GROUPS, half)
     for g in np.unique(group):
         sel = np.flatnonzero(group == g)
-        a, idx = _lpm_fit(F, X, k[sel], half[sel], weights=True)
+        a, idx = _lpm_weights(F, X, k[sel], half[sel])
         inside = a != 0
         rows.append(np.broadcast_to(sel[:, None], a.shape)[inside])
         cols.append(idx[inside])
@@ -506,73 +537,96 @@ def _lpm_correlation(F, X, k, half) -> np.ndarray:
     return C / np.outer(d, d)
 
 
-def _lpm_bands(F, X, k, half) -> list[np.ndarray]:
-    """``_lpm_fit`` over bands of any widths: bands of similar width are fitted together, so
-    narrow ones are not padded to the widest."""
+def _lpm_weights(F, X, k, half) -> tuple[np.ndarray, np.ndarray]:
+    """The local fits' G as weights of the bins (a, bins): G = sum_j a[:, j] X[bins[:, j]],
+    a = conj(F_j) P1(r_j) + P2(r_j) from e0' M^-1 Phi^H (a is 0 outside each band)."""
+    q = LPM_ORDER + 1
+    offs, inside, idx, mom, Fw = _lpm_window(F, X, k, half)
+    Minv = np.linalg.inv(_lpm_normal(mom)[0])
+    r = np.where(inside, offs[None, :] / half[:, None], 0.0)
+    rp = r[:, :, None] ** np.arange(q)
+    P1 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, :q])
+    P2 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, q:])
+    return np.where(inside, np.conj(Fw) * P1 + P2, 0), idx
+
+
+def _lpm_moments(F, X, k, half) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted moments of ``_lpm_window`` for bands of any widths (band, row, power),
+    and each band's number of bins: bands of similar width are gathered together, so narrow
+    ones are not padded to the widest."""
     group = np.searchsorted(LPM_GROUPS, half)
-    out = None
+    mom = np.empty((len(k), 9, 2 * LPM_ORDER + 1))
     for g in np.unique(group):
         sel = group == g
-        part = _lpm_fit(F, X, k[sel], half[sel])
-        if out is None:
-            out = [np.empty(len(k), p.dtype) for p in part]
-        for o, p in zip(out, part):
-            o[sel] = p
-    return out
+        mom[sel] = _lpm_window(F, X, k[sel], half[sel])[3]
+    return mom, 2 * half + 1
 
 
-def _lpm_fit(F, X, k, half, weights: bool = False):
-    """Local fits for bands centred on bins k with half-widths half.
-
-    Returns G, its standard error, the residual variance per bin, the mean |F|^2, the
-    residual's degrees of freedom (bins less the 2 (LPM_ORDER + 1) complex parameters) and
-    |g2|^2, the squared size of G's quadratic term over the band, and its noise variance.
-    With ``weights``: instead (a, bins),
-    G = sum_j a[:, j] X[bins[:, j]] (a is 0 outside each band).
-    """
-    q = LPM_ORDER + 1
+def _lpm_window(F, X, k, half):
+    """Bands centred on bins k with half-widths half, padded to the widest: the offsets, the
+    mask of bins inside each band, the bins, and the weighted moments sum_j w_j r_j^p of the
+    normal equations of X_j = sum_p g_p r^p F_j + sum_p t_p r^p (r = offset / half; weights
+    zero outside the band) for the weights |F|^2, F, 1, conj(F) X, X (complex ones split)
+    and |X|^2: r^p = offset^p / half^p, so one real matmul with offset^p serves all."""
     H = int(half.max())
     offs = np.arange(-H, H + 1)
     inside = np.abs(offs)[None, :] <= half[:, None]
     idx = np.clip(k[:, None] + offs[None, :], 0, len(F) - 1)
     Fw = np.where(inside, F[idx], 0)
     Xw = np.where(inside, X[idx], 0)
-    # Normal equations of X_j = sum_p g_p r^p F_j + sum_p t_p r^p, r = offset / half, from
-    # weighted moments sum_j w_j r_j^p (regressors F r^p for G, r^p for the transient T;
-    # weights zero outside the band) with the weights |F|^2, F, 1, conj(F) X, X (complex ones
-    # split) and |X|^2: r^p = offset^p / half^p, so one real matmul with offset^p serves all.
     FX = np.conj(Fw) * Xw
     W = np.stack([np.abs(Fw) ** 2, Fw.real, Fw.imag, inside, FX.real, FX.imag, Xw.real, Xw.imag,
                   np.abs(Xw) ** 2], axis=1)
-    powers = np.arange(2 * q - 1)
+    powers = np.arange(2 * LPM_ORDER + 1)
     mom = (W.reshape(-1, len(offs)) @ (offs[:, None].astype(float) ** powers)).reshape(len(k), 9, -1)
-    mom /= half[:, None, None].astype(float) ** powers  # (band, row, power)
-    mom_ff, mom_1, xx = mom[:, 0], mom[:, 3], mom[:, 8, 0]
-    mom_f = mom[:, 1] + 1j * mom[:, 2]
+    mom /= half[:, None, None].astype(float) ** powers
+    return offs, inside, idx, mom, Fw
+
+
+def _swapped(mom: np.ndarray) -> np.ndarray:
+    """The moments of the fit with F and X swapped (F = G' X + T): the same sums in another
+    order, conj(X) F being conj(conj(F) X)."""
+    out = mom[:, [8, 6, 7, 3, 4, 5, 1, 2, 0]]
+    out[:, 5] *= -1
+    return out
+
+
+def _lpm_normal(mom: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations' matrix M and right-hand side of the local fits (``_lpm_window``):
+    parameters (g_0..g_q-1, t_0..t_q-1), Hankel in the moments' powers."""
+    q = LPM_ORDER + 1
     hank = np.add.outer(np.arange(q), np.arange(q))  # p + p'
-    M = np.empty((len(k), 2 * q, 2 * q), complex)
-    M[:, :q, :q] = mom_ff[:, hank]
+    mom_f = mom[:, 1] + 1j * mom[:, 2]
+    M = np.empty((len(mom), 2 * q, 2 * q), complex)
+    M[:, :q, :q] = mom[:, 0][:, hank]
     M[:, :q, q:] = np.conj(mom_f[:, hank])
     M[:, q:, :q] = mom_f[:, hank]
-    M[:, q:, q:] = mom_1[:, hank]
+    M[:, q:, q:] = mom[:, 3][:, hank]
     rhs = np.concatenate([mom[:, 4, :q] + 1j * mom[:, 5, :q], mom[:, 6, :q] + 1j * mom[:, 7, :q]], axis=1)
+    return M, rhs
+
+
+def _lpm_solve(mom: np.ndarray, n_in: np.ndarray, parts: int = 1) -> list[tuple]:
+    """The local fits from their moments (``_lpm_moments``), in ``parts`` equal parts.
+
+    Returns per part G, its standard error, the residual variance per bin, the mean |F|^2,
+    the residual's degrees of freedom (bins less the 2 (LPM_ORDER + 1) complex parameters)
+    and |g2|^2, the squared size of G's quadratic term over the band, and its noise variance.
+    """
+    q = LPM_ORDER + 1
+    M, rhs = _lpm_normal(mom)
     Minv = np.linalg.inv(M)
-    if weights:  # G = e0' M^-1 Phi^H X: a_j = conj(F_j) P1(r_j) + P2(r_j)
-        r = np.where(inside, offs[None, :] / half[:, None], 0.0)
-        rp = r[:, :, None] ** np.arange(q)
-        P1 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, :q])
-        P2 = np.einsum("gjp,gp->gj", rp, Minv[:, 0, q:])
-        return np.where(inside, np.conj(Fw) * P1 + P2, 0), idx
     theta = np.einsum("gab,gb->ga", Minv, rhs)
-    rss = xx - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
-    n_in = inside.sum(axis=1)
+    rss = mom[:, 8, 0] - np.real(np.einsum("ga,ga->g", np.conj(theta), rhs))
     dof = np.maximum(n_in - 2 * q, 1)
     s2 = np.maximum(rss, 0) / dof
     var_g = s2 * np.real(Minv[:, 0, 0])
     # a negative variance is round-off of a near-singular band (nothing excited): no bound
     sG = np.where(var_g >= 0, np.sqrt(np.abs(var_g)), np.inf)
-    return (theta[:, 0], sG, s2, mom_ff[:, 0] / n_in, dof, np.abs(theta[:, 2]) ** 2,
-            s2 * np.abs(np.real(Minv[:, 2, 2])))
+    fit = (theta[:, 0], sG, s2, mom[:, 0, 0] / n_in, dof, np.abs(theta[:, 2]) ** 2,
+           s2 * np.abs(np.real(Minv[:, 2, 2])))
+    n = len(mom) // parts
+    return [tuple(a[i * n:(i + 1) * n] for a in fit) for i in range(parts)]
 
 
 @dataclass(frozen=True)
