@@ -16,7 +16,8 @@ import time
 
 import numpy as np
 
-from labbench import records, theory
+from labbench import records
+from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.drivers import framing
@@ -124,7 +125,7 @@ def etfe_accuracy(duration_s=30.0):
     _, d, _, wall = loop_run(ve, exc)
     w, Z = z_of(d["t"], exc, d["position"])
     band = (w >= 2) & (w <= 100)
-    z_th = theory.z_sampled(PLANT, ve.with_(td=T), w)
+    z_th = linear.z_sampled(PLANT, ve.with_(td=T), w)
     rel = np.abs(Z - z_th) / np.abs(z_th)
     print(f"ETFE through the firmware, host loop, {duration_s:g} s record: median "
           f"{np.median(rel[band]):.2%}, max {np.max(rel[band]):.2%} vs sampled theory "
@@ -155,14 +156,14 @@ def free_response(K, board, seconds=2.0):
 
 def sigma_theory(ve):
     """The sampled model's slowest rate, ln(spectral radius) / T, with td = one tick."""
-    rho = theory.stability(PLANT, ve.with_(td=ve.T)).spectral_radius
+    rho = linear.stability(PLANT, ve.with_(td=ve.T)).spectral_radius
     return math.log(rho) / ve.T
 
 
 def stability_and_damping():
     for name, T_ve, board in (("host loop (T = 1 ms, td = T)", T, False),
                               ("on board (T_r = 0.2 ms, td = T_r)", T_R, True)):
-        k_th = theory.k_max(PLANT, VirtualEnvironment("spring", K=1.0, T=T_ve, td=T_ve))
+        k_th = linear.k_max(PLANT, VirtualEnvironment("spring", K=1.0, T=T_ve, td=T_ve))
         rows = []
         for K in sorted({50.0, *(k_th * f for f in (0.7, 0.9, 1.1, 1.3))}):
             sigma, ve = free_response(K, board)

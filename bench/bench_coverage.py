@@ -57,7 +57,7 @@ from truthdata import (  # noqa: E402
     z_truth,
 )
 
-from labbench import theory  # noqa: E402
+from labbench.model import linear  # noqa: E402
 from labbench.analysis import compare  # noqa: E402
 from labbench.analysis.dataio import recording_from_arrays  # noqa: E402
 from labbench.analysis.etfe import W_BAND, etfe  # noqa: E402
@@ -209,7 +209,7 @@ LOOP_NOISES = {"sensor 0.05 N": {"force_noise": 0.05}, "process 0.1 N": {"proces
 
 def _near_limit():
     """A spring at 0.9 of the K_max the 1.5-sample device delay leaves."""
-    k = theory.k_max(Plant(PAPER_M, PAPER_B), VirtualEnvironment("spring", K=1.0), latency=1.5 * T)
+    k = linear.k_max(Plant(PAPER_M, PAPER_B), VirtualEnvironment("spring", K=1.0), latency=1.5 * T)
     return VirtualEnvironment("spring", K=round(0.9 * k, 1))
 
 

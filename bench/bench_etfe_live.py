@@ -31,7 +31,7 @@ import time
 import numpy as np
 from scipy import signal
 
-from labbench import theory
+from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.analysis.etfe_live import LiveEtfe
@@ -65,7 +65,7 @@ def measure(args) -> int:
     n = int(args.minutes * 60 * fs)
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=1 / fs)
     f = np.random.default_rng(0).standard_normal(n)
-    _, y, _ = signal.dlsim(theory.closed_loop(Plant(0.094, 0.10), ve).as_dlti(), f)
+    _, y, _ = signal.dlsim(linear.closed_loop(Plant(0.094, 0.10), ve).as_dlti(), f)
     x = y[:, 0]
 
     live = LiveEtfe(fs)

@@ -3,7 +3,7 @@
 Truth: the exact sampled loop of the paper's spring-damper (K = 50, B = 1,
 w0 = 125, m = 0.094, b = 0.10, VE td = 1 sample) with an actuator latency of
 0, 1.5 and 3 samples that the metadata do not know (``tests/truthdata.py``,
-``theory.closed_loop(..., latency)``), white-noise force of 1 N rms, records of
+``linear.closed_loop(..., latency)``), white-noise force of 1 N rms, records of
 7.5-120 s at 1 kHz, under: clean data, process noise (force the plant feels
 and the record does not hold: 0.1 and 0.3 N rms), position noise (1e-5 m rms)
 and encoder quantisation (3e-5 m). Per setting: the fitted td error in samples,

@@ -6,8 +6,8 @@ spring, and the paper's spring-damper (B = 1 N s/m, w0 = 125 rad/s) - the
 stability probe (protocols/stability_probe.py) runs on the simulator at each
 external delay td and measures the largest stable K from growth rates; on the
 exact simulator and on a rough one. It is compared with the exact sampled
-boundary (labbench.theory.k_max) and the paper's approximation
-(labbench.theory.k_max_approx). Writes docs/stability-map.png and
+boundary (labbench.model.linear.k_max) and the paper's approximation
+(labbench.model.linear.k_max_approx). Writes docs/stability-map.png and
 docs/stability-map.md from the sweep's table and prints the table.
 
     .venv/bin/python bench/bench_stability_map.py [--quick] [--workers N]
@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "docs" / "examples" / "stability-map.toml"
 
-from labbench import theory
+from labbench.model import linear
 from labbench.rig import Rig
 from labbench.sweep.engine import run_sweep
 from labbench.sweep.spec import load_spec, spec_from_dict
@@ -77,7 +77,7 @@ def region(plant, case: dict, K: np.ndarray, td_ms: np.ndarray) -> np.ndarray:
             ve = VirtualEnvironment(case["ve"], k, case["B"],
                                     np.inf if case["w0_rad_s"] is None else case["w0_rad_s"],
                                     T, td * 1e-3)
-            out[i, j] = theory.stability(plant, ve).stable
+            out[i, j] = linear.stability(plant, ve).stable
     return out
 
 
@@ -96,8 +96,8 @@ def main(argv=None) -> int:
     lines = ["# Stability map: measured vs exact vs the paper's approximation", "",
              (f"Simulated Phantom-like device m = {plant.m} kg, b = {plant.b} N s/m, T = 1 ms; "
              "measured = zero crossing of the growth rate found by the stability probe "
-             "(`labbench run stability`) on the simulator; exact = `labbench.theory.k_max` "
-             "(spectral radius of the exact sampled loop); paper = `labbench.theory.k_max_approx` "
+             "(`labbench run stability`) on the simulator; exact = `labbench.model.linear.k_max` "
+             "(spectral radius of the exact sampled loop); paper = `labbench.model.linear.k_max_approx` "
              "(b = K (T/2 + td), and (b + B) = K (T/2 + td) for the spring-damper). "
              "'rough sim' = the same probe on a simulator with a quantised encoder "
              f"({rig.metres_per_count * 1e6:.1f} um/count) and 2 mN force noise. "
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
         stable = region(plant, case, K, td_grid)
         ax.pcolormesh(td_grid, K, stable, cmap="Greens", vmin=-0.5, vmax=2.5, shading="nearest")
         ex_td = np.array([r["td_ms"] for r in rs])
-        ax.plot(ex_td, [r["exact"] for r in rs], "k-", lw=1.5, label="exact sampled (theory.k_max)")
+        ax.plot(ex_td, [r["exact"] for r in rs], "k-", lw=1.5, label="exact sampled (linear.k_max)")
         td_fine = np.linspace(0, max(tds), 200)
         B = case["B"]
         ax.plot(td_fine, (plant.b + B) / (T / 2 + td_fine * 1e-3), "r--", lw=1.3,

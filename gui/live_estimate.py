@@ -6,7 +6,7 @@ new since the last one, so it costs the same at any record length. Once the
 stream has ended it is the run's own ETFE of ``labbench.analysis.etfe`` (paper
 sec. 4.2) on the whole record, as the analysis computes it. Either is decomposed
 by ``labbench.effective`` (paper Figure 2), with the theory of
-``labbench.theory`` for the configured VE and the plant (given, or identified
+``labbench.model.linear`` for the configured VE and the plant (given, or identified
 by l2 on the newest data, paper sec. 4.1).
 No Qt here: ``LiveEstimator`` runs ``estimate`` on one worker thread and the
 window polls for the newest finished result.

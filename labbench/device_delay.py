@@ -6,13 +6,13 @@ transport, a drive that applies a synchronous RPDO's torque at the next SYNC (Ci
 sec. 7.2.2: synchronous PDO data take effect at the next SYNC), a board's filter. It is
 not the VE's own software delay ``td`` (a delay line on the VE force only, whole
 samples, the paper's td): the two move the measured impedance differently
-(``labbench.theory`` module doc: ``latency`` delays the excitation's path to the
+(``labbench.model.linear`` module doc: ``latency`` delays the excitation's path to the
 plant as well, so F_exo/X gains a factor e^{jw latency} on the plant's term while
 the VE's term sees T/2 + td + latency). A position measured late by whole samples
 gives the same F_exo/X as a command applied late by as many, so one number covers both.
 
 Seconds, fractions of a sample allowed (the exact sampled model splits the held
-command over two samples, ``labbench.theory.latency_split``).
+command over two samples, ``labbench.model.linear.latency_split``).
 
 Where it comes from, first found wins (``resolve``):
 

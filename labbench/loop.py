@@ -1,6 +1,6 @@
 """The one haptic loop chain, used by the simulator, the real drivers and replay.
 
-Per sample k (the exact sampled-data model of ``labbench.theory``, then the safety envelope):
+Per sample k (the exact sampled-data model of ``labbench.model.linear``, then the safety envelope):
 
     v[k]     = a v[k-1] + (1 - a) (x[k] - x[k-1]) / T,   a = exp(-w0 T)
     f_ve[k]  = K x[k] + B v[k]                           (applied during step k + n, td = n T)

@@ -1,9 +1,9 @@
 """The theory numbers a person reads: one place for the live labels, the overlays, the
 Identification tab, the report and the CLI.
 
-The prediction is the exact sampled model (``labbench.theory.z_sampled``) with the
+The prediction is the exact sampled model (``labbench.model.linear.z_sampled``) with the
 rig's device delay (``labbench.device_delay``), its bandwidths read off its own ES and
-ED curves with the rules applied to measurements (``labbench.theory.predicted_bandwidths``).
+ED curves with the rules applied to measurements (``labbench.model.linear.predicted_bandwidths``).
 The paper's continuous closed forms, sqrt(K/m) (eq. 5) and w0 (sec. 3.2), are kept
 beside it and always labelled as such: on the paper's demo (K = 50 N/m, B = 1 N s/m,
 w0 = 125 rad/s, 1 kHz) the sampled model's w_b* is 72.6 rad/s where w0 says 125, and a
@@ -65,12 +65,12 @@ def recorded_plant(start: dict, results: dict | None = None) -> Plant | None:
 def bandwidths(plant: Plant, ve: VirtualEnvironment, latency_s: float = 0.0) -> Bandwidths:
     """The predicted bandwidths of ``ve`` on ``plant`` with the device delay ``latency_s``
     [s]; cached (the window asks for them at every estimate)."""
-    from labbench import theory
+    from labbench.model import linear
 
-    model = "sampled" if theory.whole_samples(ve) else "paper"
-    read = theory.predicted_bandwidths(plant, ve, model, latency_s)
-    return Bandwidths(read["ws_star"], read["wb_star"], theory.predicted_ws_star(plant, ve),
-                      theory.predicted_wb_star(ve), model, float(latency_s))
+    model = "sampled" if linear.whole_samples(ve) else "paper"
+    read = linear.predicted_bandwidths(plant, ve, model, latency_s)
+    return Bandwidths(read["ws_star"], read["wb_star"], linear.predicted_ws_star(plant, ve),
+                      linear.predicted_wb_star(ve), model, float(latency_s))
 
 
 def predicted_text(which: str, bw: Bandwidths, unit=None, digits: int = 4) -> str:

@@ -285,7 +285,7 @@ class ProtocolBase:
 def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict:
     """Check the protocol's VE(s) against the exact sampled stability boundary.
 
-    Uses ``labbench.theory.stability`` (spectral radius of the exact sampled loop)
+    Uses ``labbench.model.linear.stability`` (spectral radius of the exact sampled loop)
     and ``k_max`` / ``k_max_approx`` for the numbers shown, with the device's own
     delay (``delay``, a ``labbench.device_delay.DeviceDelay``; None: the rig's, by
     ``device_delay.resolve(rig)``) as the loop's actuator latency, so K_max is the
@@ -294,15 +294,16 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
     the numbers for the start record (``device_delay`` says which delay was used and
     where it came from).
     """
-    from labbench import device_delay, theory
+    from labbench import device_delay
+    from labbench.model import linear
 
     extra = delay if delay is not None else device_delay.resolve(rig)
     latency = extra.s
     report = {"plant": {"m": plant.m, "b": plant.b}, "device_delay": extra.as_dict(), "checks": []}
     for ve in protocol.vetted_ves(plant):
-        st = theory.stability(plant, ve, latency)
-        km = theory.k_max(plant, ve, latency=latency)
-        ka = theory.k_max_approx(plant, ve, latency)
+        st = linear.stability(plant, ve, latency)
+        km = linear.k_max(plant, ve, latency=latency)
+        ka = linear.k_max_approx(plant, ve, latency)
         entry = {"ve": ve.as_dict(), "stable": bool(st.stable),
                  "spectral_radius": float(st.spectral_radius), "k_max": km, "k_max_approx": ka}
         report["checks"].append(entry)

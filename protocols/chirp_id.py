@@ -29,7 +29,7 @@ from labbench.protocol import (
     number,
     setting,
 )
-from labbench.theory import zoh_matrices
+from labbench.model.linear import zoh_matrices
 
 METHODS = ("l2", "l1")
 

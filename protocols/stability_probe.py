@@ -20,7 +20,7 @@ the rig's tightest limit: force, position window or velocity. A fixed small
 pulse left the response a few tens of encoder counts high at the boundary,
 where the quantisation of position and force biased sigma by up to 2 % of K.
 
-Everything is compared with the exact sampled boundary ``labbench.theory.k_max``
+Everything is compared with the exact sampled boundary ``labbench.model.linear.k_max``
 of the plant *with the device's own delay* (``device_delay_s``: the run's
 ``labbench.device_delay``) and the paper's ``k_max_approx`` (b = K (T/2 + td)
 for the spring). Each step also keeps the peak energy the loop's passivity
@@ -219,9 +219,9 @@ class StabilityProbe(ProtocolBase):
 
     def k_exact(self, plant: Plant) -> float | None:
         """The exact sampled K_max of the starting VE on ``plant`` with the device's delay."""
-        from labbench import theory
+        from labbench.model import linear
 
-        return theory.k_max(plant, self.ve, latency=self.device_delay_s)
+        return linear.k_max(plant, self.ve, latency=self.device_delay_s)
 
     def k_ceiling(self, plant: Plant) -> float:
         km = self.k_exact(plant)
@@ -360,7 +360,7 @@ class StabilityProbe(ProtocolBase):
         is (K_h |x| <= 0.1 N, and B_h |v| <= 0.1 N: a handle still coasting fast gets
         less than critical damping), until K_next |x| <= 0.05 N and |v| <= 0.01 m/s.
         """
-        from labbench import theory
+        from labbench.model import linear
 
         T = self.config.sample_time_s
         for _ in range(8):
@@ -375,7 +375,7 @@ class StabilityProbe(ProtocolBase):
             K_h = min(HOME_K_MAX, 0.1 / max(abs(x), 1e-6))
             B_h = min(max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0), 0.1 / max(abs(v), 1e-6))
             ve = VirtualEnvironment("spring-damper", K_h, B_h, HOME_W0, T, 0.0)
-            if not theory.stability(plant, ve, self.device_delay_s).stable:
+            if not linear.stability(plant, ve, self.device_delay_s).stable:
                 raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {B_h:.3g} N s/m is unstable "
                                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m")
             dur = min(max(6.0 / math.sqrt(K_h / plant.m), 0.3), 3.0)
@@ -412,7 +412,8 @@ class StabilityProbe(ProtocolBase):
         """Per-step growth rates (with errors) and observer energy from the recording, the
         measured boundary (refined: the zero of the long steps' line; else the bracket's
         crossing), and the exact and approximate predictions with the device's delay."""
-        from labbench import device_delay, theory
+        from labbench import device_delay
+        from labbench.model import linear
 
         plant = Plant(**meta["plant"]) if "plant" in meta else self.plant()
         latency = device_delay.from_meta(meta)
@@ -441,8 +442,8 @@ class StabilityProbe(ProtocolBase):
             measured = next((s["td_s"] for s in steps if s["unstable"]), None)
         base = self.ve
         if var == "K":
-            exact = theory.k_max(plant, base, latency=latency)
-            approx = theory.k_max_approx(plant, base, latency)
+            exact = linear.k_max(plant, base, latency=latency)
+            approx = linear.k_max_approx(plant, base, latency)
         else:
             exact, approx = _td_boundaries(plant, base, self.config, latency)
         interval = refined["ci95"] if refined else None
@@ -566,12 +567,12 @@ def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig,
     """Smallest td (whole samples) the exact sampled model calls unstable at this K with the
     device's delay ``latency``, and the paper's continuous estimate td = b/K - T/2 - latency
     (spring: b = K (T/2 + td + latency))."""
-    from labbench import theory
+    from labbench.model import linear
 
     exact = None
     n1 = round(cfg.td_stop_s / cfg.sample_time_s)
     for n in range(n1 + 1):
-        if not theory.stability(plant, ve.with_(td=n * cfg.sample_time_s), latency).stable:
+        if not linear.stability(plant, ve.with_(td=n * cfg.sample_time_s), latency).stable:
             exact = n * cfg.sample_time_s
             break
     approx = plant.b / ve.K - ve.T / 2 - latency if ve.kind == "spring" else None

@@ -1,7 +1,7 @@
 """White-noise ETFE (paper sec. 4.2): closed loop with the chosen VE, white exogenous force,
 2 minutes at 1 kHz by default -> ETFE, effective impedances, theory overlay.
 
-The overlay is the exact sampled model ``labbench.theory.z_sampled`` (and the
+The overlay is the exact sampled model ``labbench.model.linear.z_sampled`` (and the
 paper's continuous eq. 2 for comparison; both from
 ``labbench.analysis.compare.theory_curves``, with the rig's measured extra loop
 delay when the rig file has one) with the plant m, b given in the config (the

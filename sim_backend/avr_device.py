@@ -76,9 +76,9 @@ class Trace:
 
     def plant_positions(self, t, m: float, b: float) -> np.ndarray:
         """Positions at ascending times ``t`` of a mass-damper at rest at 0 under the
-        recorded forces, integrated exactly between changes (labbench.theory.zoh_matrices),
+        recorded forces, integrated exactly between changes (labbench.model.linear.zoh_matrices),
         independently of the harness's own closed form."""
-        from labbench.theory import zoh_matrices
+        from labbench.model.linear import zoh_matrices
 
         x, t_now, out = np.zeros(2), 0.0, []
         events = iter(self.force + [(math.inf, 0.0)])

@@ -3,13 +3,13 @@
 ``m x'' + b x' = u`` with u constant over each step of length T. The linear
 step is the exact discretisation (matrix exponential of the augmented system,
 Franklin, Powell & Workman, Digital Control of Dynamic Systems, sec. 4.3), so a
-simulation of the loop equals the exact sampled-data model of ``labbench.theory``.
+simulation of the loop equals the exact sampled-data model of ``labbench.model.linear``.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from labbench.theory import zoh_matrices
+from labbench.model.linear import zoh_matrices
 
 
 class MassDamperPlant:

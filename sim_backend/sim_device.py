@@ -1,9 +1,9 @@
 """Simulated rig: a mass-damper handle behind the ``labbench.device.Device`` interface.
 
-Timing is that of the exact sampled-data model (``labbench.theory``, docs/conventions.md): ``read()``
+Timing is that of the exact sampled-data model (``labbench.model.linear``, docs/conventions.md): ``read()``
 number k returns x[k], the position at the start of step k; the force given to
 ``command()`` after it is held over step k; the next ``read()`` advances the
-plant by exactly one T (``labbench.theory.zoh_matrices``) and returns x[k+1].
+plant by exactly one T (``labbench.model.linear.zoh_matrices``) and returns x[k+1].
 With no friction, noise, quantisation or extra delay a run through
 ``labbench.loop`` therefore equals the sampled model to rounding.
 
@@ -14,7 +14,7 @@ encoder counts of ``rig.metres_per_count``), ``force_noise_n`` [N] std of white
 noise added to the applied force, ``extra_delay_samples`` whole samples of
 actuator latency and ``extra_delay_fraction`` in [0, 1) more (each step then
 holds the previous command for that fraction of T first: the latency model of
-``labbench.theory``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
+``labbench.model.linear``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
 
 ``paced`` (all simulated backends: sim, sim-canopen, sim-serial, avr-sim; ``paced_by_rig``):
 run at the sample time of the wall clock, under the rig's ``[realtime]`` settings, as the
@@ -49,7 +49,7 @@ from labbench.errors import UserError, nearest_hint
 from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import reversing_step
-from labbench.theory import latency_inputs, zoh_matrices
+from labbench.model.linear import latency_inputs, zoh_matrices
 
 _NOISE_STREAM = 0x4E01  # key of the force-noise stream (labbench.protocols draw from the seed alone)
 

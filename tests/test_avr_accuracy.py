@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labbench import records, theory
+from labbench import records
+from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.analysis.identify import identify
@@ -81,7 +82,7 @@ def test_etfe_through_the_firmware_matches_the_sampled_theory_with_td_one_sample
     ve_td = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=T, td=T)
     w = np.asarray(est.w)
     band = (w >= 2.0) & (w <= 100.0)
-    z = theory.z_sampled(PLANT, ve_td, w[band])
+    z = linear.z_sampled(PLANT, ve_td, w[band])
     rel = np.abs(np.asarray(est.Z)[band] - z) / np.abs(z)
     assert np.median(rel) <= 0.005, np.median(rel)
 

@@ -4,7 +4,7 @@ run on simavr around the simulated plant, with the real SerialStream as host.
 Truth comes from the harness (sim_backend/avr/harness.c): the count its encoder
 pins showed when the sample tick was raised and when its interrupt ran, the force
 the firmware's PWM and DIR pins applied, and when each frame went out. The plant is
-integrated again here with ``labbench.theory.zoh_matrices`` from the forces the
+integrated again here with ``labbench.model.linear.zoh_matrices`` from the forces the
 firmware applied, independently of the harness's own closed form.
 """
 

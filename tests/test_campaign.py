@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from labbench.campaign import engine
-from labbench.campaign.passivity import colgate_line, passive_k_max, quantisation_bound
+from labbench.model.passivity import colgate_line, passive_k_max, quantisation_bound
 from labbench.campaign.plan import Context, make_plan
 from labbench.campaign.settings import CampaignSettings
 from labbench.cli.campaign import point_runner
@@ -77,13 +77,13 @@ def zwidth(tmp_path_factory):
 def test_zwidth_on_sim_finds_every_k_max_within_1_percent(zwidth):
     """Every K_max within 1 % of the exact sampled boundary (measured here: within 0.02 %),
     no command above the force limit, one session per point, the rig's facts on each row."""
-    from labbench import theory
+    from labbench.model import linear
 
     summary, rows, _ = zwidth
     assert summary.complete and summary.ran == 5 and len(rows) == 5
     for r in rows:
         ve = VirtualEnvironment("spring-damper", 1.0, r["B"], 125.0, 1e-3, 0.0)
-        exact = theory.k_max(PLANT, ve)  # the truth, computed here
+        exact = linear.k_max(PLANT, ve)  # the truth, computed here
         assert r["status"] == "ok", r["error"]
         assert r["pred.k_max"] == pytest.approx(exact)
         assert abs(r["zw.k_max"] / exact - 1) < 0.01, r

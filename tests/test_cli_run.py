@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from labbench import theory
+from labbench.model import linear
 from labbench.cli import main
 from labbench.cli.progress import ProgressBar
 from labbench.session_format import read_session
@@ -31,7 +31,7 @@ def test_stability_json_keys_and_session(tmp_path, capsys):
     assert code == 0
     assert set(out) >= {"protocol", "status", "reason", "session", "sessions", "results", "timing"}
     assert out["status"] == "success" and out["protocol"] == "stability"
-    km = theory.k_max(Plant(0.094, 0.1), VirtualEnvironment("spring", 1.0, td=0.002))
+    km = linear.k_max(Plant(0.094, 0.1), VirtualEnvironment("spring", 1.0, td=0.002))
     assert out["results"]["exact_boundary"] == pytest.approx(km)
     assert out["results"]["measured_boundary"] == pytest.approx(km, rel=0.01)
     recs = list(read_session(out["session"]))

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from labbench import predictions, theory
+from labbench import predictions
+from labbench.model import linear
 from labbench.cli import main
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -42,16 +43,16 @@ def test_json_keys_and_values(model, capsys):
     plant = Plant(0.1, 0.1)
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=0.002)
     w = np.array(d["w"])
-    Z = theory.theory_curve(plant, ve, w, model)
+    Z = linear.theory_curve(plant, ve, w, model)
     np.testing.assert_allclose(d["Z_re"], Z.real, rtol=1e-12)
     np.testing.assert_allclose(d["Z_im"], Z.imag, rtol=1e-12)
     np.testing.assert_allclose(d["ES"], -w * Z.imag, rtol=1e-12)
     np.testing.assert_allclose(d["ED"], Z.real, rtol=1e-12)
     np.testing.assert_allclose(d["EM"], Z.imag / w, rtol=1e-12)
-    st = theory.stability(plant, ve)
+    st = linear.stability(plant, ve)
     assert d["stable"] is st.stable is True
     assert d["spectral_radius"] == pytest.approx(st.spectral_radius, rel=1e-12)
-    assert d["K_max"] == pytest.approx(theory.k_max(plant, ve), rel=1e-12)
+    assert d["K_max"] == pytest.approx(linear.k_max(plant, ve), rel=1e-12)
     assert d["K_max_approx"] == pytest.approx(1.1 / 0.0025)
     # one truth (labbench.predictions): read off the exact sampled model, closed forms beside
     bw = predictions.bandwidths(plant, ve)
@@ -67,7 +68,7 @@ def test_json_damper_has_null_k_max_and_default_grid(capsys):
     d = strict_json(out)
     assert d["K_max"] is None and d["K_max_approx"] is None and d["ws_star"] is None
     assert d["wb_star_w0"] is None  # no filter: no closed form; the sampled curve's own reading
-    bw = theory.predicted_bandwidths(Plant(0.1, 0.1), VirtualEnvironment("damper", B=1))
+    bw = linear.predicted_bandwidths(Plant(0.1, 0.1), VirtualEnvironment("damper", B=1))
     assert d["wb_star"] == bw["wb_star"]
     assert len(d["w"]) == len(d["ED"]) > 10 and d["w"] == sorted(d["w"])
     assert d["stable"] is True

@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from labbench import device_delay, theory
+from labbench import device_delay
+from labbench.model import linear
 from labbench.device import DeviceDescription
 from labbench.errors import UserError
 from labbench.rig import Rig
@@ -93,21 +94,21 @@ def test_theory_with_a_device_delay_is_e_jw_latency_times_the_felt_impedance():
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=T, td=T)
     w = np.geomspace(1.0, 300.0, 40)
     L = 2 * T
-    felt = theory.z_paper(PLANT, ve.with_(td=ve.td + L), w)
-    assert np.allclose(theory.z_paper(PLANT, ve, w, L), np.exp(1j * w * L) * felt, rtol=1e-12)
-    felt_s = theory.z_sampled(PLANT, ve.with_(td=ve.td + L), w)
-    assert np.allclose(theory.z_sampled(PLANT, ve, w, L), np.exp(1j * w * L) * felt_s, rtol=1e-9)
+    felt = linear.z_paper(PLANT, ve.with_(td=ve.td + L), w)
+    assert np.allclose(linear.z_paper(PLANT, ve, w, L), np.exp(1j * w * L) * felt, rtol=1e-12)
+    felt_s = linear.z_sampled(PLANT, ve.with_(td=ve.td + L), w)
+    assert np.allclose(linear.z_sampled(PLANT, ve, w, L), np.exp(1j * w * L) * felt_s, rtol=1e-9)
     low = w < 20
-    ratio = theory.z_sampled(PLANT, ve, w, L)[low] / theory.z_paper(PLANT, ve, w, L)[low]
+    ratio = linear.z_sampled(PLANT, ve, w, L)[low] / linear.z_paper(PLANT, ve, w, L)[low]
     assert np.allclose(ratio, np.exp(1j * w[low] * T / 2), rtol=2e-3)
-    assert theory.k_max(PLANT, ve, latency=L) == pytest.approx(
-        theory.k_max(PLANT, ve.with_(td=ve.td + L)), rel=1e-3)
+    assert linear.k_max(PLANT, ve, latency=L) == pytest.approx(
+        linear.k_max(PLANT, ve.with_(td=ve.td + L)), rel=1e-3)
 
 
 def test_the_measured_low_frequency_ed_does_not_see_the_device_delay_but_the_felt_one_does():
     ve = VirtualEnvironment("spring", K=50.0, T=T, td=0.0)
-    with_delay = theory.delay_effects(PLANT, ve, latency=3 * T)
-    without = theory.delay_effects(PLANT, ve)
+    with_delay = linear.delay_effects(PLANT, ve, latency=3 * T)
+    without = linear.delay_effects(PLANT, ve)
     for model in ("paper", "sampled"):
         assert with_delay[f"ED_low_{model}"] == pytest.approx(without[f"ED_low_{model}"], abs=1e-6)
     assert with_delay["K_tau_felt"] == pytest.approx(50.0 * (T / 2 + 3 * T))
@@ -121,8 +122,8 @@ def test_cli_theory_device_delay(capsys):
     assert main(args + ["--device-delay-s", "0.0015"]) == 0
     d = json.loads(capsys.readouterr().out)
     ve = VirtualEnvironment("spring", K=50.0, T=T)
-    Z = theory.z_sampled(PLANT, ve, [1.0, 10.0, 100.0], 0.0015)
+    Z = linear.z_sampled(PLANT, ve, [1.0, 10.0, 100.0], 0.0015)
     assert d["Z_re"] == pytest.approx(Z.real.tolist()) and d["device_delay_s"] == 0.0015
-    assert d["K_max"] == pytest.approx(theory.k_max(PLANT, ve, latency=0.0015), rel=1e-3)
+    assert d["K_max"] == pytest.approx(linear.k_max(PLANT, ve, latency=0.0015), rel=1e-3)
     assert main(args + ["--device-delay-s", "-1"]) == 2
     assert "--device-delay-s" in capsys.readouterr().err

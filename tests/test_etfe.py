@@ -1,10 +1,10 @@
-"""ETFE against the exact sampled loop (truth: theory.z_sampled of the same loop)."""
+"""ETFE against the exact sampled loop (truth: linear.z_sampled of the same loop)."""
 import numpy as np
 import pytest
 from scipy import signal
 from truthdata import PAPER_B, PAPER_M, closed_loop_recording, z_truth
 
-from labbench import theory
+from labbench.model import linear
 from labbench.analysis import compare
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS, etfe
@@ -117,7 +117,7 @@ def test_little_excitation_flagged_where_the_band_asked_about_reaches():
     rec = closed_loop_recording(SPRING_DAMPER, n=60000)
     sos = signal.butter(8, 10.0, fs=1000.0, output="sos")
     f = signal.sosfilt(sos, rec.force)
-    _, y, _ = signal.dlsim(theory.closed_loop(Plant(PAPER_M, PAPER_B), SPRING_DAMPER).as_dlti(), f)
+    _, y, _ = signal.dlsim(linear.closed_loop(Plant(PAPER_M, PAPER_B), SPRING_DAMPER).as_dlti(), f)
     data = recording_from_arrays(rec.t, f, y[:, 0])
     res = etfe(data)
     assert any(f.startswith("little-excitation") for f in res.flags)
@@ -201,7 +201,7 @@ def test_h1_log_takes_its_band_averages_resolution_bias_out():
     spectrum[[0, -1]] = 0.0
     f = np.fft.irfft(spectrum, n)
     f /= f.std()
-    loop = theory.closed_loop(Plant(PAPER_M, PAPER_B), SPRING_DAMPER)
+    loop = linear.closed_loop(Plant(PAPER_M, PAPER_B), SPRING_DAMPER)
     _, y, _ = signal.dlsim(loop.as_dlti(), np.tile(f, 2))  # the second period is steady
     meta = closed_loop_recording(SPRING_DAMPER, n=1000).meta
     res = etfe(recording_from_arrays(np.arange(n) * SPRING_DAMPER.T, f, y[n:, 0], meta), "h1-log")

@@ -100,7 +100,7 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     assert est.plant_source == "identified (l2)"
     assert est.plant.m == pytest.approx(TRUTH.m, rel=0.01)
     assert est.plant.b == pytest.approx(TRUTH.b, rel=0.05)
-    from labbench.theory import theory_curve
+    from labbench.model.linear import theory_curve
 
     wt, yt = win.live.impedance.curves["ED_theory"].getOriginalDataset()
     Zt = theory_curve(est.plant, ve_from_meta(meta), est.theory["w"], "sampled")
@@ -577,7 +577,7 @@ def test_a_large_seed_is_shown_as_it_is(qtbot, make_window):
 def test_live_axes_follow_the_trusted_estimate(qtbot):
     """Points whose 95 % radius exceeds a quarter of |Z| are drawn but do not set the range
     (early in a white-noise run they spanned +-400 000 N/m and flattened the curve)."""
-    from labbench import theory
+    from labbench.model import linear
     from labbench.effective import effective_impedances
     from labbench.gui.live_estimate import Estimate
     from labbench.gui.live_plots import ImpedancePlots
@@ -587,7 +587,7 @@ def test_live_axes_follow_the_trusted_estimate(qtbot):
     qtbot.addWidget(plots)
     ve = VirtualEnvironment("spring-damper", 50.0, 1.0, 125.0, 0.001, 0.0)
     w = np.geomspace(1.0, 1000.0, 200)
-    Z = theory.z_sampled(TRUTH, ve, w)
+    Z = linear.z_sampled(TRUTH, ve, w)
     Z_err = 0.01 * np.abs(Z)
     wild = w < 3.0  # few averages down there yet: wild values, wide bands
     Z = np.where(wild, Z * (1 - 2e5j), Z)

@@ -10,7 +10,7 @@ from labbench import records
 from labbench.errors import UserError
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
-from labbench.theory import closed_loop, z_sampled
+from labbench.model.linear import closed_loop, z_sampled
 from labbench.ve import Plant, VirtualEnvironment
 from labbench.sim_backend.sim_device import open_sim
 

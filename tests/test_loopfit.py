@@ -6,7 +6,7 @@ import pytest
 from truthdata import PAPER_B, PAPER_M, closed_loop_recording, delayed_loop_recording, write_csv
 
 from labbench.verdict import holds
-from labbench import theory
+from labbench.model import linear
 from labbench.analysis import compare
 from labbench.analysis.etfe import etfe
 from labbench.analysis.loopfit import fit_loop
@@ -112,7 +112,7 @@ def test_fit_measures_the_simulator_latency_from_a_session(tmp_path, whole, frac
 def test_measured_td_in_the_rig_file_sets_the_precheck_boundary(tmp_path):
     # K between the nominal K_max and the one with the rig's measured 1.5-sample delay:
     # accepted without the measurement, refused with it, and the precheck says which td it used
-    from labbench import theory
+    from labbench.model import linear
     from labbench.protocol import precheck
     from labbench.registry import make_protocol
     from labbench.rig import load_rig
@@ -122,8 +122,8 @@ def test_measured_td_in_the_rig_file_sets_the_precheck_boundary(tmp_path):
     rig = load_rig(p)
     plant = Plant(PAPER_M, PAPER_B)
     ve = VirtualEnvironment("spring", K=1.0, td=0.001)
-    k_nominal = theory.k_max(plant, ve)
-    k_rig = theory.k_max(plant, ve, latency=0.0015)
+    k_nominal = linear.k_max(plant, ve)
+    k_rig = linear.k_max(plant, ve, latency=0.0015)
     assert k_rig < 0.7 * k_nominal
     proto = make_protocol("etfe", ve="spring", K=0.5 * (k_rig + k_nominal), B=0.0, td_s=0.001)
     rep = precheck(proto, plant)
@@ -183,13 +183,13 @@ def test_ve_path_delay_theory_matches_a_brute_force_simulation():
     assert np.max(np.abs(brute.position - exact.position)) < 1e-12 * np.max(np.abs(exact.position))
     w = np.geomspace(1, 3000, 50)
     plant = Plant(PAPER_M, PAPER_B)
-    np.testing.assert_allclose(theory.z_sampled(plant, SD, w, 1.5 * T, ve_delay=2 * T),
-                               theory.z_sampled(plant, SD.with_(td=2 * T), w, 1.5 * T), rtol=1e-12)
+    np.testing.assert_allclose(linear.z_sampled(plant, SD, w, 1.5 * T, ve_delay=2 * T),
+                               linear.z_sampled(plant, SD.with_(td=2 * T), w, 1.5 * T), rtol=1e-12)
     # fractional: the ETFE of an exact noise-free record follows the new formula to its own
     # error (median ~2e-6 on 60 s; a half-sample error in either delay would be ~1e-2)
     for latency, tv in ((0.0, 0.5 * T), (1.3 * T, 2.7 * T)):
         res = etfe(delayed_loop_recording(SD, n=60000, latency=latency, ve_delay=tv))
-        z = theory.z_sampled(plant, SD, res.w, latency, ve_delay=tv)
+        z = linear.z_sampled(plant, SD, res.w, latency, ve_delay=tv)
         band = res.w < 1000
         assert np.median(np.abs(res.Z[band] / z[band] - 1)) < 2e-5
 
@@ -393,7 +393,7 @@ def test_paper_expectation_follows_smoothing_and_noise(sim_etfe_2min):
     pts = res.fit_points(use)
 
     def truth(w):
-        return theory.z_sampled(Plant(PAPER_M, PAPER_B), ve, w)
+        return linear.z_sampled(Plant(PAPER_M, PAPER_B), ve, w)
     z_hat = res.Z[pts.idx]
     chi_expect = np.mean(np.abs(z_hat - pts.expect(truth)) ** 2 / pts.Z_se**2)
     chi_model = np.mean(np.abs(z_hat - truth(res.w[pts.idx])) ** 2 / pts.Z_se**2)

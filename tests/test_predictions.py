@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from labbench import predictions, theory
+from labbench import predictions
+from labbench.model import linear
 from labbench.effective import effective_impedances
 from labbench.units import DisplayUnits
 from labbench.ve import Plant, VirtualEnvironment
@@ -15,7 +16,7 @@ DEMO = VirtualEnvironment("spring-damper", K=50, B=1, w0=125)
 
 
 def _es(plant, ve, latency):
-    return lambda w: effective_impedances(np.array([w]), theory.z_sampled(plant, ve, [w], latency)).ES[0]
+    return lambda w: effective_impedances(np.array([w]), linear.z_sampled(plant, ve, [w], latency)).ES[0]
 
 
 @pytest.mark.parametrize("latency", [0.0, 0.001, 0.0025])
@@ -35,9 +36,9 @@ def test_wb_star_is_where_the_sampled_ed_is_half_way_to_b():
     where the continuous closed form says w0 = 125 rad/s."""
     bw = predictions.bandwidths(PAPER_PLANT, DEMO)
     w_low = np.geomspace(1e-3, 2e-3, 3)
-    ed_low = float(np.median(theory.z_sampled(PAPER_PLANT, DEMO, w_low).real))
+    ed_low = float(np.median(linear.z_sampled(PAPER_PLANT, DEMO, w_low).real))
     half = PAPER_PLANT.b + 0.5 * (ed_low - PAPER_PLANT.b)
-    root = brentq(lambda w: theory.z_sampled(PAPER_PLANT, DEMO, [w]).real[0] - half, 30, 120,
+    root = brentq(lambda w: linear.z_sampled(PAPER_PLANT, DEMO, [w]).real[0] - half, 30, 120,
                   xtol=1e-10)
     assert bw.wb_star == pytest.approx(root, rel=2e-4)
     assert bw.wb_star == pytest.approx(72.57, abs=0.05)
@@ -47,7 +48,7 @@ def test_td_off_the_sample_grid_falls_back_to_the_paper_model_labelled():
     ve = VirtualEnvironment("spring", K=50, td=0.0005)
     bw = predictions.bandwidths(PAPER_PLANT, ve)
     assert bw.model == "paper" and bw.wb_star is None and bw.wb_star_w0 is None
-    root = brentq(lambda w: effective_impedances(np.array([w]), theory.z_paper(PAPER_PLANT, ve, [w])).ES[0],
+    root = brentq(lambda w: effective_impedances(np.array([w]), linear.z_paper(PAPER_PLANT, ve, [w])).ES[0],
                   5, 60, xtol=1e-10)
     assert bw.ws_star == pytest.approx(root, rel=2e-4)
 

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from labbench import readout, theory
+from labbench import readout
+from labbench.model import linear
 from labbench.errors import UserError
 from labbench.numfmt import frequency_text
 from labbench.rig import Rig, rig_from_dict
@@ -116,7 +117,7 @@ def test_etfe_seed_is_drawn_and_recorded_when_absent():
 # ---------------------------------------------------------------- precheck
 
 def test_precheck_refuses_unstable_ve_with_numbers():
-    km = theory.k_max(TRUTH, VirtualEnvironment("spring", K=1.0, td=0.002))
+    km = linear.k_max(TRUTH, VirtualEnvironment("spring", K=1.0, td=0.002))
     p = make_protocol("etfe", ve="spring", K=1.2 * km, B=0.0, w0_rad_s=None, td_s=0.002)
     with pytest.raises(UserError) as e:
         precheck(p, TRUTH)
@@ -129,7 +130,7 @@ def test_precheck_passes_stable_ve_and_reports_margin():
     rep = precheck(p, TRUTH)
     (c,) = rep["checks"]
     assert rep["stable"] and c["stable"] and c["spectral_radius"] < 1
-    assert c["k_max"] == pytest.approx(theory.k_max(TRUTH, p.ve))
+    assert c["k_max"] == pytest.approx(linear.k_max(TRUTH, p.ve))
 
 
 def test_precheck_override_lets_unstable_through():
@@ -204,7 +205,7 @@ def test_etfe_on_sim_matches_exact_sampled_theory_within_5_percent():
     Z = np.asarray(r["etfe"]["Z_re"]) + 1j * np.asarray(r["etfe"]["Z_im"])
     band = (w >= 2) & (w <= 100)
     ve = VirtualEnvironment("spring-damper", 50.0, 1.0, 125.0, T, 0.0)
-    z_true = theory.z_sampled(TRUTH, ve, w[band])  # truth computed here, not read from results
+    z_true = linear.z_sampled(TRUTH, ve, w[band])  # truth computed here, not read from results
     rel = np.abs(Z[band] - z_true) / np.abs(z_true)
     assert band.sum() > 20
     assert rel.max() < 0.05
@@ -223,7 +224,7 @@ def test_etfe_on_sim_matches_exact_sampled_theory_within_5_percent():
 def test_stability_probe_finds_the_exact_boundary(td_s):
     res, _ = _run("stability", K=0.8 * 0.1 / (T / 2 + td_s), td_s=td_s)
     r = res.results
-    exact = theory.k_max(TRUTH, VirtualEnvironment("spring", K=1.0, T=T, td=td_s))
+    exact = linear.k_max(TRUTH, VirtualEnvironment("spring", K=1.0, T=T, td=td_s))
     assert r["exact_boundary"] == pytest.approx(exact)
     assert r["measured_boundary"] == pytest.approx(exact, rel=1e-3)
     assert r["measured_ci95"][0] <= r["measured_boundary"] <= r["measured_ci95"][1]
@@ -241,7 +242,7 @@ def test_stability_probe_over_td_finds_the_first_unstable_sample():
     r = res.results
     # exact: first whole-sample td where the sampled loop is unstable at K = 50
     exact = next(n * T for n in range(6)
-                 if not theory.stability(TRUTH, VirtualEnvironment("spring", 50.0, T=T, td=n * T)).stable)
+                 if not linear.stability(TRUTH, VirtualEnvironment("spring", 50.0, T=T, td=n * T)).stable)
     assert r["exact_boundary"] == pytest.approx(exact)
     assert r["measured_boundary"] == pytest.approx(exact)
 

@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labbench import readout, theory
+from labbench import readout
+from labbench.model import linear
 from labbench.cli import main
 from labbench.numfmt import fmt_ci
 from labbench.report.content import build, page_one_rows
@@ -30,7 +31,7 @@ def test_the_rendered_stiffness_and_damping_are_the_theorys_low_frequency_values
     out = _run(capsys, tmp_path, "etfe", "--K", str(K), "--B", "1", "--seed", "3")
     r = out["results"]["rendered"]
     ve = VirtualEnvironment("spring-damper", K=K, B=1.0, w0=125.0)
-    ed0 = theory.low_frequency(NOMINAL, ve, "sampled")[0]
+    ed0 = linear.low_frequency(NOMINAL, ve, "sampled")[0]
     assert r["K"] == pytest.approx(K, rel=0.01) and r["B"] == pytest.approx(ed0, rel=0.01)
     assert r["K_ci95"][0] <= K <= r["K_ci95"][1] and r["B_ci95"][0] <= ed0 <= r["B_ci95"][1], r
     assert r["theory"]["K_limit"] == K and r["theory"]["B_limit"] == pytest.approx(ed0)
@@ -50,7 +51,7 @@ def test_rendered_numbers_on_noisy_records_cover_the_theory():
     from labbench.analysis.rendered import rendered_impedance
 
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
-    ed0 = theory.low_frequency(NOMINAL, ve, "sampled")[0]
+    ed0 = linear.low_frequency(NOMINAL, ve, "sampled")[0]
     hits = {"K": 0, "B": 0}
     for seed in range(10):
         r = rendered_impedance(etfe(closed_loop_recording(ve, n=60000, seed=seed, process_noise=0.1)),
@@ -72,7 +73,7 @@ def test_rendered_numbers_under_force_sensor_noise_cover_the_theory():
     from labbench.analysis.rendered import rendered_impedance
 
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
-    ed0 = theory.low_frequency(NOMINAL, ve, "sampled")[0]
+    ed0 = linear.low_frequency(NOMINAL, ve, "sampled")[0]
     hits = {"K": 0, "B": 0}
     for seed in range(10):
         rec = closed_loop_recording(ve, n=60000, seed=seed, force_std=0.25)

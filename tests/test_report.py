@@ -13,7 +13,8 @@ from matplotlib import image
 from pypdf import PdfReader
 from session_recorder import synthetic_stream
 
-from labbench import records, theory
+from labbench import records
+from labbench.model import linear
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
@@ -88,7 +89,7 @@ def test_bandwidths_are_predicted_by_the_sampled_theory(runs):
     """Page 1's predicted wb* is read off the exact sampled model, not w0 (125 rad/s)."""
     path, result = runs["etfe"]
     ve = VirtualEnvironment("spring-damper", 50.0, 1.0, 125.0, 0.001, 0.0)
-    predicted = theory.predicted_bandwidths(Plant(TRUTH["m"], TRUTH["b"]), ve)
+    predicted = linear.predicted_bandwidths(Plant(TRUTH["m"], TRUTH["b"]), ve)
     assert predicted["wb_star"] == pytest.approx(72.57, abs=0.05)  # the paper demo's
     assert result.results["bandwidths"]["wb_star_predicted"] == pytest.approx(predicted["wb_star"])
     assert result.results["bandwidths"]["wb_star_w0"] == 125.0

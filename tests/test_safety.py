@@ -10,7 +10,7 @@ from labbench.errors import UserError
 from labbench.loop import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig, rig_from_dict
 from labbench.safety import CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED, flag_names
-from labbench.theory import k_max, stability
+from labbench.model.linear import k_max, stability
 from labbench.ve import Plant, VirtualEnvironment
 from labbench.sim_backend.sim_device import open_sim
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from labbench import theory
+from labbench.model import linear
 from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -40,14 +40,14 @@ def eq7(p, ve, w):
 @pytest.mark.parametrize("kind,eq", [("spring", eq4), ("damper", eq6), ("spring-damper", eq7)])
 def test_eqs_4_6_7_equal_eq_2(kind, eq, td):
     ve = VirtualEnvironment(kind, K=50, B=1, w0=125, td=td)
-    np.testing.assert_allclose(theory.z_paper(PAPER, ve, W), eq(PAPER, ve, W), rtol=1e-12)
+    np.testing.assert_allclose(linear.z_paper(PAPER, ve, W), eq(PAPER, ve, W), rtol=1e-12)
 
 
 def test_open_loop_and_unfiltered_damper():
-    np.testing.assert_allclose(theory.z_paper(PAPER, VirtualEnvironment(), W),
+    np.testing.assert_allclose(linear.z_paper(PAPER, VirtualEnvironment(), W),
                                PAPER.m * 1j * W + PAPER.b, rtol=1e-14)
     ve = VirtualEnvironment("damper", B=1, td=0.001)  # no filter: Z = m s + b + B d
-    np.testing.assert_allclose(theory.z_paper(PAPER, ve, W),
+    np.testing.assert_allclose(linear.z_paper(PAPER, ve, W),
                                PAPER.m * 1j * W + PAPER.b + d(W, ve), rtol=1e-12)
 
 
@@ -72,9 +72,9 @@ def test_spring_stiffness_below_ws_and_mass_above(td):
     """ES = K cos(w tau) - m w^2 for eq. 4: within 1.1 % of K at w <= ws*/10;
     EM = m - K cos(w tau)/w^2 within 1.1 % of m at w >= 10 ws*."""
     ve = VirtualEnvironment("spring", K=10, td=td)
-    ws = theory.predicted_ws_star(PAPER, ve)
+    ws = linear.predicted_ws_star(PAPER, ve)
     assert ws == pytest.approx(10.0)
-    eff = effective_impedances(W, theory.z_paper(PAPER, ve, W))
+    eff = effective_impedances(W, linear.z_paper(PAPER, ve, W))
     low, high = W <= ws / 10, W >= 10 * ws
     assert np.all(np.abs(eff.ES[low] / ve.K - 1) < 0.011)
     assert np.all(np.abs(eff.EM[high] / PAPER.m - 1) < 0.011)
@@ -87,14 +87,14 @@ def test_spring_damper_figure_8_claims(td):
     """K = 50, B = 1, w0 = 125: ES ~ K below ws*, ED ~ b + B - K tau below w0,
     EM -> m well above ws* and w0."""
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=td)
-    eff = effective_impedances(W, theory.z_paper(PAPER, ve, W))
-    ws = theory.predicted_ws_star(PAPER, ve)
+    eff = effective_impedances(W, linear.z_paper(PAPER, ve, W))
+    ws = linear.predicted_ws_star(PAPER, ve)
     low = W <= ws / 10
     assert np.all(np.abs(eff.ES[low] / ve.K - 1) < 0.02)
     assert np.all(np.abs(eff.EM[W >= 10 * ve.w0] / PAPER.m - 1) < 0.02)
     ed_low = PAPER.b + ve.B - ve.K * ve.delay
     assert np.all(np.abs(eff.ED[W <= ve.w0 / 100] - ed_low) < 1e-3 * ed_low)
-    de = theory.delay_effects(PAPER, ve)
+    de = linear.delay_effects(PAPER, ve)
     assert de["ED_drop_paper"] == pytest.approx(ve.K * ve.delay, rel=1e-9)
     assert de["K_tau"] == pytest.approx(ve.K * (ve.T / 2 + td))
 
@@ -102,23 +102,23 @@ def test_spring_damper_figure_8_claims(td):
 def test_damping_bandwidth_is_w0():
     """Damper with a negligible delay: ED = b + B w0^2/(w^2 + w0^2), half-way at w0."""
     ve = VirtualEnvironment("damper", B=1, w0=300, T=1e-7)
-    eff = effective_impedances(W, theory.z_paper(PAPER, ve, W))
-    assert theory.predicted_wb_star(ve) == 300
+    eff = effective_impedances(W, linear.z_paper(PAPER, ve, W))
+    assert linear.predicted_wb_star(ve) == 300
     assert measured_wb_star(W, eff.ED, PAPER.b) == pytest.approx(300, rel=2e-3)
-    assert theory.predicted_wb_star(VirtualEnvironment("damper", B=1)) is None
-    assert theory.predicted_wb_star(VirtualEnvironment("spring", K=1)) is None
-    assert theory.predicted_ws_star(PAPER, ve) is None
+    assert linear.predicted_wb_star(VirtualEnvironment("damper", B=1)) is None
+    assert linear.predicted_wb_star(VirtualEnvironment("spring", K=1)) is None
+    assert linear.predicted_ws_star(PAPER, ve) is None
 
 
 @pytest.mark.parametrize("td", DELAYS)
 def test_damper_em_drop_is_b_tau(td):
     """w0 >> (b + B)/m: EM at low frequency is m - B/w0 - B (T/2 + td)."""
     ve = VirtualEnvironment("damper", B=1, w0=2000, td=td)
-    de = theory.delay_effects(PAPER, ve)
+    de = linear.delay_effects(PAPER, ve)
     assert de["EM_nodelay"] == pytest.approx(PAPER.m - 1 / 2000)
     assert de["EM_drop_paper"] == pytest.approx(ve.B * ve.delay, rel=1e-9)
     w = np.array([0.05])
-    em = theory.z_paper(PAPER, ve, w).imag / w
+    em = linear.z_paper(PAPER, ve, w).imag / w
     assert em[0] == pytest.approx(PAPER.m - 1 / 2000 - ve.B * ve.delay, rel=1e-6)
 
 
@@ -126,30 +126,30 @@ def test_damper_em_drop_is_b_tau(td):
 def test_negative_ed_exactly_when_b_below_k_tau(td):
     ve = VirtualEnvironment("spring", K=1, td=td)
     boundary = PAPER.b / ve.delay
-    assert theory.k_max_approx(PAPER, ve) == pytest.approx(boundary)
+    assert linear.k_max_approx(PAPER, ve) == pytest.approx(boundary)
     for factor in (0.99, 1.01):
         v = ve.with_(K=factor * boundary)
         w = np.array([1e-3 * math.sqrt(v.K / PAPER.m)])
-        ed = theory.z_paper(PAPER, v, w).real[0]
+        ed = linear.z_paper(PAPER, v, w).real[0]
         assert (ed < 0) == (factor > 1), (factor, ed)
-        assert (theory.delay_effects(PAPER, v)["ED_low_paper"] < 0) == (factor > 1)
+        assert (linear.delay_effects(PAPER, v)["ED_low_paper"] < 0) == (factor > 1)
 
 
 def test_k_max_approx_spring_damper_and_kinds_without_spring():
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=0.002)
-    assert theory.k_max_approx(PAPER, ve) == pytest.approx((0.1 + 1) / 0.0025)
+    assert linear.k_max_approx(PAPER, ve) == pytest.approx((0.1 + 1) / 0.0025)
     damper = VirtualEnvironment("damper", B=1)
-    assert theory.k_max(PAPER, damper) is None and theory.k_max_approx(PAPER, damper) is None
-    assert theory.delay_effects(PAPER, VirtualEnvironment()) == {"tau": 0.0005}
+    assert linear.k_max(PAPER, damper) is None and linear.k_max_approx(PAPER, damper) is None
+    assert linear.delay_effects(PAPER, VirtualEnvironment()) == {"tau": 0.0005}
 
 
 def test_theory_curve_dispatch():
     ve = VirtualEnvironment("spring", K=10, td=0.002)
-    np.testing.assert_array_equal(theory.theory_curve(PAPER, ve, W), theory.z_paper(PAPER, ve, W))
-    np.testing.assert_array_equal(theory.theory_curve(PAPER, ve, W, "sampled"),
-                                  theory.z_sampled(PAPER, ve, W))
+    np.testing.assert_array_equal(linear.theory_curve(PAPER, ve, W), linear.z_paper(PAPER, ve, W))
+    np.testing.assert_array_equal(linear.theory_curve(PAPER, ve, W, "sampled"),
+                                  linear.z_sampled(PAPER, ve, W))
     with pytest.raises(ValueError):
-        theory.theory_curve(PAPER, ve, W, "exact")
+        linear.theory_curve(PAPER, ve, W, "exact")
 
 
 @pytest.mark.parametrize("T", [1e-3, 1e-4])
@@ -159,7 +159,7 @@ def test_sampled_model_tends_to_paper_model_times_half_sample_advance(T):
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=0.002, T=T)
     w = np.array([1.0, 10.0, 100.0, 1000.0])
     w = w[w * T < 0.5]
-    ratio = theory.z_sampled(PAPER, ve, w) / (np.exp(1j * w * T / 2) * theory.z_paper(PAPER, ve, w))
+    ratio = linear.z_sampled(PAPER, ve, w) / (np.exp(1j * w * T / 2) * linear.z_paper(PAPER, ve, w))
     assert np.all(np.abs(ratio - 1) < (w * T) ** 2)
 
 
@@ -179,7 +179,7 @@ def test_paper_figure_draws_measured_points_with_bands(tmp_path, monkeypatch):
 
     monkeypatch.setattr(Figure, "savefig", capture)
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125)
-    Z = theory.z_paper(PAPER, ve, W)
+    Z = linear.z_paper(PAPER, ve, W)
     curves = [Curve("theory", W, Z),
               Curve("measured", W, Z * 1.01, style="points", Z_err=0.05 * abs(Z))]
     marks = {"ws*": 22.4, "wb*": 125, "none": None}

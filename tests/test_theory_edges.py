@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from labbench import theory
+from labbench.model import linear
 from labbench.ve import Plant, VirtualEnvironment
 
 DIGITS = 40
@@ -96,9 +96,9 @@ def test_the_reference_agrees_with_the_loop_matrix_on_ordinary_loops():
                                             td=5e-4), 1.3e-3),
         (Plant(0.3, 0.0), VirtualEnvironment("damper", B=1.0, w0=300, T=1e-3), 1e-3),
     ]:
-        rho = max(abs(np.linalg.eigvals(theory.closed_loop(plant, ve, lat).A)))
+        rho = max(abs(np.linalg.eigvals(linear.closed_loop(plant, ve, lat).A)))
         ref = reference_margin(plant, ve, lat)
-        st_ = theory.stability(plant, ve, lat)
+        st_ = linear.stability(plant, ve, lat)
         assert float(1 - ref) == pytest.approx(st_.spectral_radius, abs=1e-12)
         if ve.K:
             assert st_.spectral_radius == pytest.approx(rho, abs=1e-12)
@@ -106,11 +106,11 @@ def test_the_reference_agrees_with_the_loop_matrix_on_ordinary_loops():
 
 def test_the_issue_case_soft_spring_heavy_damping():
     plant, ve = Plant(0.1, 1000.0), VirtualEnvironment("spring", K=1e-4, T=1e-3)
-    s = theory.stability(plant, ve)
+    s = linear.stability(plant, ve)
     ref = reference_margin(plant, ve)
     assert 0 < ref < 1e-9  # beyond what the old 1 - 1e-9 tolerance could see
     assert s.stable and s.margin == pytest.approx(float(ref), rel=1e-6)
-    assert theory.k_max(plant, ve) > 1e6
+    assert linear.k_max(plant, ve) > 1e6
 
 
 @pytest.mark.parametrize("m, b, td_samples", [
@@ -122,7 +122,7 @@ def test_spring_k_max_to_the_documented_001_percent(m, b, td_samples):
     below it, unstable 0.01 % above (before: up to 0.024 % low on the slow loops)."""
     plant = Plant(m, b)
     ve = VirtualEnvironment("spring", K=1.0, T=1e-3, td=td_samples * 1e-3)
-    km = theory.k_max(plant, ve)
+    km = linear.k_max(plant, ve)
     assert reference_margin(plant, ve.with_(K=km)) > 0
     assert reference_margin(plant, ve.with_(K=km * (1 + 1e-4))) < 0
 
@@ -161,7 +161,7 @@ def test_stable_agrees_with_the_40_digit_reference(loop):
     plant, ve, lat = _make(loop)
     ref = reference_margin(plant, ve, lat)
     assume(abs(ref) > 1e-13)
-    s = theory.stability(plant, ve, lat)
+    s = linear.stability(plant, ve, lat)
     assert s.stable == (ref > 0), (s, float(ref))
     assert s.margin == pytest.approx(float(ref), rel=1e-6, abs=1e-13)
 
@@ -173,11 +173,11 @@ def test_k_max_agrees_with_stable_and_the_reference(loop, fraction):
     reference agree), 0.01 % above it the reference finds it unstable."""
     plant, ve, lat = _make(loop)
     assume(ve.kind != "damper")
-    km = theory.k_max(plant, ve, latency=lat)
+    km = linear.k_max(plant, ve, latency=lat)
     assume(km is not None and 0 < km < 1e7 / (1 + 1e-4))
     below = ve.with_(K=km * fraction)
-    assert theory.stability(plant, below, lat).stable
-    assert theory.stability(plant, ve.with_(K=km), lat).stable
+    assert linear.stability(plant, below, lat).stable
+    assert linear.stability(plant, ve.with_(K=km), lat).stable
     assert reference_margin(plant, below, lat) > 0
     assert reference_margin(plant, ve.with_(K=km), lat) > -1e-13
     assert reference_margin(plant, ve.with_(K=km * (1 + 1e-4)), lat) < 0

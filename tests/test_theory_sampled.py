@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 from scipy.optimize import brentq
 from scipy.signal import dlsim
 
-from labbench import theory
+from labbench.model import linear
 from labbench.errors import UserError
 from labbench.ve import Plant, VirtualEnvironment
-from labbench.theory import zoh_matrices
+from labbench.model.linear import zoh_matrices
 
 
 def simulate(plant: Plant, ve: VirtualEnvironment, f_exo: np.ndarray,
@@ -75,13 +75,13 @@ def test_sampled_z_matches_brute_force_sine_response(plant, ve, n_settle):
     for w in (3.0, 23.0, 130.0, 900.0, 2500.0):
         n_fit = max(2000, int(4 * 2 * math.pi / (w * ve.T)))
         expected = simulated_z(plant, ve, w, n_settle, n_fit)
-        got = theory.z_sampled(plant, ve, np.array([w]))[0]
+        got = linear.z_sampled(plant, ve, np.array([w]))[0]
         assert abs(got - expected) <= 1e-6 * abs(expected), (w, got, expected)
 
 
 @pytest.mark.parametrize("plant,ve,n_settle", CASES, ids=[c[1].kind for c in CASES])
 def test_closed_loop_state_space_is_the_same_loop(plant, ve, n_settle):
-    loop = theory.closed_loop(plant, ve)
+    loop = linear.closed_loop(plant, ve)
     f = np.random.default_rng(1).standard_normal(3000)
     _, y, _ = dlsim(loop.as_dlti(), f)
     x = simulate(plant, ve, f)
@@ -91,7 +91,7 @@ def test_closed_loop_state_space_is_the_same_loop(plant, ve, n_settle):
     I = np.eye(loop.A.shape[0])
     G = np.array([(loop.C @ np.linalg.solve(np.exp(1j * wi * ve.T) * I - loop.A, loop.B))[0, 0]
                   for wi in w])
-    np.testing.assert_allclose(1 / (1j * w * G), theory.z_sampled(plant, ve, w), rtol=1e-9)
+    np.testing.assert_allclose(1 / (1j * w * G), linear.z_sampled(plant, ve, w), rtol=1e-9)
 
 
 def growth(plant, ve, n, x0=1e-3, v0=1e-2) -> float:
@@ -111,7 +111,7 @@ SPRING = Plant(0.1, 0.1)
 @pytest.mark.parametrize("td_samples", range(6))
 def test_k_max_spring_against_unit_circle_crossing_and_simulation(td_samples):
     ve = VirtualEnvironment("spring", K=10, td=td_samples * 0.001)
-    km = theory.k_max(SPRING, ve)
+    km = linear.k_max(SPRING, ve)
     # independent: the smallest K > 0 for which 1 + z^-n K P(z) = 0 has a root on |z| = 1
     Ad, Bd = zoh_matrices(SPRING.m, SPRING.b, ve.T)
 
@@ -128,11 +128,11 @@ def test_k_max_spring_against_unit_circle_crossing_and_simulation(td_samples):
     k_cross = min(k for k in crossings if k > 0)
     assert km == pytest.approx(k_cross, rel=1e-3)
     # and the paper's approximation b / (T/2 + td) is within 1 % for this light device
-    assert km == pytest.approx(theory.k_max_approx(SPRING, ve), rel=0.01)
+    assert km == pytest.approx(linear.k_max_approx(SPRING, ve), rel=0.01)
     # verdicts either side of K_max, by simulated growth / decay
     for factor, stable in ((0.9, True), (1.1, False)):
         v = ve.with_(K=factor * km)
-        assert theory.stability(SPRING, v).stable is stable
+        assert linear.stability(SPRING, v).stable is stable
         g = growth(SPRING, v, 40000)
         assert (g < 0.5) if stable else (g > 2.0), (factor, g)
 
@@ -148,7 +148,7 @@ VERDICT_CASES = [
 
 @pytest.mark.parametrize("plant,ve,stable", VERDICT_CASES)
 def test_stability_verdict_matches_simulated_growth(plant, ve, stable):
-    st = theory.stability(plant, ve)
+    st = linear.stability(plant, ve)
     assert st.stable is stable
     g = growth(plant, ve, 20000 if stable else 3000)  # short enough not to overflow
     assert (g < 1e-3) if stable else (g > 10.0), g
@@ -159,9 +159,9 @@ def test_stability_verdict_matches_simulated_growth(plant, ve, stable):
 
 def test_damper_offset_mode_is_not_called_unstable():
     plant, ve = Plant(0.1, 0.1), VirtualEnvironment("damper", B=1, w0=200)
-    A = theory.closed_loop(plant, ve).A
+    A = linear.closed_loop(plant, ve).A
     assert np.max(np.abs(np.linalg.eigvals(A))) == pytest.approx(1.0, abs=1e-12)
-    st = theory.stability(plant, ve)
+    st = linear.stability(plant, ve)
     assert st.stable and st.spectral_radius < 0.999
     x = simulate(plant, ve, np.zeros(5000), x0=0.0, v0=0.05)
     assert abs(x[-1] - x[-2]) < 1e-12 and abs(x[-1]) > 1e-4  # settles at an offset
@@ -170,9 +170,9 @@ def test_damper_offset_mode_is_not_called_unstable():
 def test_k_max_spring_damper_brackets_the_simulated_boundary():
     plant = Plant(0.094, 0.1)
     ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=0.002)
-    km = theory.k_max(plant, ve)
-    assert theory.stability(plant, ve.with_(K=km * 0.999)).stable
-    assert not theory.stability(plant, ve.with_(K=km * 1.001)).stable
+    km = linear.k_max(plant, ve)
+    assert linear.stability(plant, ve.with_(K=km * 0.999)).stable
+    assert not linear.stability(plant, ve.with_(K=km * 1.001)).stable
     assert growth(plant, ve.with_(K=km * 1.05), 12000) > 2.0
     assert growth(plant, ve.with_(K=km * 0.95), 12000) < 0.5
 
@@ -183,31 +183,31 @@ def test_sampled_ed_drop_is_k_td():
     plant = Plant(0.094, 0.1)
     for td in (0.0, 0.002, 0.005):
         ve = VirtualEnvironment("spring-damper", K=50, B=1, w0=125, td=td)
-        eff = theory.delay_effects(plant, ve)
+        eff = linear.delay_effects(plant, ve)
         assert eff["ED_drop_sampled"] == pytest.approx(50 * td, abs=1e-9)
         w = np.array([1e-2])
-        assert theory.z_sampled(plant, ve, w)[0].real == pytest.approx(1.1 - 50 * td, abs=1e-6)
+        assert linear.z_sampled(plant, ve, w)[0].real == pytest.approx(1.1 - 50 * td, abs=1e-6)
 
 
 def test_fractional_delay_is_a_clear_error():
     ve = VirtualEnvironment("spring", K=10, td=0.0015)
-    for f in (lambda: theory.z_sampled(SPRING, ve, [1.0]), lambda: theory.closed_loop(SPRING, ve),
-              lambda: theory.theory_curve(SPRING, ve, [1.0], "sampled")):
+    for f in (lambda: linear.z_sampled(SPRING, ve, [1.0]), lambda: linear.closed_loop(SPRING, ve),
+              lambda: linear.theory_curve(SPRING, ve, [1.0], "sampled")):
         with pytest.raises(UserError, match="whole number of samples"):
             f()
-    assert theory.delay_effects(SPRING, ve)["ED_drop_sampled"] is None
-    assert np.isfinite(theory.z_paper(SPRING, ve, [1.0])).all()
+    assert linear.delay_effects(SPRING, ve)["ED_drop_sampled"] is None
+    assert np.isfinite(linear.z_paper(SPRING, ve, [1.0])).all()
 
 
 def test_undamped_device_cannot_render_a_stable_spring():
     """b = 0: b > K (T/2 + td) fails for every K > 0, and so does the sampled loop."""
     plant = Plant(0.1, 0.0)
     ve = VirtualEnvironment("spring", K=10)
-    assert theory.k_max(plant, ve) == 0.0
-    assert not theory.stability(plant, ve).stable
+    assert linear.k_max(plant, ve) == 0.0
+    assert not linear.stability(plant, ve).stable
     assert growth(plant, ve, 20000) > 1.3  # rho^18000 = 1.57
     # open loop, no damping: a marginal double integrator, not called stable
-    st = theory.stability(plant, VirtualEnvironment())
+    st = linear.stability(plant, VirtualEnvironment())
     assert not st.stable and st.spectral_radius == pytest.approx(1.0, abs=1e-12)
 
 
@@ -220,9 +220,9 @@ def test_closed_form_equals_state_space_for_any_loop(m, b, K, B, w0, n, T):
     closed_loop's state matrices (whose time response matches the simulator above)."""
     plant = Plant(m, b)
     ve = VirtualEnvironment("spring-damper", K=K, B=B, w0=w0, T=T, td=n * T)
-    loop = theory.closed_loop(plant, ve)
+    loop = linear.closed_loop(plant, ve)
     w = np.array([0.3, 7.0, 90.0, 0.9 * math.pi / T])
     I = np.eye(loop.A.shape[0])
     G = np.array([(loop.C @ np.linalg.solve(np.exp(1j * wi * T) * I - loop.A, loop.B))[0, 0]
                   for wi in w])
-    np.testing.assert_allclose(theory.z_sampled(plant, ve, w), 1 / (1j * w * G), rtol=1e-7)
+    np.testing.assert_allclose(linear.z_sampled(plant, ve, w), 1 / (1j * w * G), rtol=1e-7)

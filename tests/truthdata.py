@@ -57,7 +57,7 @@ def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PA
     excitation reaching the plant ``latency`` [s] after its sample and the VE force
     ``latency + ve_delay`` after its own (either a fraction of a sample or not).
 
-    Brute force, independent of ``labbench.theory``: each step is cut where either held
+    Brute force, independent of ``labbench.model.linear``: each step is cut where either held
     input changes, and every piece integrated exactly (``scipy.linalg.expm`` of the
     augmented plant). The VE is ``ve``'s law (K, B, w0 filter) with its td ignored: the
     metadata say td = 0, so the VE-path delay is undeclared. ``force_noise`` [N rms] is

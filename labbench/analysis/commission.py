@@ -8,7 +8,7 @@ One open-loop record (VE off): force doublets of both signs, then a short chirp.
   flipped; the rest is analysed with the position negated;
 * **delay, mass, damping, friction**: the record fitted with the exact sampled model of
   the device, ``f = m x'' + b x' [+ Fc sign(x')] [+ f0]`` with the held command delayed
-  by L (``labbench.analysis.compare.plant_force``: the split of ``labbench.theory``),
+  by L (``labbench.analysis.compare.plant_force``: the split of ``labbench.model.linear``),
   the terms chosen as ``analyze id`` chooses them (``labbench.analysis.identify``), L
   the minimiser of the residual; its interval from the residual's curvature with the
   residual's own bandwidth (2 f_c samples a second are independent);
@@ -17,7 +17,7 @@ One open-loop record (VE off): force doublets of both signs, then a short chirp.
   position by c and, when the command is a torque through the lever arm, the force by c
   as well: mass off by c^-2 (by c^-1 when the force is set at the handle). So
   m / m_nominal = rho implies counts_per_rev / rho, or lever_arm_m rho^(1/e) (e = 2, or 1);
-* **the stiffest safe spring**: ``labbench.theory.k_max`` with the measured m, b, L.
+* **the stiffest safe spring**: ``labbench.model.linear.k_max`` with the measured m, b, L.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ import math
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from labbench import theory
+from labbench.model import linear
 from labbench.analysis.compare import plant_force
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.identify import identify
@@ -156,7 +156,7 @@ def analyze(t, force, position, doublets, meta: dict) -> dict:
     out["friction"] = friction
     plant = Plant(max(fit["m"], 1e-9), max(fit["b"], 0.0))
     spring = VirtualEnvironment("spring", K=1.0, T=T)
-    km = theory.k_max(plant, spring, latency=dp["delay_s"])
+    km = linear.k_max(plant, spring, latency=dp["delay_s"])
     out["k_max"] = {"k_max_n_m": km, "m": plant.m, "b": plant.b, "latency_s": dp["delay_s"],
                     "verdict": judge([(OK, "")] if km and km > 0 else
                                      [(FAILED, "no spring is stable on this device")]).as_dict()}

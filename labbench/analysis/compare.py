@@ -15,7 +15,8 @@ import math
 import numpy as np
 from scipy import signal
 
-from labbench import device_delay, theory
+from labbench import device_delay
+from labbench.model import linear
 from labbench.analysis.dataio import Recording, recording_from_arrays
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult, identify
@@ -59,7 +60,7 @@ def plant_force(rec: Recording, ve: VirtualEnvironment | None, latency: float = 
     """Force on the plant: the command f_exo[k] - f_ve[k - n] (f_ve from the sampled
     position; none in open loop) as the plant holds it after the rig's extra delay
     ``latency`` = (d + alpha) T: (1 - alpha) u[k - d] + alpha u[k - d - 1], the two held
-    values the split step carries (``labbench.theory`` module doc), at rest before the record.
+    values the split step carries (``labbench.model.linear`` module doc), at rest before the record.
 
     A VE td that is not whole samples (the paper's continuous delay, docs/analysis.md)
     delays f_ve the same split way: exact for whole samples, the linear interpolation
@@ -77,7 +78,7 @@ def plant_force(rec: Recording, ve: VirtualEnvironment | None, latency: float = 
 def _delayed(u: np.ndarray, delay: float, T: float) -> np.ndarray:
     """u delayed by ``delay`` = (d + alpha) T: (1 - alpha) u[k - d] + alpha u[k - d - 1],
     zero before the record."""
-    d, alpha = theory.latency_split(delay, T)
+    d, alpha = linear.latency_split(delay, T)
     late = np.concatenate([np.zeros(min(d, len(u))), u[: max(len(u) - d, 0)]])
     return (1 - alpha) * late + alpha * np.concatenate([[0.0], late[:-1]]) if alpha else late
 
@@ -109,7 +110,7 @@ def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "
 def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
     """``(m, b) ->`` the position the closed loop of ``ve`` (the device delay ``latency``)
     would have on the record's exogenous force alone: its exact sampled response
-    1 / (jw Z) (``theory.z_sampled``, fractional delays too) through the FFT. The
+    1 / (jw Z) (``linear.z_sampled``, fractional delays too) through the FFT. The
     identification's instruments (``identify``'s ``response``): any function of the
     exogenous force is uncorrelated with the noise; the FFT's wrap-around at the record's
     ends only makes the instruments weaker there."""
@@ -119,7 +120,7 @@ def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
 
     def response(m: float, b: float) -> np.ndarray:
         H = np.zeros(len(w), complex)  # DC left out: the derivatives do not see it
-        Z = theory.z_sampled(Plant(m, b), ve.with_(td=0.0), w[1:], latency, ve_delay=ve.td)
+        Z = linear.z_sampled(Plant(m, b), ve.with_(td=0.0), w[1:], latency, ve_delay=ve.td)
         H[1:] = 1.0 / (1j * w[1:] * Z)
         return np.fft.irfft(F * H, len(f))
     return response
@@ -128,11 +129,11 @@ def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
 def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> dict:
     """The theory overlay at w: ``sampled``, the exact sampled model (None when td is not
     whole samples), and ``paper``, eq. 2, both with the device's own delay ``latency``
-    [s] (``labbench.device_delay``, ``labbench.theory.z_paper``); ``model`` and
+    [s] (``labbench.device_delay``, ``labbench.model.linear.z_paper``); ``model`` and
     ``Z``: the one to compare with, the sampled model when it exists."""
     w = np.asarray(w, float)
-    sampled = theory.z_sampled(plant, ve, w, latency) if theory.whole_samples(ve) else None
-    paper = theory.z_paper(plant, ve, w, latency)
+    sampled = linear.z_sampled(plant, ve, w, latency) if linear.whole_samples(ve) else None
+    paper = linear.z_paper(plant, ve, w, latency)
     model = "sampled" if sampled is not None else "paper"
     return {"model": model, "Z": sampled if sampled is not None else paper, "sampled": sampled, "paper": paper}
 
@@ -178,6 +179,6 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
         "deviation_max_band_rel": dev["max_band_rel"],
         "band_rad_s": dev["band_rad_s"],
         "wb_star": measured_wb_star(res.w, eff.ED, plant.b),
-        "predicted_ws_star": theory.predicted_ws_star(plant, ve),
-        "predicted_wb_star": theory.predicted_wb_star(ve),
+        "predicted_ws_star": linear.predicted_ws_star(plant, ve),
+        "predicted_wb_star": linear.predicted_wb_star(ve),
     }

@@ -1,10 +1,10 @@
 """Fit the exact sampled closed-loop model to a measured impedance: plant m, b and where
 the loop's delays live (``labbench analyze etfe --fit``).
 
-Model: ``labbench.theory.z_sampled(Plant(m, b), ve, w, latency=td, ve_delay=tv)``:
+Model: ``labbench.model.linear.z_sampled(Plant(m, b), ve, w, latency=td, ve_delay=tv)``:
 ``Z = (1 + P_{td+tv} C) / (jw P_td)``, the VE of the metadata (law, K, B, w0), with two
 delays, both continuous (fractions of a sample: the held input split over two samples,
-``labbench.theory`` module doc):
+``labbench.model.linear`` module doc):
 
 * ``td`` >= 0, the device's latency on the whole command (excitation and VE force);
 * ``tv`` >= 0, the VE-path delay (the paper's td: software delay on the VE force only).
@@ -60,7 +60,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal, stats
 
-from labbench import theory, verdict
+from labbench import verdict
+from labbench.model import linear
 from labbench.analysis.etfe import EtfeResult, FitPoints
 from labbench.analysis.progress import Progress, Steps
 from labbench.errors import UserError
@@ -155,7 +156,7 @@ class _Problem:
         tv = p.get("tv_s", self.ve.td)
 
         def z(w):
-            return theory.z_sampled(Plant(p["m"], p["b"]), ve, w, latency=p.get("td_s", 0.0), ve_delay=tv)
+            return linear.z_sampled(Plant(p["m"], p["b"]), ve, w, latency=p.get("td_s", 0.0), ve_delay=tv)
         return z(self.w[use]) if self.expect is None or coarse else self.expect(z, use)
 
     def fit(self, model: str, use=slice(None), starts=None):

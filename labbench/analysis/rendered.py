@@ -17,7 +17,7 @@ last term is dropped (on the exact sampled model over this band the three-term l
 within 1e-4 of the true ones, and the change bounds that 10-100 times over).
 
 The same fit to the exact sampled theory over the same frequencies gives the prediction
-to hold it against (``theory``), and the theory's own limit (``labbench.theory``) is kept
+to hold it against (``theory``), and the theory's own limit (``labbench.model.linear``) is kept
 beside it.
 """
 from __future__ import annotations
@@ -148,7 +148,8 @@ def rendered_impedance(res: EtfeResult, ve, plant, latency: float = 0.0,
     sampled theory predicts for it (the same fit to its curve over the same frequencies, and
     its true limit), as recorded in a run's results under ``rendered``; None when the band
     holds too few frequencies (a record too short for the VE's bandwidths)."""
-    from labbench import predictions, theory
+    from labbench import predictions
+    from labbench.model import linear
     from labbench.analysis.compare import theory_curves
     from labbench.analysis.etfe import analysis_band
 
@@ -160,7 +161,7 @@ def rendered_impedance(res: EtfeResult, ve, plant, latency: float = 0.0,
         return None
     curves = theory_curves(plant, ve, res.w, latency)
     th = fit(res.w, curves["Z"], where=where)
-    ed0 = theory.low_frequency(plant, ve, curves["model"], latency)[0]
+    ed0 = linear.low_frequency(plant, ve, curves["model"], latency)[0]
     return {**got.as_dict(),
             "theory": {"model": curves["model"], "K": th.K, "B": th.B, "K_limit": ve.K, "B_limit": ed0},
             "commanded": {"K": ve.K, "B": ve.B, "b": plant.b}}

@@ -15,8 +15,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from labbench import theory
-from labbench.campaign import passivity
+from labbench.model import linear
+from labbench.model import passivity
 from labbench.escape import literal_mpl
 from labbench.numfmt import fmt
 from labbench.ve import Plant, VirtualEnvironment
@@ -100,13 +100,13 @@ def _theory_curves(ax, r: dict, w0, b_top: float, color: str, name: str, first: 
     Bs = np.linspace(0.0, 1.05 * b_top, N_CURVE)
     ves = [VirtualEnvironment("spring-damper", 1.0, B, math.inf if w0 is None else w0, T, td)
            for B in Bs]
-    exact = [theory.k_max(plant, ve, latency=latency) for ve in ves]
+    exact = [linear.k_max(plant, ve, latency=latency) for ve in ves]
     passive = [passivity.passive_k_max(plant, ve, latency) for ve in ves]
     ax.plot(Bs, exact, "-", color=color, lw=1.3, label=literal_mpl(f"stable, exact sampled ({name})"))
     ax.plot(Bs, passive, "--", color=color, lw=1.0,
             label=literal_mpl(f"passive, sampled-data condition ({name})"))
     if first:
-        approx = [theory.k_max_approx(plant, ve, latency) for ve in ves]
+        approx = [linear.k_max_approx(plant, ve, latency) for ve in ves]
         ax.plot(Bs, approx, ":", color="0.3", lw=1.0,
                 label="stable, paper's approximation (b + B) / (T/2 + td)")
         line = [passivity.colgate_line(plant.b, B, T) for B in Bs]

@@ -240,7 +240,7 @@ def point_rig(base: Rig, fields: dict, where: str = "point") -> Rig:
 
 
 def _k_from_fraction(name: str, opts: dict, rig: Rig, plant: Plant, latency: float, frac) -> float:
-    from labbench import theory
+    from labbench.model import linear
     from labbench.registry import make_protocol
 
     if "K" in opts:
@@ -248,7 +248,7 @@ def _k_from_fraction(name: str, opts: dict, rig: Rig, plant: Plant, latency: flo
     if isinstance(frac, bool) or not isinstance(frac, (int, float)) or not frac > 0:
         raise UserError(f"{K_FRACTION} must be a number > 0, got {frac!r}")
     probe = make_protocol(name, sample_time_s=rig.sample_time_s, **{**opts, "K": 1.0})
-    k = theory.k_max(plant, probe.ve, latency=latency)
+    k = linear.k_max(plant, probe.ve, latency=latency)
     if k is None or not math.isfinite(k) or k <= 0:
         raise UserError(f"{K_FRACTION}: the VE has no finite stable K on this plant")
     return float(frac) * k

@@ -20,9 +20,9 @@ verdict; and what the literature asks a Z-width to state, for every point:
 
 Predictions (``pred.*``), with the campaign's plant and the run's device delay:
 
-* every VE with a spring: ``pred.k_max`` (exact sampled, ``labbench.theory.k_max``) and
+* every VE with a spring: ``pred.k_max`` (exact sampled, ``labbench.model.linear.k_max``) and
   ``pred.k_max_approx`` (the paper's), ``pred.k_passive`` (the sampled-data passivity bound
-  of Colgate & Schenkel for this VE, ``labbench.campaign.passivity``), ``pred.k_passive_line``
+  of Colgate & Schenkel for this VE, ``labbench.model.passivity``), ``pred.k_passive_line``
   (their b > K T / 2 + |B|) and ``pred.k_passive_quantised`` (Abbott & Okamura's
   2 f_c / Delta with the commissioning's f_c);
 * the stability probe: ``zw.k_max`` (measured), ``zw.ci_lo`` / ``zw.ci_hi`` (its 95 %
@@ -49,8 +49,9 @@ import math
 
 import numpy as np
 
-from labbench import device_delay, theory
-from labbench.campaign import passivity
+from labbench import device_delay
+from labbench.model import linear
+from labbench.model import passivity
 from labbench.errors import UserError
 from labbench.sweep.point import flatten, typed_row, verdict_columns
 from labbench.ve import Plant
@@ -119,8 +120,8 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
     ve = pp.protocol.ve
     out = {}
     if ve.kind in ("spring", "spring-damper"):
-        out["pred.k_max"] = theory.k_max(plant, ve, latency=latency)
-        out["pred.k_max_approx"] = theory.k_max_approx(plant, ve, latency)
+        out["pred.k_max"] = linear.k_max(plant, ve, latency=latency)
+        out["pred.k_max_approx"] = linear.k_max_approx(plant, ve, latency)
         out["pred.k_passive"] = passivity.passive_k_max(plant, ve, latency)
         out["pred.k_passive_line"] = passivity.colgate_line(plant.b, ve.B, ve.T)
         out["pred.k_passive_quantised"] = passivity.quantisation_bound(
@@ -170,7 +171,7 @@ def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:
     Z = np.asarray(e["Z_re"], float)[sel] + 1j * np.asarray(e["Z_im"], float)[sel]
     radius = np.asarray(e["Z_err"], float)[sel]
     measured = effective_impedances(w, Z)
-    predicted = effective_impedances(w, theory.z_sampled(plant, ve, w, latency))
+    predicted = effective_impedances(w, linear.z_sampled(plant, ve, w, latency))
     es_ideal, ed_ideal = ve.K - plant.m * w**2, plant.b + ve.B
     out = {}
     for name, ideal, scale, meas, pred, band in (
@@ -186,7 +187,7 @@ def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:
     fit = res.get("loop_fit") or {}
     if k_pred is not None and all(isinstance(fit.get(k), (int, float)) for k in ("m", "b", "td_s")):
         try:
-            out["acc.k_max_fit"] = theory.k_max(Plant(fit["m"], fit["b"]), ve,
+            out["acc.k_max_fit"] = linear.k_max(Plant(fit["m"], fit["b"]), ve,
                                                 latency=max(fit["td_s"], 0.0))
         except UserError:  # a fit outside the physical range (b < 0): no plant, no K_max
             out["acc.k_max_fit"] = None

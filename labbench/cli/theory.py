@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from labbench import predictions, theory
+from labbench import predictions
+from labbench.model import linear
 from labbench.cli.main import float_list
 from labbench.numfmt import fmt
 from labbench.jsonutil import json_safe
@@ -39,7 +40,7 @@ def register(subparsers) -> None:
                    help="the device's own delay on the whole command (a drive that applies "
                         "the torque at the next SYNC: one sample time), beyond td; "
                         "fractions of a sample allowed (default 0)")
-    p.add_argument("--model", choices=theory.MODELS, default="paper",
+    p.add_argument("--model", choices=linear.MODELS, default="paper",
                    help="paper: eq. 2 with delay T/2 + td; sampled: exact sampled-data loop")
     p.add_argument("--w", type=float_list, metavar="W1,W2,...",
                    help="frequencies (rad/s), up to the Nyquist frequency pi/T (default: a log "
@@ -113,7 +114,7 @@ def _ve(args, td: float) -> VirtualEnvironment:
 def default_grid(plant: Plant, ve: VirtualEnvironment, n: int) -> np.ndarray:
     """Log-spaced w from a decade below the slowest corner (at most 1 rad/s) to
     a decade above w0 (at least 1000 rad/s), capped at the Nyquist rate pi/T."""
-    corners = [r for r in (theory.predicted_ws_star(plant, ve), theory.predicted_wb_star(ve)) if r]
+    corners = [r for r in (linear.predicted_ws_star(plant, ve), linear.predicted_wb_star(ve)) if r]
     lo = min([1.0] + [0.1 * r for r in corners])
     hi = min(max([1000.0] + [10 * r for r in corners]), math.pi / ve.T)
     return np.logspace(math.log10(lo), math.log10(hi), n)
@@ -123,12 +124,12 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
             latency: float = 0.0) -> dict:
     """Everything the CLI reports for one VE: the contract keys plus context. ``latency``:
     the device's own delay [s] on the whole command (``labbench.device_delay``)."""
-    Z = theory.theory_curve(plant, ve, w, model, latency)
+    Z = linear.theory_curve(plant, ve, w, model, latency)
     eff = effective_impedances(w, Z)
-    whole = theory.whole_samples(ve)
-    st = theory.stability(plant, ve, latency) if whole else None
-    kmax = theory.k_max(plant, ve, latency=latency) if whole else None
-    kapp = theory.k_max_approx(plant, ve, latency)
+    whole = linear.whole_samples(ve)
+    st = linear.stability(plant, ve, latency) if whole else None
+    kmax = linear.k_max(plant, ve, latency=latency) if whole else None
+    kapp = linear.k_max_approx(plant, ve, latency)
     bw = predictions.bandwidths(plant, ve, latency)
     return {
         "model": model,
@@ -162,7 +163,7 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
         "ws_star_eq5": bw.ws_star_eq5,
         "wb_star_w0": bw.wb_star_w0,
         "bandwidths_model": bw.model,
-        "delay_effects": theory.delay_effects(plant, ve, latency),
+        "delay_effects": linear.delay_effects(plant, ve, latency),
     }
 
 
@@ -224,9 +225,9 @@ def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray,
 
     dev = f" + device {1e3 * latency:g} ms" if latency else ""
     curves = [Curve(label=f"td = {1e3 * ve.td:g} ms (T/2 + td{dev} = {1e3 * (ve.delay + latency):g} ms)",
-                    w=w, Z=theory.theory_curve(plant, ve, w, args.model, latency)) for ve in ves]
+                    w=w, Z=linear.theory_curve(plant, ve, w, args.model, latency)) for ve in ves]
     ve = ves[0]
-    marks = {"ws*": theory.predicted_ws_star(plant, ve), "wb*": theory.predicted_wb_star(ve)}
+    marks = {"ws*": linear.predicted_ws_star(plant, ve), "wb*": linear.predicted_wb_star(ve)}
     gains = ", ".join(f"{n} = {getattr(ve, n):g}" for n in ("K", "B") if n in USES[ve.kind])
     if "w0" in USES[ve.kind]:
         gains += f", w0 = {ve.w0:g}"

@@ -9,7 +9,7 @@ So the samples are exact up to floating point: no integrator error to mistake
 for estimator error.
 
 Closed loop (ETFE): ``closed_loop_recording`` runs the exact sampled loop of
-``labbench.theory.closed_loop`` (input f_exo[k], output x[k]) through
+``labbench.model.linear.closed_loop`` (input f_exo[k], output x[k]) through
 ``scipy.signal.dlsim``; its frequency response ``z_truth`` is the truth.
 
 Measurement errors are added to the recorded channels only (``with_noise``,
@@ -101,17 +101,17 @@ def measured(rec: Recording, rng, quantum: float = 0.0, position_noise: float = 
 def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PAPER_B,
                           seed: int = 0, force_std: float = 1.0, latency: float = 0.0,
                           process_noise: float = 0.0) -> Recording:
-    """White-noise exogenous force through the exact sampled loop (theory.closed_loop; ``latency``
+    """White-noise exogenous force through the exact sampled loop (linear.closed_loop; ``latency``
     [s]: the rig's actuator delay, not in the metadata; ``process_noise`` [N rms]: white force
     the plant feels but the record does not hold, like the simulator's force_noise_n)."""
     from scipy import signal
 
-    from labbench import theory
+    from labbench.model import linear
     from labbench.ve import Plant
 
     rng = np.random.default_rng(seed)
     f = force_std * rng.standard_normal(n)
-    loop = theory.closed_loop(Plant(m, b), ve, latency)
+    loop = linear.closed_loop(Plant(m, b), ve, latency)
     _, y, _ = signal.dlsim(loop.as_dlti(), f + process_noise * rng.standard_normal(n))
     meta = {"fs": 1.0 / ve.T, **{k: v for k, v in ve.as_dict().items() if k != "T" and v is not None}}
     meta["ve"] = meta.pop("kind")
@@ -120,7 +120,7 @@ def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PA
 
 def z_truth(ve, w, m: float = PAPER_M, b: float = PAPER_B, latency: float = 0.0) -> np.ndarray:
     """Exact sampled impedance at w: what an ETFE of closed_loop_recording converges to."""
-    from labbench import theory
+    from labbench.model import linear
     from labbench.ve import Plant
 
-    return theory.z_sampled(Plant(m, b), ve, w, latency)
+    return linear.z_sampled(Plant(m, b), ve, w, latency)

@@ -96,7 +96,7 @@ def route(protocol: str, params: dict) -> dict:
 
 def build_run(spec, params: dict):
     """The point's (rig, protocol, device options, truth) from its parameters (``route``)."""
-    from labbench import theory
+    from labbench.model import linear
     from labbench.registry import make_protocol
     from labbench.rig import rig_from_dict
     from labbench.ve import DEFAULT_PLANT, Plant
@@ -137,7 +137,7 @@ def build_run(spec, params: dict):
         if isinstance(frac, bool) or not isinstance(frac, (int, float)) or not frac > 0:
             raise UserError(f"{K_FRACTION} must be a number > 0, got {frac!r}")
         probe = make_protocol(spec.protocol, **{**proto_opts, "K": 1.0})
-        k = theory.k_max(plant, probe.ve, latency=latency)
+        k = linear.k_max(plant, probe.ve, latency=latency)
         if k is None:
             raise UserError(f"{K_FRACTION}: the VE has no stable K on this plant")
         proto_opts["K"] = float(frac) * k
@@ -187,20 +187,20 @@ def _run_point(spec, params: dict, keep_dir) -> dict:
 
 def _truth(ve, truth: dict, results: dict) -> dict:
     """What the exact sampled theory says of the point's truth, and the results' errors."""
-    from labbench import theory
+    from labbench.model import linear
 
     plant, latency = truth["plant"], truth["device_delay_s"]
     out = {"truth.m": truth["m"], "truth.b": truth["b"], "truth.device_delay_s": latency}
-    out["truth.stable"] = bool(theory.stability(plant, ve, latency).stable)
+    out["truth.stable"] = bool(linear.stability(plant, ve, latency).stable)
     if ve.kind in ("spring", "spring-damper"):
-        out["truth.k_max"] = theory.k_max(plant, ve, latency=latency)
-        out["truth.k_max_approx"] = theory.k_max_approx(plant, ve, latency)
+        out["truth.k_max"] = linear.k_max(plant, ve, latency=latency)
+        out["truth.k_max_approx"] = linear.k_max_approx(plant, ve, latency)
     e = results.get("etfe")
     if isinstance(e, dict) and all(k in e for k in ("w", "Z_re", "Z_im")):
         w = np.asarray(e["w"], float)
         Z = np.asarray(e["Z_re"], float) + 1j * np.asarray(e["Z_im"], float)
-        out.update(accuracy(w, Z, theory.z_sampled(plant, ve, w, latency)))
-        bw = theory.predicted_bandwidths(plant, ve, "sampled", latency)
+        out.update(accuracy(w, Z, linear.z_sampled(plant, ve, w, latency)))
+        bw = linear.predicted_bandwidths(plant, ve, "sampled", latency)
         out["truth.ws_star"], out["truth.wb_star"] = bw["ws_star"], bw["wb_star"]
     if results.get("variable") == "K" and "truth.k_max" in out:
         out["truth.k_max_rel_error"] = _rel(results.get("measured_boundary"), out["truth.k_max"])

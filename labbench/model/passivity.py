@@ -4,7 +4,7 @@ A haptic display can be stable without being passive (Diolaiti, Niemeyer, Barbag
 Salisbury, "Stability of haptic rendering: discretization, quantization, time delay, and
 Coulomb effects", IEEE TRO 22(2), 2006): stability asks whether the loop with the
 handle left alone decays; passivity asks whether it can ever give a hand that holds it
-more energy than it took. The stable bound is ``labbench.theory.k_max`` (exact) and
+more energy than it took. The stable bound is ``labbench.model.linear.k_max`` (exact) and
 ``k_max_approx`` (b + B > K (T/2 + td), the paper's form of Diolaiti's linear
 condition); this module holds the passive ones.
 
@@ -52,7 +52,7 @@ import math
 
 import numpy as np
 
-from labbench.theory import latency_split
+from labbench.model.linear import latency_split
 from labbench.ve import Plant, VirtualEnvironment
 
 N_GRID = 20000  # frequencies from pi / (T N_GRID) to pi / T

@@ -1,0 +1,7 @@
+"""The models a measurement is compared against, one module per part.
+
+- ``linear``: the paper's loop, continuous (eq. 2) and exact sampled (ZOH), its
+  stability, K_max and bandwidths: the device as a linear mass-damper.
+- ``passivity``: the passive bounds a Z-width is read against (Colgate & Schenkel;
+  Abbott & Okamura's quantisation and Coulomb bound).
+"""
