@@ -14,7 +14,10 @@ encoder counts of ``rig.metres_per_count``), ``force_noise_n`` [N] std of white
 noise added to the applied force, ``extra_delay_samples`` whole samples of
 actuator latency and ``extra_delay_fraction`` in [0, 1) more (each step then
 holds the previous command for that fraction of T first: the latency model of
-``labbench.model.linear``; without Coulomb friction), ``x0_m`` / ``v0_m_s`` initial state.
+``labbench.model.linear``; with friction each of the two stretches is solved exactly),
+``cogging_n`` [N] and ``cogging_period_m`` [m] a motor's detent force
+``cogging_n sin(2 pi x / cogging_period_m)`` against the handle (substeps,
+``labbench.sim_backend.friction.Cogging``), ``x0_m`` / ``v0_m_s`` initial state.
 
 ``paced`` (all simulated backends: sim, sim-canopen, sim-serial, avr-sim; ``paced_by_rig``):
 run at the sample time of the wall clock, under the rig's ``[realtime]`` settings, as the
@@ -48,7 +51,7 @@ from labbench.device import (ESTOP_STATE, DeviceDescription, DeviceFault, Device
 from labbench.errors import UserError, nearest_hint
 from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
-from labbench.sim_backend.friction import reversing_step
+from labbench.sim_backend.friction import Cogging, cogged_step, held_step, reversing_step
 from labbench.model.linear import latency_inputs, zoh_matrices
 
 _NOISE_STREAM = 0x4E01  # key of the force-noise stream (labbench.protocols draw from the seed alone)
@@ -63,6 +66,8 @@ _OPTIONS = {
     "extra_delay_samples": (0, lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 1000,
                             "a whole number of samples in 0..1000"),
     "extra_delay_fraction": (0.0, lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1) [samples]"),
+    "cogging_n": (0.0, lambda v: _num(v) and 0 <= v <= 1e3, "a number in [0, 1000] [N]"),
+    "cogging_period_m": (None, lambda v: _num(v) and 1e-6 <= v <= 10, "a number in [1e-6, 10] [m]"),
     "x0_m": (0.0, lambda v: _num(v), "a number [m]"),
     "sign": (None, lambda v: isinstance(v, int) and not isinstance(v, bool) and v in (1, -1),
              "1 or -1"),
@@ -89,10 +94,11 @@ def sim_options(rig, **options) -> dict:
             if not _OPTIONS[name][1](value):
                 raise UserError(f"{origin} {name} must be {_OPTIONS[name][2]}, got {value!r}")
             settings[name] = value
-    for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s", "extra_delay_fraction"):
+    for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s", "extra_delay_fraction",
+                 "cogging_n"):
         settings[name] = float(settings[name])
-    if settings["extra_delay_fraction"] and settings["coulomb_n"]:
-        raise UserError("sim extra_delay_fraction needs coulomb_n = 0 (the friction step holds one force)")
+    if settings["cogging_n"] and settings["cogging_period_m"] is None:
+        raise UserError("sim cogging_n needs cogging_period_m (the detents' spacing at the handle) [m]")
     Plant(settings["m"], settings["b"])  # within the physical range (1e308 overflows the plant)
     return settings
 
@@ -173,6 +179,13 @@ class SimDevice:
         self._early = (latency_inputs(Plant(o["m"], o["b"]), T, o["extra_delay_fraction"])[1].tolist()
                        if o["extra_delay_fraction"] else None)
         self._delay_i = 0
+        # Friction with a fractional delay, or cogging: each step is held stretches (the
+        # previous command over the first fraction of T, then this one) solved one by one
+        alpha = o["extra_delay_fraction"]
+        self._cogging = (Cogging(o["cogging_n"], float(o["cogging_period_m"]), o["m"])
+                         if o["cogging_n"] else None)
+        self._stretches = ((alpha * T, True), ((1.0 - alpha) * T, False)) if alpha else ((T, False),)
+        self._stretched = bool(self._cogging or (alpha and self._fc))
         self.x, self.v = o["x0_m"], o["v0_m_s"]  # true state at the start of the current step
         self.applied_n = 0.0  # force applied over the last completed step (after noise/gating)
         self._u = 0.0
@@ -227,7 +240,8 @@ class SimDevice:
 
         The step holds the applied force: exact ZOH for the linear part, Coulomb
         friction solved inside the step. Written out in one method (a helper is
-        called only in a step where the velocity reaches zero): it runs once per
+        called only in a step where the velocity reaches zero, or one made of held
+        stretches: friction with a fractional delay, cogging): it runs once per
         simulated sample.
         """
         if self.closed:
@@ -254,7 +268,9 @@ class SimDevice:
             x, v = self.x, self.v
             a11, a12, a21, a22, b1, b2 = self._coef
             fc = self._fc
-            if not fc:
+            if self._stretched:
+                self.x, self.v = x, _ = self._held_stretches(x, v, u_early, u)
+            elif not fc:
                 self.v = a21 * x + a22 * v + b2 * u
                 self.x = x = a11 * x + a12 * v + b1 * u
                 if self._early:  # x+ = Ad x + G_late u + G_early u_early, G_late = Bd - G_early
@@ -289,6 +305,18 @@ class SimDevice:
         self.close()
 
     # -- internals -------------------------------------------------------------------
+    def _held_stretches(self, x: float, v: float, u_early: float, u: float) -> tuple[float, float]:
+        """State after one step made of held stretches (``__init__``), each solved with
+        friction (and cogging) by ``labbench.sim_backend.friction``."""
+        o, fc, cog = self.options, self._fc, self._cogging
+        for h, early in self._stretches:
+            f = u_early if early else u
+            if cog is None:
+                x, v = held_step(x, v, f, fc, h, o["m"], o["b"])
+            else:
+                x, v = cogged_step(x, v, f, fc, h, o["m"], o["b"], cog)
+        return x, v
+
     def _pace(self, k: int, timeout: float) -> None:
         """Wait until sample k is due at ``t0 + k T`` (``labbench.realtime.sleep_until``:
         sleep, then spin the last 150 us, so the sample is on time to a few us).
