@@ -2,6 +2,8 @@
 
 - ``linear``: the paper's loop, continuous (eq. 2) and exact sampled (ZOH), its
   stability, K_max and bandwidths: the device as a linear mass-damper.
+- ``noise``: the force noise the loop commands from the encoder step and the amplifier's
+  noise, through the exact sampled loop (spectrum, RMS in the band a person feels).
 - ``passivity``: the passive bounds a Z-width is read against (Colgate & Schenkel;
   Abbott & Okamura's quantisation and Coulomb bound).
 """

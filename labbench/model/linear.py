@@ -189,6 +189,19 @@ def z_sampled(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0,
     return Z
 
 
+def loop_parts(plant: Plant, ve: VirtualEnvironment, w,
+               latency: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(P, G) of the exact sampled loop at e^{jwT}: P = X/U, the held plant with the device's
+    ``latency`` on the command, and G = z^-n C, the VE's path from the sampled position to the
+    command (its td and velocity filter). The loop gain is G P, and ``z_sampled`` is
+    (1 + G P) / (jw P). Raises UserError when td is not whole samples."""
+    w = np.asarray(w, dtype=float)
+    P = _plant_response(plant, ve.T, w, latency)
+    if ve.kind == "none":
+        return P, np.zeros_like(P)
+    return P, np.exp(-1j * w * ve.delay_samples * ve.T) * _ve_sampled(ve, w)
+
+
 def theory_curve(plant: Plant, ve: VirtualEnvironment, w, model: str = "paper",
                  latency: float = 0.0) -> np.ndarray:
     """Z(jw) of the chosen model ("paper" or "sampled"), with the device's own delay

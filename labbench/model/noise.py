@@ -1,0 +1,285 @@
+"""The force noise a haptic loop commands: the encoder step and the amplifier's noise pushed
+through the exact sampled closed loop.
+
+**Sources.** The loop computes its VE force from the position the encoder reports, in whole
+steps of Delta [m] at the handle (``Rig.metres_per_count``): x_q = x + e. Where the motion
+spans many steps between samples, e is white, uniform on [-Delta/2, Delta/2), of variance
+Delta^2 / 12 and uncorrelated with x (Bennett, "Spectra of quantized signals", Bell Syst.
+Tech. J. 27, 1948; Widrow & Kollar, *Quantization Noise*, Cambridge 2008, chs. 4-5 and 11).
+The rig may state an amplifier (or actuator) noise too: white force noise n_f of std
+``force_noise_n`` [N] added to the applied force, held over each step (the simulator's
+``[sim] force_noise_n``; a drive's torque set point in whole units of 1/1000 of its rated
+torque adds its own step q_F the same way, std q_F / sqrt(12)).
+
+**When e is white** (derived here from the Fourier series of the rounding error, the route of
+Widrow & Kollar ch. 11): e(x) = x - Delta round(x / Delta) is a sawtooth of period Delta,
+sum_n (-1)^(n+1) Delta / (pi n) sin(2 pi n x / Delta). For a motion whose position spreads
+over many steps (std >> Delta: the first condition, Widrow's quantising theorem nearly met)
+and whose increment d_j = x[k+j] - x[k] is Gaussian with variance D_j, the correlation of
+e[k] and e[k+j] is
+
+    rho_j = (6 / pi^2) sum_{n >= 1} exp(-2 pi^2 n^2 D_j / Delta^2) / n^2
+
+(1 at D_j = 0; 6 / pi^2 exp(-2 pi^2 D_j / Delta^2) once D_j is a fair share of Delta^2).
+The second condition, whiteness, is rho_1 small: below 1 % once the position moves at least
+0.456 Delta rms from one sample to the next (``white_speed``: 17.5 mm/s for the default
+rig's 38.3 um at 1 kHz). Slower motion makes e a slow sawtooth: the same power, shifted to
+low frequencies. Given the motion's increments (``increments``: from a white excitation
+through this same loop, or a hand's rms speed) the model uses the rho_j spectrum instead of
+the white one; a handle at rest commands no quantisation noise at all.
+
+**Through the loop** (``labbench.model.linear``, exact sampled, with the device's latency):
+with P the held plant, G = z^-n C the VE's path from sampled position to command and
+L = G P, the loop x = P (u + n_f), u = f_exo - G (x + e) gives
+
+    u_noise = -G / (1 + L) e  -  L / (1 + L) n_f          (the command the loop records)
+    f_noise = -G / (1 + L) e  +  1 / (1 + L) n_f          (the force at the actuator, u + n_f)
+
+Their one-sided spectra [N^2/Hz] are |H|^2 S; the RMS is the root of their integral over a
+band. The force a hand feels is held over each step: its spectrum at a frequency f is the
+sampled one at f folded into [0, 1 / (2T)] times sinc^2(f T), the hold's images included
+(Franklin, Powell & Workman sec. 4.2), so a slower loop both concentrates the noise and
+puts images of it above its Nyquist frequency.
+
+**The band a person feels.** Colonnese et al. sec. 5: humans detect haptic signals up to
+500 Hz (their ref. 6, Hale & Stanney, IEEE CG&A 24(2), 2004), while volitional movement
+stays below 10 Hz (their ref. 9, Lawrence et al. 1996). Force below 10 Hz is felt as the
+environment the hand moves in; above it, up to 500 Hz, as vibration: ``FELT_BAND_HZ``.
+
+The model is linear: it leaves out friction (whose stick-slip adds force not coherent with
+an excitation of its own) and treats the handle as free (no hand in the loop).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labbench.errors import UserError
+from labbench.model import linear
+from labbench.ve import Plant, VirtualEnvironment
+
+FELT_BAND_HZ = (10.0, 500.0)  # Colonnese et al. sec. 5 (module doc)
+WHITE_RHO = 0.01  # lag-1 correlation of the quantisation error below which it counts as white
+_SERIES = np.arange(1, 4097, dtype=float)  # terms of rho_j's series: error < 6 / (pi^2 4096)
+_LAGS = 256  # lags of the coloured error spectrum (rho has decayed long before)
+_MAX_POINTS = 1 << 21
+
+
+@dataclass(frozen=True)
+class NoiseSources:
+    """What makes the noise: the encoder step ``quantum_m`` [m at the handle] (0: an ideal
+    encoder) and the std ``force_noise_n`` [N] of white force noise added to the applied
+    force (the amplifier's; 0 when the rig states none)."""
+
+    quantum_m: float = 0.0
+    force_noise_n: float = 0.0
+
+    def __post_init__(self):
+        for name in ("quantum_m", "force_noise_n"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise UserError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class ForceNoise:
+    """The predicted force noise of one loop (module doc).
+
+    ``f_hz``: the frequency grid [0, 1/(2T)] (``frequency_grid``); ``psd_command`` / ``psd_force``: one-sided
+    spectra [N^2/Hz] of the recorded command's noise and of the force at the actuator;
+    ``rms_command``: the command's in ``band_hz`` (capped at the Nyquist frequency: a
+    sampled record has nothing above it); ``rms_felt``: the held force at the actuator in
+    ``band_hz`` (images of the hold included); ``rms_command_total``: over the whole
+    Nyquist band; ``parts``: each source's share of ``rms_felt`` (root of its part of the
+    power); ``white``: whether the quantisation error was taken as white, ``rho1`` its
+    lag-1 correlation for the stated motion (None when no motion was stated), ``model``:
+    which model said so.
+    """
+
+    f_hz: np.ndarray
+    psd_command: np.ndarray
+    psd_force: np.ndarray
+    band_hz: tuple[float, float]
+    rms_command: float
+    rms_felt: float
+    rms_command_total: float
+    parts: dict = field(default_factory=dict)
+    white: bool = True
+    rho1: float | None = None
+    model: str = ""
+
+    def as_dict(self, spectrum: bool = False) -> dict:
+        out = {"band_hz": list(self.band_hz), "rms_command_n": self.rms_command,
+               "rms_felt_n": self.rms_felt, "rms_command_total_n": self.rms_command_total,
+               "parts_n": dict(self.parts), "white": self.white, "rho1": self.rho1,
+               "model": self.model}
+        if spectrum:
+            out.update(f_hz=self.f_hz.tolist(), psd_command=self.psd_command.tolist(),
+                       psd_force=self.psd_force.tolist())
+        return out
+
+
+def error_correlation(increment_var, quantum: float) -> np.ndarray:
+    """rho_j of the quantisation error for Gaussian increments of variance ``increment_var``
+    [m^2] (module doc; 1 at 0, -> 0 as the increments grow past the step)."""
+    D = np.atleast_1d(np.asarray(increment_var, float))
+    if quantum <= 0:
+        return np.zeros_like(D)
+    a = 2 * math.pi**2 * D[:, None] / quantum**2
+    terms = np.exp(-a * _SERIES[None, :] ** 2) / _SERIES[None, :] ** 2
+    return (6 / math.pi**2) * terms.sum(axis=1)
+
+
+def white_speed(quantum: float, T: float) -> float:
+    """The rms speed [m/s] above which the error's lag-1 correlation is below ``WHITE_RHO``
+    for motion at that speed (increment variance (v T)^2): the white model's condition."""
+    if quantum <= 0:
+        return 0.0
+    lo, hi = 0.0, 2.0 * quantum  # rho_1 falls with the increment's std
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if error_correlation(mid**2, quantum)[0] > WHITE_RHO else (lo, mid)
+    return hi / T
+
+
+def increments_from_speed(speed_rms_m_s: float, T: float, lags: int = _LAGS) -> np.ndarray:
+    """D_j = (v j T)^2, j = 1..lags: a hand moving at rms speed v, steady over a few samples."""
+    j = np.arange(1, lags + 1)
+    return (speed_rms_m_s * j * T) ** 2
+
+
+def increments_from_excitation(plant: Plant, ve: VirtualEnvironment, std_n: float,
+                               latency: float = 0.0, lags: int = _LAGS) -> np.ndarray:
+    """D_j = var(x[k+j] - x[k]), j = 1..lags, of the loop driven by white force of std
+    ``std_n`` [N] (an ETFE's excitation): the integral of |P / (1 + L)|^2 2 T std^2
+    (2 - 2 cos(2 pi f j T)) over the Nyquist band, each lag's cosine from one FFT."""
+    f = _off_zero(frequency_grid(plant, ve, latency))
+    P, G = linear.loop_parts(plant, ve, 2 * math.pi * f, latency)
+    Sx = np.abs(P / (1 + G * P)) ** 2 * 2 * ve.T * std_n**2
+    weights = _trapezoid_weights(f)
+    # at f -> 0 the integrand tends to Sx (2 pi f j T)^2 (finite even where Sx is not: a
+    # damper's position wanders), j^2 times this:
+    at_zero = weights[0] * Sx[0] * (2 * math.pi * f[0] * ve.T) ** 2
+    power = weights * Sx
+    power[0] = 0.0
+    # sum_k c_k Sx_k cos(2 pi f_k j T), f_k = k / (2 M T): the real part of a DFT of length 2M
+    cos_sums = np.fft.rfft(power, n=2 * (len(f) - 1)).real[1:lags + 1]
+    j = np.arange(1, lags + 1)
+    return 2 * (np.sum(power) - cos_sums) + at_zero * j**2
+
+
+def frequency_grid(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> np.ndarray:
+    """M + 1 equally spaced frequencies [Hz] from 0 to 1/(2T), M a power of two of at least
+    10 / delta, delta = -ln|z| of the loop's least damped pole. A spectrum of the sampled loop
+    is even and periodic in f T, so the trapezoid rule over this grid is exact to ~e^(-2 M
+    delta) (Trefethen & Weideman, "The exponentially convergent trapezoidal rule", SIAM Rev.
+    56(3), 2014): 1e-9 here, however sharp the resonance. UserError when the loop is unstable
+    (it has no stationary noise)."""
+    lam = np.linalg.eigvals(linear.closed_loop(plant, ve, latency).A)
+    if ve.K == 0:  # the position's own integrator (any offset is at rest): no noise sees it
+        lam = lam[np.abs(lam - 1.0) > 1e-9]
+    radius = np.abs(lam)
+    if np.any(radius >= 1.0):
+        raise UserError("the loop is unstable: it has no stationary force noise to predict")
+    delta = float(np.min(-np.log(np.maximum(radius, 1e-300)))) if len(lam) else 1.0
+    M = 1 << max(12, math.ceil(math.log2(10.0 / max(delta, 1e-9))))
+    if M > _MAX_POINTS:
+        raise UserError(f"the loop's least damped pole (|z| = 1 - {1 - math.exp(-delta):.2g}) "
+                        "needs a finer frequency grid than this model takes")
+    return np.linspace(0.0, 0.5 / ve.T, M + 1)
+
+
+def _off_zero(f: np.ndarray) -> np.ndarray:
+    """The grid with f = 0 moved a hair up: the loop's transfer functions have their limits
+    there, while 0 / 0 (a damper's derivative over the plant's integrator) would be NaN."""
+    g = f.copy()
+    g[0] = 1e-9 * f[1]
+    return g
+
+
+def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
+    h = f[2] - f[1]  # (f[0] may have been moved off zero)
+    c = np.full_like(f, h)
+    c[0] = c[-1] = 0.5 * h
+    return c
+
+
+def _error_psd(f: np.ndarray, quantum: float, T: float,
+               increments: np.ndarray | None) -> tuple[np.ndarray, float | None]:
+    """One-sided spectrum [m^2/Hz] of the quantisation error: white (2 T Delta^2 / 12), or
+    from rho_j of the stated motion's increments; and rho_1 (None without a motion)."""
+    var = quantum**2 / 12
+    if increments is None or quantum <= 0:
+        return np.full_like(f, 2 * T * var), None
+    rho = error_correlation(increments, quantum)
+    lags = np.zeros(2 * (len(f) - 1))  # f on the uniform grid: the cosine series is one FFT
+    lags[1:len(rho) + 1] = rho[:len(lags) - 1]
+    shape = 1 + 2 * np.fft.rfft(lags).real
+    return 2 * T * var * np.maximum(shape, 0.0), float(rho[0])
+
+
+def force_noise(plant: Plant, ve: VirtualEnvironment, sources: NoiseSources,
+                band_hz: tuple[float, float] = FELT_BAND_HZ, latency: float = 0.0,
+                increments: np.ndarray | None = None) -> ForceNoise:
+    """The force noise of the loop (module doc), RMS in ``band_hz`` [Hz] and spectra.
+
+    ``increments``: the motion's D_j (``increments_from_excitation`` / ``_from_speed``); None
+    takes the quantisation error as white (the model for motion faster than ``white_speed``).
+    """
+    lo, hi = (float(band_hz[0]), float(band_hz[1]))
+    if not (0 <= lo < hi and math.isfinite(hi)):
+        raise UserError(f"noise band must be 0 <= low < high (finite) Hz, got {band_hz!r}")
+    T = ve.T
+    nyq = 0.5 / T
+    f = frequency_grid(plant, ve, latency)
+    P, G = linear.loop_parts(plant, ve, 2 * math.pi * _off_zero(f), latency)
+    one_plus_L = 1 + G * P
+    Se, rho1 = _error_psd(f, sources.quantum_m, T, increments)
+    Sn = np.full_like(f, 2 * T * sources.force_noise_n**2)
+    He = np.abs(G / one_plus_L) ** 2
+    q_part = He * Se
+    psd_command = q_part + np.abs(G * P / one_plus_L) ** 2 * Sn
+    n_part = Sn / np.abs(one_plus_L) ** 2
+    psd_force = q_part + n_part
+
+    rms_command = math.sqrt(_band_integral(f, psd_command, lo, min(hi, nyq)))
+    parts = {"quantisation": math.sqrt(_held_band(f, q_part, lo, hi, T)),
+             "amplifier": math.sqrt(_held_band(f, n_part, lo, hi, T))}
+    rms_felt = math.hypot(parts["quantisation"], parts["amplifier"])
+    white = increments is None or rho1 is None or rho1 < WHITE_RHO
+    return ForceNoise(
+        f_hz=f, psd_command=psd_command, psd_force=psd_force, band_hz=(lo, hi),
+        rms_command=rms_command, rms_felt=rms_felt,
+        rms_command_total=math.sqrt(float(np.sum(_trapezoid_weights(f) * psd_command))),
+        parts=parts,
+        white=white, rho1=rho1,
+        model=("exact sampled loop (labbench.model.linear) with "
+               + ("white quantisation error (Bennett 1948)" if increments is None else
+                  "the quantisation error of the stated motion (Widrow & Kollar ch. 11)")))
+
+
+def _band_integral(f: np.ndarray, psd: np.ndarray, lo: float, hi: float) -> float:
+    """Integral of ``psd`` over [lo, hi] (within the grid), the edges interpolated."""
+    lo, hi = max(lo, f[0]), min(hi, f[-1])
+    if hi <= lo:
+        return 0.0
+    inside = (f > lo) & (f < hi)
+    g = np.concatenate([[lo], f[inside], [hi]])
+    p = np.concatenate([[np.interp(lo, f, psd)], psd[inside], [np.interp(hi, f, psd)]])
+    return float(np.trapezoid(p, g))
+
+
+def _held_band(f: np.ndarray, psd: np.ndarray, lo: float, hi: float, T: float) -> float:
+    """Power of the held (continuous) force in [lo, hi] Hz: the image band around k / T holds
+    the sampled spectrum at |g - k / T|, times sinc^2(g T) (module doc)."""
+    weighted = lambda g: psd * np.sinc(g * T) ** 2  # noqa: E731 - the spectrum seen at g
+    total = _band_integral(f, weighted(f), lo, hi)
+    k = 1
+    while k / T - f[-1] < hi:
+        for sign in (-1, 1):  # g = k / T + sign f, f = sign (g - k / T)
+            a, b = sorted((sign * (lo - k / T), sign * (hi - k / T)))
+            total += _band_integral(f, weighted(k / T + sign * f), a, b)
+        k += 1
+    return total
