@@ -313,6 +313,10 @@ class SerialStream:
             device_delay_s=self._delay[0],
             device_delay_why=self._delay[1],
             simulated=self._simulated,
+            cannot_act="" if c.force_command else (
+                f"{self.rig.source}: [serial] force_command = false: this board takes no force "
+                "commands (it only streams its count); set force_command = true once its sketch "
+                "reads the 'F' frames of docs/serial-protocol.md"),
         )
 
     def counters(self) -> dict:

@@ -56,6 +56,9 @@ class DeviceDescription:
     device_delay_s: float = 0.0
     device_delay_why: str = ""
     simulated: str = ""
+    # Why the device applies no force at all ("" when it can), e.g. a position-only serial
+    # board: every force protocol (commissioning included) is refused before it runs.
+    cannot_act: str = ""
 
     @property
     def paced(self) -> bool:

@@ -76,7 +76,7 @@ def event_record(t_s: float, name: str, reason: str, **extra) -> dict:
 def stop_record(status: str, reason: str = "", **extra) -> dict:
     """``status``: "success", "aborted" or "failed"; a failed run's ``cause`` (in ``extra``)
     says whose: "device" (a fault), "safety" (a trip), "recording" (the session could not
-    be written) or "error"."""
+    be written), "analysis" (recorded whole, its analysis failed) or "error"."""
     return {"kind": STOP, "status": status, "reason": reason, "time": time.time(), **extra}
 
 

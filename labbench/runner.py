@@ -50,7 +50,7 @@ class RunResult:
     timing: dict = field(default_factory=dict)
     uid: str | None = None
     n_samples: int = 0
-    cause: str | None = None  # of a failed run: "device", "safety", "recording", "error"
+    cause: str | None = None  # of a failed run: "device", "safety", "recording", "analysis", "error"
 
 
 def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
@@ -135,6 +135,8 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
                             f"{protocol.ve.T:g} s (set sample_time_s)")
         if simulated is None:
             simulated = bool(desc.simulated) or str(desc.kind).startswith("sim")
+        if desc.cannot_act:  # never pulse a device that cannot act: refused before anything runs
+            raise UserError(f"{protocol.name} drives a force, but {desc.cannot_act}")
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant = protocol.plant(rig)
@@ -153,15 +155,19 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         _stop_device(device, close=False)
         if progress is not None:
             progress(1.0, "analysis")
+        why = None
         try:
             run_state.results = protocol.analyze(run_state.data(0), meta)
         except UserError as exc:
-            run_state.results = {"error": f"analysis: {exc}"}
+            why = str(exc)
         except Exception as exc:  # noqa: BLE001 - a failed analysis must not lose a good recording
-            run_state.results = {"error": f"analysis failed ({type(exc).__name__}: {exc}); "
-                                          "the recording is complete: re-analyse the session"}
+            why = f"{type(exc).__name__}: {exc}"
         if stop.is_set():  # asked to stop (a signal) while analysing: the run did not finish
             return run_state.finish("aborted", _stop_reason(stop, "stopped during the analysis"))
+        if why is not None:  # never "success" without its results: the recording is kept
+            run_state.results = {"error": f"analysis failed: {why}"}
+            return run_state.finish("failed", f"recorded, but the analysis failed: {why}; the "
+                                    "session is complete: re-analyse it", "analysis")
         return run_state.finish("success", "completed")
     except KeyboardInterrupt as exc:
         _stop_device(device, close=False)

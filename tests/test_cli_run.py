@@ -51,6 +51,32 @@ def test_chirp_id_json_and_human_output(tmp_path, capsys):
     assert "chirp-id: success" in text and "mass m: 0.094 kg" in text and "identification (l2): ok" in text
 
 
+def test_a_failed_analysis_is_never_success_exit_3_with_the_session_kept(tmp_path, capsys,
+                                                                            monkeypatch):
+    from labbench.analysis import identify
+    from labbench.errors import UserError
+
+    def refuses(*_a, **_kw):
+        raise UserError("too little excitation to identify")
+
+    monkeypatch.setattr(identify, "identify", refuses)
+    argv = ["run", "chirp-id", "--duration-s", "12", "--methods", "l2", "--out", str(tmp_path)]
+    code, out = _json(capsys, argv + ["--json"])
+    assert code == 3
+    assert out["status"] == "failed" and out["cause"] == "analysis"
+    assert "analysis failed: too little excitation" in out["reason"]
+    assert out["readout"]["title"] == "Analysis failed"
+    stop = list(read_session(out["session"]))[-1]
+    assert stop["status"] == "failed" and stop["cause"] == "analysis" and stop["n_samples"] > 0
+    assert main(argv) == 3
+    captured = capsys.readouterr()
+    assert "chirp-id: failed (recorded, but the analysis failed: too little excitation" \
+        in captured.out and "success" not in captured.out
+    err = captured.err.strip().splitlines()
+    assert err[-1].startswith("labbench run: error: recorded, but the analysis failed: too "
+                              "little excitation") and "(session " in err[-1]
+
+
 @pytest.mark.parametrize("argv,words", [
     (["run", "etfe", "--K", "-3"], "K must be >= 0"),
     (["run", "etfe", "--K", "abc"], "expected a number"),

@@ -3,6 +3,7 @@ device faults, safety trips; force zero and the device closed on every way out."
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -189,7 +190,21 @@ def test_analysis_error_is_reported_not_raised(monkeypatch):
     monkeypatch.setattr(identify, "identify", refuses)
     p = make_protocol("chirp-id", duration_s=12.0, methods=("l2",))
     res = run(Spy(), p, [], rig=Rig())
-    assert res.status == "success" and "too little excitation" in res.results["error"]
+    assert res.status == "failed" and res.cause == "analysis"
+    assert "too little excitation" in res.results["error"]
+    assert res.reason.startswith("recorded, but the analysis failed: too little excitation")
+
+
+@pytest.mark.parametrize("name", ["etfe", "commission"])
+def test_a_device_that_cannot_act_is_refused_before_anything_runs(name):
+    class PositionOnly(Spy):
+        def describe(self):
+            return replace(super().describe(), cannot_act="it takes no force commands")
+
+    spy, recs = PositionOnly(), []
+    with pytest.raises(UserError, match=f"^{name} drives a force, but it takes no force commands$"):
+        run(spy, make_protocol(name), [recs.append], rig=Rig())
+    assert recs == [] and not any(spy.commands) and "enable" not in spy.calls
 
 
 def test_bad_analysis_option_is_refused_before_the_run():
@@ -249,6 +264,9 @@ def test_a_crashing_analysis_keeps_the_recording():
 
     p.analyze = broken
     res = run(spy, p, [recs.append], rig=Rig())
-    assert res.status == "success" and "IndexError" in res.results["error"]
-    assert recs[-1]["kind"] == "stop" and "IndexError" in recs[-1]["results"]["error"]
+    assert res.status == "failed" and res.cause == "analysis" and "IndexError" in res.reason
+    assert "IndexError" in res.results["error"]
+    stop = recs[-1]
+    assert stop["kind"] == "stop" and "IndexError" in stop["results"]["error"]
+    assert stop["status"] == "failed" and stop["cause"] == "analysis"
     assert len(records.concat_pages(recs)["t"]) == 2000

@@ -4,6 +4,11 @@ Protocol options are generated from the protocol's config dataclass: field
 ``w0_rad_s`` becomes ``--w0-rad-s`` (``none`` for an absent optional value).
 ``demo`` runs chirp-ID, then the paper's ETFE (K = 50, B = 1, w0 = 125) with the
 identified m, b as theory overlay, then writes the report of both sessions.
+
+Exit code: 0 success; 1 a failed run (a device fault, a safety trip, a session that
+could not be written); 3 recorded whole but the analysis failed (status "failed",
+cause "analysis": the session is kept, ``labbench analyze`` re-runs it); 2 a refused
+input; 128 + n a signal.
 """
 from __future__ import annotations
 
@@ -26,6 +31,11 @@ from labbench.safe_write import editable, output_path
 # Config fields the CLI sets itself (from the rig).
 _HIDDEN = ("sample_time_s",)
 _EXIT = {"success": 0, "failed": 1, "aborted": 130}
+ANALYSIS_FAILED = 3  # the recording is whole and kept, its analysis failed (module doc)
+
+
+def _exit_code(result) -> int:
+    return ANALYSIS_FAILED if result.cause == "analysis" else _EXIT.get(result.status, 1)
 
 
 def register(subparsers) -> None:
@@ -235,7 +245,7 @@ def cmd_run(args) -> int:
            "results": result.results,
            "timing": result.timing}
     _say_failure(result, path, rig.sample_time_s)
-    code = stop.exit_code or _EXIT.get(result.status, 1)
+    code = stop.exit_code or _exit_code(result)
     if write and result.status == "success" and "error" not in result.results:
         code = _write_rig(args.rig, result, path, out) or code
     _print(args, out, [(args.protocol, result, path)])
@@ -247,6 +257,8 @@ def _say_failure(result, path, T: float) -> None:
     stdout, or the JSON, follows as for any run)."""
     if result.cause == "recording":
         print(f"labbench run: error: {result.reason}", file=sys.stderr)
+    elif result.cause == "analysis":
+        print(f"labbench run: error: {result.reason} (session {path})", file=sys.stderr)
     elif result.cause == "device":
         what = result.reason.removeprefix("fault: ").removeprefix("device fault: ")
         kept = f"the session {path} holds the run up to it" if path else "no session kept"
@@ -298,7 +310,7 @@ def cmd_demo(args) -> int:
     if chirp.status != "success" or m is None or b is None or not m > 0 or b < 0:
         out.update(status="failed", reason=f"chirp-ID did not give a plant: {chirp.reason}")
         _print(args, out, runs)
-        return stop.exit_code or _EXIT.get(chirp.status, 1) or 1
+        return stop.exit_code or _exit_code(chirp) or 1
     with stopping(stop):
         etfe, etfe_path = _run_one(args, rig, "etfe", {
             "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
@@ -321,7 +333,7 @@ def cmd_demo(args) -> int:
             return stop.exit_code or 2
         out["report"] = {"html": str(html), "pdf": str(pdf)}
     _print(args, out, runs)
-    return stop.exit_code or _EXIT.get(out["status"], 1)
+    return stop.exit_code or _exit_code(etfe)
 
 
 def _print(args, out: dict, runs) -> None:
