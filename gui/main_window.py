@@ -46,6 +46,7 @@ from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
 from labbench.gui.verdict_view import judged
+from labbench.gui.wheel_guard import WheelGuard
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
 from labbench.numfmt import fmt
@@ -160,6 +161,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.setWindowTitle(f"labbench: {rig.name}")
         self.resize(1600, 1000)
         remembered = settings.value("device/backend", "", type=str) if settings else ""
+        self.wheel_guard = WheelGuard(self)  # before any widget: no value changes under the wheel
         self._build(backend or remembered or default_backend(rig))
         self._wire()
         self._restore_state()
@@ -1226,6 +1228,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
         self.estop_keys.remove()  # the application's filter: a closed window stops nothing
+        self.wheel_guard.remove()
         self.save_state()
         self.stop_event.set()
         if self.campaign_stop is not None:
