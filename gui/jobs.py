@@ -75,11 +75,16 @@ def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, ca
     session = load(path)
     try:
         fr = session.etfe(estimator=estimator, fit=True, progress=progress, cancel=cancel)
-    except UserError as exc:
-        out["fit"] = {"error": str(exc)}
-        return out
+        fit = None
+    except UserError as exc:  # the fit's failure (or the ETFE's): the ETFE and its verdict still
+        fit = {"error": str(exc)}  # show when it stands alone, as `analyze etfe` without --fit
+        try:
+            fr = session.etfe(estimator=estimator, cancel=cancel)
+        except UserError:
+            out["fit"] = fit
+            return out
     d = fr.as_dict()
-    out["fit"] = d["fit"]
+    out["fit"] = fit or d["fit"]
     out["readout"] = readout.of_etfe_analysis(d, session.records.get("start"))
     return out
 

@@ -45,7 +45,7 @@ from labbench.gui.run_state import IDLE, REPLAY, RUNNING, RunState
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
-from labbench.gui.verdict_view import judged
+from labbench.gui.verdict_view import judged, rendered_line
 from labbench.gui.wheel_guard import WheelGuard
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.errors import UserError
@@ -66,6 +66,21 @@ NO_FILE_GATE_REMEDY = "load the rig's file with Rig file... on the Device panel 
 NO_CAN = ("no CAN interface chosen and none configured: choose the drive's CAN bus in the Device "
           "panel (the CAN bus list; \u21bb looks for adapters)")
 NO_PORT = "choose the board's serial port in the Device panel (the port list; \u21bb looks again)"
+
+
+DELAY_ORIGINS = {"rig": "the rig file's measured_td_s", "device": "declared by the device",
+                 "given": "given", "none": "none known"}
+
+
+def delay_text(delay: dict, final: bool) -> str:
+    """The device delay a pre-check used, in a few words (its source is the tooltip's);
+    ``final``: it is the one the run will use (else the device, not connected yet, may
+    declare one of its own)."""
+    ms = f"{1e3 * float(delay.get('s') or 0.0):g} ms"
+    if final:
+        return f"device delay {ms} ({DELAY_ORIGINS.get(delay.get('origin'), 'given')})"
+    return (f"device delay {ms}: the device is not connected, a delay of its own is not known "
+            "yet (Start checks again with it; Connect to see it here)")
 
 
 def guarded(slot):
@@ -403,6 +418,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.state.disconnected()  # the latch lives in the device being closed
         if was is not None:
             self.acquisition.send("disconnect")
+        self.update_precheck()  # without the device's own delay now
 
     @guarded
     def check_timing(self, backend: str):
@@ -494,21 +510,24 @@ class MainWindow(QtWidgets.QMainWindow):
         return backend in SIM_BACKENDS
 
     def checked_protocol(self, name: str | None = None):
-        """The configured protocol and its pre-check report; UserError when refused: bad
-        settings, an unstable VE, or a spring or damper on real hardware before the rig
-        passed its direction check (``labbench.commissioning.gate``: the CLI's one line)."""
-        from labbench.commissioning import gate
-        from labbench.protocol import precheck
+        """The configured protocol and its pre-check report, as the runner will check them
+        (``labbench.runner.checks``: the same plant, gate and device delay, the connected
+        device's own included); UserError when refused: bad settings, an unstable VE, or a
+        spring or damper on real hardware before the rig passed its direction check
+        (``labbench.commissioning.gate``: the CLI's one line)."""
+        from labbench.runner import checks
 
         protocol = self.make_protocol(name)
-        plant = protocol.plant(self.rig)
-        gate(protocol.vetted_ves(plant), self.rig, self.simulated, self.skip_commissioning,
-             remedy=GATE_REMEDY if has_file(self.rig) else NO_FILE_GATE_REMEDY,
-             where=rig_where(self.rig))
-        return protocol, precheck(protocol, plant, self.rig)
+        _plant, _delay, rep = checks(
+            protocol, self.rig, self.device, self.simulated, self.skip_commissioning,
+            remedy=GATE_REMEDY if has_file(self.rig) else NO_FILE_GATE_REMEDY,
+            where=rig_where(self.rig))
+        return protocol, rep
 
     def update_precheck(self):
-        """Boundary and margin of the configured VE, shown before Start."""
+        """Boundary and margin of the configured VE, shown before Start: green only when it
+        is the check the run will make (the device connected, or the rig's measured delay,
+        which wins over a device's own); before that, grey and saying so."""
         try:
             _protocol, rep = self.checked_protocol()
         except UserError as exc:
@@ -523,7 +542,12 @@ class MainWindow(QtWidgets.QMainWindow):
             values, found = self.protocol_values()
             source = plant_source({"plant_from": found, "protocol": values})  # as the run's record will say
             text += f" (plant m = {fmt(plant['m'])} kg, b = {fmt(plant['b'])} N s/m, {source})"
-        self.protocol_panel.set_precheck(text, bool(rep.get("stable", True)))
+        delay = rep.get("device_delay") or {}
+        final = self.device is not None or delay.get("origin") in ("rig", "given")
+        text += "; " + delay_text(delay, final)
+        stable = bool(rep.get("stable", True))
+        self.protocol_panel.set_precheck(text, stable if final or not stable else None,
+                                         tip=delay.get("source", ""))
 
     @guarded
     def start_protocol(self, name: str | None = None):
@@ -898,6 +922,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if self.mode == RUNNING:
                 self._run_finished("run ended: the acquisition process died")
             self.state.disconnected()
+            self.update_precheck()
             self._finish_point(error=f"the acquisition process ended (exit code {payload})")
             self.show_error(f"the acquisition process ended unexpectedly (exit code {payload}); "
                             "reconnect the device")
@@ -1032,7 +1057,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.log.add("info", "results:", rows=read.row_texts(self.units_choice.units()))
         name = Path(session).name if session else "this run (not recorded)"
         self.live.verdicts.show_judged(read.verdicts, heading=f"<b>{escape(f'{protocol}, {name}')}</b>",
-                                       lines=[read.rendered.sentence] if read.rendered else [])
+                                       lines=rendered_line(read))
         ident = results.get("identification")
         if isinstance(ident, dict) and ident:
             from labbench.session_content import analysis_meta
@@ -1150,7 +1175,7 @@ class MainWindow(QtWidgets.QMainWindow):
         read = again.get("readout")  # labbench analyze etfe's, as the CLI says it
         verdicts = list(read.verdicts) if read is not None else []
         verdicts += [j for m, r in good.items() for j in judged(f"identification ({m})", r.get("verdict"))]
-        lines = [read.rendered.sentence] if read is not None and read.rendered else []
+        lines = rendered_line(read)
         lines += [(f"not replaced: {k}", "#a86b00") for k in kept]
         self.live.verdicts.show_judged(verdicts, heading=f"<b>re-analysis of {escape(name)}</b>",
                                        lines=lines)

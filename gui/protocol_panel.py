@@ -375,9 +375,11 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         for name, (_page, form) in self.built.items():
             remember_form(self.settings, name, form)
 
-    def set_precheck(self, text: str, ok: bool | None) -> None:
+    def set_precheck(self, text: str, ok: bool | None, tip: str = "") -> None:
+        """``ok``: green (True), red (False) or grey (None: not yet the run's own check)."""
         colour = {True: "#206020", False: "#b00020", None: "#555555"}[ok]
         self.precheck.setText(f'<span style="color:{colour}">{escape(text, quote=False)}</span>')
+        self.precheck.setToolTip(tip)
 
     def follow(self, state) -> None:
         """The run's state (``RunState``): Start while one may start, Stop while a run or

@@ -26,6 +26,16 @@ def verdict_html(j: Judged, units=None) -> str:
     return head + "".join(f"<br>&nbsp;&nbsp;- {escape(r)}" for r in (*v.reasons, *v.notes))
 
 
+def rendered_line(read) -> list:
+    """The readout's rendered impedance as the first line of the verdicts (in the display
+    units; in its verdict's colour when the ETFE does not vouch for it), or none."""
+    r = read.rendered if read is not None else None
+    if r is None:
+        return []
+    level = OK if r.trust is None else r.trust.level
+    return [r.sentence if level == OK else (r.sentence, COLOURS[level])]
+
+
 class VerdictLabel(QtWidgets.QLabel):
     """The verdicts of one result, one per line, under a heading and lines of its own (the
     rendered impedance, what was not replaced); with none, hidden, or the ``placeholder``
@@ -46,7 +56,7 @@ class VerdictLabel(QtWidgets.QLabel):
     def show_judged(self, verdicts: list[Judged], heading: str = "",
                     lines=()) -> None:
         """``verdicts`` under ``heading`` (HTML) and ``lines``: plain text, a callable of the
-        display units giving it (a readout's ``rendered.sentence``), or (text, colour)."""
+        display units giving it (a readout's ``rendered.sentence``), or (either, colour)."""
         self.shown, self._heading, self._lines = list(verdicts), heading, list(lines)
         self._write()
 
@@ -55,8 +65,11 @@ class VerdictLabel(QtWidgets.QLabel):
         self._write()
 
     def _write(self) -> None:
-        extra = [f'<span style="color:{x[1]}">{escape(x[0])}</span>' if isinstance(x, tuple)
-                 else escape(x(self.units) if callable(x) else x) for x in self._lines]
+        def text(x) -> str:
+            return escape(x(self.units) if callable(x) else x)
+
+        extra = [f'<span style="color:{x[1]}">{text(x[0])}</span>' if isinstance(x, tuple)
+                 else text(x) for x in self._lines]
         body = extra + [verdict_html(j, self.units) for j in self.shown]
         text = "<br>".join(([self._heading] if self._heading and body else []) + body)
         if not text and self.placeholder:

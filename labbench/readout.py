@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from labbench.numfmt import band_text, fmt, fmt_ci, frequency_text
-from labbench.verdict import Verdict, from_dict, worst
+from labbench.verdict import FAILED, OK, Verdict, from_dict, worst
 
 NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit"}
 
@@ -80,16 +80,28 @@ class Rendered:
     K_limit: float
     B_limit: float
     model: str
+    trust: Verdict | None = None  # the verdict of the ETFE they were read from
+
+    def caveat(self) -> str:
+        """What a headline of numbers the ETFE's verdict does not vouch for says first
+        (issue 43: "renders K = 344 N/m (321 to 368)" headlined an uncalibrated estimate):
+        ``doubtful (the paper's estimator; see the ETFE's verdict): ``; nothing when ok."""
+        v = self.trust
+        if v is None or v.level == OK:
+            return ""
+        why = v.reasons[0].split(":", 1)[0] if v.reasons else "no reason recorded"
+        return f"{v.level}{', not to be used' if v.level == FAILED else ''} ({why}; see the ETFE's verdict): "
 
     def sentence(self, units=None) -> str:
-        return (f"renders K = {self.K.text(units)} and damping {self.B.text(units)} "
+        return (f"{self.caveat()}renders K = {self.K.text(units)} and damping {self.B.text(units)} "
                 f"(b included) over {band_text(self.band, units)}; commanded K = {fmt(self.K_commanded)} "
                 f"N/m, B + b = {fmt(self.B_commanded + self.b)} N s/m; {self.model} theory "
                 f"{fmt(self.K_theory)} N/m, {fmt(self.B_theory)} N s/m")
 
     def as_dict(self, units=None) -> dict:
         return {"K": self.K.as_dict(), "B": self.B.as_dict(), "band_rad_s": list(self.band),
-                "n_freq": self.n_freq, "commanded": {"K": self.K_commanded, "B": self.B_commanded,
+                "n_freq": self.n_freq, "level": OK if self.trust is None else self.trust.level,
+                "commanded": {"K": self.K_commanded, "B": self.B_commanded,
                                                      "b": self.b},
                 "theory": {"model": self.model, "K": self.K_theory, "B": self.B_theory,
                            "K_limit": self.K_limit, "B_limit": self.B_limit},
@@ -260,7 +272,7 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
     m, b = _num(plant.get("m")), _num(plant.get("b"))
     if m is not None and b is not None:
         r.plant = PlantSource(m, b, source or plant_source(start))
-    r.rendered = _rendered(results.get("rendered"))
+    r.rendered = _rendered(results.get("rendered"), from_dict(e.get("verdict")))
     dev = results.get("deviation_vs_sampled") if isinstance(results.get("deviation_vs_sampled"), dict) else {}
     band = dev.get("band_rad_s")
     if _num(dev.get("median_rel")) is not None and isinstance(band, list) and len(band) == 2:
@@ -282,7 +294,7 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
     return r
 
 
-def _rendered(d) -> Rendered | None:
+def _rendered(d, trust: Verdict | None = None) -> Rendered | None:
     if not isinstance(d, dict):
         return None
     th = d.get("theory") if isinstance(d.get("theory"), dict) else {}
@@ -297,7 +309,7 @@ def _rendered(d) -> Rendered | None:
     return Rendered(Value(K, klo, khi, "N/m", scale=max(abs(nums[0]), abs(K))),
                     Value(B, blo, bhi, "N s/m", scale=max(abs(nums[1] + nums[2]), abs(B))),
                     (float(band[0]), float(band[1])), int(d.get("n_freq") or 0), *nums,
-                    str(th.get("model") or "sampled"))
+                    str(th.get("model") or "sampled"), trust)
 
 
 def _pair(x) -> tuple[float | None, float | None]:

@@ -135,14 +135,9 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
                             f"{protocol.ve.T:g} s (set sample_time_s)")
         if simulated is None:
             simulated = bool(desc.simulated) or str(desc.kind).startswith("sim")
-        if desc.cannot_act:  # never pulse a device that cannot act: refused before anything runs
-            raise UserError(f"{protocol.name} drives a force, but {desc.cannot_act}")
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
-        plant = protocol.plant(rig)
-        commissioning.gate(protocol.vetted_ves(plant), rig, simulated, skip_commissioning)
-        delay = device_delay.resolve(rig, desc)
-        check = precheck(protocol, plant, rig, delay)
+        plant, delay, check = checks(protocol, rig, desc, simulated, skip_commissioning)
         safety = SafetyConfig.from_rig(rig)
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
@@ -186,6 +181,23 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         raise
     finally:
         _stop_device(device, close=close)
+
+
+def checks(protocol: ProtocolBase, rig, desc=None, simulated: bool = True,
+           skip_commissioning: bool = False, **gate_words):
+    """What a run checks before anything reaches the device, in one place for every caller
+    (``run``; the window's pre-check line and Start): the plant its theory takes, the
+    commissioning gate (``gate_words``: its message's ``remedy`` and ``where``) and the exact
+    sampled stability check with the device's own delay (``device_delay.resolve``: the rig's
+    measured one, else what the device declares). ``desc``: the device's
+    ``DeviceDescription``; None before one is connected (a delay the device would declare
+    is then not known). Returns (plant, delay, the pre-check's report); UserError when refused."""
+    if desc is not None and desc.cannot_act:  # never pulse a device that cannot act
+        raise UserError(f"{protocol.name} drives a force, but {desc.cannot_act}")
+    plant = protocol.plant(rig)
+    commissioning.gate(protocol.vetted_ves(plant), rig, simulated, skip_commissioning, **gate_words)
+    delay = device_delay.resolve(rig, desc)
+    return plant, delay, precheck(protocol, plant, rig, delay)
 
 
 def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc, run_state, stop,

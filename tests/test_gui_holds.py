@@ -88,3 +88,90 @@ def test_the_wheel_never_changes_a_setting_it_passes_over(qtbot, window):
     qtbot.waitUntil(estimator.hasFocus)
     wheel(estimator, -1)
     assert estimator.currentText() != shown
+
+
+BACKENDS = ("sim", "sim-canopen", "sim-serial", "avr-sim")
+
+
+def _precheck_km(text: str) -> str:
+    """The K_max the pre-check line shows ('K_max = 514.9 N/m')."""
+    return text.split("K_max = ", 1)[1].split(" N/m", 1)[0]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_precheck_is_the_check_the_run_makes_on_every_backend(qtbot, window, request, backend):
+    """On avr-sim (a board that applies each command one sample late) the line read
+    'stable ... K_max = 1212 N/m' while Start was refused with K_max = 514.9 N/m: the
+    pre-check left out the connected device's delay. Now the line, once the device is
+    connected, is the check the runner records in the session, on every backend."""
+    from labbench.session_content import load_session
+
+    if backend == "avr-sim":
+        request.getfixturevalue("avr_toolchain")
+    win = window(backend=backend)
+    panel, dev = win.protocol_panel, win.device_panel
+    panel.choice.setCurrentText("etfe")
+    for name, value in (("K", 200.0), ("B", 1.0), ("duration_s", 1.0), ("seed", 3)):
+        panel.set_value(name, value)
+    assert "not connected" in panel.precheck.text() and "#555555" in panel.precheck.text()  # grey
+    dev.connect_button.click()
+    qtbot.waitUntil(lambda: win.device is not None, timeout=60_000)
+    shown = panel.precheck.text()
+    assert "not connected" not in shown and "#206020" in shown  # green: the run's own check
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=120_000)
+    assert win.last_run.status == "success", win.last_run.reason
+    start = load_session(win.session_path)[0]
+    check = start["precheck"]["checks"][0]
+    assert _precheck_km(shown) == f"{check['k_max']:.4g}"  # the runner's own number
+    ms = 1e3 * start["device_delay"]["s"]
+    assert f"device delay {ms:g} ms" in shown
+    if backend == "avr-sim":
+        assert ms == 1.0  # the board's declared delay, which the line left out before
+
+        # the issue's case: K = 800 N/m, B = 1 is refused on the line itself and by Start alike
+        panel.set_value("K", 800.0)
+        qtbot.waitUntil(lambda: win.device is not None, timeout=60_000)
+        line = panel.precheck.text()
+        assert "refusing unstable" in line and "#b00020" in line and "K_max = 514.9 N/m" in line
+        win.last_run = None
+        panel.start_button.click()
+        assert "K_max = 514.9 N/m" in win.banner.text() and win.last_run is None
+
+
+def plain(label) -> list[str]:
+    """The lines a rich-text label shows, as a person reads them."""
+    doc = QtGui.QTextDocument()
+    doc.setHtml(label.text())
+    return [line for line in doc.toPlainText().splitlines() if line.strip()]
+
+
+def run_protocol(qtbot, win, name, **values):
+    panel = win.protocol_panel
+    panel.choice.setCurrentText(name)
+    for key, value in values.items():
+        panel.set_value(key, value)
+    win.last_run = None
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: win.last_run is not None and win.mode == "idle", timeout=120_000)
+    assert win.last_run.status == "success", win.last_run.reason
+    return win.session_path
+
+
+def test_an_estimate_the_tool_distrusts_does_not_headline_as_trusted(qtbot, window):
+    """Re-analysed with `paper`, the Live page's first line read "renders K = 344 N/m (321 to
+    368)" for a 200 N/m spring; the doubt came a line later. Now that line starts with it,
+    in the doubt's colour; the run's own (lpm, ok) estimate keeps its plain headline."""
+    win = window()
+    path = run_protocol(qtbot, win, "etfe", K=200.0, B=1.0, duration_s=20.0, seed=3)
+    lines = plain(win.live.verdicts)
+    assert lines[1].startswith("renders K = ") and "ETFE: ok" in lines[2]
+    qtbot.waitUntil(lambda: win.session_path in win.sessions.paths, timeout=20_000)
+    win.sessions.select_path(path)
+    win.sessions.estimator.setCurrentText("paper")
+    win.sessions.buttons["Re-analyse"].click()
+    qtbot.waitUntil(lambda: "done" in win.sessions.progress_line.text(), timeout=120_000)
+    lines = plain(win.live.verdicts)
+    assert lines[0].startswith("re-analysis of"), lines
+    assert lines[1].startswith("doubtful (the paper's estimator; see the ETFE's verdict): renders K = "), lines
+    assert '<span style="color:#a86b00">doubtful' in win.live.verdicts.text()

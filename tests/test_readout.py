@@ -155,3 +155,22 @@ def test_values_convert_for_display_and_say_exact():
         "0.094 kg (exact to the model's precision)"
     assert np.isfinite(readout.Value(1.0).as_dict()["value"])
 
+
+
+def test_a_headline_the_etfe_does_not_vouch_for_says_so_first_on_every_surface(tmp_path, capsys):
+    # issue 43: re-analysed with `paper`, the first line read "renders K = 344 N/m (321 to
+    # 368)" for a 200 N/m spring; only a later line said its bands are not calibrated. The
+    # rendered numbers now start with the ETFE's doubt, in the CLI, its JSON and the report
+    out = _run(capsys, tmp_path, "etfe", "--K", "200", "--B", "1", "--duration-s", "30", "--seed", "3",
+               "--estimator", "paper")
+    cli = out["readout"]
+    first = "doubtful (the paper's estimator; see the ETFE's verdict): renders K = "
+    assert cli["rendered"]["sentence"].startswith(first) and cli["rendered"]["level"] == "doubtful"
+    back = readout.of_session(out["session"])
+    assert back.text_lines()[0].startswith(first)  # the CLI's summary, first line
+    rows = dict(page_one_rows(back))
+    assert rows["rendered"].startswith(first)  # the report's page 1
+    # the trusted estimate keeps its plain headline (no false alarm)
+    ok = readout.of_session(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
+                                 "--duration-s", "30", "--seed", "3")["session"])
+    assert ok.verdicts[0].verdict.level == "ok" and ok.text_lines()[0].startswith("renders K = ")
