@@ -32,7 +32,9 @@ class LoopStatus:
         """Overruns counted from the samples' flags (a replay: no timing is sent)."""
         self.labels["overruns"].setText(f"overruns: {n} (recorded)")
 
-    def show_timing(self, timing: dict, live: bool = False) -> None:
+    def show_timing(self, timing: dict, live: bool = False, recorded: bool = False) -> None:
+        """``live``: a run's figures so far; ``recorded``: a replayed session's, as its run
+        ended (the stop record's timing: what the live window showed then)."""
         from labbench.timing import status_figures
 
         fig = status_figures(timing)
@@ -40,7 +42,7 @@ class LoopStatus:
         def ms(v):
             return f"{v * 1e3:.2f} ms" if isinstance(v, (int, float)) else "-"
 
-        tag = " (live)" if live else ""
+        tag = " (live)" if live else " (recorded)" if recorded else ""
         if fig["paced"]:
             rate = fig["rate_text"]
         else:  # a lock-step simulator: how fast the host simulates, not a loop rate

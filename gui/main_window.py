@@ -1015,6 +1015,11 @@ class MainWindow(QtWidgets.QMainWindow):
         buf = self.live.buffer
         if self._replay_length:  # all of it (completed), or as far as it went (stopped)
             self._progress = min(buf.n / self._replay_length, 1.0)
+        timing = (buf.stop or {}).get("timing")
+        if isinstance(timing, dict) and timing.get("periods"):  # what the run's status bar said
+            self.loop_status.show_timing(timing, recorded=True)
+        else:  # an older or cut-short record: what its samples' flags say
+            self.loop_status.show_overruns(_count_flag(buf, OVERRUN))
         results = (buf.stop or {}).get("results")
         if isinstance(results, dict) and buf.start:
             self._show_results(results, self._replay_path, protocol_name(buf.start), replayed=True)

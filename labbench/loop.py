@@ -273,7 +273,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     wd = loop.safety.watchdog_s
     policy = watchdog or WatchdogPolicy.for_device(loop.safety, simulated=False)
     read_timeout = policy.sample_timeout_s
-    late = 1.5 * T if paced else float("inf")
+    late = loop_timing.OVERRUN_T * T if paced else float("inf")
     too_late = policy.period_limit_s if paced else float("inf")
 
     if isinstance(device, RawReading):
@@ -372,6 +372,11 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
                     last_event_t["stall"] = t_s  # a simulator's: said, at most once a second
                     event(t_s, "stall", f"host stall: loop period {d * 1e3:.3g} ms > watchdog "
                                         f"{wd * 1e3:g} ms; simulator: recorded, run goes on")
+                elif t_s - last_event_t.get("overrun", -1e300) >= 1.0:
+                    last_event_t["overrun"] = t_s  # what the status bar counts, at most 1/s
+                    event(t_s, "overrun", f"loop period {d * 1e3:.3g} ms > "
+                                          f"{loop_timing.OVERRUN_T:g} T ({counts['overrun']} so "
+                                          "far in this segment)")
             if d > worst[0] and i:
                 worst[:] = d, i, t_s, now - start
             if waiting:

@@ -345,6 +345,10 @@ class _Run(records.RecordRouter):
     def finish(self, status: str, reason: str, cause: str | None = None) -> RunResult:
         if self.finished is None:
             timing = self.timing()
+            if self.started and timing.get("paced") and timing.get("overruns"):
+                # what the window's status bar showed, in the record (replay, report, sessions)
+                self.emit(records.event_record(self.last_t, "loop_timing", loop_timing.summary(timing),
+                                               overruns=timing["overruns"], max_s=timing.get("max_s")))
             if self.started:  # no stream without its start record (e.g. Ctrl-C in the precheck)
                 self.emit(records.stop_record(status, reason, n_samples=self.n_samples,
                                               timing=timing, results=summarize(self.results),

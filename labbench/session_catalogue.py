@@ -27,6 +27,7 @@ class SessionSummary:
     B: float | None = None
     duration_s: float | None = None
     verdict: str | None = None
+    overruns: int = 0  # loop periods over 1.5 T of a paced run (its stop record's timing)
 
 
 class _HeaderCollector(records.StreamCollector):
@@ -66,7 +67,15 @@ def summarize(path) -> SessionSummary:
         B=ve.B if ve is not None and ve.kind != "none" else None,
         duration_s=n * T if T else None,
         verdict=worst_level((stop or {}).get("results")),
+        overruns=_overruns(stop),
     )
+
+
+def _overruns(stop) -> int:
+    """The overruns a paced run's stop record counts (0: none, unpaced, or not recorded)."""
+    timing = stop.get("timing") if isinstance(stop, dict) else None
+    n = timing.get("overruns") if isinstance(timing, dict) and timing.get("paced") is True else 0
+    return n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else 0
 
 
 def _number(x) -> float | None:

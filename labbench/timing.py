@@ -18,6 +18,10 @@ from __future__ import annotations
 import numpy as np
 
 OVERRUN_T = 1.5
+# The events a run records of its timing (what the live status bar showed): ``overrun`` (at
+# most one a second, ``labbench.loop``), a simulator's ``stall`` beyond the watchdog, and
+# ``loop_timing``, the run's totals (``summary``) when it had overruns (``labbench.runner``).
+EVENTS = ("overrun", "stall", "loop_timing")
 # Histogram bin edges in periods T; the last bin is open-ended (>= 20 T).
 EDGES_T = (0.0, 0.5, 0.9, 1.1, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0)
 

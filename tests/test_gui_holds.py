@@ -15,8 +15,8 @@ from labbench.rig import Rig  # noqa: E402
 
 @pytest.fixture
 def window(qtbot, tmp_path):
-    def make(rig=None, size=(1280, 800), **kw):
-        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=False, **kw)
+    def make(rig=None, size=(1280, 800), realtime=False, **kw):
+        win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=realtime, **kw)
         qtbot.addWidget(win)
         win.resize(*size)
         win.show()
@@ -175,3 +175,50 @@ def test_an_estimate_the_tool_distrusts_does_not_headline_as_trusted(qtbot, wind
     assert lines[0].startswith("re-analysis of"), lines
     assert lines[1].startswith("doubtful (the paper's estimator; see the ETFE's verdict): renders K = "), lines
     assert '<span style="color:#a86b00">doubtful' in win.live.verdicts.text()
+
+
+def test_what_the_status_bar_showed_of_a_run_is_in_its_session(qtbot, window, tmp_path):
+    """A run's status bar showed 12 overruns and a 7.92 ms worst stall; the session held no
+    such event, its replay said "overruns: 0 (recorded)" and the report "no dropped samples
+    or safety trips". Now the overruns are events of the session, and the replay, the
+    Sessions table and the report say what the live window said."""
+    import functools
+    import re
+
+    from gui_faulty_device import open_stalling
+    from labbench.report.content import build
+    from labbench.report.render_html import render_html
+    from labbench.session_content import load_session
+
+    win = window(realtime=True)
+    win.connect_device("sim", opener=functools.partial(open_stalling, at=1500, stall_s=0.008))
+    qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
+    path = run_protocol(qtbot, win, "etfe", duration_s=3.0, seed=1)
+    labels = win.loop_status.labels
+    shown = labels["overruns"].text()  # the run's totals, as its end left them
+    n = int(re.match(r"overruns: (\d+)$", shown).group(1))
+    assert n >= 1 and "worst stall: " in labels["worst stall"].text()
+    worst = labels["worst stall"].text().split(": ", 1)[1]
+    _start, _desc, _ch, events, stop, _ = load_session(path)
+    names = [e["name"] for e in events]
+    assert "overrun" in names and "loop_timing" in names
+    total = next(e for e in events if e["name"] == "loop_timing")
+    assert total["overruns"] == n and f"{n} overruns" in total["reason"]
+
+    # the replay's status bar: the same figures, marked recorded
+    qtbot.waitUntil(lambda: path in win.sessions.paths, timeout=20_000)
+    win.sessions.select_path(path)
+    win.sessions.buttons["Replay fast"].click()
+    qtbot.waitUntil(lambda: win.mode == "idle" and win.live.buffer.stop is not None, timeout=30_000)
+    qtbot.waitUntil(lambda: "recorded" in labels["overruns"].text(), timeout=5_000)
+    assert labels["overruns"].text() == f"overruns: {n} (recorded)"
+    assert labels["worst stall"].text() == f"worst stall: {worst} (recorded)"
+    assert any(t.startswith("overrun: loop period") for t in win.log.texts("event"))
+
+    # the Sessions table's status, and the report's flags (page 1)
+    row = win.sessions.table.findItems(path.rsplit("/", 1)[-1], QtCore.Qt.MatchFlag.MatchExactly)[0].row()
+    status = win.sessions.table.item(row, 6).text()
+    assert status == f"success, {n} overruns"
+    report = build([path])
+    html = render_html(report.title, report.subtitle, report.blocks)
+    assert f"loop timing: {n} overruns" in html and "No flags" not in html

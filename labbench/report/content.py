@@ -190,8 +190,8 @@ def _flags_table(sessions, parts, reads) -> Table | Paragraph:
     flags = [f for s, p, r in zip(sessions, parts, reads)
              for f in _run_flags(s) + p.flags + verdict_flags(s.tag, r)]
     if not flags:
-        return Paragraph("No flags: every run completed with intact files, no dropped samples "
-                         "or safety trips, and the analyses raised no warnings.")
+        return Paragraph("No flags: every run completed with intact files, no dropped samples, "
+                         "loop overruns or safety trips, and the analyses raised no warnings.")
     return Table("Flags and what to do", ["", "found", "what to do"],
                  [[f.session, f.problem, f.action] for f in flags])
 
@@ -212,6 +212,10 @@ def _run_flags(s: ReportSession) -> list[Flag]:
     if s.dropped:
         out.append(Flag(s.tag, f"{s.dropped} samples dropped by the device link",
                         "check the bus load and the host's real-time set-up (docs/loop.md)"))
+    if s.timing_problem:
+        out.append(Flag(s.tag, s.timing_problem, "the host did not keep time (the overrun samples "
+                        "are flagged in the record): grant real-time scheduling or unload the "
+                        "machine (docs/loop.md), and re-run if the stalls matter"))
     trips = s.trips
     for e in trips[:MAX_TRIP_FLAGS]:
         out.append(Flag(s.tag, f"safety event {e.get('name')} at t = {fmt(e.get('t'))} s: "

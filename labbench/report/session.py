@@ -88,8 +88,21 @@ class ReportSession:
 
     @property
     def trips(self) -> list[dict]:
-        """Safety events (not the bookkeeping ones)."""
-        return [e for e in self.events if e.get("name") not in ("segment", "enabled")]
+        """Safety events (not the bookkeeping ones, nor the loop's timing: ``timing_flag``)."""
+        from labbench.timing import EVENTS
+
+        return [e for e in self.events if e.get("name") not in ("segment", "enabled", *EVENTS)]
+
+    @property
+    def timing_problem(self) -> str | None:
+        """What the live status bar showed of a paced loop that did not keep time: its
+        overruns and worst stall (the stop record's timing); None when it kept time."""
+        from labbench.timing import summary
+
+        timing = (self.stop or {}).get("timing") or {}
+        if not (timing.get("paced") and timing.get("overruns")):
+            return None
+        return summary({k: v for k, v in timing.items() if k != "realtime"})
 
 
 def load(path, index: int = 1) -> ReportSession:
