@@ -1,6 +1,7 @@
 """The session catalogue: what sessions a folder holds, from their headers alone."""
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -157,7 +158,8 @@ def last_results(directory, rig_name: str, protocol: str, on_skip=None) -> tuple
 
 def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
     """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
-    ``{"m", "b", "session"}``, or None (no folder, no such session). The plant a run uses
+    ``{"m", "b", "session", "coulomb_n"}`` (its l2 fit's Coulomb term; None when the model
+    had none), or None (no folder, no such session). The plant a run uses
     when none is given (``labbench run --plant-from last-id``, the window): what it was
     identified as, and where."""
     from labbench.ve import Plant
@@ -167,5 +169,10 @@ def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
             plant = Plant(res.get("m"), res.get("b"))  # a number within the physical range, or not used
         except (UserError, TypeError):
             continue
-        return {"m": plant.m, "b": plant.b, "session": path}
+        ident = res.get("identification") or {}
+        best = ident.get("l2") or next(iter(ident.values()), {}) if isinstance(ident, dict) else {}
+        coulomb = best.get("coulomb") if isinstance(best, dict) else None
+        return {"m": plant.m, "b": plant.b, "session": path,
+                "coulomb_n": float(coulomb) if isinstance(coulomb, (int, float))
+                and math.isfinite(coulomb) and coulomb >= 0 else None}
     return None

@@ -140,10 +140,12 @@ class WhiteNoiseEtfe(ProtocolBase):
 
     def analyze(self, data: dict, meta: dict) -> dict:
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
-        impedances (labbench.effective), the deviation from the exact sampled theory, and the
-        closed-loop fit of m, b and the rig's extra delay (labbench.analysis.loopfit)."""
+        impedances (labbench.effective), the deviation from the exact sampled theory, the
+        closed-loop fit of m, b and the rig's extra delay (labbench.analysis.loopfit), and the
+        force noise the loop commanded (labbench.analysis.force_noise)."""
         from labbench import predictions
-        from labbench.analysis import compare
+        from labbench.analysis import compare, force_noise
+        from labbench.model.noise import FELT_BAND_HZ
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
         from labbench.analysis.loopfit import fit_loop
@@ -168,7 +170,13 @@ class WhiteNoiseEtfe(ProtocolBase):
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
         predicted = predictions.bandwidths(plant, ve, latency)
+        try:  # the command's noise in the felt band (docs/design.md)
+            noise = force_noise.measure(data["command"], data["excitation"], ve.T,
+                                        FELT_BAND_HZ).as_dict()
+        except UserError as exc:  # a record too short for the band
+            noise = {"error": str(exc)}
         return {
+            "force_noise": noise,
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
             "plant": {"m": plant.m, "b": plant.b},

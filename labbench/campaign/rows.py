@@ -40,7 +40,11 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
   (the ETFE's own radius, |dES| <= w |dZ|, |dED| <= |dZ|); ``acc.es_in_band`` /
   ``acc.ed_in_band``: the share of the band's frequencies at which the measured ES (ED)
   lies within that half-width of the predicted one; ``acc.k_max_fit``: K_max of the plant
-  and delay the closed-loop fit found (``labbench.analysis.loopfit``), beside ``pred.k_max``.
+  and delay the closed-loop fit found (``labbench.analysis.loopfit``), beside ``pred.k_max``;
+  ``pred.noise_command``: the force noise the loop commands in the felt band, predicted by
+  ``labbench.model.noise`` with the encoder step and amplifier noise the rig states
+  (``pred.noise_quantum_m``, ``pred.noise_amplifier_n``), beside the measured
+  ``res.force_noise.rms_n`` and its interval ``res.force_noise.ci95``.
 """
 from __future__ import annotations
 
@@ -130,7 +134,24 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
         out.update(_zwidth(results, out))
     if isinstance(results.get("etfe"), dict):
         out.update(_accuracy(results, plant, ve, latency, out.get("pred.k_max")))
+    if pp.protocol_name == "etfe" and ve.kind != "none":
+        out.update(_noise(pp, context, plant, ve, latency))
     return out
+
+
+def _noise(pp, context, plant: Plant, ve, latency: float) -> dict:
+    """``pred.noise_command`` [N rms, felt band] of the noise model with the noise sources the
+    rig states (``labbench.design.rig_noise``), beside the run's ``res.force_noise.*``."""
+    from labbench.design import rig_noise
+    from labbench.model import noise
+
+    sources, _ = rig_noise(pp.rig, context.simulated, pp.device_options)
+    try:
+        fn = noise.force_noise(plant, ve, sources, noise.FELT_BAND_HZ, latency)
+    except UserError:  # unstable on the campaign's plant: no stationary noise to predict
+        return {"pred.noise_command": None}
+    return {"pred.noise_command": fn.rms_command, "pred.noise_quantum_m": sources.quantum_m,
+            "pred.noise_amplifier_n": sources.force_noise_n}
 
 
 BOUNDS = (("pred.k_passive", "passive (sampled-data)"),

@@ -26,7 +26,7 @@ from labbench.interrupts import raising
 from labbench.units import SI, DisplayUnits
 
 # Order is the order shown in --help.
-COMMANDS = ("theory", "analyze", "run", "sweep", "campaign", "replay", "export", "report", "devices", "gui")
+COMMANDS = ("theory", "design", "analyze", "run", "sweep", "campaign", "replay", "export", "report", "devices", "gui")
 # Optional packages -> the extra that installs them (pyproject.toml).
 OPTIONAL = {"cvxpy": "cvxpy", "PySide6": "gui", "pyqtgraph": "gui", "pandas": "pandas"}
 # Libraries whose log lines are shown from -v on only: their errors (an SDO abort, a bus

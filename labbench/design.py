@@ -1,0 +1,308 @@
+"""The three-way trade-off of a haptic display, as numbers: stability, accuracy and force noise
+of a spring-damper on one identified device, for any K, B, filter cut-off w0 and loop period T.
+
+Colonnese, Sketch & Okamura end on it (sec. 5): the velocity filter and the virtual damping
+make design "a three-way trade-off between stability, noise rejection, and accuracy". Each
+number here comes from one model, named in ``MODELS`` (and in every ``as_dict``):
+
+* **stability**: ``k_max``, the largest stable K of the exact sampled loop with the device's
+  delay (``labbench.model.linear.k_max``), and ``margin`` = k_max / K; beside it the passive
+  bounds of ``labbench.model.passivity``: ``k_passive`` (Colgate & Schenkel's sampled-data
+  condition for this filter and delay) and ``k_quantised``, Abbott & Okamura's K <= 2 f_c /
+  Delta with the device's Coulomb friction and encoder step (None where no friction is known).
+  Friction dissipates what the sampled loop generates, so a rubbing device may measure stable
+  above ``k_max``; the statistical linearisation of friction (issue 41) is not used here.
+* **accuracy**: ``ws_star`` and ``wb_star`` read off the exact sampled model's ES and ED as
+  a measurement is read (``labbench.predictions``); the rendered stiffness and damping, the
+  model's low-frequency limits ES(0) = K and ED(0) (``labbench.model.linear.low_frequency``);
+  the ED error at a frequency the user names, |ED(w) - (b + B)| / (b + B), in the exact sampled
+  model (what an ETFE on the rig measures: the hold's half-sample advance included) and in
+  the paper's eq. 2 (what a hand at the handle feels, the hold as a delay of T/2).
+* **noise**: the force noise in the felt band, ``labbench.model.noise`` (the encoder step
+  and the amplifier's noise through the exact sampled loop; the held force a hand feels,
+  ``noise_felt``, and the recorded command's, ``noise_command``).
+
+**The w0 to choose.** With a noise limit, the virtual damping a filter allows is bounded:
+the force noise grows with B and with w0. The Z-width a device offers under that limit is
+the area under its stable boundary K_max(B) from B = 0 to the largest B whose noise stays
+within the limit (``zwidth``; Colgate & Brown's impedance range, measured as an area as
+Chawda, Celik & O'Malley, J. Dyn. Syst. Meas. Control 137(2), 2015, do): a faster filter
+raises K_max(B) but lowers that B, so one w0 maximises the area (``recommend``). The
+accurate band (w_b*) at a stated B is the other objective: the fastest filter whose noise
+stays within the limit.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from labbench import predictions
+from labbench.errors import UserError
+from labbench.model import linear, noise, passivity
+from labbench.ve import Plant, VirtualEnvironment
+
+ACCURACY_W = 2 * math.pi * 10.0  # rad/s: the top of volitional motion (paper sec. 5)
+OBJECTIVES = ("zwidth", "band")
+NOISE_OF = ("command", "felt")
+
+MODELS = {
+    "k_max": "exact sampled loop, first loss of stability as K grows (labbench.model.linear)",
+    "margin": "k_max / K (exact sampled loop)",
+    "k_passive": "sampled-data passivity, Colgate & Schenkel 1997 (labbench.model.passivity)",
+    "k_quantised": "passivity with Coulomb friction and encoder step, Abbott & Okamura 2005: "
+                   "K <= 2 f_c / Delta",
+    "ws_star": "read off the exact sampled model's ES (labbench.predictions)",
+    "wb_star": "read off the exact sampled model's ED (labbench.predictions)",
+    "rendered_K": "ES(0) of the exact sampled model",
+    "rendered_B": "ED(0) of the exact sampled model",
+    "ed_error_sampled": "exact sampled model at the accuracy frequency (as an ETFE measures)",
+    "ed_error_paper": "paper eq. 2 at the accuracy frequency (as a hand at the handle feels)",
+    "noise_felt": "labbench.model.noise: held force at the actuator in the felt band",
+    "noise_command": "labbench.model.noise: recorded command in the felt band",
+    "zwidth": "area under the exact sampled K_max(B) up to the noise-limited B",
+}
+
+
+@dataclass(frozen=True)
+class Device:
+    """The device a design is for: its identified ``plant``, the device's delay ``latency``
+    [s], encoder step ``quantum_m`` [m], the amplifier's white noise ``force_noise_n`` [N std],
+    Coulomb friction ``coulomb_n`` [N] (None: not known), and ``sources``: where each came
+    from, in words (``plant``, ``latency``, ``quantum``, ``force_noise``, ``coulomb``)."""
+
+    plant: Plant
+    latency: float = 0.0
+    quantum_m: float = 0.0
+    force_noise_n: float = 0.0
+    coulomb_n: float | None = None
+    sources: dict = field(default_factory=dict)
+
+    def noise_sources(self) -> noise.NoiseSources:
+        return noise.NoiseSources(self.quantum_m, self.force_noise_n)
+
+    def as_dict(self) -> dict:
+        return {"m": self.plant.m, "b": self.plant.b, "latency_s": self.latency,
+                "quantum_m": self.quantum_m, "force_noise_n": self.force_noise_n,
+                "coulomb_n": self.coulomb_n, "sources": dict(self.sources)}
+
+
+@dataclass(frozen=True)
+class Targets:
+    """What the design is held to: ``noise_limit_n`` [N rms] on the force noise ``noise_of``
+    ("command": the noise the loop commands, which a record shows and a campaign measures;
+    "felt": the held force at the actuator, the amplifier's own noise included) in the felt
+    band ``band_hz`` (None: no limit); the accuracy frequency ``at_w`` [rad/s]; the hand's rms
+    speed ``motion_m_s`` (None: the quantisation error taken as white)."""
+
+    noise_limit_n: float | None = None
+    noise_of: str = "command"
+    band_hz: tuple[float, float] = noise.FELT_BAND_HZ
+    at_w: float = ACCURACY_W
+    motion_m_s: float | None = None
+
+    def __post_init__(self):
+        if self.noise_of not in NOISE_OF:
+            raise UserError(f"noise limit applies to one of {', '.join(NOISE_OF)}, "
+                            f"got {self.noise_of!r}")
+        if self.noise_limit_n is not None and not (math.isfinite(self.noise_limit_n)
+                                                   and self.noise_limit_n > 0):
+            raise UserError(f"noise limit must be a positive number of N, got {self.noise_limit_n!r}")
+        if not (math.isfinite(self.at_w) and self.at_w > 0):
+            raise UserError(f"accuracy frequency must be positive rad/s, got {self.at_w!r}")
+        if self.motion_m_s is not None and not (math.isfinite(self.motion_m_s)
+                                                and self.motion_m_s > 0):
+            raise UserError(f"hand speed must be a positive number of m/s, got {self.motion_m_s!r}")
+
+
+@dataclass(frozen=True)
+class DesignPoint:
+    """One setting (K, B, w0, T) and its numbers (module doc; ``MODELS`` names each one's
+    model). ``stable``: K < k_max; ``within_limit``: stable, and the noise the targets limit
+    within it (True without a limit)."""
+
+    K: float
+    B: float
+    w0: float
+    T: float
+    stable: bool
+    k_max: float | None
+    margin: float | None
+    k_passive: float | None
+    k_quantised: float | None
+    ws_star: float | None
+    wb_star: float | None
+    rendered_K: float | None
+    rendered_B: float | None
+    ed_error_sampled: float | None
+    ed_error_paper: float | None
+    noise_felt: float | None
+    noise_command: float | None
+    noise_white: bool | None
+    within_limit: bool
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class Designer:
+    """Evaluates settings for one device and targets, remembering what does not depend on K
+    (K_max and the passive bounds depend on B, w0 and T only)."""
+
+    def __init__(self, device: Device, targets: Targets | None = None):
+        self.device = device
+        self.targets = targets or Targets()
+        self._bounds: dict = {}
+
+    def ve(self, K: float, B: float, w0: float, T: float) -> VirtualEnvironment:
+        return VirtualEnvironment("spring-damper", K=K, B=B, w0=w0, T=T)
+
+    def bounds(self, B: float, w0: float, T: float) -> tuple:
+        """(k_max, k_passive) of the exact sampled loop for B, w0, T (cached)."""
+        key = (B, w0, T)
+        if key not in self._bounds:
+            d = self.device
+            ve = self.ve(1.0, B, w0, T)
+            self._bounds[key] = (linear.k_max(d.plant, ve, latency=d.latency),
+                                 passivity.passive_k_max(d.plant, ve, d.latency))
+        return self._bounds[key]
+
+    def evaluate(self, K: float, B: float, w0: float, T: float) -> DesignPoint:
+        d, t = self.device, self.targets
+        if not K > 0:
+            raise UserError(f"K must be > 0 N/m for a spring-damper design, got {K!r}")
+        ve = self.ve(K, B, w0, T)
+        k_max, k_passive = self.bounds(B, w0, T)
+        stable = k_max is not None and K < k_max
+        bw = predictions.bandwidths(d.plant, ve, d.latency)
+        base = d.plant.b + B
+        w = np.array([t.at_w])
+        if t.at_w > math.pi / T:
+            raise UserError(f"accuracy frequency {t.at_w:g} rad/s is above the Nyquist "
+                            f"frequency pi/T = {math.pi / T:g} rad/s")
+        ed_s = float(linear.z_sampled(d.plant, ve, w, d.latency).real[0])
+        ed_p = float(linear.z_paper(d.plant, ve, w, d.latency).real[0])
+        felt = command = white = None
+        if stable:
+            inc = (None if t.motion_m_s is None else
+                   noise.increments_from_speed(t.motion_m_s, T))
+            fn = noise.force_noise(d.plant, ve, d.noise_sources(), t.band_hz, d.latency, inc)
+            felt, command, white = fn.rms_felt, fn.rms_command, fn.white
+        held = felt if t.noise_of == "felt" else command
+        within = t.noise_limit_n is None or held is None or held <= t.noise_limit_n
+        return DesignPoint(
+            K=K, B=B, w0=w0, T=T, stable=stable, k_max=k_max,
+            margin=(k_max / K) if k_max is not None else None, k_passive=k_passive,
+            k_quantised=passivity.quantisation_bound(d.coulomb_n, d.quantum_m),
+            ws_star=bw.ws_star, wb_star=bw.wb_star, rendered_K=K if stable else None,
+            rendered_B=linear.low_frequency(d.plant, ve, "sampled", d.latency)[0] if stable else None,
+            ed_error_sampled=abs(ed_s - base) / base if base > 0 else None,
+            ed_error_paper=abs(ed_p - base) / base if base > 0 else None,
+            noise_felt=felt, noise_command=command, noise_white=white,
+            within_limit=bool(stable and within))
+
+    def sweep(self, Ks, Bs, w0s, Ts, progress=None) -> list[DesignPoint]:
+        """Every combination, in the order K, B, w0, T vary slowest to fastest."""
+        combos = [(K, B, w0, T) for K in Ks for B in Bs for w0 in w0s for T in Ts]
+        out = []
+        for i, c in enumerate(combos):
+            out.append(self.evaluate(*c))
+            if progress:
+                progress(i + 1, len(combos))
+        return out
+
+    def limited_noise(self, p: DesignPoint) -> float:
+        """The noise the targets limit, of point ``p`` (inf where it is unstable)."""
+        v = p.noise_felt if self.targets.noise_of == "felt" else p.noise_command
+        return math.inf if v is None else v
+
+    def noise_limited_b(self, K: float, Bs, w0: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+        """(B, the limited noise) on the grid ``Bs`` (sorted) for this K, w0, T."""
+        Bs = np.sort(np.asarray(Bs, float))
+        return Bs, np.array([self.limited_noise(self.evaluate(K, B, w0, T)) for B in Bs])
+
+    def recommend(self, K: float, Bs, w0s, T: float, objective: str = "zwidth",
+                  B: float | None = None) -> dict:
+        """The w0 of ``w0s`` that maximises the objective under the noise limit (module doc):
+        ``zwidth`` over the B grid ``Bs`` at this K, or ``band`` (w_b*) at the given B.
+        Returns ``{"w0", "objective", "by_w0": [{w0, value, b_limit}...], "model"}``."""
+        if objective not in OBJECTIVES:
+            raise UserError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
+        rows = []
+        limit = self.targets.noise_limit_n
+        for w0 in w0s:
+            if objective == "zwidth":
+                Bg, nz = self.noise_limited_b(K, Bs, w0, T)
+                kmax = np.array([self.bounds(b, w0, T)[0] or 0.0 for b in Bg])
+                area, b_lim = zwidth(Bg, kmax, nz, limit)
+                rows.append({"w0": w0, "value": area, "b_limit": b_lim})
+            else:
+                if B is None:
+                    raise UserError("the band objective needs the B it is for")
+                p = self.evaluate(K, B, w0, T)
+                rows.append({"w0": w0, "value": p.wb_star if p.within_limit else None,
+                             "noise_n": self.limited_noise(p)})
+        usable = [r for r in rows if r["value"] is not None and r["value"] > 0]
+        best = max(usable, key=lambda r: r["value"]) if usable else None
+        return {"objective": objective, "w0": best["w0"] if best else None,
+                "value": best["value"] if best else None, "by_w0": rows,
+                "noise_limit_n": limit,
+                "model": MODELS["zwidth"] if objective == "zwidth" else MODELS["wb_star"]}
+
+
+def rig_noise(rig, simulated: bool, sim_options: dict | None = None
+              ) -> tuple[noise.NoiseSources, dict]:
+    """The noise sources a rig states, and where each came from: on hardware the encoder's
+    step (``Rig.metres_per_count``) and no amplifier noise (a rig file states none); on a
+    simulator its ``[sim]`` table with ``sim_options`` over it: the step when it quantises,
+    its ``force_noise_n``."""
+    if not simulated:
+        return (noise.NoiseSources(rig.metres_per_count, 0.0),
+                {"quantum": "the rig's encoder (counts_per_rev, lever_arm_m)",
+                 "force_noise": "none stated"})
+    o = {**rig.section("sim"), **(sim_options or {})}
+    q = rig.metres_per_count if o.get("quantize") else 0.0
+    amp = float(o.get("force_noise_n", 0.0) or 0.0)
+    return (noise.NoiseSources(q, amp),
+            {"quantum": "the simulator's encoder (quantize = true)" if q else
+             "none: the simulator does not quantise",
+             "force_noise": f"the simulator's force_noise_n = {amp:g} N" if amp else "none"})
+
+
+def zwidth(Bs, k_max, noise_n, limit: float | None) -> tuple[float, float | None]:
+    """(area [N^2 s/m^2], B_limit): the area under K_max(B), piecewise linear on the grid
+    ``Bs`` (sorted), from the first B to the largest B whose noise is within ``limit``, the
+    crossing placed by linear interpolation of the noise between grid points (no limit: the
+    whole grid). The same rule reads a campaign's measurements and the model's predictions.
+    (0, None) when even the first B is over the limit."""
+    Bs, k, nz = (np.asarray(a, float) for a in (Bs, k_max, noise_n))
+    if limit is None:
+        return float(np.trapezoid(k, Bs)), float(Bs[-1])
+    if not nz[0] <= limit:
+        return 0.0, None
+    over = np.flatnonzero(~(nz <= limit))
+    if not len(over):
+        return float(np.trapezoid(k, Bs)), float(Bs[-1])
+    j = over[0]  # first grid point over the limit; j - 1 within
+    a = (limit - nz[j - 1]) / (nz[j] - nz[j - 1]) if math.isfinite(nz[j]) else 0.0
+    b_lim = Bs[j - 1] + a * (Bs[j] - Bs[j - 1])
+    k_lim = k[j - 1] + a * (k[j] - k[j - 1])
+    area = float(np.trapezoid(k[:j], Bs[:j])) + 0.5 * (k[j - 1] + k_lim) * (b_lim - Bs[j - 1])
+    return area, float(b_lim)
+
+
+def pareto(points: list[DesignPoint]) -> list[DesignPoint]:
+    """The stable points no other stable point beats on all three corners at once and on one
+    strictly: a larger stability margin, a wider accurate band (w_b*) and less felt noise."""
+    cand = [p for p in points if p.stable and p.noise_felt is not None]
+
+    def key(p):
+        return (p.margin or 0.0, p.wb_star or 0.0, -p.noise_felt)
+
+    front = []
+    for p in cand:
+        kp = key(p)
+        if not any(all(a >= b for a, b in zip(key(q), kp)) and key(q) != kp for q in cand):
+            front.append(p)
+    return front
