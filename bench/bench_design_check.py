@@ -13,6 +13,7 @@ docs/design-check.md (the table) and docs/design-check.png (the figure, the simu
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 import tempfile
 import time
@@ -41,7 +42,10 @@ def measure(device: str, work: Path, grid: dict, etfe_s: float):
     t0 = time.perf_counter()
     if device.startswith("canopennode"):
         import canopennode
+        from canopennode import build
 
+        if not build.STACK.is_dir():  # a worktree: the stack beside the main checkout
+            build.STACK = _main_root().parent / "shared" / "third_party" / "CANopenNode"
         running = canopennode.start(device.split("-")[1], CALM)
         try:
             runs = [campaign("canopen", running.rig, d, work / name, lockstep=True)
@@ -55,6 +59,14 @@ def measure(device: str, work: Path, grid: dict, etfe_s: float):
     rows = [r for _, rs, _, _ in runs for r in rs]
     notes = [n for *_, n in runs if n]
     return rig, simulated, rows, time.perf_counter() - t0, notes
+
+
+def _main_root() -> Path:
+    """The root of the repository's main checkout (this one, or the one a worktree
+    belongs to)."""
+    common = subprocess.run(["git", "rev-parse", "--git-common-dir"], cwd=ROOT,
+                            capture_output=True, text=True, check=True).stdout.strip()
+    return (ROOT / common).resolve().parent
 
 
 def main() -> int:
@@ -96,8 +108,8 @@ def main() -> int:
             if device == "sim":
                 with replacing(ROOT / "docs" / "design-check.png", force=True) as t:
                     check_figure(c).savefig(t, dpi=110, format="png")
-    Path(args.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+            Path(args.out).write_text("\n".join(lines))  # after each device: nothing lost
+            print("\n".join(lines[-len(table_lines(c)) - 6:]), flush=True)
     return 0
 
 

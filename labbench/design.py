@@ -108,7 +108,8 @@ class Targets:
                             f"got {self.noise_of!r}")
         if self.noise_limit_n is not None and not (math.isfinite(self.noise_limit_n)
                                                    and self.noise_limit_n > 0):
-            raise UserError(f"noise limit must be a positive number of N, got {self.noise_limit_n!r}")
+            raise UserError("noise limit must be a positive number of N, got "
+                            f"{self.noise_limit_n!r}")
         if not (math.isfinite(self.at_w) and self.at_w > 0):
             raise UserError(f"accuracy frequency must be positive rad/s, got {self.at_w!r}")
         if self.motion_m_s is not None and not (math.isfinite(self.motion_m_s)
@@ -155,6 +156,13 @@ class Designer:
         self.targets = targets or Targets()
         self._bounds: dict = {}
 
+    def retarget(self, targets: Targets) -> Designer:
+        """The same device held to other targets, its bounds remembered (they depend on the
+        device and B, w0, T only)."""
+        other = Designer(self.device, targets)
+        other._bounds = self._bounds
+        return other
+
     def ve(self, K: float, B: float, w0: float, T: float) -> VirtualEnvironment:
         return VirtualEnvironment("spring-damper", K=K, B=B, w0=w0, T=T)
 
@@ -169,6 +177,11 @@ class Designer:
         return self._bounds[key]
 
     def evaluate(self, K: float, B: float, w0: float, T: float) -> DesignPoint:
+        return self.detail(K, B, w0, T)[0]
+
+    def detail(self, K: float, B: float, w0: float, T: float
+               ) -> tuple[DesignPoint, noise.ForceNoise | None]:
+        """The point and its force noise with the spectra (None where it is unstable)."""
         d, t = self.device, self.targets
         if not K > 0:
             raise UserError(f"K must be > 0 N/m for a spring-damper design, got {K!r}")
@@ -183,7 +196,7 @@ class Designer:
                             f"frequency pi/T = {math.pi / T:g} rad/s")
         ed_s = float(linear.z_sampled(d.plant, ve, w, d.latency).real[0])
         ed_p = float(linear.z_paper(d.plant, ve, w, d.latency).real[0])
-        felt = command = white = None
+        felt = command = white = fn = None
         if stable:
             inc = (None if t.motion_m_s is None else
                    noise.increments_from_speed(t.motion_m_s, T))
@@ -196,11 +209,12 @@ class Designer:
             margin=(k_max / K) if k_max is not None else None, k_passive=k_passive,
             k_quantised=passivity.quantisation_bound(d.coulomb_n, d.quantum_m),
             ws_star=bw.ws_star, wb_star=bw.wb_star, rendered_K=K if stable else None,
-            rendered_B=linear.low_frequency(d.plant, ve, "sampled", d.latency)[0] if stable else None,
+            rendered_B=(linear.low_frequency(d.plant, ve, "sampled", d.latency)[0] if stable
+                        else None),
             ed_error_sampled=abs(ed_s - base) / base if base > 0 else None,
             ed_error_paper=abs(ed_p - base) / base if base > 0 else None,
             noise_felt=felt, noise_command=command, noise_white=white,
-            within_limit=bool(stable and within))
+            within_limit=bool(stable and within)), fn
 
     def sweep(self, Ks, Bs, w0s, Ts, progress=None) -> list[DesignPoint]:
         """Every combination, in the order K, B, w0, T vary slowest to fastest."""

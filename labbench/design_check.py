@@ -126,7 +126,8 @@ def check(designer: Designer, campaign_rows: list[dict]) -> Check:
     models = {"k_max": MODELS["k_max"], "rendered_K": MODELS["rendered_K"],
               "rendered_B": MODELS["rendered_B"], "noise": MODELS["noise_command"],
               "zwidth": MODELS["zwidth"]}
-    return Check(K, T, designer.device.plant.b, designer.targets.noise_limit_n, rows, zw, best_p, best_m, apart, models)
+    return Check(K, T, designer.device.plant.b, designer.targets.noise_limit_n, rows, zw,
+                 best_p, best_m, apart, models)
 
 
 def _zwidths(rows: list[Row], limit):

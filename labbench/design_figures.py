@@ -60,8 +60,8 @@ def tradeoff_figure(points: list[DesignPoint], recommendation: dict | None,
                        label=f"recommended w0 = {recommendation['w0']:g} rad/s")
             ax.legend(fontsize=7)
         ax.set_xscale("log")
-        what = ("Z-width under the noise limit (N^2 s/m^2)"
-                if recommendation["objective"] == "zwidth" else "w_b* under the noise limit (rad/s)")
+        what = ("Z-width under the noise limit (N^2 s/m^2)" if recommendation["objective"]
+                == "zwidth" else "w_b* under the noise limit (rad/s)")
     else:
         what = "(one w0: no recommendation)"
     _style(ax, "velocity filter cut-off w0 (rad/s)", what)

@@ -37,7 +37,8 @@ def test_every_number_is_its_models():
     w = design.ACCURACY_W
     assert p.ed_error_sampled == pytest.approx(
         abs(linear.z_sampled(PLANT, ve, [w]).real[0] - 1.1) / 1.1)
-    assert p.ed_error_paper == pytest.approx(abs(linear.z_paper(PLANT, ve, [w]).real[0] - 1.1) / 1.1)
+    assert p.ed_error_paper == pytest.approx(
+        abs(linear.z_paper(PLANT, ve, [w]).real[0] - 1.1) / 1.1)
     assert p.stable and p.within_limit
 
 

@@ -115,7 +115,8 @@ def device_of(args):
     delay = device_delay.resolve(rig, explicit=None if args.device_delay_s is None else
                                  device_delay.checked(args.device_delay_s, "--device-delay-s"))
     sources, where = rig_noise(rig, args.simulated)
-    quantum = sources.quantum_m if args.quantum_m is None else _nonneg(args.quantum_m, "--quantum-m")
+    quantum = sources.quantum_m if args.quantum_m is None else \
+        _nonneg(args.quantum_m, "--quantum-m")
     amp = sources.force_noise_n if args.force_noise_n is None else \
         _nonneg(args.force_noise_n, "--force-noise-n")
     return rig, Device(
@@ -242,7 +243,7 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         f"  encoder step {fmt(1e6 * d.quantum_m)} um ({s['quantum']}); amplifier noise "
         f"{fmt(1e3 * d.force_noise_n)} mN ({s['force_noise']}); Coulomb friction "
         f"{fmt(d.coulomb_n)} N ({s['coulomb']})",
-        f"targets: {'no noise limit' if targets.noise_limit_n is None else f'{targets.noise_of} noise within ' + fmt(1e3 * targets.noise_limit_n) + ' mN rms'}"
+        f"targets: {_limit_text(targets)}"
         f" in {fmt(targets.band_hz[0])}-{fmt(targets.band_hz[1])} Hz; ED error at "
         f"{fmt(targets.at_w)} rad/s",
         "models: K_max exact sampled loop; K_pass Colgate & Schenkel sampled-data passivity; "
@@ -276,6 +277,14 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         lines.append(f"recommended w0 = {fmt(rec['w0'])} rad/s" if rec["w0"] is not None
                      else "no w0 meets the noise limit")
     return lines
+
+
+def _limit_text(targets) -> str:
+    from labbench.numfmt import fmt
+
+    if targets.noise_limit_n is None:
+        return "no noise limit"
+    return f"{targets.noise_of} noise within {fmt(1e3 * targets.noise_limit_n)} mN rms"
 
 
 def _pct(v) -> str:
