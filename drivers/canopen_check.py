@@ -306,6 +306,33 @@ def _torque_scale(a: Assessment, d: Dictionary, config: CanopenConfig,
     a.warnings.append(f"0x6076:00 {state} (motor rated torque): per-mille torque of {how}")
 
 
+def _force_limit_fits(a: Assessment, rig, top: int) -> None:
+    """The host clamps a command at the rig's force limit before converting it: that clamp
+    holds only when the limit is at least one unit of the set point (else the smallest
+    nonzero command is beyond it) and within the set point's range (else a wrong scale
+    saturates it: every force the drive's largest value, whatever the motor truly makes).
+    Either is an obstacle naming the numbers the scale is made of (labbench.scales)."""
+    units = rig.force_limit_n * a.force_to_command
+    if 1 - 1e-9 <= units <= top * (1 + 1e-9):  # (rounding of the scale's product)
+        return
+    per_unit = 1 / a.force_to_command  # N at the handle
+    made_of = ("[rig] lever_arm_m and " + (
+        "the motor's rated torque (0x6076, or [canopen] rated_torque_mnm, or "
+        "torque_constant_nm_per_a x rated current)" if a.unit == "permille" else
+        "[canopen] torque_constant_nm_per_a" if UNITS[a.unit][1] == "A" else
+        f"the unit {a.unit}"))
+    shown = f"{ref_text(a.command)} ({'per-mille' if a.unit == 'permille' else a.unit})"
+    if units < 1:
+        a.obstacles.append(f"one unit of {shown} is {per_unit:.3g} N at the handle, above "
+                           f"[rig] force_limit_n = {rig.force_limit_n:g} N: the host could not "
+                           f"clamp a command; check {made_of}")
+    else:
+        a.obstacles.append(f"[rig] force_limit_n = {rig.force_limit_n:g} N is {units:.3g} units "
+                           f"of {shown}, beyond its largest value {top} ({top * per_unit:.3g} N "
+                           f"at the handle): a command would saturate the drive; check "
+                           f"{made_of}, or lower force_limit_n to {top * per_unit:.3g} N")
+
+
 def _watch(a: Assessment, d: Dictionary, config: CanopenConfig) -> None:
     hb = d.has(0x1016, 1) and d.get(0x1016, 1).writable
     guard = all(d.has(i, 0) and d.get(i, 0).writable for i in (0x100C, 0x100D))
@@ -428,6 +455,7 @@ def _assess(d: Dictionary, config: CanopenConfig, rig) -> Assessment:
         a.force_to_command = rig.lever_arm_m / nm_per_unit
         e = d.get(*a.command)
         top = (1 << (e.bits - 1)) - 1 if e is not None and e.bits else 32767
+        _force_limit_fits(a, rig, top)
         a.max_command = min(top, max(1, round(rig.force_limit_n * a.force_to_command)))
     if a.rated_mnm:
         limit = round(rig.force_limit_n * rig.lever_arm_m / (a.rated_mnm * 1e-6))

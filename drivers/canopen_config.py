@@ -1,12 +1,14 @@
 """The ``[canopen]`` table of a rig file, validated (see docs/canopen.md).
 
-Every field is checked with one ``UserError`` naming it. Keys that are not
-fields of the driver are options of python-can's ``can.Bus`` (``fd``,
-``data_bitrate``, ``app_name``, ``serial``, ``receive_own_messages``, ...) and
-pass through unchanged; a key one letter or two away from a field is taken for
-a typo and refused. When the rig names no ``interface``/``channel``,
-python-can's own configuration (``~/.canrc``, ``CAN_INTERFACE``,
-``CAN_CHANNEL``) applies. The ``eds`` path is relative to the rig file.
+Every field is checked with one ``UserError`` naming it; an unknown one is refused with
+the nearest field's name, as ``[rig]`` does. Options of python-can's ``can.Bus`` (``fd``,
+``data_bitrate``, ``app_name``, ``serial``, ``receive_own_messages``, ...) go in the
+sub-table ``[canopen.bus]`` and pass through unchanged (before, any unknown key of
+``[canopen]`` was one, so a misspelt field far from every name, ``zzzzzz = 3``, passed
+silently). The torque scale's numbers (``rated_torque_mnm``, ``torque_constant_nm_per_a``,
+``rated_current_ma``) lie within ``labbench.scales``' physical ranges (0: not given). When
+the rig names no ``interface``/``channel``, python-can's own configuration (``~/.canrc``,
+``CAN_INTERFACE``, ``CAN_CHANNEL``) applies. The ``eds`` path is relative to the rig file.
 
 Vendor modes: ``[canopen.modes]`` maps a name to ``{code = -3, bit = 16}``:
 the value written to 0x6060 and, if the drive advertises it, its bit in
@@ -20,13 +22,16 @@ data type (``type = "INTEGER16"``, checked against the drive's dictionary).
 """
 from __future__ import annotations
 
-import difflib
 import math
 import re
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from labbench.errors import UserError
+from labbench import scales
+from labbench.errors import UserError, unknown_name
+
+TABLE = "canopen"
+BUS = "bus"  # [canopen.bus]: python-can's own options
 
 # CiA 402 operation modes (0x6060) with a torque set point, and their bits in 0x6502.
 MODE_CST, MODE_PT = 10, 4
@@ -122,8 +127,7 @@ class CanopenConfig:
         "velocity_tpdo_every": (1, 240),
     }
     _CHOICES = {"watchdog": ("auto", "heartbeat", "guarding"), "sim_drive": ("thread", "process")}
-    _NON_NEGATIVE = ("rated_torque_mnm", "torque_constant_nm_per_a", "rated_current_ma",
-                     "sim_answer_delay_ms")
+    _NON_NEGATIVE = ("sim_answer_delay_ms",)
 
     @classmethod
     def from_section(cls, section: dict, source: str = "rig") -> "CanopenConfig":
@@ -132,15 +136,13 @@ class CanopenConfig:
         values, bus = {}, {}
         for name, value in section.items():
             where = f"{source}: [canopen] {name}"
-            if name not in known:
-                near = difflib.get_close_matches(name, known, n=1, cutoff=0.85)
-                if near:
-                    raise UserError(f"{source}: unknown field [canopen] {name} "
-                                    f"(did you mean {near[0]}?)")
-                if not isinstance(value, (str, int, float, bool)):
-                    raise UserError(f"{where}: a python-can bus option must be a plain value")
-                bus[name] = value
+            if name == BUS:
+                bus = _bus(value, where)
                 continue
+            if name not in known:
+                raise UserError(f"{source}: [canopen] "
+                                f"{unknown_name('field', name, [*known, BUS])} (python-can's "
+                                f"own bus options go in [canopen.{BUS}])")
             if name == "modes":
                 values[name] = _modes(value, where)
                 continue
@@ -154,6 +156,8 @@ class CanopenConfig:
                 if name in cls._CHOICES and value not in cls._CHOICES[name]:
                     raise UserError(f"{where} must be one of {', '.join(cls._CHOICES[name])}, "
                                     f"got {value!r}")
+            elif (TABLE, name) in scales.SCALES:
+                value = scales.check(TABLE, name, value, source)
             elif isinstance(default, float):
                 ok = isinstance(value, (int, float)) and not isinstance(value, bool)
                 positive = name not in cls._NON_NEGATIVE
@@ -182,6 +186,11 @@ class CanopenConfig:
         if cfg.eds and not Path(cfg.eds).is_file():
             raise UserError(f"{source}: [canopen] eds file not found: {cfg.eds}")
         return cfg
+
+    @classmethod
+    def from_rig(cls, rig) -> "CanopenConfig":
+        """The rig's ``[canopen]`` table validated (``from_section``)."""
+        return cls.from_section(rig.section(TABLE), source=rig.source)
 
     def torque_modes(self) -> list[Mode]:
         """The modes to try, in order (one unless ``mode = "auto"``)."""
@@ -213,6 +222,15 @@ class CanopenConfig:
 
 
 _MODE_KEYS = ("code", "bit", "command", "unit", "type")
+
+
+def _bus(table, where: str) -> dict:
+    """``[canopen.bus]``: python-can's options, plain values passed on to ``can.Bus``."""
+    if not isinstance(table, dict) or not all(
+            isinstance(v, (str, int, float, bool)) for v in table.values()):
+        raise UserError(f"{where} must be a table of python-can bus options with plain values "
+                        "(fd = true, data_bitrate = 2000000, ...)")
+    return dict(table)
 
 
 def _object(value, where: str) -> str:

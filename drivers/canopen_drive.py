@@ -1063,7 +1063,7 @@ def open_canopen(rig, realtime: bool = True, seed=None, can_log: str | None = No
     """
     if options:
         raise UserError(f"canopen device takes no option(s) {', '.join(sorted(options))}")
-    config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
+    config = CanopenConfig.from_rig(rig)
     return CanopenDrive(rig, config, realtime=realtime, can_log=can_log).open()
 
 
@@ -1074,7 +1074,7 @@ def probe_canopen(rig, fault_reset: bool = False) -> dict:
     DISABLED only), reported as ``{"reset": (before, after)}``. A drive that
     does not answer gives ``{"no_answer": reason}``.
     """
-    config = CanopenConfig.from_section(rig.section("canopen"), source=rig.source)
+    config = CanopenConfig.from_rig(rig)
     return probe_drive(CanopenDrive(rig, config), fault_reset)
 
 

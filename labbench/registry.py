@@ -14,7 +14,10 @@ a backend or a protocol by declaring, in its own pyproject.toml::
 A device backend may also offer a read-only probe for ``labbench devices``
 (group ``labbench.device_probes``, same name as the backend):
 ``probe(rig, fault_reset=False) -> dict``; ``{"no_answer": reason}`` when the
-device does not answer.
+device does not answer. A backend that reads a table of the rig file names its
+validator under ``labbench.rig_tables`` (the table's name -> ``check(rig)``, one
+``UserError`` for a bad field): ``labbench.rig`` runs it when the file is read, so
+every table is refused alike before any device is opened.
 
 Targets are imported only when used, so a backend whose optional packages are
 missing never breaks the others. A built-in name cannot be taken over.
@@ -29,6 +32,7 @@ from labbench.errors import UserError
 DEVICE_GROUP = "labbench.devices"
 PROTOCOL_GROUP = "labbench.protocols"
 PROBE_GROUP = "labbench.device_probes"
+RIG_TABLE_GROUP = "labbench.rig_tables"
 
 _BUILTIN = {
     DEVICE_GROUP: {
@@ -42,6 +46,11 @@ _BUILTIN = {
     PROBE_GROUP: {
         "sim-canopen": "labbench.sim_backend.canopen_peer:probe_sim_canopen",
         "canopen": "labbench.drivers.canopen_drive:probe_canopen",
+    },
+    RIG_TABLE_GROUP: {
+        "sim": "labbench.sim_backend.sim_device:sim_options",
+        "canopen": "labbench.drivers.canopen_config:CanopenConfig.from_rig",
+        "serial": "labbench.drivers.serial_stream:SerialConfig.from_rig",
     },
     PROTOCOL_GROUP: {
         "chirp-id": "labbench.protocols.chirp_id:ChirpId",
@@ -65,7 +74,10 @@ def _load(group: str, name: str, what: str):
         module_name, attribute = table[name].split(":")
     except KeyError:
         raise UserError(f"unknown {what} {name!r}; choose one of {', '.join(table)}") from None
-    return getattr(importlib.import_module(module_name), attribute)
+    target = importlib.import_module(module_name)
+    for part in attribute.split("."):  # "Class.method", as entry points allow
+        target = getattr(target, part)
+    return target
 
 
 def device_names() -> list[str]:
@@ -91,6 +103,13 @@ def open_device(name: str, rig, **options):
 def device_probe(name: str):
     """The probe ``(rig, fault_reset=False) -> dict`` of backend ``name``, or None."""
     return _load(PROBE_GROUP, name, "probe") if name in _table(PROBE_GROUP) else None
+
+
+def rig_table_check(name: str):
+    """The validator ``check(rig)`` of the rig file's table ``name``, or None (no backend
+    reads it)."""
+    table = _table(RIG_TABLE_GROUP)
+    return _load(RIG_TABLE_GROUP, name, "rig table") if name in table else None
 
 
 def protocol_class(name: str):

@@ -19,6 +19,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from labbench import scales
 from labbench.errors import UserError, unknown_name
 from labbench.input_files import read_text
 from labbench.campaign.settings import CampaignSettings
@@ -93,10 +94,9 @@ class Rig:
 
 # [rig] numbers: (lowest, highest, unit); a lowest of 0 is excluded except for damping.
 # Upper bounds are physical: no haptic bench is beyond them, and a typo (1e308) is caught.
+# The numbers that scale a command (lever arm, counts per revolution) are labbench.scales'.
 _BOUNDS = {
     "sample_time_s": (1e-5, 1.0, "s"),  # 100 kHz .. 1 Hz; the loop keeps every sample in memory
-    "counts_per_rev": (0.0, 1e9, "counts"),
-    "lever_arm_m": (0.0, 10.0, "m"),
     "force_limit_n": (0.0, 1000.0, "N"),
     "velocity_limit_m_s": (0.0, 1000.0, "m/s"),
     "nominal_mass_kg": (1e-6, 1000.0, "kg"),
@@ -147,6 +147,9 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
                 raise UserError(f"{source}: [rig] {name} must be a number in {low}, {hi:g}] {unit}, "
                                 f"got {v!r}")
             common[name] = float(v)
+    for table, name in scales.SCALES:
+        if table == "rig" and name in common:
+            common[name] = scales.check("rig", name, common[name], source)
     if "position_limits_m" in common:
         lim = common["position_limits_m"]
         if (not isinstance(lim, list) or len(lim) != 2
@@ -171,6 +174,12 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
 
     PreflightConfig.from_rig(rig)  # and for a bad [preflight] one
     CampaignSettings.from_rig(rig)  # and for a bad [campaign] one
+    from labbench.registry import rig_table_check
+
+    for name in sections:  # a backend's own table ([sim], [canopen], [serial]), by its checker
+        check = rig_table_check(name)
+        if check is not None:
+            check(rig)
     return rig
 
 

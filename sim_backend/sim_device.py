@@ -48,6 +48,7 @@ import numpy as np
 
 from labbench.device import (ESTOP_STATE, DeviceDescription, DeviceFault, DeviceStatus,
                              Sample)
+from labbench import scales
 from labbench.errors import UserError, nearest_hint
 from labbench.realtime import sleep_until
 from labbench.ve import DEFAULT_PLANT, Plant
@@ -71,8 +72,8 @@ _OPTIONS = {
     "x0_m": (0.0, lambda v: _num(v), "a number [m]"),
     "sign": (None, lambda v: isinstance(v, int) and not isinstance(v, bool) and v in (1, -1),
              "1 or -1"),
-    "counts_per_rev": (None, lambda v: _num(v) and 0 < v <= 1e9, "a number in (0, 1e9] [counts]"),
-    "lever_arm_m": (None, lambda v: _num(v) and 0 < v <= 10, "a number in (0, 10] [m]"),
+    "counts_per_rev": (None, None, "labbench.scales"),  # the truth: as a rig's, physical
+    "lever_arm_m": (None, None, "labbench.scales"),
     "v0_m_s": (0.0, lambda v: _num(v), "a number [m/s]"),
     "paced": (False, lambda v: isinstance(v, bool), "true or false"),
 }
@@ -91,7 +92,10 @@ def sim_options(rig, **options) -> dict:
         for name, value in table.items():
             if name not in _OPTIONS:
                 raise UserError(f"{origin} {name}: unknown ({nearest_hint(name, _OPTIONS)})")
-            if not _OPTIONS[name][1](value):
+            check = _OPTIONS[name][1]
+            if check is None:
+                value = scales.SCALES[("sim", name)].check(value, f"{origin} {name}")
+            elif not check(value):
                 raise UserError(f"{origin} {name} must be {_OPTIONS[name][2]}, got {value!r}")
             settings[name] = value
     for name in ("m", "b", "coulomb_n", "force_noise_n", "x0_m", "v0_m_s", "extra_delay_fraction",

@@ -409,9 +409,10 @@ def test_simulated_drive_enforces_the_mapping_procedure(sdo):
 
 
 def test_config_passes_bus_options_and_catches_typos(tmp_path):
-    cfg = CanopenConfig.from_section({"fd": True, "data_bitrate": 2_000_000, "app_name": "x"})
+    cfg = CanopenConfig.from_section({"bus": {"fd": True, "data_bitrate": 2_000_000,
+                                              "app_name": "x"}})
     assert cfg.bus_kwargs() == {"fd": True, "data_bitrate": 2_000_000, "app_name": "x"}
-    with pytest.raises(UserError, match="did you mean node_id"):
+    with pytest.raises(UserError, match="did you mean 'node_id'"):
         CanopenConfig.from_section({"node_idd": 3})
     with pytest.raises(UserError, match=r"\[canopen\] modes.current.code"):
         CanopenConfig.from_section({"modes": {"current": {"code": 300}}})
@@ -460,7 +461,7 @@ def test_python_can_configuration_applies_when_the_rig_names_no_bus(node_on_chan
     monkeypatch.setenv("CAN_CHANNEL", channel)
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text(f'[canopen]\nnode_id = 5\neds = "{path.name}"\nsdo_timeout_s = 2.0\n'
-                        'receive_own_messages = false\n')  # a python-can option, passed on
+                        '[canopen.bus]\nreceive_own_messages = false\n')  # python-can's, passed on
     from labbench.rig import load_rig
 
     with open_canopen(load_rig(rig_file), realtime=False) as d:
