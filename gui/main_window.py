@@ -53,7 +53,7 @@ from labbench.numfmt import fmt
 from labbench.readout import plant_source, session_label
 from labbench.records import EVENT, STOP
 from labbench.safety import OVERRUN, SEQ_GAP
-from labbench.session_catalogue import OWN_PLANT
+from labbench.session_catalogue import OWN_PLANT, plant_options
 from labbench.ve import Plant
 
 log = logging.getLogger(__name__)
@@ -494,7 +494,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if (found is None or name in OWN_PLANT or "plant_m_kg" not in values
                 or values.get("plant_m_kg") is not None or values.get("plant_b") is not None):
             return values, None
-        return {**values, "plant_m_kg": found["m"], "plant_b": found["b"]}, found
+        return {**values, **plant_options(found, values)}, found
 
     def make_protocol(self, name: str | None = None):
         from labbench.registry import make_protocol

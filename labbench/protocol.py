@@ -46,6 +46,11 @@ SHARED_FIELDS = {
                    "an identified one (the CLI's --plant-from) or the rig's nominal", "kg", None),
     "plant_b": ("device damping for the precheck and the theory overlay; none: as for "
                 "plant_m_kg", "N s/m", None),
+    "plant_coulomb_n": ("device Coulomb friction for the friction-aware theory; none: the "
+                        "chirp-ID's with --plant-from, a simulator's own, else estimated from "
+                        "the record", "N", None),
+    "plant_coulomb_ci95": ("95 % interval lo,hi of plant_coulomb_n (a chirp-ID's); none: "
+                           "exact", "N", None),
     "allow_unstable": ("render a VE the precheck finds unstable (simulated devices only)", "",
                        None),
 }
@@ -186,6 +191,26 @@ def make_ve(kind: str, K: float, B: float, w0_rad_s: float | None, T: float, td_
 def check_plant_fields(cfg) -> None:
     cfg._set("plant_m_kg", number("plant_m_kg", cfg.plant_m_kg, "kg", lo=0, lo_open=True, none_ok=True))
     cfg._set("plant_b", number("plant_b", cfg.plant_b, "N s/m", lo=0, none_ok=True))
+    if hasattr(cfg, "plant_coulomb_n"):  # labbench.device_friction reads them
+        from labbench import device_friction
+
+        fc = cfg.plant_coulomb_n
+        cfg._set("plant_coulomb_n", None if fc is None else device_friction.checked(fc, "plant_coulomb_n"))
+        ci = cfg.plant_coulomb_ci95
+        if ci is not None and cfg.plant_coulomb_n is None:
+            raise UserError("plant_coulomb_ci95 needs plant_coulomb_n")
+        if isinstance(ci, (list, tuple)):  # the CLI gives words: "0.019,0.021"
+            ci = tuple(number("plant_coulomb_ci95", float(x) if _numeric(x) else x, "N") for x in ci)
+        cfg._set("plant_coulomb_ci95", device_friction.checked_ci(ci, cfg.plant_coulomb_n,
+                                                                  "plant_coulomb_ci95"))
+
+
+def _numeric(x) -> bool:
+    try:
+        float(x)
+    except (TypeError, ValueError):
+        return False
+    return isinstance(x, str)
 
 
 def nominal_plant(rig=None, m: float | None = None, b: float | None = None) -> Plant:

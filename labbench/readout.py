@@ -18,7 +18,7 @@ from pathlib import Path
 from labbench.numfmt import band_text, fmt, fmt_ci, frequency_text
 from labbench.verdict import FAILED, OK, Verdict, from_dict, worst
 
-NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit"}
+NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory"}
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,10 @@ class Judged:
 class Rendered:
     """The rendered stiffness ES(0) and damping ED(0) (device b included) with their
     intervals, read over ``band`` [rad/s]; commanded K, B and the device's b; the exact
-    sampled theory's prediction (the same fit to its curve, and its true limit)."""
+    sampled theory's prediction (the same fit to its curve, and its true limit); with the
+    device's Coulomb friction, the friction-aware prediction (``K_friction``, ``B_friction``,
+    ``friction``: what it used, in words) and which of the two the result is compared with
+    (``compared``: "linear" or "friction", ``labbench.analysis.friction.RULE``)."""
 
     K: Value
     B: Value
@@ -81,6 +84,10 @@ class Rendered:
     B_limit: float
     model: str
     trust: Verdict | None = None  # the verdict of the ETFE they were read from
+    K_friction: float | None = None
+    B_friction: float | None = None
+    friction: str = ""
+    compared: str = "linear"
 
     def caveat(self) -> str:
         """What a headline of numbers the ETFE's verdict does not vouch for says first
@@ -93,10 +100,18 @@ class Rendered:
         return f"{v.level}{', not to be used' if v.level == FAILED else ''} ({why}; see the ETFE's verdict): "
 
     def sentence(self, units=None) -> str:
-        return (f"{self.caveat()}renders K = {self.K.text(units)} and damping {self.B.text(units)} "
+        head = (f"{self.caveat()}renders K = {self.K.text(units)} and damping {self.B.text(units)} "
                 f"(b included) over {band_text(self.band, units)}; commanded K = {fmt(self.K_commanded)} "
-                f"N/m, B + b = {fmt(self.B_commanded + self.b)} N s/m; {self.model} theory "
-                f"{fmt(self.K_theory)} N/m, {fmt(self.B_theory)} N s/m")
+                f"N/m, B + b = {fmt(self.B_commanded + self.b)} N s/m; ")
+        linear = f"{fmt(self.K_theory)} N/m, {fmt(self.B_theory)} N s/m"
+        if self.B_friction is None:
+            return head + f"{self.model} theory {linear}"
+        with_friction = (f"{self.model} theory with {self.friction}: {fmt(self.K_friction)} N/m, "
+                         f"{fmt(self.B_friction)} N s/m")
+        if self.compared == "friction":
+            return head + f"compared with the {with_friction}; linear: {linear}"
+        return head + (f"compared with the linear {self.model} theory {linear} (the "
+                       f"{with_friction}: not told apart by this measurement)")
 
     def as_dict(self, units=None) -> dict:
         return {"K": self.K.as_dict(), "B": self.B.as_dict(), "band_rad_s": list(self.band),
@@ -105,7 +120,9 @@ class Rendered:
                                                      "b": self.b},
                 "theory": {"model": self.model, "K": self.K_theory, "B": self.B_theory,
                            "K_limit": self.K_limit, "B_limit": self.B_limit},
-                "sentence": self.sentence(units)}
+                "friction": None if self.B_friction is None else {
+                    "K": self.K_friction, "B": self.B_friction, "text": self.friction},
+                "compared": self.compared, "sentence": self.sentence(units)}
 
 
 @dataclass(frozen=True)
@@ -215,9 +232,11 @@ def of_session(path) -> Readout:
 
 def of_etfe_analysis(d: dict, start: dict | None = None) -> Readout:
     """The readout of ``labbench analyze etfe``'s result (``FrequencyResponse.as_dict``)."""
+    theory = d.get("theory") if isinstance(d.get("theory"), dict) else {}
     results = {"etfe": d, "loop_fit": d.get("fit"), "rendered": d.get("rendered"),
-               "plant": (d.get("theory") or {}).get("plant"),
-               "deviation_vs_sampled": _deviation_of_analysis(d)}
+               "plant": theory.get("plant"), "friction": d.get("friction"),
+               "deviation_vs_sampled": _deviation_of_analysis(d),
+               "deviation_vs_friction": theory.get("friction")}
     source = (d.get("theory") or {}).get("plant_source")
     return _etfe("etfe", results, start or {}, source if isinstance(source, str) else None)
 
@@ -266,18 +285,28 @@ def _judged(what: str, d) -> list[Judged]:
 def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) -> Readout:
     e = results["etfe"]
     r = Readout(protocol, "Rendered impedance against the exact sampled theory",
-                headline=("|Z - Z_theory| / |Z_theory|", "w_s*", "w_b*", "device model of the theory"))
-    r.verdicts = _judged(NAMES["etfe"], e) + _judged(NAMES["loop_fit"], results.get("loop_fit"))
+                headline=("|Z - Z_theory| / |Z_theory|", "friction", "w_s*", "w_b*",
+                          "device model of the theory"))
+    r.verdicts = (_judged(NAMES["etfe"], e) + _judged(NAMES["rendered"], results.get("rendered"))
+                  + _judged(NAMES["loop_fit"], results.get("loop_fit")))
     plant = results.get("plant") if isinstance(results.get("plant"), dict) else {}
     m, b = _num(plant.get("m")), _num(plant.get("b"))
     if m is not None and b is not None:
         r.plant = PlantSource(m, b, source or plant_source(start))
-    r.rendered = _rendered(results.get("rendered"), from_dict(e.get("verdict")))
-    dev = results.get("deviation_vs_sampled") if isinstance(results.get("deviation_vs_sampled"), dict) else {}
+    fr = results.get("friction") if isinstance(results.get("friction"), dict) else {}
+    r.rendered = _rendered(results.get("rendered"), from_dict(e.get("verdict")),
+                           friction_text(fr, start))
+    compared = r.rendered.compared if r.rendered is not None else "linear"
+    dev = results.get("deviation_vs_friction") if compared == "friction" else None
+    against = " (against the friction-aware theory)" if isinstance(dev, dict) else ""
+    dev = dev if isinstance(dev, dict) else results.get("deviation_vs_sampled")
+    dev = dev if isinstance(dev, dict) else {}
     band = dev.get("band_rad_s")
     if _num(dev.get("median_rel")) is not None and isinstance(band, list) and len(band) == 2:
         r.rows.append(("|Z - Z_theory| / |Z_theory|", f"median {_pct(dev['median_rel'])}, max "
-                       f"{_pct(dev.get('max_rel'))}{_where_max(dev)} over {band_text(band)}"))
+                       f"{_pct(dev.get('max_rel'))}{_where_max(dev)} over {band_text(band)}{against}"))
+    if _num(fr.get("n")) is not None:
+        r.rows.append(("friction", _friction_row(fr, start)))
     bw = results.get("bandwidths") if isinstance(results.get("bandwidths"), dict) else {}
     for sym, key in (("w_s*", "ws_star"), ("w_b*", "wb_star")):
         got, want = _num(bw.get(f"{key}_measured")), _num(bw.get(f"{key}_predicted"))
@@ -294,7 +323,7 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
     return r
 
 
-def _rendered(d, trust: Verdict | None = None) -> Rendered | None:
+def _rendered(d, trust: Verdict | None = None, friction: str = "") -> Rendered | None:
     if not isinstance(d, dict):
         return None
     th = d.get("theory") if isinstance(d.get("theory"), dict) else {}
@@ -306,10 +335,51 @@ def _rendered(d, trust: Verdict | None = None) -> Rendered | None:
     if K is None or B is None or None in nums or not (isinstance(band, list) and len(band) == 2):
         return None
     (klo, khi), (blo, bhi) = _pair(d.get("K_ci95")), _pair(d.get("B_ci95"))
+    fr = d.get("friction") if isinstance(d.get("friction"), dict) else {}
+    kf, bf = _num(fr.get("K")), _num(fr.get("B"))
+    with_friction = kf is not None and bf is not None
+    compared = d.get("compared") if isinstance(d.get("compared"), dict) else {}
     return Rendered(Value(K, klo, khi, "N/m", scale=max(abs(nums[0]), abs(K))),
                     Value(B, blo, bhi, "N s/m", scale=max(abs(nums[1] + nums[2]), abs(B))),
                     (float(band[0]), float(band[1])), int(d.get("n_freq") or 0), *nums,
-                    str(th.get("model") or "sampled"), trust)
+                    str(th.get("model") or "sampled"), trust, kf if with_friction else None,
+                    bf if with_friction else None, friction if with_friction else "",
+                    "friction" if with_friction and compared.get("model") == "friction" else "linear")
+
+
+def friction_source(fr: dict, start: dict) -> str:
+    """Where a run's Coulomb friction came from, in one phrase: the chirp-ID session its
+    plant came from when that gave it (the start record's ``plant_from``), else as recorded."""
+    found = start.get("plant_from") if isinstance(start.get("plant_from"), dict) else {}
+    if fr.get("origin") == "given" and isinstance(found.get("session"), str) \
+            and _num(found.get("coulomb_n")) is not None:
+        return f"identified in {session_label(found['session'])}"
+    return str(fr.get("source") or fr.get("origin") or "as recorded")
+
+
+def friction_text(fr: dict, start: dict) -> str:
+    """``Coulomb friction 0.020 N (chirp-ID ...) at this run's 0.029 m/s rms``; "" without one."""
+    n, v = _num(fr.get("n")), _num(fr.get("velocity_rms"))
+    if n is None:
+        return ""
+    at = f" at this run's {fmt(v, 2)} m/s rms" if v is not None else ""
+    return f"Coulomb friction {fmt(n, 2)} N ({friction_source(fr, start)}){at}"
+
+
+def _friction_row(fr: dict, start: dict) -> str:
+    """The friction used and the damper it acts as: Fc [interval] (source); b_eq at the
+    predicted velocity rms; the record's own velocity and Booton's form on it."""
+    lo, hi = _pair(fr.get("ci95"))
+    text = f"Fc = {fmt_ci(fr['n'], lo, hi, 'N')} ({friction_source(fr, start)})"
+    beq, v, vm, bm = (_num(fr.get(k)) for k in ("b_eq", "velocity_rms", "velocity_rms_measured",
+                                                 "b_eq_measured"))
+    if fr.get("linearisation_holds") is False:
+        return text + ": no damper stands for it (friction holds the handle against this excitation)"
+    if beq is not None and v is not None:
+        text += f": a damper of {fmt(beq, 3)} N s/m at {fmt(v, 3)} m/s rms (statistical linearisation)"
+    if vm is not None and bm is not None:
+        text += f"; the record's velocity {fmt(vm, 3)} m/s rms, Fc E|v|/E[v^2] = {fmt(bm, 3)} N s/m"
+    return text
 
 
 def _pair(x) -> tuple[float | None, float | None]:
@@ -319,9 +389,12 @@ def _pair(x) -> tuple[float | None, float | None]:
 
 
 def _fit_parts(fit: dict) -> tuple:
-    """The loop fit's m, b and delays (device td, VE-path tv; in ms, judged against 1 ms)."""
+    """The loop fit's m, b (and the viscous b where friction's part was taken out) and delays
+    (device td, VE-path tv; in ms, judged against 1 ms)."""
     parts = [("m", Value(_num(fit.get("m")), *_ci(fit, "m"), "kg")),
              ("b", Value(_num(fit.get("b")), *_ci(fit, "b"), "N s/m"))]
+    if _num(fit.get("b_viscous")) is not None:  # friction's part of b taken out (analysis.friction)
+        parts.append(("viscous b", Value(fit["b_viscous"], *_ci(fit, "b_viscous"), "N s/m")))
     for key, name in (("td_s", "td"), ("tv_s", "tv")):
         if _num(fit.get(key)) is not None and None not in _ci(fit, key):
             lo, hi = _ci(fit, key)

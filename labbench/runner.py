@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from labbench import commissioning, device_delay, records, timing as loop_timing
+from labbench import commissioning, device_delay, device_friction, records, timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.device import StatusReporting
 from labbench.errors import DeviceError, RecordingError, UserError
@@ -138,13 +138,14 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant, delay, check = checks(protocol, rig, desc, simulated, skip_commissioning)
+        friction = device_friction.resolve(protocol, desc)
         safety = SafetyConfig.from_rig(rig)
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
             rt = replace(rt, enabled=False)
         watchdog = WatchdogPolicy.for_device(safety, simulated)
-        meta = _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc,
-                         run_state, stop, progress, live_timing, lambda: acquire(rt, warn))
+        meta = _segments(device, protocol, rig, plant, check, delay, friction, safety, watchdog,
+                         desc, run_state, stop, progress, live_timing, lambda: acquire(rt, warn))
         if run_state.finished is not None:  # aborted or failed in a segment
             return run_state.finished
         _stop_device(device, close=False)
@@ -200,8 +201,8 @@ def checks(protocol: ProtocolBase, rig, desc=None, simulated: bool = True,
     return plant, delay, precheck(protocol, plant, rig, delay)
 
 
-def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc, run_state, stop,
-              progress, live_timing, realtime) -> dict:
+def _segments(device, protocol, rig, plant, check, delay, friction, safety, watchdog, desc,
+              run_state, stop, progress, live_timing, realtime) -> dict:
     """Start record, descriptor, then the protocol's segments through the loop; returns the
     analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``).
     Each ``run_loop`` runs under ``realtime()`` (the protocol's work between segments does
@@ -215,7 +216,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
         start = records.start_record(
             rig.as_dict(), protocol.describe(), protocol.seed,
             device=asdict(desc), plant={"m": plant.m, "b": plant.b}, device_delay=delay.as_dict(),
-            precheck=json_safe(check), safety=safety.as_dict(), watchdog=watchdog.as_dict(),
+            friction=friction.as_dict(), precheck=json_safe(check), safety=safety.as_dict(), watchdog=watchdog.as_dict(),
             realtime=run_state.realtime)
         run_state.uid = start["uid"]
         run_state.emit(start)
@@ -226,7 +227,7 @@ def _segments(device, protocol, rig, plant, check, delay, safety, watchdog, desc
                 "rig": rig.as_dict(), "metres_per_count": rig.metres_per_count,
                 "protocol": protocol.describe(), "force_hold": desc.force_hold,
                 "device_kind": desc.kind,
-                device_delay.META_KEY: delay.s, "segments": run_state.segments}
+                device_delay.META_KEY: delay.s, **friction.as_meta(), "segments": run_state.segments}
         total = max(int(protocol.n_samples), 1)
         gen = protocol.segments(plant)
         segment = next(gen)

@@ -28,7 +28,7 @@ import numpy as np
 
 from labbench import device_delay, records
 from labbench.analysis.dataio import Recording, load_recording
-from labbench.analysis.etfe import EtfeResult
+from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult
 from labbench.analysis.progress import Progress, Steps
 from labbench.effective import effective_impedances
@@ -138,6 +138,10 @@ class FrequencyResponse:
     fit: object | None = None  # labbench.analysis.loopfit's fit of m, b, td (etfe(fit=True))
     # the stiffness and damping rendered, beside commanded and theory (analysis.rendered)
     rendered: dict | None = None
+    # the device's Coulomb friction and the damper it acts as (analysis.friction.Prediction)
+    friction: dict | None = None
+    # the fit as reported: friction's part of its b taken out or named (analysis.friction.separate)
+    fit_summary: dict | None = None
 
     @property
     def w(self) -> np.ndarray:
@@ -202,7 +206,7 @@ class FrequencyResponse:
     def _dict(self) -> dict:
         d = self.result.as_dict()
         if self.fit is not None:
-            d["fit"] = self.fit.as_dict()
+            d["fit"] = self.fit_summary if self.fit_summary is not None else self.fit.as_dict()
         d["rendered"] = self.rendered
         d["wb_star"] = self.wb_star
         cmp = self.comparison
@@ -212,6 +216,7 @@ class FrequencyResponse:
             d["theory"]["Z_re"] = cmp["Z_theory"].real
             d["theory"]["Z_im"] = cmp["Z_theory"].imag
             d["deviation"] = cmp["deviation"]
+        d["friction"] = self.friction
         return d
 
     def plot(self, path=None, inputs=(), force: bool = False):
@@ -254,17 +259,22 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
                    m: float | None = None, b: float | None = None, fit: bool = False,
                    fit_ve: bool = False, progress: Progress | None = None,
                    cancel: threading.Event | None = None,
-                   band_rad_s: tuple[float, float] | None = None) -> FrequencyResponse:
+                   band_rad_s: tuple[float, float] | None = None,
+                   coulomb_n: float | None = None) -> FrequencyResponse:
     """ETFE of a record; with a VE in the metadata, the theory curve and the deviation from
     it, on the device ``m``, ``b`` given (here or in the metadata) or identified from the
-    closed-loop record itself (``labbench.analysis.compare``). ``fit``: fit m, b and the
+    closed-loop record itself (``labbench.analysis.compare``, friction included), and the
+    friction-aware theory with the device's Coulomb friction ``coulomb_n`` [N] (None: the
+    metadata's, ``labbench.device_friction``, else estimated from the record;
+    ``labbench.analysis.friction``). ``fit``: fit m, b and the
     extra loop delay to Z with the exact sampled model (``labbench.analysis.loopfit``; with
     ``fit_ve`` the rendered K, B too); the theory then uses the fitted plant and delay.
     ``progress(fraction, phrase)`` hears how far it is; once ``cancel`` is set it raises
     ``labbench.errors.Cancelled`` within about 0.5 s (``labbench.analysis.progress``).
     ``band_rad_s``: the band the verdict, the deviation and the rendered K, B speak of
     (``labbench.analysis.etfe.analysis_band``; None: 2-100 rad/s)."""
-    from labbench.analysis import compare
+    from labbench import device_friction
+    from labbench.analysis import compare, friction
     from labbench.analysis.etfe import etfe
     from labbench.analysis.rendered import rendered_impedance
     from labbench.effective import measured_wb_star
@@ -281,13 +291,17 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
         raise UserError("give both --m and --b (or neither, to identify them from the record)")
     if (fit or fit_ve) and ve is None:
         raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
-    cmp, wb_star, loop_fit, rendered = None, None, None, None
+    cmp, wb_star, loop_fit, rendered, fr, fit_summary = None, None, None, None, None, None
+    known = device_friction.given(coulomb_n) if coulomb_n is not None else device_friction.from_meta(rec.meta)
     if ve is not None:
         source, latency = "given", device_delay.from_meta(rec.meta)
-        if m is None:
-            ident = compare.identify_closed_loop(rec, ve, latency=latency,
-                                                 progress=steps.part(etfe_end, ident_end), cancel=cancel)
+        evidence = None
+        if m is None:  # with its friction, which would otherwise pass for viscous damping
+            ident = compare.identify_closed_loop(rec, ve, latency=latency, model="auto",
+                                                 progress=steps.part(etfe_end, ident_end), cancel=cancel,
+                                                 coulomb_n=known.n if known.known else None)
             m, b, source = ident.m, max(ident.b, 0.0), "identified from this record"
+            evidence = None if known.known else ident
         if fit or fit_ve:
             from labbench.analysis.loopfit import fit_loop
 
@@ -299,15 +313,28 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
             if loop_fit.tv_s != ve.td and abs(loop_fit.tv_s / ve.T - n_tv) < 0.01:
                 ve = ve.with_(td=n_tv * ve.T)  # the overlay's VE delay line: whole samples only
                 source += f" and VE-path delay {n_tv} samples"
+            if known.known and known.n > 0:  # the fitted b is b + b_eq: the theory takes the viscous b
+                b = max(b - friction.fitted_b_eq(Plant(m, b), ve, known.n, rec.force, latency), 0.0)
+                source += ", less Coulomb friction's equivalent damping"
         steps.report(0.95, "comparing with the theory")
-        cmp = compare.compare(res, Plant(float(m), float(b)), ve, latency, band_rad_s)
+        plant = Plant(float(m), float(b))
+        cmp = compare.compare(res, plant, ve, latency, band_rad_s)
         cmp["plant_source"] = source
         wb_star = cmp["wb_star"]
-        rendered = rendered_impedance(res, ve, Plant(float(m), float(b)), latency, band_rad_s)
+        pred, rendered = friction.analyse(res, rendered_impedance(res, ve, plant, latency, band_rad_s),
+                                          plant, ve, known, rec, latency, evidence)
+        fr = pred.as_dict()
+        if pred.plant is not None:
+            z_f = compare.theory_curves(pred.plant, ve, res.w, latency)["Z"]
+            cmp["friction"] = compare.deviation(res, z_f, band_rad_s or W_BAND)
+        if loop_fit is not None:
+            fit_summary = friction.separate(loop_fit.as_dict(), pred, ve, rec.force)
+        if friction.compared_model(rendered) == "friction":  # ED falls towards b + b_eq
+            wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, pred.plant.b)
     elif m is not None:
         wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
     steps.report(1.0, "done")
-    return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit, rendered)
+    return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit, rendered, fr, fit_summary)
 
 
 # ----------------------------------------------------------------------------- the session

@@ -1,7 +1,6 @@
 """The session catalogue: what sessions a folder holds, from their headers alone."""
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,10 +157,11 @@ def last_results(directory, rig_name: str, protocol: str, on_skip=None) -> tuple
 
 def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
     """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
-    ``{"m", "b", "session", "coulomb_n"}`` (its l2 fit's Coulomb term; None when the model
-    had none), or None (no folder, no such session). The plant a run uses
-    when none is given (``labbench run --plant-from last-id``, the window): what it was
-    identified as, and where."""
+    ``{"m", "b", "session", "coulomb_n", "coulomb_ci95"}`` (its l2 fit's Coulomb term and
+    its interval; None when the model had none), or None (no folder, no such session). The
+    plant a run uses when none is given (``labbench run --plant-from last-id``, the window):
+    what it was identified as, and where."""
+    from labbench import device_friction
     from labbench.ve import Plant
 
     for res, path in _newest_results(directory, rig_name, "chirp-id", on_skip):
@@ -171,8 +171,21 @@ def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
             continue
         ident = res.get("identification") or {}
         best = ident.get("l2") or next(iter(ident.values()), {}) if isinstance(ident, dict) else {}
-        coulomb = best.get("coulomb") if isinstance(best, dict) else None
+        best = best if isinstance(best, dict) else {}
+        ci = (best.get("ci95") or {}).get("coulomb") if isinstance(best.get("ci95"), dict) else None
+        friction = device_friction.from_dict({"n": best.get("coulomb"), "ci95": ci, "origin": "given"})
+        known = friction is not None and friction.known
         return {"m": plant.m, "b": plant.b, "session": path,
-                "coulomb_n": float(coulomb) if isinstance(coulomb, (int, float))
-                and math.isfinite(coulomb) and coulomb >= 0 else None}
+                "coulomb_n": friction.n if known else None,
+                "coulomb_ci95": list(friction.ci95) if known and friction.ci95 is not None else None}
     return None
+
+
+def plant_options(found: dict, fields) -> dict:
+    """The protocol options a plant identified in a chirp-ID (``last_identified``) sets: m
+    and b, and its Coulomb friction with its interval where the protocol has
+    ``plant_coulomb_n`` among its ``fields`` (``labbench.device_friction``)."""
+    out = {"plant_m_kg": found["m"], "plant_b": found["b"]}
+    if "plant_coulomb_n" in fields and found.get("coulomb_n") is not None:
+        out.update(plant_coulomb_n=found["coulomb_n"], plant_coulomb_ci95=found.get("coulomb_ci95"))
+    return out

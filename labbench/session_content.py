@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from labbench import device_delay, records
+from labbench import device_delay, device_friction, records
 from labbench.errors import UserError
 from labbench.session_format import read_session
 from labbench.ve import VirtualEnvironment
@@ -59,7 +59,9 @@ def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], d
 def analysis_meta(start: dict, desc: dict) -> dict:
     """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td,
     force_hold (the device's, when the session records it), device_delay_s (the device's
-    own delay the run used, ``labbench.device_delay``, when not 0), protocol."""
+    own delay the run used, ``labbench.device_delay``, when not 0), coulomb_n with its interval,
+    source and origin (the friction the run used, ``labbench.device_friction``, when it knew
+    one), protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     device = start.get("device") if isinstance(start.get("device"), dict) else {}
     T = desc.get("sample_time_s") or rig.get("sample_time_s")
@@ -81,6 +83,7 @@ def analysis_meta(start: dict, desc: dict) -> dict:
     delay = device_delay.from_start(start)
     if delay.s:
         meta[device_delay.META_KEY] = delay.s
+    meta.update(device_friction.from_start(start).as_meta())
     return meta
 
 

@@ -172,7 +172,9 @@ class ChirpId(ProtocolBase):
         fits = {method: identify(rec, model=self.config.model, method=method).as_dict()
                 for method in self.config.methods}
         best = fits.get("l2") or fits[self.config.methods[0]]
-        return {"identification": fits, "m": best["m"], "b": best["b"]}
+        # the device's Coulomb friction for the runs that take this plant (None: not in the model)
+        return {"identification": fits, "m": best["m"], "b": best["b"], "coulomb": best.get("coulomb"),
+                "coulomb_ci95": (best.get("ci95") or {}).get("coulomb")}
 
     def report_sections(self, session):
         """Page 1: the identified m, b with intervals and the model chosen; details: every

@@ -70,6 +70,8 @@ class EtfeConfig(Config):
     sample_time_s: float = 0.001
     plant_m_kg: float | None = None
     plant_b: float | None = None
+    plant_coulomb_n: float | None = None
+    plant_coulomb_ci95: tuple | None = None
     allow_unstable: bool = False  # the runner allows it on simulators only
 
     def check(self):
@@ -140,11 +142,13 @@ class WhiteNoiseEtfe(ProtocolBase):
 
     def analyze(self, data: dict, meta: dict) -> dict:
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
-        impedances (labbench.effective), the deviation from the exact sampled theory, the
-        closed-loop fit of m, b and the rig's extra delay (labbench.analysis.loopfit), and the
-        force noise the loop commanded (labbench.analysis.force_noise)."""
-        from labbench import predictions
-        from labbench.analysis import compare, force_noise
+        impedances (labbench.effective), the deviation from the exact sampled theory and from
+        the friction-aware one (labbench.analysis.friction, with the run's friction:
+        labbench.device_friction), the closed-loop fit of m, b and the rig's extra delay
+        (labbench.analysis.loopfit), and the force noise the loop commanded
+        (labbench.analysis.force_noise)."""
+        from labbench import device_friction, predictions
+        from labbench.analysis import compare, force_noise, friction
         from labbench.model.noise import FELT_BAND_HZ
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
@@ -169,7 +173,19 @@ class WhiteNoiseEtfe(ProtocolBase):
             loop_fit = fit_loop(est, ve, plant, delay_model="common").as_dict()
         except UserError as exc:  # too few coherent frequencies: say so in the results
             loop_fit = {"error": str(exc)}
-        predicted = predictions.bandwidths(plant, ve, latency)
+        fr, rendered = friction.analyse(est, rendered_impedance(est, ve, plant, latency, asked),
+                                        plant, ve, device_friction.from_meta(meta), rec, latency)
+        loop_fit = friction.separate(loop_fit, fr, ve, rec.force)
+        theory = {"sampled": {"Z_re": z_s.real, "Z_im": z_s.imag},
+                  "paper": {"Z_re": z_p.real, "Z_im": z_p.imag}}
+        extra = {}
+        if fr.plant is not None:
+            z_f = compare.theory_curves(fr.plant, ve, w, latency)["Z"]
+            theory["friction"] = {"Z_re": z_f.real, "Z_im": z_f.imag}
+            extra["deviation_vs_friction"] = compare.deviation(est, z_f, asked)
+        # the bandwidths of the model compared with: ED falls towards b + b_eq, not b
+        felt = fr.plant if friction.compared_model(rendered) == "friction" else plant
+        predicted = predictions.bandwidths(felt, ve, latency)
         try:  # the command's noise in the felt band (docs/design.md)
             noise = force_noise.measure(data["command"], data["excitation"], ve.T,
                                         FELT_BAND_HZ).as_dict()
@@ -180,17 +196,18 @@ class WhiteNoiseEtfe(ProtocolBase):
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
             "plant": {"m": plant.m, "b": plant.b},
-            "rendered": rendered_impedance(est, ve, plant, latency, asked),
-            "theory": {"sampled": {"Z_re": z_s.real, "Z_im": z_s.imag},
-                       "paper": {"Z_re": z_p.real, "Z_im": z_p.imag}},
+            "friction": fr.as_dict(),
+            "rendered": rendered,
+            "theory": theory,
             "deviation_vs_sampled": compare.deviation(est, z_s, asked),
+            **extra,
             # predicted = read off the exact sampled model's curves, which the data follow;
             # the continuous model's closed forms (eq. 5, w0) are kept beside them
             "bandwidths": {
                 "ws_star_measured": measured_ws_star(w, eff.ES),
                 "ws_star_predicted": predicted.ws_star,
                 "ws_star_eq5": predicted.ws_star_eq5,
-                "wb_star_measured": measured_wb_star(w, eff.ED, plant.b),
+                "wb_star_measured": measured_wb_star(w, eff.ED, felt.b),
                 "wb_star_predicted": predicted.wb_star,
                 "wb_star_w0": predicted.wb_star_w0,
             },
@@ -225,6 +242,8 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
     err = np.asarray(e["Z_err"])[keep]
     z_s = (np.asarray(th["sampled"]["Z_re"]) + 1j * np.asarray(th["sampled"]["Z_im"]))[keep]
     z_p = (np.asarray(th["paper"]["Z_re"]) + 1j * np.asarray(th["paper"]["Z_im"]))[keep]
+    z_f = (np.asarray(th["friction"]["Z_re"]) + 1j * np.asarray(th["friction"]["Z_im"]))[keep] \
+        if "friction" in th else None
     w = w[keep]
     w0 = f"{ve.w0:g} rad/s" if math.isfinite(ve.w0) else "none"
     band = dev.get("band_rad_s") or [None, None]
@@ -234,13 +253,17 @@ def _report_sections(protocol: WhiteNoiseEtfe, session):
     curves = [Curve(f"{name}: sampled theory", w[low], z_s[low], color=color),
               Curve(f"{name}: measured", w[low], Z[low], "points", color=color)]
     marks = {"ws*": bw.get("ws_star_measured"), "wb*": bw.get("wb_star_measured")}
-    fig = paper_figure([Curve("exact sampled theory", w, z_s), Curve("paper eq. 2", w, z_p),
+    with_friction = [] if z_f is None else [
+        Curve(f"sampled theory with Coulomb friction {full['friction']['n']:.2g} N", w, z_f)]
+    fig = paper_figure([Curve("exact sampled theory", w, z_s), *with_friction, Curve("paper eq. 2", w, z_p),
                         Curve("measured (ETFE)", w, Z, "points", err)],
                        title=f"{session.tag} {ve.kind} K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
                              f"w0 = {w0}, td = {1e3 * ve.td:g} ms", marks=marks)
     details = [
         Figure("Closed-loop impedance and effective impedances: data (points, 95 % band) against "
-               "the exact sampled theory and the paper's eq. 2; dashed: measured bandwidths", fig),
+               "the exact sampled theory (with the device's Coulomb friction as the damper it acts "
+               "as at this excitation, where known) and the paper's eq. 2; dashed: measured "
+               "bandwidths", fig),
         Table("Accuracy against the exact sampled theory",
               ["band (rad/s)", "frequencies", "median deviation", "max deviation"],
               [[f"{fmt(band[0])} to {fmt(band[1])}", str(dev.get("n_points")),

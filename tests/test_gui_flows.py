@@ -281,6 +281,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert rows["delay model"][0].startswith(lf["delay_model"]) and lf["delay_model"] == "common"
     assert view.fit_verdict.levels() == {"closed-loop fit": lf["verdict"]["level"]}
     assert win.live.verdicts.levels() == {"ETFE": etfe.results["etfe"]["verdict"]["level"],
+                                            "against the theory": etfe.results["rendered"]["verdict"]["level"],
                                             "closed-loop fit": lf["verdict"]["level"]}
     etfe_path = win.session_path
     win.close()

@@ -98,13 +98,16 @@ def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | Non
 
 
 def identify_closed_loop(rec: Recording, ve: VirtualEnvironment, method: str = "l2",
-                         latency: float = 0.0, progress=None, cancel=None) -> IdResult:
-    """m, b from a closed-loop record (see module doc; ``latency``: the rig's extra delay;
-    ``progress``, ``cancel``: ``labbench.analysis.progress``)."""
+                         latency: float = 0.0, progress=None, cancel=None, model: str = "mb",
+                         coulomb_n: float | None = None) -> IdResult:
+    """m, b (and with ``model`` "auto" or "mbc" the Coulomb friction) from a closed-loop
+    record (see module doc; ``latency``: the rig's extra delay; ``progress``, ``cancel``:
+    ``labbench.analysis.progress``; ``coulomb_n``: a known Coulomb level, taken off the
+    force before m, b are fitted, ``identify``)."""
     u = plant_force(rec, ve, latency)
     return identify(recording_from_arrays(rec.t, u, rec.position, rec.meta, rec.source),
-                    model="mb", method=method, response=loop_response(rec, ve, latency),
-                    progress=progress, cancel=cancel)
+                    model=model, method=method, response=loop_response(rec, ve, latency),
+                    progress=progress, cancel=cancel, coulomb_n=coulomb_n)
 
 
 def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):

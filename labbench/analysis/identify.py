@@ -184,7 +184,8 @@ class _Data:
 def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz: float | None = None,
              solver: str = "fast", hold: str | None = None,
              response: Callable[[float, float], np.ndarray] | None = None,
-             progress: Progress | None = None, cancel: threading.Event | None = None) -> IdResult:
+             progress: Progress | None = None, cancel: threading.Event | None = None,
+             coulomb_n: float | None = None) -> IdResult:
     """Fit the device model to a recording (see module doc).
 
     ``hold``: "zoh" (force held over each sample interval, as a bench command
@@ -194,8 +195,12 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     whose force is what the plant felt (``compare.plant_recording``), ``(m, b) ->`` the
     position the loop would have on its exogenous force alone (``compare.loop_response``):
     m and b then come from instrumental variables (module doc). ``progress``, ``cancel``:
-    ``labbench.analysis.progress`` (Cancelled once ``cancel`` is set).
+    ``labbench.analysis.progress`` (Cancelled once ``cancel`` is set). ``coulomb_n``: a
+    known Coulomb level [N] (a chirp-ID's): its force, Fc L sign(x'), is taken off the
+    force and m, b are fitted (model mb), so friction is not read as viscous damping.
     """
+    if coulomb_n is not None:
+        model = "mb"
     if model not in MODEL_CHOICES:
         raise UserError(f"unknown model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
     if method not in METHODS:
@@ -208,6 +213,8 @@ def identify(rec: Recording, model: str = "auto", method: str = "l2", cutoff_hz:
     hold_info = _force_hold(rec, hold, cutoff_hz, method, fit, steps.check)
     steps.report(0.3, "derivatives")
     data = _prepare(rec, cutoff_hz, hold_info["value"], check=steps.check)
+    if coulomb_n:
+        data.y = data.y - coulomb_n * data.cols["coulomb"]
     if not _identifiable(data, "mb"):
         raise UserError(f"{rec.source}: the position hardly moves (x' and x'' are not independent): "
                         "nothing to identify")

@@ -49,6 +49,9 @@ def register(subparsers) -> None:
                    help="Hamming window length in bins for --estimator paper (default 200)")
     e.add_argument("--m", type=float, metavar="KG", help="device mass for the theory overlay")
     e.add_argument("--b", type=float, metavar="NS_PER_M", help="device damping for the theory overlay")
+    e.add_argument("--coulomb", type=float, metavar="N",
+                   help="device Coulomb friction for the friction-aware theory (default: the "
+                        "record's metadata coulomb_n, else estimated from the record)")
     e.add_argument("--fit", action="store_true",
                    help="fit the exact sampled closed-loop model of the metadata's VE to Z: plant m, b, "
                         "the device latency td and the VE-path delay tv (fractions of a sample; which "
@@ -123,7 +126,7 @@ def run_etfe(args) -> int:
 
     fr = etfe_recording(load_recording(args.file), args.estimator, args.window, m=args.m, b=args.b,
                         fit=args.fit, fit_ve=args.fit_ve,
-                        band_rad_s=tuple(args.band) if args.band else None)
+                        band_rad_s=tuple(args.band) if args.band else None, coulomb_n=args.coulomb)
     d = fr.as_dict(args.units)
     read = fr.readout
     if args.plot:

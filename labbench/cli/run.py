@@ -175,8 +175,8 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=No
     ``labbench campaign`` runs each point through here."""
     from labbench.realtime import RealtimeConfig
     from labbench.runner import run_recorded
-    from labbench.registry import make_protocol
-    from labbench.session_catalogue import OWN_PLANT
+    from labbench.registry import make_protocol, protocol_class
+    from labbench.session_catalogue import OWN_PLANT, plant_options
     from labbench.session_format import session_folder
 
     # commissioning checks the rig's nominal model itself: never an identified one
@@ -185,8 +185,9 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=No
         found = last_identified(args.out, rig)
         if found is not None:
             plant_from = found
-            options = {**options, "plant_m_kg": found["m"], "plant_b": found["b"]}
-            print(f"labbench run: using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m "
+            options = {**options, **plant_options(found, {f.name for f in fields(protocol_class(name).Config)})}
+            friction = f", Fc = {found['coulomb_n']:.4g} N" if "plant_coulomb_n" in options else ""
+            print(f"labbench run: using m = {found['m']:.5g} kg, b = {found['b']:.5g} N s/m{friction} "
                   f"identified in {found['session']}", file=sys.stderr)
     protocol = make_protocol(name, sample_time_s=rig.sample_time_s, **options)
     dev_opts = {"seed": protocol.seed, **(device_options or {})}
@@ -307,6 +308,7 @@ def cmd_demo(args) -> int:
     runs.append(("chirp-id", chirp, chirp_path))
     out = {"protocol": "demo", "sessions": [str(chirp_path)], "results": {"chirp-id": chirp.results}}
     m, b = chirp.results.get("m"), chirp.results.get("b")
+    fc, fc_ci = chirp.results.get("coulomb"), chirp.results.get("coulomb_ci95")
     if chirp.status != "success" or m is None or b is None or not m > 0 or b < 0:
         out.update(status="failed", reason=f"chirp-ID did not give a plant: {chirp.reason}")
         _print(args, out, runs)
@@ -315,7 +317,9 @@ def cmd_demo(args) -> int:
         etfe, etfe_path = _run_one(args, rig, "etfe", {
             "ve": "spring-damper", "K": 50.0, "B": 1.0, "w0_rad_s": 125.0, "td_s": 0.0,
             "duration_s": args.etfe_duration_s, "seed": args.seed, "plant_m_kg": m,
-            "plant_b": b}, stop, plant_from={"m": m, "b": b, "session": str(chirp_path)})
+            "plant_b": b, "plant_coulomb_n": fc, "plant_coulomb_ci95": fc_ci if fc is not None else None},
+            stop, plant_from={"m": m, "b": b, "session": str(chirp_path),
+                              **({"coulomb_n": fc, "coulomb_ci95": fc_ci} if fc is not None else {})})
     _say_failure(etfe, etfe_path, rig.sample_time_s)
     runs.append(("etfe", etfe, etfe_path))
     out["sessions"].append(str(etfe_path))

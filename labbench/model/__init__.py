@@ -6,4 +6,6 @@
   noise, through the exact sampled loop (spectrum, RMS in the band a person feels).
 - ``passivity``: the passive bounds a Z-width is read against (Colgate & Schenkel;
   Abbott & Okamura's quantisation and Coulomb bound).
+- ``friction``: Coulomb friction as the damper it acts as under the run's own excitation
+  (statistical linearisation, Booton; Gelb & Vander Velde), for the friction-aware theory.
 """
