@@ -20,8 +20,18 @@ from typing import Callable
 from PySide6 import QtCore, QtWidgets
 
 KEYS = "Esc / Space"
-ARMED_HINT = "Esc / Space = E-STOP everywhere (dialogs too)"
-UNARMED_HINT = "Esc / Space = E-STOP once a device is connected"
+ARMED_HINT = "E-STOP: Esc everywhere (dialogs too); Space outside text fields"
+# the keyboard is in a text field: there a space is text (issue 43: the line said Space
+# stopped everywhere; typed in the Sessions filter during a run, it typed a space)
+ARMED_TYPING_HINT = "E-STOP: Esc (Space types a space in this text field)"
+UNARMED_HINT = "E-STOP keys (Esc; Space outside text fields) once a device is connected"
+
+
+def hint(armed: bool) -> str:
+    """The rule as it holds now, where the keyboard is."""
+    if not armed:
+        return UNARMED_HINT
+    return ARMED_TYPING_HINT if typing_in(QtWidgets.QApplication.focusWidget()) else ARMED_HINT
 RULE = ("While a device is connected, Esc (and Space outside a text field) is E-STOP wherever "
         "the keyboard is: the window, file dialogs, completion and drop-down lists. It then never "
         "closes a dialog or a list: close those with their buttons or by clicking away. With no "

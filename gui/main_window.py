@@ -31,7 +31,7 @@ from labbench.gui.acquisition import Acquisition
 from labbench.gui.campaign_view import CampaignView, table_and_chart
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, has_file, rig_where
 from labbench.gui.device_panel import DevicePanel, EStopButton
-from labbench.gui.estop_keys import ARMED_HINT, KEYS, RULE, UNARMED_HINT, EStopKeys
+from labbench.gui.estop_keys import KEYS, RULE, EStopKeys, hint
 from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
 from labbench.gui.guide import Guide, RigState
@@ -198,6 +198,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         # Esc and Space: E-STOP anywhere in the application while a device is connected
         self.estop_keys = EStopKeys(lambda: self.state.armed, self.emergency_stop, self)
+        QtWidgets.QApplication.instance().focusChanged.connect(self._show_keys_rule)
         QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
         self.log.add("info", f"rig: {rig.name} ({rig_where(rig)}); sessions in {self.session_dir}")
         self._follow_state()
@@ -324,9 +325,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.device_panel.follow(state)
         self.sessions.follow(state)
         self.estop.set_latched(state.latched)
-        self.keys_hint.setText(ARMED_HINT if state.armed else UNARMED_HINT)
+        self._show_keys_rule()
         self._follow_rig()
         self.loop_status.show_mode(state.name)
+
+    def _show_keys_rule(self, *_focus) -> None:
+        """The E-STOP keys' rule in the status bar, as it holds now and where the keyboard is."""
+        self.keys_hint.setText(hint(self.state.armed))
 
     @staticmethod
     def _estimators() -> list[str]:
@@ -1258,6 +1263,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
         self.estop_keys.remove()  # the application's filter: a closed window stops nothing
+        QtWidgets.QApplication.instance().focusChanged.disconnect(self._show_keys_rule)
         self.wheel_guard.remove()
         self.save_state()
         self.stop_event.set()

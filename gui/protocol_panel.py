@@ -56,8 +56,13 @@ class Field:
     bad number), ``set`` shows a value as ``get`` returns it (TypeError/ValueError when the
     field cannot hold it), ``shown`` is what a person sees (text, tick, choice)."""
 
-    def __init__(self, name: str, value, lists: dict):
+    def __init__(self, name: str, value, lists: dict, help: str = "", whole: bool = False,
+                 drawn: bool = False):
+        """``help``: what the setting means (its tooltip, ``labbench.protocol.field_help``);
+        ``whole``: an optional field that takes whole numbers; ``drawn``: left empty, the
+        protocol draws it anew for each run and records it (a noise seed)."""
         self.name = name
+        self.whole = whole
         self.unit, self.low, label = _unit(name)
         self.label = f"{label} [{self.unit}]" if self.unit else label
         if isinstance(value, bool):
@@ -73,11 +78,14 @@ class Field:
                          else "optional" if value is None else "text" if isinstance(value, str)
                          else "numbers")
             self.widget = QtWidgets.QLineEdit()
-            if self.kind == "optional":
+            if self.kind == "optional" and drawn:
+                self.label += " (empty: new each run)"
+                self.widget.setPlaceholderText("drawn anew for each run, recorded")
+            elif self.kind == "optional":
                 self.label += " (opt.)"
                 self.widget.setPlaceholderText("default")
             self.widget.textChanged.connect(self._mark)
-        self.widget.setToolTip(name if self.kind != "optional"
+        self.widget.setToolTip(help or name if self.kind != "optional" or help
                                else f"{name}: empty = not set (default, or no filter for w0)")
         self.set(value)
 
@@ -139,15 +147,16 @@ class Field:
                 number = float(value)
             except OverflowError:
                 raise ValueError(f"{self.name}: {value} is out of range") from None
-            if self.kind == "int" and not number.is_integer():
+            whole = self.kind == "int" or self.whole
+            if whole and not number.is_integer():
                 raise TypeError(f"{self.name}: {value!r} is not a whole number")
-            self.widget.setText(_number_text(int(value) if self.kind == "int" else number))
+            self.widget.setText(_number_text(int(value) if whole else number))
 
     def _number(self, text: str):
         try:
-            value = int(text) if self.kind == "int" else float(text)
+            value = int(text) if self.kind == "int" or self.whole else float(text)
         except ValueError:
-            whole = "whole " if self.kind == "int" else ""
+            whole = "whole " if self.kind == "int" or self.whole else ""
             raise UserError(f"{self.name}: {text!r} is not a {whole}number") from None
         if self.low is not None and value < self.low:
             raise UserError(f"{self.name}: {text} is below {self.low:g} {self.unit}")
@@ -182,11 +191,16 @@ class SettingsForm(QtWidgets.QWidget):
 
     changed = QtCore.Signal()
 
-    def __init__(self, config: dict, parent=None):
+    def __init__(self, config: dict, parent=None, helps: dict | None = None,
+                 whole: frozenset = frozenset(), drawn: frozenset = frozenset()):
+        """``helps``: field -> what it means (tooltips); ``whole``: optional fields of whole
+        numbers; ``drawn``: fields the protocol draws for each run when left empty."""
         super().__init__(parent)
         lists = choices()
-        self.fields = {name: Field(name, value, lists) for name, value in config.items()
-                       if Field.editable(value)}
+        helps = helps or {}
+        self.fields = {name: Field(name, value, lists, helps.get(name, ""), name in whole,
+                                   name in drawn)
+                       for name, value in config.items() if Field.editable(value)}
         form = QtWidgets.QFormLayout(self)
         form.setFieldGrowthPolicy(QtWidgets.QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
         for field in self.fields.values():
@@ -248,9 +262,20 @@ def precheck_text(rep: dict) -> str:
 def protocol_form(name: str, settings=None) -> SettingsForm:
     """The settings form of protocol ``name``: its defaults (``config.as_dict()``), then
     what ``settings`` (a QSettings, or None) remembers of it."""
-    from labbench.registry import make_protocol
+    from dataclasses import fields
 
-    form = SettingsForm(make_protocol(name).config.as_dict())
+    from labbench.protocol import field_help
+    from labbench.registry import make_protocol, protocol_class
+
+    cls = protocol_class(name).Config
+    config = make_protocol(name).config.as_dict()
+    # a setting whose default is none but which validation filled in (a noise seed drawn at
+    # random) is shown empty: else the drawn value was shown, saved, and every run repeated it
+    drawn = frozenset(f.name for f in fields(cls) if f.default is None and config.get(f.name) is not None)
+    config.update(dict.fromkeys(drawn))
+    whole = frozenset(f.name for f in fields(cls) if f.default is None and "int" in str(f.type)
+                      and "float" not in str(f.type))
+    form = SettingsForm(config, helps=field_help(cls), whole=whole, drawn=drawn)
     if settings is not None:
         from labbench.gui.settings import load_protocol
 

@@ -45,7 +45,7 @@ def cells(s) -> tuple[str, ...]:
     return (date, s.protocol or "?", ve, fmt(s.K) if s.K is not None else "",
             fmt(s.B) if s.B is not None else "",
             f"{s.duration_s:.1f}" if s.duration_s is not None else "",
-            s.status + (f", {s.overruns} overruns" if s.overruns else ""),
+            s.status + (f", {s.overruns} overrun{'s' if s.overruns > 1 else ''}" if s.overruns else ""),
             s.verdict or "", str(s.n_samples), s.rig_name or "?", Path(s.path).name)
 
 

@@ -7,6 +7,7 @@ from html import escape
 
 from PySide6 import QtCore, QtWidgets
 
+from labbench.numfmt import frequencies_in
 from labbench.readout import Judged
 from labbench.verdict import DOUBTFUL, FAILED, OK, from_dict
 
@@ -19,11 +20,25 @@ def judged(what: str, verdict) -> list[Judged]:
     return [] if v is None else [Judged(what, v)]
 
 
-def verdict_html(j: Judged, units=None) -> str:
-    """``what: ok over 2-100 rad/s`` in the level's colour, then its reasons and notes."""
+OUTSIDE = "outside the band"  # how a note of what lies beyond the verdict's band starts
+# what a note means for the numbers (labbench.verdict: a limit that does not raise the level)
+NOTES_MEAN = ("the notes do not change the level: inside the band they widen the 95 % intervals "
+              "there and of what is read from there (K, B), which still hold the truth; outside "
+              "it they do not touch what is read in it")
+
+
+def verdict_html(j: Judged, units=None, explain: bool = True) -> str:
+    """``what: ok over 2-100 rad/s`` in the level's colour, then its reasons and its notes,
+    those inside its band first, and what notes mean for the numbers; frequencies in the
+    display units."""
     v = j.verdict
     head = f'<b style="color:{COLOURS[v.level]}">{escape(j.what)}: {escape(v.head(units))}</b>'
-    return head + "".join(f"<br>&nbsp;&nbsp;- {escape(r)}" for r in (*v.reasons, *v.notes))
+    notes = sorted(v.notes, key=lambda n: n.startswith(OUTSIDE))  # stable: inside first
+    lines = [*v.reasons, *(f"note: {n}" for n in notes)]
+    body = "".join(f"<br>&nbsp;&nbsp;- {escape(frequencies_in(x, units))}" for x in lines)
+    if v.notes and explain:
+        body += f'<br>&nbsp;&nbsp;<i style="color:#555555">({escape(NOTES_MEAN)})</i>'
+    return head + body
 
 
 def rendered_line(read) -> list:
@@ -70,7 +85,8 @@ class VerdictLabel(QtWidgets.QLabel):
 
         extra = [f'<span style="color:{x[1]}">{text(x[0])}</span>' if isinstance(x, tuple)
                  else text(x) for x in self._lines]
-        body = extra + [verdict_html(j, self.units) for j in self.shown]
+        noted = next((j for j in self.shown if j.verdict.notes), None)  # what notes mean: once
+        body = extra + [verdict_html(j, self.units, j is noted) for j in self.shown]
         text = "<br>".join(([self._heading] if self._heading and body else []) + body)
         if not text and self.placeholder:
             text = f'<span style="color:#777777">{escape(self.placeholder)}</span>'

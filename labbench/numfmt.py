@@ -10,6 +10,7 @@ band in the display units.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
@@ -96,6 +97,27 @@ def frequency_text(w: float, units=None) -> str:
     """``42.7 rad/s`` (or in Hz), as ``band_text`` writes a band's edges."""
     units = _units(units)
     return f"{plain(units.frequency_of(w))} {units.frequency}"
+
+
+_NUM = r"\d+(?:\.\d+)?(?:e[+-]?\d+)?"
+_SPAN = rf"{_NUM}(?:-{_NUM})?"
+# "2.09-6.81, 40-50 and 2 more rad/s", "between 1 and 1571 rad/s", "42.7 rad/s"
+_FREQUENCIES = re.compile(rf"(?<![\w.])(between {_NUM} and {_NUM}|{_SPAN}(?:, {_SPAN})*)"
+                          rf"(?P<more> and \d+ more)? rad/s\b")
+
+
+def frequencies_in(text: str, units=None) -> str:
+    """``text`` (a verdict's reason or note, a readout's row) with every frequency written
+    in rad/s in the display units: "leakage at 2.09-6.81 rad/s" -> "at 0.333-1.08 Hz"."""
+    units = _units(units)
+    if units.frequency == "rad/s" or "rad/s" not in text:
+        return text
+
+    def convert(m):
+        numbers = re.sub(_NUM, lambda n: plain(units.frequency_of(float(n.group()))), m.group(1))
+        return f"{numbers}{m.group('more') or ''} {units.frequency}"
+
+    return _FREQUENCIES.sub(convert, text)
 
 
 def _units(units):

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench.numfmt import band_text, fmt, fmt_ci, frequency_text
+from labbench.numfmt import band_text, fmt, fmt_ci, frequencies_in, frequency_text
 from labbench.verdict import FAILED, OK, Verdict, from_dict, worst
 
 NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory"}
@@ -186,7 +186,7 @@ def _text(v, units=None) -> str:
         return v.text(units)
     if isinstance(v, tuple):
         return "; ".join(f"{name} = {x.text(units)}" for name, x in v)
-    return str(v)
+    return frequencies_in(str(v), units)
 
 
 def _row_dict(v) -> dict:

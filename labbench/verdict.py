@@ -73,12 +73,15 @@ class Verdict:
         return f"{self.level} over {band_text(self.band, units)}"
 
     def line(self, units=None) -> str:
-        """``ok``, ``ok over 2-340 rad/s (note)`` or ``doubtful: reason; reason (note)``."""
+        """``ok``, ``ok over 2-340 rad/s (note)`` or ``doubtful: reason; reason (note)``; the
+        frequencies of reasons and notes in the display ``units`` too."""
+        from labbench.numfmt import frequencies_in
+
         text = self.head(units)
         if self.reasons:
-            text += ": " + "; ".join(self.reasons)
+            text += ": " + "; ".join(frequencies_in(r, units) for r in self.reasons)
         if self.notes:
-            text += " (" + "; ".join(self.notes) + ")"
+            text += " (" + "; ".join(frequencies_in(n, units) for n in self.notes) + ")"
         return text
 
 

@@ -143,7 +143,7 @@ def plain(label) -> list[str]:
     """The lines a rich-text label shows, as a person reads them."""
     doc = QtGui.QTextDocument()
     doc.setHtml(label.text())
-    return [line for line in doc.toPlainText().splitlines() if line.strip()]
+    return [line.replace("\xa0", " ").strip() for line in doc.toPlainText().splitlines() if line.strip()]
 
 
 def run_protocol(qtbot, win, name, **values):
@@ -218,7 +218,106 @@ def test_what_the_status_bar_showed_of_a_run_is_in_its_session(qtbot, window, tm
     # the Sessions table's status, and the report's flags (page 1)
     row = win.sessions.table.findItems(path.rsplit("/", 1)[-1], QtCore.Qt.MatchFlag.MatchExactly)[0].row()
     status = win.sessions.table.item(row, 6).text()
-    assert status == f"success, {n} overruns"
+    assert status == f"success, {n} overrun{'s' if n > 1 else ''}"
     report = build([path])
     html = render_html(report.title, report.subtitle, report.blocks)
     assert f"loop timing: {n} overruns" in html and "No flags" not in html
+
+
+def test_notes_inside_the_band_show_without_scrolling_with_their_meaning_and_units(qtbot, window):
+    """"record-edge leakage of the drift at 2.09-6.81 rad/s" sat inside the verdict's band and
+    the band K, B are read from, reachable only by scrolling a 5-line box, and whether it
+    mattered was not said; after switching to Hz it stayed in rad/s. Now the verdicts' room
+    holds their whole text at 1280 x 800, notes inside the band come first with what they
+    mean for the numbers, and every frequency follows the display units."""
+    from labbench.gui.verdict_view import NOTES_MEAN
+
+    win = window()
+    run_protocol(qtbot, win, "etfe", K=50.0, B=1.0, duration_s=20.0, seed=3, estimator="h1-welch")
+    lines = plain(win.live.verdicts)
+    note = next(i for i, x in enumerate(lines) if x.startswith("- note: record-edge leakage"))
+    assert "rad/s" in lines[note] and not lines[note].startswith("- note: outside the band")
+    later = [i for i, x in enumerate(lines) if x.startswith("- note: outside the band")]
+    assert all(i > note for i in later)  # inside the band first
+    assert any(NOTES_MEAN[:40] in x for x in lines)
+    # the note inside the band lies within the room as it stands, at its top (no scrolling)
+    room, label = win.live.verdict_room, win.live.verdicts
+    assert room.verticalScrollBar().value() == 0
+    doc = QtGui.QTextDocument()
+    doc.setDefaultFont(label.font())
+    doc.setHtml(label.text())
+    doc.setTextWidth(label.contentsRect().width())
+    block = doc.find("record-edge leakage of the drift at 2").block()
+    bottom = doc.documentLayout().blockBoundingRect(block).bottom()
+    assert bottom <= room.viewport().height(), (bottom, room.viewport().height())
+
+    win.units_choice.combos["frequency"].setCurrentText("Hz")
+    text = "\n".join(plain(win.live.verdicts))
+    assert "rad/s" not in text and " Hz" in text
+    assert "record-edge leakage of the drift at 0.3" in text  # 2.3 rad/s = 0.366 Hz
+
+
+def test_the_safety_line_says_the_space_exception_where_it_applies(qtbot, window):
+    """The status bar said "Esc / Space = E-STOP everywhere (dialogs too)"; Space typed in the
+    Sessions filter during a run typed a space and the run went on. The line now says the
+    rule exactly, and, while the keyboard is in a text field, that Space types there."""
+    win = window()
+    assert "once a device is connected" in win.keys_hint.text()
+    panel = win.protocol_panel
+    panel.choice.setCurrentText("etfe")
+    panel.set_value("duration_s", 60.0)
+    win.connect_device("sim")
+    qtbot.waitUntil(lambda: win.device is not None, timeout=20_000)
+    assert win.keys_hint.text() == "E-STOP: Esc everywhere (dialogs too); Space outside text fields"
+    panel.start_button.click()
+    qtbot.waitUntil(lambda: win.live.buffer.n > 500, timeout=20_000)
+    win.tabs.setCurrentWidget(win.sessions)
+    qtbot.mouseClick(win.sessions.filter, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(win.sessions.filter.hasFocus)
+    assert win.keys_hint.text() == "E-STOP: Esc (Space types a space in this text field)"
+    qtbot.keyClicks(win.sessions.filter, "etfe ")
+    assert win.sessions.filter.text() == "etfe " and win.mode == "running"  # as the line said
+    qtbot.keyClick(win.sessions.filter, QtCore.Qt.Key.Key_Escape)  # Esc stops from there too
+    assert win.estop.latched
+    qtbot.waitUntil(lambda: win.mode == "idle", timeout=20_000)
+
+
+def test_the_noise_seed_is_new_each_run_unless_one_is_typed(qtbot, window, tmp_path):
+    """The seed field came pre-filled with a drawn number that was saved with the settings:
+    every white-noise run, across backends and restarts, repeated one excitation and nothing
+    said so. Now it starts empty, says that empty draws a new one for each run, and a seed
+    typed in repeats its excitation."""
+    import numpy as np
+
+    from labbench.gui.settings import open_settings
+    from labbench.session_content import load_session
+
+    ini = tmp_path / "settings.ini"
+    win = window(settings=open_settings(ini))
+    panel = win.protocol_panel
+    panel.choice.setCurrentText("etfe")
+    seed = panel.form.fields["seed"]
+    assert seed.widget.text() == "" and "new each run" in seed.label
+    assert "drawn anew" in seed.widget.placeholderText() and "seed of the noise" in seed.widget.toolTip()
+
+    def recorded():
+        start, _desc, ch, *_ = load_session(win.session_path)
+        return start["seed"], ch["excitation"]
+
+    run_protocol(qtbot, win, "etfe", duration_s=1.0)
+    first = recorded()
+    run_protocol(qtbot, win, "etfe", duration_s=1.0)
+    second = recorded()
+    assert first[0] != second[0] and not np.array_equal(first[1], second[1])
+    assert seed.widget.text() == ""  # nothing drawn shows up in the form
+
+    qtbot.keyClicks(seed.widget, "7")
+    run_protocol(qtbot, win, "etfe", duration_s=1.0)
+    third = recorded()
+    run_protocol(qtbot, win, "etfe", duration_s=1.0)
+    assert third[0] == 7 and np.array_equal(recorded()[1], third[1])  # chosen: repeats
+    seed.widget.clear()
+    win.close()
+    again = window(settings=open_settings(ini))  # a restart remembers no drawn seed
+    again.protocol_panel.choice.setCurrentText("etfe")
+    assert again.protocol_panel.form.fields["seed"].widget.text() == ""

@@ -75,7 +75,7 @@ def test_esc_is_estop_inside_a_dialog_and_its_completion_list(qtbot, window, tmp
     win = window()
     assert "once a device is connected" in win.keys_hint.text()
     _connect(qtbot, win)
-    assert "E-STOP everywhere" in win.keys_hint.text()  # the rule in force, on screen
+    assert "E-STOP: Esc everywhere" in win.keys_hint.text()  # the rule in force, on screen
     win.tabs.setCurrentWidget(win.sweeps)
     seen = {}
 

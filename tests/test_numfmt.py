@@ -59,3 +59,20 @@ def test_the_written_interval_holds_the_value_and_reads_back_close(v, below, abo
     assert abs(value - v) <= res / 2 * 1.0001 + 1e-9 * abs(v)
     assert lo <= value + res and value - res <= hi
     assert abs(lo - (v - below)) <= res / 2 * 1.0001 + 1e-9 * abs(v)
+
+
+def test_frequencies_in_words_follow_the_display_units():
+    # issue 43: a verdict's notes stayed in rad/s after the window switched to Hz
+    from labbench.numfmt import frequencies_in
+    from labbench.units import DisplayUnits
+
+    hz = DisplayUnits(frequency="Hz")
+    assert frequencies_in("drift at 2.3-17.6, 20.3-21.5 and 2 more rad/s; 2 rad/s needs 22 s", hz) \
+        == "drift at 0.366-2.8, 3.23-3.42 and 2 more Hz; 0.318 Hz needs 22 s"
+    assert frequencies_in("coherent frequencies between 1 and 1571 rad/s", hz) \
+        == "coherent frequencies between 0.159 and 250 Hz"
+    assert frequencies_in("outside: 100-3.14e+03 rad/s", hz) == "outside: 15.9-500 Hz"
+    # words without a frequency, and every text in rad/s, stay as they are
+    for text in ("chi2/dof 3.94e+12 > 4", "K = 200 N/m at 2 s", "drift at 2.3 rad/s"):
+        assert frequencies_in(text) == text and frequencies_in(text, DisplayUnits()) == text
+    assert frequencies_in("K = 200 N/m at 2 s", hz) == "K = 200 N/m at 2 s"
