@@ -8,6 +8,7 @@ validates the values itself when Start is pressed.
 """
 from __future__ import annotations
 
+import math
 from html import escape
 
 from PySide6 import QtCore, QtGui, QtWidgets
@@ -255,6 +256,13 @@ def precheck_text(rep: dict) -> str:
         bound = f"K_max = {km:.4g} N/m{at_b}" if km else "no K bound"
         lines.append(f"{'stable' if c['stable'] else 'UNSTABLE'} {ve['kind']}: spectral radius "
                      f"{c['spectral_radius']:.4f}; {bound}{margin}")
+    friction = (rep.get("plan") or {}).get("friction")
+    if friction:  # the stability probe, with the device's friction known
+        kf, kl = friction.get("k_max"), friction.get("k_max_linear")
+        where = (f"{kf:.4g} N/m ({kf / kl:.2g} x K_max) for its {1e3 * friction['swing_m']:.2g} mm "
+                 "swing" if kf is not None and math.isfinite(kf) and kl else "beyond its cap")
+        lines.append(f"with Coulomb friction {friction['coulomb_n']:.3g} N the probe expects the "
+                     f"boundary at {where}")
     return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
 
 

@@ -317,24 +317,35 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
     one the rig has. Raises UnstableVEError (a UserError) for an unstable VE unless the protocol's
     ``allow_unstable`` is set (the runner allows that on a simulator only). Returns
     the numbers for the start record (``device_delay`` says which delay was used and
-    where it came from).
+    where it came from). A protocol that knows the device's Coulomb friction
+    (``plant_coulomb_n``) gets Abbott & Okamura's quantisation bound 2 f_c / Delta beside each
+    K_max (``k_passive_quantised``), and a refusal says how small an oscillation friction
+    still stops (``labbench.model.stability_friction.limit_cycle_amplitude``).
     """
     from labbench import device_delay
-    from labbench.model import linear
+    from labbench.model import linear, passivity
+    from labbench.model.stability_friction import limit_cycle_amplitude
 
     extra = delay if delay is not None else device_delay.resolve(rig)
     latency = extra.s
     report = {"plant": {"m": plant.m, "b": plant.b}, "device_delay": extra.as_dict(), "checks": []}
+    fc = getattr(protocol.config, "plant_coulomb_n", None)
     for ve in protocol.vetted_ves(plant):
         st = linear.stability(plant, ve, latency)
         km = linear.k_max(plant, ve, latency=latency)
         ka = linear.k_max_approx(plant, ve, latency)
         entry = {"ve": ve.as_dict(), "stable": bool(st.stable),
                  "spectral_radius": float(st.spectral_radius), "k_max": km, "k_max_approx": ka}
+        if fc and rig is not None and km is not None:
+            entry["k_passive_quantised"] = passivity.quantisation_bound(fc, rig.metres_per_count)
         report["checks"].append(entry)
         if not st.stable and not protocol.allow_unstable:
             bound = f"K_max = {km:.4g} N/m (exact sampled)" if km is not None else "no stable K"
             approx = f", paper approx. {ka:.4g} N/m" if ka is not None else ""
+            if fc and km is not None:
+                x_star = limit_cycle_amplitude(plant, ve, fc, latency)
+                approx += (f"; friction {fc:g} N stops oscillations below {x_star * 1e3:.3g} mm "
+                           "only: larger ones grow") if 0 < x_star < math.inf else ""
             raise UnstableVEError(
                 f"refusing unstable {ve.kind} VE K = {ve.K:g} N/m, B = {ve.B:g} N s/m, "
                 f"td = {ve.td * 1e3:g} ms (+ {latency * 1e3:g} ms device delay) "

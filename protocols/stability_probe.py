@@ -30,6 +30,28 @@ spring stores and the rig's nominal damping dissipates).
 Steps beyond the exact boundary are the point of this protocol: the starting
 VE must be stable (precheck), and the highest step is capped at ``max_over``
 times the exact boundary.
+
+**Friction.** On a device with Coulomb friction f_c (``plant_coulomb_n``: the rig's
+commissioning or chirp-ID estimate) whether an oscillation grows depends on its size:
+friction takes 4 f_c X a cycle out of an oscillation of amplitude X, a damper 4 f_c /
+(pi w X) strong (``labbench.model.stability_friction``). A step's oscillation starts at the
+pulse's swing, so the boundary this probe measures is the one for motions of that size,
+beyond the linear one. With ``plant_coulomb_n`` given the probe predicts it before the run
+(the swing each step's pulse is planned to give) and lets its steps go up to ``max_over``
+times that prediction, never above ``friction_cap`` times the linear boundary (a safety
+cap: the loop is unstable there for larger motions); afterwards it compares its measurement
+with the prediction at the swing the steps near the boundary actually started from. Near a
+boundary set by friction a step either dies out or runs away, so the growth rate is not
+linear in K there: the measured interval is then the bracket [largest stable step, smallest
+unstable step], not the refining line's. The result says where the probe stopped and why
+(``stopped``).
+
+**Homing on a sticking handle.** Friction holds a handle wherever a homing spring's pull is
+below f_c, and a step's spring cannot be enabled off centre (the enable gate), so a homing
+round that leaves the handle at rest short of centre stiffens the next round's spring
+(x ``HOME_STIFFEN``, always a stable homing VE, its pull still at most 0.1 N). A step the gate
+kept shut for most of its length measured nothing: it is neither stable nor unstable, and the
+probe stops there and says so.
 """
 from __future__ import annotations
 
@@ -41,7 +63,7 @@ import numpy as np
 
 from labbench.errors import UserError
 from labbench.rig import Rig
-from labbench.safety import CLAMP, FADE, RATE, TRIPPED
+from labbench.safety import CLAMP, FADE, GATED, RATE, TRIPPED
 from labbench.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
@@ -60,6 +82,10 @@ from labbench.protocol import (
 VARIABLES = ("K", "td")
 HOME_K_MAX = 20.0  # N/m, stiffest homing spring
 HOME_W0 = 200.0  # rad/s, velocity filter of the homing damper
+HOME_ROUNDS = 12  # homing rounds before a step at most
+HOME_STIFFEN = 4.0  # a round that left the handle stuck off centre: the next one's spring this much stiffer
+HOME_MARGIN = 2.0  # a stiffened homing VE stays stable at this many times its K
+UNRENDERED = 0.5  # a step gated for this share of its samples or more measured nothing
 PROBE_KINDS = ("spring", "spring-damper")
 PULSE_AT_S = 0.05  # the pulse starts this long into a step
 LOOK_S = 0.05  # zero force this long before the first step: where the handle is
@@ -102,6 +128,13 @@ class StabilityConfig(Config):
     refine_span: float = setting(0.02, "the refining steps sit at the crossing times "
                                  "1 - refine_span .. 1 + refine_span (at most 0.2)")
     sample_time_s: float = 0.001
+    plant_coulomb_n: float | None = setting(
+        None, "the device's Coulomb friction: the friction-aware boundary beside the linear "
+        "one, and how far beyond the linear one the steps may go; none: not known (the linear "
+        "boundary alone)", "N")
+    friction_cap: float = setting(
+        3.0, "with plant_coulomb_n: highest K tried as a multiple of the exact (linear) K_max, "
+        "however far the friction-aware boundary lies (a safety cap, at least max_over)")
     plant_m_kg: float | None = None
     plant_b: float | None = None
     allow_unstable: bool = False
@@ -115,6 +148,10 @@ class StabilityConfig(Config):
         self._set("K_stop", number("K_stop", self.K_stop, "N/m", lo=0, lo_open=True, none_ok=True))
         self._set("td_stop_s", number("td_stop_s", self.td_stop_s, "s", lo=0))
         self._set("max_over", number("max_over", self.max_over, "1", lo=1, lo_open=True))
+        self._set("plant_coulomb_n", number("plant_coulomb_n", self.plant_coulomb_n, "N", lo=0,
+                                            hi=1e3, none_ok=True))
+        self._set("friction_cap", number("friction_cap", self.friction_cap, "1",
+                                         lo=self.max_over, hi=100.0))
         self._set("cycles", number("cycles", self.cycles, "1", lo=2))
         self._set("min_step_s", number("min_step_s", self.min_step_s, "s", lo=0, lo_open=True,
                                               hi=60.0))
@@ -177,6 +214,25 @@ def growth_fit(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     independent residuals (sum over lags of the correlation: 1 + 2 x 1/2). None with
     fewer than 4 sums (no residual left to judge).
     """
+    sums = peak_sums(t, x, floor_m, rel_floor)
+    if sums is None:
+        return None
+    tk, ly = sums[0], np.log(sums[1])
+    slope, icept = np.polyfit(tk, ly, 1)
+    se = None
+    if tk.size >= 4:
+        resid = ly - (slope * tk + icept)
+        spread = np.sum((tk - tk.mean()) ** 2)
+        if spread > 0:
+            se = float(math.sqrt(2.0 * np.sum(resid**2) / (tk.size - 2) / spread))
+    return float(slope), se
+
+
+def peak_sums(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
+              rel_floor: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
+    """(times, sums of consecutive half-cycle peaks) of an oscillation, those ``growth_fit``
+    fits (its doc says which are kept); half a sum is the oscillation's amplitude there.
+    None with fewer than 3."""
     x = np.asarray(x, float)
     t = np.asarray(t, float)
     if x.size < 10:
@@ -196,15 +252,16 @@ def growth_fit(t: np.ndarray, x: np.ndarray, floor_m: float = 0.0,
     ok = yp > max(2 * floor_m, rel_floor * yp.max(), 1e-12)
     if ok.sum() < 3:
         return None
-    tk, ly = tp[ok], np.log(yp[ok])
-    slope, icept = np.polyfit(tk, ly, 1)
-    se = None
-    if tk.size >= 4:
-        resid = ly - (slope * tk + icept)
-        spread = np.sum((tk - tk.mean()) ** 2)
-        if spread > 0:
-            se = float(math.sqrt(2.0 * np.sum(resid**2) / (tk.size - 2) / spread))
-    return float(slope), se
+    return tp[ok], yp[ok]
+
+
+def rendered(data: dict) -> bool:
+    """Whether a step rendered its VE: the enable gate was open for more than
+    1 - ``UNRENDERED`` of its samples (a handle friction held off centre keeps it shut)."""
+    flags = data.get("flags")
+    if flags is None or len(flags) == 0:
+        return True
+    return float(np.mean((np.asarray(flags) & GATED) > 0)) < UNRENDERED
 
 
 class StabilityProbe(ProtocolBase):
@@ -223,16 +280,59 @@ class StabilityProbe(ProtocolBase):
 
         return linear.k_max(plant, self.ve, latency=self.device_delay_s)
 
-    def k_ceiling(self, plant: Plant) -> float:
+    def k_friction(self, plant: Plant) -> float | None:
+        """The friction-aware boundary the plan expects (``plant_coulomb_n`` given, variable K):
+        where an oscillation of the swing each step's pulse is planned to start neither grows nor
+        decays (``labbench.model.stability_friction.friction_boundary``); ``math.inf`` beyond
+        ``friction_cap`` x the linear boundary; None without friction or a linear boundary."""
+        from labbench.model.stability_friction import friction_boundary
+
+        c = self.config
         km = self.k_exact(plant)
-        ceiling = self.config.max_over * km if km is not None else math.inf
-        stop = self.config.K_stop if self.config.K_stop is not None else ceiling
+        if not c.plant_coulomb_n or c.variable != "K" or km is None or not 0 < km < math.inf:
+            return None
+        key = (plant.m, plant.b, self.device_delay_s, self._limits)
+        if key not in self._k_friction:
+            self._k_friction[key] = friction_boundary(
+                plant, self.ve, c.plant_coulomb_n,
+                lambda K: self.planned_amplitude(self.ve.with_(K=K), plant),
+                latency=self.device_delay_s, k_cap=c.friction_cap * km)
+        return self._k_friction[key]
+
+    def k_ceiling(self, plant: Plant) -> float:
+        """The last K tried: ``K_stop``, else ``max_over`` x the exact boundary, or with
+        friction known ``max_over`` x the friction-aware one, at most ``friction_cap`` x the
+        exact boundary (module doc)."""
+        return self.ceiling(plant)[0]
+
+    def ceiling(self, plant: Plant) -> tuple[float, str]:
+        """(``k_ceiling``, which rule set it, in words)."""
+        c = self.config
+        km = self.k_exact(plant)
+        ceiling = c.max_over * km if km is not None else math.inf
+        why = f"max_over {c.max_over:g} x the linear boundary"
+        kf = self.k_friction(plant)
+        if kf is not None:
+            if c.max_over * kf > ceiling:
+                ceiling, why = c.max_over * kf, (f"max_over {c.max_over:g} x the friction-aware "
+                                                 f"boundary {kf:.4g} N/m planned")
+            if ceiling > c.friction_cap * km:
+                ceiling, why = c.friction_cap * km, (f"the safety cap friction_cap "
+                                                     f"{c.friction_cap:g} x the linear boundary")
+        stop = c.K_stop if c.K_stop is not None else ceiling
         if stop > ceiling and not self.allow_unstable:
-            raise UserError(f"K_stop {stop:g} N/m is above {self.config.max_over:g} x the exact "
-                            f"boundary K_max = {km:.4g} N/m")
+            allowed = (f"{c.max_over:g} x the exact boundary K_max = {km:.4g} N/m" if kf is None
+                       else f"the ceiling {ceiling:.4g} N/m ({why}; exact K_max {km:.4g} N/m)")
+            raise UserError(f"K_stop {stop:g} N/m is above {allowed}")
         if not math.isfinite(stop):
             raise UserError("no finite K_stop: give K_stop")
-        return stop
+        return stop, why if c.K_stop is None else "K_stop"
+
+    _k_friction: dict  # k_friction's results by plant, delay and limits (set in __init__)
+
+    def __init__(self, config):
+        super().__init__(config)
+        self._k_friction = {}
 
     def plan(self, plant: Plant) -> list[VirtualEnvironment]:
         """The VEs of the bracketing steps, in order (it stops at the first unstable one;
@@ -266,10 +366,17 @@ class StabilityProbe(ProtocolBase):
             self._limits = _limits(rig)
         ves = self.plan(plant)
         pulses = [self.pulse_n(ve, plant) for ve in ves]
-        return {"plan": {"steps": len(ves), "refine": self.config.refine
-                         if self.config.variable == "K" else 0,
-                         "first": ves[0].as_dict(), "last": ves[-1].as_dict(),
-                         "pulse_n": [min(pulses), max(pulses)]}}
+        plan = {"steps": len(ves), "refine": self.config.refine
+                if self.config.variable == "K" else 0,
+                "first": ves[0].as_dict(), "last": ves[-1].as_dict(),
+                "pulse_n": [min(pulses), max(pulses)]}
+        kf = self.k_friction(plant)
+        if kf is not None:
+            plan["friction"] = {"coulomb_n": self.config.plant_coulomb_n, "k_max": kf,
+                                "k_max_linear": self.k_exact(plant),
+                                "swing_m": self.planned_amplitude(
+                                    self.ve.with_(K=min(kf, ves[-1].K)), plant)}
+        return {"plan": plan}
 
     def pulse_n(self, ve: VirtualEnvironment, plant: Plant) -> float:
         """Peak of the step's half-sine pulse [N]: ``pulse_n`` when given, else sized so the
@@ -289,6 +396,19 @@ class StabilityProbe(ProtocolBase):
         impulse = c.swing * min(x_lim * math.sqrt(km), v_lim * plant.m,
                                 f_lim * plant.m / math.sqrt(km + ve.B**2))
         return min(impulse * math.pi / (2 * c.pulse_s), c.swing * f_lim)
+
+    def planned_amplitude(self, ve: VirtualEnvironment, plant: Plant) -> float:
+        """Position amplitude [m] the step's pulse is planned to start: the impulse's
+        oscillation I / sqrt(K m), I = 2 P tau / pi, times the half-sine's spectrum at
+        w = sqrt(K / m) relative to its area, cos(w tau / 2) / (1 - (w tau / pi)^2) (a
+        pulse not short against the period gives less). Damping, friction and sampling are
+        left out: a plan, not the measurement (``analyze`` uses the swing measured)."""
+        tau = self.config.pulse_s
+        w = math.sqrt(ve.K / plant.m)
+        r = w * tau / math.pi
+        shape = math.pi / 4 if abs(r - 1) < 1e-9 else math.cos(w * tau / 2) / (1 - r * r)
+        impulse = 2 * self.pulse_n(ve, plant) * tau / math.pi
+        return abs(impulse * shape) / math.sqrt(ve.K * plant.m)
 
     def pulse(self, n: int, peak_n: float | None = None) -> np.ndarray:
         c = self.config
@@ -310,6 +430,8 @@ class StabilityProbe(ProtocolBase):
             if c.variable == "K" and len(bracket) >= 2:
                 n = self._growth_capped(n, _line_at(bracket[-2], bracket[-1], ve.K))
             sigma, unstable = yield from self._step(plant, ve, label, n)
+            if unstable is None:  # never rendered: a stiffer step would not be either
+                return
             bracket.append({"K": ve.K, "sigma_per_s": sigma, "unstable": unstable})
             if unstable:
                 break
@@ -338,11 +460,14 @@ class StabilityProbe(ProtocolBase):
                    round(c.min_step_s / c.sample_time_s))
 
     def _step(self, plant: Plant, ve: VirtualEnvironment, label: str, n: int):
-        """Home, then one probe step; returns (sigma, unstable)."""
+        """Home, then one probe step; returns (sigma, unstable), unstable None for a step
+        the enable gate kept shut (``rendered``)."""
         yield from self._home(plant, ve)
         out = yield Segment(label, ve, self.pulse(n, self.pulse_n(ve, plant)),
                             trip_expected=True)
         self._last = out.data
+        if not rendered(out.data):
+            return None, None
         sigma = self._sigma(out.data)
         return sigma, self._unstable(out.status, sigma)
 
@@ -358,12 +483,16 @@ class StabilityProbe(ProtocolBase):
         (|command| small) would never open. Each homing stage renders a
         critically damped spring-damper soft enough to enable where the handle
         is (K_h |x| <= 0.1 N, and B_h |v| <= 0.1 N: a handle still coasting fast gets
-        less than critical damping), until K_next |x| <= 0.05 N and |v| <= 0.01 m/s.
+        less than critical damping), until K_next |x| <= 0.05 N and |v| <= 0.01 m/s. A round
+        that leaves the handle at rest short of that (friction holds it where the spring's
+        pull is below f_c) makes the next round's spring ``HOME_STIFFEN`` times stiffer, as
+        long as the homing VE stays stable with a ``HOME_MARGIN`` (module doc).
         """
         from labbench.model import linear
 
         T = self.config.sample_time_s
-        for _ in range(8):
+        stiff = HOME_K_MAX
+        for _ in range(HOME_ROUNDS):
             if self._last is None or len(self._last["position"]) == 0:
                 return
             x = float(self._last["position"][-1])
@@ -372,31 +501,57 @@ class StabilityProbe(ProtocolBase):
                 return
             # soft enough that the enable gate opens here: |K_h x| and |B_h v| each <= 0.1 N
             # (a fast coasting handle gets less than critical damping at first)
-            K_h = min(HOME_K_MAX, 0.1 / max(abs(x), 1e-6))
-            B_h = min(max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0), 0.1 / max(abs(v), 1e-6))
-            ve = VirtualEnvironment("spring-damper", K_h, B_h, HOME_W0, T, 0.0)
+            K_h = min(stiff, 0.1 / max(abs(x), 1e-6))
+            ve = self._homing_ve(plant, K_h, v)
+            while K_h > HOME_K_MAX and not linear.stability(
+                    plant, ve.with_(K=HOME_MARGIN * K_h), self.device_delay_s).stable:
+                K_h = max(K_h / HOME_STIFFEN, HOME_K_MAX)
+                ve = self._homing_ve(plant, K_h, v)
             if not linear.stability(plant, ve, self.device_delay_s).stable:
-                raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {B_h:.3g} N s/m is unstable "
+                raise UserError(f"homing VE K = {K_h:.3g} N/m, B = {ve.B:.3g} N s/m is unstable "
                                 f"on m = {plant.m:g} kg, b = {plant.b:g} N s/m")
             dur = min(max(6.0 / math.sqrt(K_h / plant.m), 0.3), 3.0)
             out = yield Segment("home", ve, np.zeros(round(dur / T)), role="home")
             self._last = out.data
+            if len(out.data["velocity"]) and abs(float(out.data["velocity"][-1])) <= 0.01:
+                stiff = K_h * HOME_STIFFEN  # at rest and not home yet: held by friction
 
-    def _fit(self, data: dict) -> tuple[float, float | None] | None:
-        """The step's growth fit, from after the pulse to the first sample at which the
-        envelope bent the force (clamp, rate limit, energy fade, trip): past it the loop is
-        no longer the linear one whose growth is asked (a clamped growth looks slower)."""
+    def _homing_ve(self, plant: Plant, K_h: float, v: float) -> VirtualEnvironment:
+        """Critically damped homing spring-damper of stiffness ``K_h`` (less damping for a
+        handle still moving at ``v``, so |B_h v| <= 0.1 N)."""
+        B_h = min(max(2 * math.sqrt(K_h * plant.m) - plant.b, 0.0), 0.1 / max(abs(v), 1e-6))
+        return VirtualEnvironment("spring-damper", K_h, B_h, HOME_W0, self.config.sample_time_s,
+                                  0.0)
+
+    def _window(self, data: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(t, x) of the step's fitted stretch: from after the pulse to the first sample at
+        which the envelope bent the force (clamp, rate limit, energy fade, trip): past it the
+        loop is no longer the linear one whose growth is asked (a clamped growth looks
+        slower)."""
         start = PULSE_AT_S + self.config.pulse_s + 0.05
         t = np.asarray(data["t"], float)
         if t.size == 0:
-            return None
+            return t, t
         keep = t - t[0] >= start
         flags = data.get("flags")
         if flags is not None:
             bent = np.flatnonzero(np.asarray(flags) & NONLINEAR)
             if bent.size:
                 keep[bent[0]:] = False
-        return growth_fit(t[keep], np.asarray(data["position"])[keep], self._floor)
+        return t[keep], np.asarray(data["position"], float)[keep]
+
+    def _fit(self, data: dict) -> tuple[float, float | None] | None:
+        return growth_fit(*self._window(data), self._floor)
+
+    def _swing(self, data: dict) -> list[float] | None:
+        """[first, smallest, largest] amplitude [m] of the oscillation over the fitted
+        stretch (half its peak-to-peak sums, ``peak_sums``), or None. The first is the
+        swing the step's growth or decay starts from: with friction, what decides which."""
+        sums = peak_sums(*self._window(data), self._floor)
+        if sums is None:
+            return None
+        half = 0.5 * sums[1]
+        return [float(half[0]), float(half.min()), float(half.max())]
 
     def _sigma(self, data: dict) -> float | None:
         fit = self._fit(data)
@@ -409,15 +564,21 @@ class StabilityProbe(ProtocolBase):
         return status == "tripped" or (sigma is not None and sigma > 0)
 
     def analyze(self, data: dict, meta: dict) -> dict:
-        """Per-step growth rates (with errors) and observer energy from the recording, the
-        measured boundary (refined: the zero of the long steps' line; else the bracket's
-        crossing), and the exact and approximate predictions with the device's delay."""
+        """Per-step growth rates (with errors), swing and observer energy from the recording,
+        the measured boundary (refined: the zero of the long steps' line; else the bracket's
+        crossing), the exact and approximate predictions with the device's delay, with
+        ``plant_coulomb_n`` the friction-aware one at the swing measured (``friction``), and where
+        the probe stopped and why (``stopped``). A step the enable gate kept shut
+        (``rendered`` false) is neither stable nor unstable."""
         from labbench import device_delay
         from labbench.model import linear
 
         plant = Plant(**meta["plant"]) if "plant" in meta else self.plant()
         latency = device_delay.from_meta(meta)
         self._floor = 3 * float(meta.get("metres_per_count", 0.0))
+        self.device_delay_s = latency
+        if isinstance(meta.get("rig"), dict):
+            self._limits = _limits(meta["rig"])
         var = self.config.variable
         steps = []
         for seg in meta.get("segments", []):
@@ -427,26 +588,45 @@ class StabilityProbe(ProtocolBase):
             fit = self._fit(part)
             sigma, se = (None, None) if fit is None else fit
             ve = VirtualEnvironment.from_dict(seg["ve"])
+            shown = rendered(part)
             steps.append({"K": ve.K, "td_s": ve.td, "status": seg["status"], "sigma_per_s": sigma,
-                          "sigma_se_per_s": se, "unstable": self._unstable(seg["status"], sigma),
+                          "sigma_se_per_s": se, "rendered": shown,
+                          "unstable": self._unstable(seg["status"], sigma) if shown else None,
+                          "swing_m": self._swing(part) if shown else None,
                           "phase": "refine" if str(seg.get("label", "")).startswith(REFINE)
-                          else "bracket", "energy_max_j": seg.get("energy_max_j")})
-        bracket = [s for s in steps if s["phase"] == "bracket"]
+                          else "bracket", "energy_max_j": seg.get("energy_max_j"),
+                          "x_start_m": float(part["position"][0]) if len(part["position"])
+                          else None})
+        judged = [s for s in steps if s["rendered"]]
+        bracket = [s for s in judged if s["phase"] == "bracket"]
         crossing = _crossing(bracket, "K" if var == "K" else "td_s")
-        refined = _refined(steps) if var == "K" else None
+        refined = _refined(judged) if var == "K" else None
         # K is continuous: the zero crossing of sigma is the boundary. td exists in whole
         # samples only: the boundary is the first unstable step (the crossing is kept too).
+        basis = "refined" if refined else "crossing"
+        interval = refined["ci95"] if refined else None
         if var == "K":
             measured = refined["k"] if refined else crossing
+            pair = _bracket(judged, "K")
+            outside = refined is not None and not pair[0] <= refined["k"] <= pair[1] if pair \
+                else False
+            if pair and (self.config.plant_coulomb_n or outside):
+                # with friction the growth rate is not linear in K near the boundary (a step
+                # either dies out or runs away): a line through two steps, and its interval,
+                # claim more than the steps show; what they show is the bracket
+                measured, interval, basis = _pair_crossing(judged, pair), pair, "bracket"
         else:
-            measured = next((s["td_s"] for s in steps if s["unstable"]), None)
+            measured = next((s["td_s"] for s in judged if s["unstable"]), None)
         base = self.ve
         if var == "K":
             exact = linear.k_max(plant, base, latency=latency)
             approx = linear.k_max_approx(plant, base, latency)
         else:
             exact, approx = _td_boundaries(plant, base, self.config, latency)
-        interval = refined["ci95"] if refined else None
+        friction = None
+        if var == "K" and self.config.plant_coulomb_n:
+            friction = _friction(plant, base, self.config.plant_coulomb_n, latency, judged,
+                                 measured, interval, float(meta.get("metres_per_count", 0.0)))
         return {
             "variable": var,
             "steps": steps,
@@ -454,14 +634,27 @@ class StabilityProbe(ProtocolBase):
             "device_delay_s": latency,
             "measured_boundary": measured,
             "measured_ci95": interval,
+            "measured_basis": basis,
             "measured_crossing": crossing,
-            "bracket": _bracket(steps, "K" if var == "K" else "td_s"),
+            "bracket": _bracket(judged, "K" if var == "K" else "td_s"),
             "exact_boundary": exact,
             "approx_boundary": approx,
             "rel_error_vs_exact": _rel(measured, exact),
             "rel_error_approx_vs_measured": _rel(approx, measured),
-            "energy": _energy(steps, "K" if var == "K" else "td_s"),
+            "energy": _energy(judged, "K" if var == "K" else "td_s"),
+            "friction": friction,
+            "stopped": _stopped(steps, var, measured, exact, friction, self._ceiling_text(plant)),
         }
+
+    def _ceiling_text(self, plant: Plant) -> str | None:
+        """The K ceiling and the rule that set it, in words (None for variable td)."""
+        if self.config.variable != "K":
+            return None
+        try:
+            top, why = self.ceiling(plant)
+        except UserError:
+            return None
+        return f"the probe's ceiling {top:.4g} N/m ({why})"
 
     def report_sections(self, session):
         """Page 1: the measured stability boundary against the exact sampled and the paper's
@@ -472,12 +665,105 @@ class StabilityProbe(ProtocolBase):
 REFINE = "refine "  # label prefix of the refining steps
 
 
+def _friction(plant: Plant, ve: VirtualEnvironment, fc: float, latency: float, steps: list[dict],
+              measured: float | None, measured_interval: list | None,
+              metres_per_count: float) -> dict:
+    """The friction-aware boundary at the swing this probe's steps had
+    (``labbench.model.stability_friction``): the steps that place the boundary (the
+    refining ones, else the last stable and first unstable, else the last two) give the
+    swing their oscillation started from (their median, and the range between them), hence
+    the prediction and its range; beside it Abbott & Okamura's 2 f_c / Delta and, at the
+    stiffest step, the amplitude below which oscillations die out (X*). ``agrees``: the
+    prediction's range, widened by its ``tolerance`` f_c / (K X), meets the measured
+    interval."""
+    from labbench.model.passivity import quantisation_bound
+    from labbench.model.stability_friction import friction_boundary, limit_cycle_amplitude
+
+    near = [s for s in steps if s["phase"] == "refine" and s.get("swing_m")]
+    if not near:
+        bracket = [s for s in steps if s["phase"] == "bracket"]
+        pair = next(([a, b] for a, b in pairwise(bracket) if not a["unstable"] and b["unstable"]),
+                    bracket[-2:])
+        near = [s for s in pair if s.get("swing_m")]
+    out = {"coulomb_n": fc, "quantisation_bound": quantisation_bound(fc, metres_per_count),
+           "swing_m": None, "swing_range_m": None, "k_max": None, "k_range": None,
+           "tolerance": None, "rel_error": None, "agrees": None}
+    if steps:
+        top = max(steps, key=lambda s: s["K"])
+        out["top_k"] = top["K"]
+        out["limit_cycle_amplitude_m"] = limit_cycle_amplitude(plant, ve.with_(K=top["K"]), fc,
+                                                               latency)
+    if not near:
+        return out
+    starts = [s["swing_m"][0] for s in near]
+    swing, lo, hi = float(np.median(starts)), min(starts), max(starts)
+    k = friction_boundary(plant, ve, fc, swing, latency)
+    k_range = [friction_boundary(plant, ve, fc, hi, latency),
+               friction_boundary(plant, ve, fc, lo, latency)]
+    # the describing function takes the motion for a sinusoid; friction's square wave bends
+    # it by about f_c against the spring's K X: that share is the prediction's own tolerance
+    tol = fc / (k * swing) if math.isfinite(k) and k > 0 else 0.0
+    out.update(swing_m=swing, swing_range_m=[lo, hi], k_max=k, k_range=k_range, tolerance=tol,
+               rel_error=_rel(measured, k),
+               agrees=None if measured_interval is None or not math.isfinite(k_range[1]) else bool(
+                   k_range[0] * (1 - tol) <= measured_interval[1]
+                   and measured_interval[0] <= k_range[1] * (1 + tol)))
+    return out
+
+
+def _stopped(steps: list[dict], var: str, measured, exact, friction: dict | None,
+             ceiling: str | None) -> str:
+    """Where the probe stopped and why, in one line (``ceiling``: the K ceiling and its rule,
+    in words)."""
+    if not steps:
+        return "no step ran"
+    unit, key = ("N/m", "K") if var == "K" else ("s", "td_s")
+    last = steps[-1]
+    if not last["rendered"]:
+        x = last.get("x_start_m")
+        held = f" (the handle stood at {1e3 * x:.3g} mm, K x = {abs(last['K'] * x):.3g} N)" \
+            if x is not None else ""
+        return (f"stopped at the step {key} = {last[key]:.4g} {unit}: the enable gate stayed shut "
+                f"for most of it{held}, so it rendered nothing and no boundary was measured "
+                "beyond the steps before it")
+    judged = [s for s in steps if s["rendered"]]
+    top = max(s[key] for s in judged)
+    ratio = f" ({top / exact:.3g} x the linear boundary {exact:.4g} {unit})" \
+        if exact and var == "K" else ""
+    fr = ""
+    if friction and friction.get("k_max"):
+        kf, lo, hi = friction["k_max"], *friction["k_range"]
+        fr = (f"; friction {friction['coulomb_n']:.3g} N at this probe's "
+              f"{1e3 * friction['swing_m']:.3g} mm swing predicts {kf:.4g} {unit} "
+              f"(range {lo:.4g} to {hi:.4g} over the steps' swings)")
+    if measured is not None:
+        times = f" ({measured / exact:.3g} x the linear boundary {exact:.4g} {unit})" \
+            if exact and var == "K" else ""
+        return f"boundary measured at {key} = {measured:.4g} {unit}{times}: the growth rate " \
+               f"crossed zero{fr}"
+    if any(s["unstable"] for s in judged):
+        return f"a step grew but no crossing could be placed (growth rates missing){fr}"
+    why = ("friction takes out what the sampled loop feeds the probe's oscillations"
+           if friction else "the device dissipates more than the linear model says "
+           "(friction? give plant_coulomb_n for the friction-aware boundary)")
+    if ceiling:
+        ratio = f"{ratio}, the last step below {ceiling}"
+    beyond = ""
+    if friction and friction.get("limit_cycle_amplitude_m") is not None and var == "K":
+        x_star = friction["limit_cycle_amplitude_m"]
+        beyond = (f"; at the stiffest step oscillations below {1e3 * x_star:.3g} mm die out, "
+                  "larger ones grow" if math.isfinite(x_star) else "")
+    return f"no sustained oscillation up to {key} = {top:.4g} {unit}{ratio}: {why}{fr}{beyond}"
+
+
 def _limits(rig) -> tuple[float, float, float]:
     """(force, position, velocity) limits the free response must stay inside: the force
-    limit, the nearer edge of the position window from x = 0, the velocity limit."""
-    lo, hi = rig.position_limits_m
+    limit, the nearer edge of the position window from x = 0, the velocity limit. ``rig``: a
+    Rig, or its ``as_dict()`` (a run's meta)."""
+    get = rig.get if isinstance(rig, dict) else (lambda name: getattr(rig, name))
+    lo, hi = get("position_limits_m")
     reach = min(abs(lo), abs(hi)) if lo < 0 < hi else max(abs(lo), abs(hi))
-    return rig.force_limit_n, reach, rig.velocity_limit_m_s
+    return float(get("force_limit_n")), float(reach), float(get("velocity_limit_m_s"))
 
 
 def refine_points(crossing: float, n: int, span: float) -> list[float]:
@@ -551,6 +837,15 @@ def _rel(a, b):
     return None if a is None or b is None or b == 0 else float((a - b) / b)
 
 
+def _pair_crossing(steps: list[dict], pair: list[float]) -> float:
+    """Where sigma crosses zero on the line through the two steps that bracket the boundary
+    (``pair``: the largest stable K and the smallest unstable one); the midpoint when either
+    has no growth rate."""
+    lo = next(s for s in steps if s["K"] == pair[0] and not s["unstable"])
+    hi = next(s for s in steps if s["K"] == pair[1] and s["unstable"])
+    return _crossing([lo, hi], "K")
+
+
 def _crossing(steps: list[dict], key: str) -> float | None:
     """Where sigma crosses zero between the last stable and first unstable step."""
     for prev, cur in pairwise(steps):
@@ -580,12 +875,13 @@ def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig,
 
 
 def _report_sections(protocol: StabilityProbe, session):
-    from labbench.report.blocks import Figure, ReportSections, Table, fmt, new_figure
+    from labbench.report.blocks import Figure, Paragraph, ReportSections, Table, fmt, new_figure
 
     res = session.results
     var = res.get("variable", protocol.config.variable)
     steps = res.get("steps") or []
-    details = []
+    details = [Paragraph(f"Where the probe stopped: {res['stopped']}.")] \
+        if isinstance(res.get("stopped"), str) else []
     if steps:
         details.append(Table("Probe steps", ["K (N/m)", "td (ms)", "status", "growth rate (1/s)",
                                              "unstable"],
@@ -598,11 +894,18 @@ def _report_sections(protocol: StabilityProbe, session):
         fig = new_figure((7.2, 3.4))
         ax = fig.add_subplot()
         ax.plot(x, sig, "o-", label="measured growth rate")
+        friction = res.get("friction") if isinstance(res.get("friction"), dict) else {}
         for name, v, style in (("measured", res.get("measured_boundary"), "-"),
                                ("exact sampled", res.get("exact_boundary"), "--"),
-                               ("paper approx.", res.get("approx_boundary"), ":")):
-            if v is not None:
+                               ("paper approx.", res.get("approx_boundary"), ":"),
+                               ("friction-aware", friction.get("k_max"), "-.")):
+            if isinstance(v, (int, float)) and math.isfinite(v):
                 ax.axvline(v, color="0.3", ls=style, label=f"{name} boundary {v:.4g}")
+        k_range = friction.get("k_range")
+        if isinstance(k_range, list) and all(isinstance(k, (int, float)) and math.isfinite(k)
+                                             for k in k_range):
+            ax.axvspan(*k_range, color="tab:orange", alpha=0.2,
+                       label="friction-aware, over the steps' swings")
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel("K (N/m)" if var == "K" else "td (s)", fontsize=8)
         ax.set_ylabel("growth rate σ (1/s)", fontsize=8)

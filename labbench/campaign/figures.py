@@ -44,7 +44,9 @@ def zwidth_figure(cols: dict) -> Figure | None:
     interval (filled: above the sampled-data passive bound, stable but not passive; hollow:
     passive too; a triangle: no step grew, K_max above it), the exact sampled boundary, the
     paper's approximation, Colgate & Schenkel's line, the passive envelope of the filtered
-    VE and Abbott & Okamura's quantisation bound; the rig's facts below."""
+    VE and Abbott & Okamura's quantisation bound; with the device's friction known, the
+    friction-aware boundary at each probe's swing (diamonds, over the swings of its steps);
+    the rig's facts below."""
     rows = zwidth_rows(cols)
     if not rows:
         return None
@@ -60,6 +62,7 @@ def zwidth_figure(cols: dict) -> Figure | None:
         name = f"w0 = {fmt(w0)} rad/s" if w0 is not None else "no filter"
         _theory_curves(ax, group[0], w0, b_top, color, name, first=n == 0)
         _measured(ax, group, color, name)
+        _friction_aware(ax, group, color, name)
     q = _num(rows[0].get("pred.k_passive_quantised"))
     if math.isfinite(q):
         ax.axhline(q, color="0.4", lw=1, ls=(0, (1, 3)),
@@ -139,6 +142,28 @@ def _measured(ax, group: list[dict], color: str, name: str) -> None:
     if bad.any():
         y = np.array([_num(r.get("pred.k_max")) for r in group])
         ax.plot(B[bad], y[bad], "x", color="tab:red", ms=7, label="point not ok (see its row)")
+
+
+def _friction_aware(ax, group: list[dict], color: str, name: str) -> None:
+    """Each point's friction-aware boundary: at the swing its steps started from
+    (``zw.k_friction``, with its range), else the plan's (``pred.k_max_friction``); beyond
+    the probe's safety cap (inf) it is not drawn."""
+    B = np.array([_num(r.get("ve.B")) for r in group])
+    k = np.array([_num(r.get("zw.k_friction")) if r.get("zw.k_friction") is not None
+                  else _num(r.get("pred.k_max_friction")) for r in group])
+    lo = np.array([_num(r.get("zw.k_friction_lo")) for r in group])
+    hi = np.array([_num(r.get("zw.k_friction_hi")) for r in group])
+    has = np.isfinite(k)
+    if not has.any():
+        return
+    order = np.argsort(B[has])
+    ax.plot(B[has][order], k[has][order], "D", ls=(0, (6, 2, 1, 2)), color=color, mfc="none",
+            ms=9, lw=1.0,
+            label=literal_mpl(f"stable with friction, at the probe's swing ({name}): "
+                              "describing function"))
+    ranged = has & np.isfinite(lo) & np.isfinite(hi)
+    ax.errorbar(B[ranged], k[ranged], yerr=np.vstack([k - lo, hi - k])[:, ranged], fmt="none",
+                ecolor=color, capsize=2, lw=0.6, alpha=0.6)
 
 
 def rate_rows(cols: dict) -> list[dict]:

@@ -54,6 +54,13 @@ class Context:
     skip_commissioning: bool = False
 
     @property
+    def coulomb_n(self) -> float | None:
+        """The device's Coulomb friction as the rig's last commissioning estimated it (None:
+        not known): the friction-aware stability boundary's (the stability probe's
+        ``plant_coulomb_n``, unless the spec gives it)."""
+        return self.commission.get("coulomb_n")
+
+    @property
     def plant_label(self) -> str:
         """Where the plant came from, in words (the plan, the table's ``plant.from``)."""
         return self.plant_from if self.plant_from in ("given", "nominal") else \
@@ -204,6 +211,8 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
     if "plant_m_kg" in fields and "plant_m_kg" not in opts and "plant_b" not in opts:
         opts.update(plant_m_kg=context.plant.m, plant_b=context.plant.b)
         plant_from = context.plant_record()
+    if "plant_coulomb_n" in fields and "plant_coulomb_n" not in opts and context.coulomb_n:
+        opts["plant_coulomb_n"] = context.coulomb_n
     plant = Plant(opts.get("plant_m_kg", context.plant.m), opts.get("plant_b", context.plant.b))
     delay = device_delay.resolve(rig)
     try:

@@ -27,6 +27,24 @@ def _name(path) -> str:
     return Path(path).name if path else "-"
 
 
+def _friction_cell(r: dict) -> str:
+    """The friction-aware boundary at the probe's swing with its range, or the plan's."""
+    k = r.get("zw.k_friction")
+    if k is None:
+        planned = r.get("pred.k_max_friction")
+        return "-" if planned is None else f"{fmt(planned)} (planned)"
+    swing = r.get("zw.swing_m")
+    at = f" at {fmt(1e3 * swing)} mm" if swing is not None else ""
+    return fmt_ci(k, r.get("zw.k_friction_lo"), r.get("zw.k_friction_hi")) + at
+
+
+def _stops(rows: list[dict]) -> str:
+    """Where each probe without a measured boundary stopped, and why (the table's note)."""
+    said = [f"#{r['index']}: {r['zw.stopped']}" for r in rows
+            if r.get("zw.k_max") is None and r.get("zw.stopped")]
+    return ("Points without a measured boundary: " + "; ".join(said) + ".") if said else ""
+
+
 def _params(r: dict) -> str:
     try:
         p = json.loads(r.get("params_json") or "{}")
@@ -36,7 +54,8 @@ def _params(r: dict) -> str:
 
 
 ZWIDTH = (["#", "B (N s/m)", "w0 (rad/s)", "status", "K_max measured, 95 % interval (N/m)",
-           "exact sampled (N/m)", "measured / exact - 1", "paper approx. (N/m)",
+           "exact sampled (N/m)", "measured / exact - 1", "with friction, at the swing (N/m)",
+           "measured / with friction - 1", "paper approx. (N/m)",
            "passive, sampled-data (N/m)", "Colgate & Schenkel (N/m)", "observer first (N/m)",
            "lies above"],
           lambda r: [str(r["index"]), fmt(r.get("ve.B")), fmt(r.get("ve.w0_rad_s")), r["status"],
@@ -44,7 +63,8 @@ ZWIDTH = (["#", "B (N s/m)", "w0 (rad/s)", "status", "K_max measured, 95 % inter
                      if r.get("zw.k_max") is not None else (
                          f"> {fmt(r['zw.k_max_above'])}" if r.get("zw.k_max_above") else "-"),
                      fmt(r.get("pred.k_max")),
-                     percent(r.get("zw.rel_error")), fmt(r.get("pred.k_max_approx")),
+                     percent(r.get("zw.rel_error")), _friction_cell(r),
+                     percent(r.get("zw.rel_error_friction")), fmt(r.get("pred.k_max_approx")),
                      fmt(r.get("pred.k_passive")), fmt(r.get("pred.k_passive_line")),
                      fmt(r.get("zw.observer_k")), r.get("zw.crossed") or r.get("error") or "-"])
 RATE = (["#", "T (ms)", "status", "ED error median meas. / pred.", "ES error median meas. / pred.",
@@ -91,10 +111,12 @@ def build(directory) -> tuple[str, str, list]:
                                 "note"))
     if rows:
         blocks.append(Paragraph(figures.rig_line(rows[0]), "note"))
-    columns, cells = (ZWIDTH if figures.zwidth_rows(cols) else
+    zwidth = bool(cols) and bool(figures.zwidth_rows(cols))
+    columns, cells = (ZWIDTH if zwidth else
                       RATE if figures.rate_rows(cols) else OTHER) if cols else OTHER
     blocks += [PageBreak(), Heading("Points", 1),
-               Table(f"One row per point ({len(rows)})", columns, [cells(r) for r in rows])]
+               Table(f"One row per point ({len(rows)})", columns, [cells(r) for r in rows],
+                     note=_stops(rows) if zwidth else "")]
     blocks += [PageBreak(), Heading("Sessions", 1),
                Table("The session each point recorded, and the runs that did not finish",
                      ["#", "point", "status", "session", "attempts", "earlier (interrupted)"],

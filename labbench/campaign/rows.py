@@ -26,11 +26,20 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
   (their b > K T / 2 + |B|) and ``pred.k_passive_quantised`` (Abbott & Okamura's
   2 f_c / Delta with the commissioning's f_c);
 * the stability probe: ``zw.k_max`` (measured), ``zw.ci_lo`` / ``zw.ci_hi`` (its 95 %
-  interval), ``zw.k_max_above`` (when no step grew: the stiffest step, a lower bound),
-  ``zw.rel_error`` (against ``pred.k_max``), ``zw.observer_k`` (the first step
-  in which the passivity observer saw the VE generate energy) and ``zw.crossed`` (the
-  bounds the device certainly went beyond: below the low end of the interval, or below
-  the lower bound ``zw.k_max_above``);
+  interval; with friction the bracket of a stable and an unstable step), ``zw.k_max_above``
+  (when no step grew: the stiffest step that rendered, a lower bound), ``zw.rel_error``
+  (against ``pred.k_max``), ``zw.observer_k`` (the first step in which the passivity
+  observer saw the VE generate energy), ``zw.crossed`` (the bounds the device certainly
+  went beyond: below the low end of the interval, or below the lower bound
+  ``zw.k_max_above``) and ``zw.stopped`` (where the probe stopped and why: the reason a
+  point has no measured boundary);
+* with the device's Coulomb friction known (the commissioning's, passed to the probe as
+  ``plant_coulomb_n``): ``pred.k_max_friction`` (the friction-aware boundary at the swing
+  the probe's pulses were planned to give, ``labbench.model.stability_friction``), and from
+  the run ``zw.k_friction`` (the same at the swing the steps near the boundary started
+  from, ``zw.swing_m``) with ``zw.k_friction_lo`` / ``zw.k_friction_hi`` (its range over
+  those steps, widened by its tolerance f_c / (K X)), ``zw.rel_error_friction`` (measured
+  against it) and ``zw.friction_agrees`` (the range meets the measured interval);
 * ETFE: the rendering error against the designed impedance, Z_ideal = (m s^2 + (b + B) s
   + K) / s (no sampling, delay or filter), over the accuracy band 2-100 rad/s:
   ``acc.es_median`` / ``acc.es_max`` of |ES - (K - m w^2)| / K and ``acc.ed_median`` /
@@ -130,8 +139,11 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
         out["pred.k_passive_line"] = passivity.colgate_line(plant.b, ve.B, ve.T)
         out["pred.k_passive_quantised"] = passivity.quantisation_bound(
             context.commission.get("coulomb_n"), pp.rig.metres_per_count)
+        planned = getattr(pp.protocol, "k_friction", None)
+        out["pred.k_max_friction"] = planned(plant) if planned else None
     if results.get("variable") == "K":
         out.update(_zwidth(results, out))
+        out.update(_friction(results))
     if isinstance(results.get("etfe"), dict):
         out.update(_accuracy(results, plant, ve, latency, out.get("pred.k_max")))
     if pp.protocol_name == "etfe" and ve.kind != "none":
@@ -162,7 +174,7 @@ BOUNDS = (("pred.k_passive", "passive (sampled-data)"),
 def _zwidth(res: dict, pred: dict) -> dict:
     k = res.get("measured_boundary")
     ci = res.get("measured_ci95") or [None, None]
-    steps = res.get("steps") or []
+    steps = [s for s in res.get("steps") or [] if s.get("rendered", True)]
     # no step grew (friction, a ceiling below the device's boundary): K_max is above them all
     above = max((s["K"] for s in steps), default=None) \
         if k is None and steps and not any(s["unstable"] for s in steps) else None
@@ -174,7 +186,19 @@ def _zwidth(res: dict, pred: dict) -> dict:
     return {"zw.k_max": k, "zw.ci_lo": ci[0], "zw.ci_hi": ci[1], "zw.k_max_above": above,
             "zw.rel_error": None if k is None or not exact else k / exact - 1,
             "zw.observer_k": (res.get("energy") or {}).get("first_generating"),
-            "zw.crossed": "; ".join(crossed) if level is not None else None}
+            "zw.crossed": "; ".join(crossed) if level is not None else None,
+            "zw.stopped": res.get("stopped")}
+
+
+def _friction(res: dict) -> dict:
+    """The friction-aware comparison of a probe that knew the device's friction (module
+    doc); None columns otherwise."""
+    f = res.get("friction") if isinstance(res.get("friction"), dict) else {}
+    rng, tol = f.get("k_range"), f.get("tolerance") or 0.0
+    lo, hi = (rng[0] * (1 - tol), rng[1] * (1 + tol)) if rng else (None, None)
+    return {"zw.k_friction": f.get("k_max"), "zw.k_friction_lo": lo, "zw.k_friction_hi": hi,
+            "zw.swing_m": f.get("swing_m"), "zw.rel_error_friction": f.get("rel_error"),
+            "zw.friction_agrees": f.get("agrees")}
 
 
 def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:

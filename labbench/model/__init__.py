@@ -4,6 +4,8 @@
   stability, K_max and bandwidths: the device as a linear mass-damper.
 - ``noise``: the force noise the loop commands from the encoder step and the amplifier's
   noise, through the exact sampled loop (spectrum, RMS in the band a person feels).
+- ``stability_friction``: the sampled loop's stability on a device with Coulomb friction,
+  which depends on how far the handle swings (a describing function; Diolaiti et al.).
 - ``passivity``: the passive bounds a Z-width is read against (Colgate & Schenkel;
   Abbott & Okamura's quantisation and Coulomb bound).
 - ``friction``: Coulomb friction as the damper it acts as under the run's own excitation
