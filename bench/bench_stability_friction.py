@@ -92,23 +92,24 @@ def rough_campaign(work: Path) -> tuple[list[str], Path]:
     if not summary.complete:
         raise SystemExit(f"the rough rig's campaign stopped: {summary.interrupted}")
     rows = sorted(tables.read_table(work / "t.sweep").to_pylist(), key=lambda r: r["ve.B"])
-    lines = ["", f"Z-width campaign on docs/examples/rigs/rough-sim-friction.toml after `labbench run "
-             f"commission` (Coulomb estimate {facts.get('coulomb_n'):.4g} N), w0 = 125 rad/s:",
+    lines = ["", "Z-width campaign on docs/examples/rigs/rough-sim-friction.toml after "
+             f"`labbench run commission` (Coulomb estimate {facts.get('coulomb_n'):.4g} N), "
+             "w0 = 125 rad/s:",
              "", "| B (N s/m) | linear K_max | measured (bracket) | measured / linear | "
              "planned friction-aware | friction-aware at the swing (range with tolerance) | "
              "swing (mm) | measured / friction-aware - 1 | agrees | 2 fc / Delta |",
              "|---:|---:|---|---:|---:|---|---:|---:|:---:|---:|"]
     for r in rows:
-        k = r["zw.k_max"]
+        k, swing, err = r["zw.k_max"], r["zw.swing_m"], r["zw.rel_error_friction"]
+        measured = (f"{k:.4g} ({r['zw.ci_lo']:.4g} to {r['zw.ci_hi']:.4g})" if k is not None
+                    else f"none: {r['zw.stopped']}")
         lines.append(
-            f"| {r['ve.B']:g} | {r['pred.k_max']:.4g} | "
-            + (f"{k:.4g} ({r['zw.ci_lo']:.4g} to {r['zw.ci_hi']:.4g})" if k is not None
-               else f"none: {r['zw.stopped']}")
-            + f" | {fmt(k and k / r['pred.k_max'], '.3g')} | {fmt(r['pred.k_max_friction'])} | "
+            f"| {r['ve.B']:g} | {r['pred.k_max']:.4g} | {measured} | "
+            f"{fmt(k and k / r['pred.k_max'], '.3g')} | {fmt(r['pred.k_max_friction'])} | "
             f"{fmt(r['zw.k_friction'])} ({fmt(r['zw.k_friction_lo'])} to "
-            f"{fmt(r['zw.k_friction_hi'])}) | {fmt(r['zw.swing_m'] and 1e3 * r['zw.swing_m'], '.3g')}"
-            f" | {fmt(r['zw.rel_error_friction'] and 100 * r['zw.rel_error_friction'], '+.2f')} % | "
-            f"{'yes' if r['zw.friction_agrees'] else 'NO'} | {fmt(r['pred.k_passive_quantised'])} |")
+            f"{fmt(r['zw.k_friction_hi'])}) | {fmt(swing and 1e3 * swing, '.3g')} | "
+            f"{fmt(err and 100 * err, '+.2f')} % | {'yes' if r['zw.friction_agrees'] else 'NO'} | "
+            f"{fmt(r['pred.k_passive_quantised'])} |")
     chart = next(p for p in write_figures(work / "t.sweep") if p.name == "zwidth.png")
     return lines, chart
 
@@ -165,9 +166,9 @@ def main() -> None:
     r, k_lin = probe(0.0, 0.02, 0.0, 1)
     f = r["friction"]
     lines += ["", "Controls (B = 0, seed 1):", "",
-              f"- frictionless device, probe told Fc = 0.02 N: measured {fmt(r['measured_boundary'])}"
-              f" N/m ({r['measured_boundary'] / k_lin:.3g} x linear), predicted {fmt(f['k_max'])} "
-              f"N/m: agrees = {f['agrees']} (must be False)."]
+              "- frictionless device, probe told Fc = 0.02 N: measured "
+              f"{fmt(r['measured_boundary'])} N/m ({r['measured_boundary'] / k_lin:.3g} x linear), "
+              f"predicted {fmt(f['k_max'])} N/m: agrees = {f['agrees']} (must be False)."]
     r, k_lin = probe(0.02, None, 0.0, 1)
     lines += [f"- Fc = 0.02 N, friction not told (the issue's before): {r['stopped']}."]
     with tempfile.TemporaryDirectory() as tmp:
