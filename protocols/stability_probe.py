@@ -130,8 +130,9 @@ class StabilityConfig(Config):
     sample_time_s: float = 0.001
     plant_coulomb_n: float | None = setting(
         None, "the device's Coulomb friction: the friction-aware boundary beside the linear "
-        "one, and how far beyond the linear one the steps may go; none: not known (the linear "
-        "boundary alone)", "N")
+        "one, and how far beyond the linear one the steps may go; none: the chirp-ID's with "
+        "--plant-from last-id, else not known (the linear boundary alone)", "N")
+    plant_coulomb_ci95: tuple | None = None
     friction_cap: float = setting(
         3.0, "with plant_coulomb_n: highest K tried as a multiple of the exact (linear) K_max, "
         "however far the friction-aware boundary lies (a safety cap, at least max_over)")
@@ -148,8 +149,6 @@ class StabilityConfig(Config):
         self._set("K_stop", number("K_stop", self.K_stop, "N/m", lo=0, lo_open=True, none_ok=True))
         self._set("td_stop_s", number("td_stop_s", self.td_stop_s, "s", lo=0))
         self._set("max_over", number("max_over", self.max_over, "1", lo=1, lo_open=True))
-        self._set("plant_coulomb_n", number("plant_coulomb_n", self.plant_coulomb_n, "N", lo=0,
-                                            hi=1e3, none_ok=True))
         self._set("friction_cap", number("friction_cap", self.friction_cap, "1",
                                          lo=self.max_over, hi=100.0))
         self._set("cycles", number("cycles", self.cycles, "1", lo=2))
