@@ -146,6 +146,17 @@ def plain(label) -> list[str]:
     return [line.replace("\xa0", " ").strip() for line in doc.toPlainText().splitlines() if line.strip()]
 
 
+def line_bottom(doc, text: str) -> float:
+    """Where the line holding ``text`` ends in a laid-out document (pixels from its top)."""
+    found = doc.find(text)
+    assert not found.isNull(), text
+    block = found.block()
+    top = doc.documentLayout().blockBoundingRect(block).top()  # lays the document out
+    line = block.layout().lineForTextPosition(found.selectionStart() - block.position())
+    assert line.isValid()
+    return top + line.rect().bottom()
+
+
 def run_protocol(qtbot, win, name, **values):
     panel = win.protocol_panel
     panel.choice.setCurrentText(name)
@@ -247,9 +258,7 @@ def test_notes_inside_the_band_show_without_scrolling_with_their_meaning_and_uni
     doc.setDefaultFont(label.font())
     doc.setHtml(label.text())
     doc.setTextWidth(label.contentsRect().width())
-    block = doc.find("record-edge leakage of the drift at 2").block()
-    bottom = doc.documentLayout().blockBoundingRect(block).bottom()
-    assert bottom <= room.viewport().height(), (bottom, room.viewport().height())
+    assert line_bottom(doc, "record-edge leakage of the drift at 2") <= room.viewport().height()
 
     win.units_choice.combos["frequency"].setCurrentText("Hz")
     text = "\n".join(plain(win.live.verdicts))
