@@ -30,6 +30,7 @@ from pyqtgraph.util.garbage_collector import GarbageCollector
 from labbench.gui.acquisition import Acquisition
 from labbench.gui.campaign_view import CampaignView, table_and_chart
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, has_file, rig_where
+from labbench.gui.design_view import DesignView
 from labbench.gui.device_panel import DevicePanel, EStopButton
 from labbench.gui.estop_keys import KEYS, RULE, EStopKeys, hint
 from labbench.gui.event_log import EventLog
@@ -48,6 +49,7 @@ from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
 from labbench.gui.verdict_view import judged, rendered_line
 from labbench.gui.wheel_guard import WheelGuard
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
+from labbench.design import device_for
 from labbench.errors import UserError
 from labbench.numfmt import fmt
 from labbench.readout import plant_source, session_label
@@ -222,6 +224,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sessions = SessionsView(self.session_dir, estimators=self._estimators())
         self.sweeps = SweepView(self.session_dir)  # a re-run point's session goes with the runs
         self.campaign = CampaignView()
+        self.design = DesignView(settings=self.settings)
         self.units_choice = UnitsChoice()
         self.log = EventLog()
         # one strip of fixed height above everything: the first-run path, or a failure's
@@ -259,7 +262,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs = QtWidgets.QTabWidget()
         for page, title in ((self.live, "Live"), (self.id_view, "Identification"),
                             (self.commission, "Commissioning"), (self.sessions, "Sessions"),
-                            (self.sweeps, "Sweeps"), (self.campaign, "Campaign")):
+                            (self.sweeps, "Sweeps"), (self.campaign, "Campaign"),
+                            (self.design, "Design")):
             self.tabs.addTab(page, title)
         self.tabs.setCornerWidget(self.units_choice, QtCore.Qt.Corner.TopRightCorner)
         right = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
@@ -362,6 +366,8 @@ class MainWindow(QtWidgets.QMainWindow):
             commissioned=self.rig.direction_checked,
             identified=session_label(self.identified["session"]) if self.identified else "",
             measured=self._measured))
+        self.design.set_device(device_for(self.rig, self.simulated, self.identified),
+                               self.rig.sample_time_s)
 
     def _guide_step(self, step: str) -> None:
         """A step of the path clicked: it shows, or chooses what the person asked for

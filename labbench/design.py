@@ -284,6 +284,30 @@ def rig_noise(rig, simulated: bool, sim_options: dict | None = None
              "force_noise": f"the simulator's force_noise_n = {amp:g} N" if amp else "none"})
 
 
+def device_for(rig, simulated: bool, identified: dict | None = None,
+               commission: dict | None = None) -> Device:
+    """The device of ``rig`` as the rig and its sessions describe it: the chirp-ID's plant
+    and Coulomb term (``labbench.session_catalogue.last_identified``'s dict; None: the rig's
+    nominal model), else the commissioning's Coulomb estimate (``commission_facts``), the
+    rig's delay (``labbench.device_delay``) and its noise sources (``rig_noise``); ``sources``
+    says where each came from."""
+    from labbench import device_delay
+
+    found = identified or {}
+    plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant
+    coulomb, coulomb_src = None, "unknown (no chirp-ID with a Coulomb term, no commissioning)"
+    if found.get("coulomb_n") is not None:
+        coulomb, coulomb_src = found["coulomb_n"], f"chirp-ID {found['session']}"
+    elif (commission or {}).get("coulomb_n") is not None:
+        coulomb, coulomb_src = commission["coulomb_n"], f"commissioning {commission['session']}"
+    delay = device_delay.resolve(rig)
+    sources, where = rig_noise(rig, simulated)
+    return Device(plant, delay.s, sources.quantum_m, sources.force_noise_n, coulomb,
+                  {"plant": f"chirp-ID {found['session']}" if found else
+                   "the rig's nominal model", "latency": f"{delay.origin}: {delay.source}",
+                   "coulomb": coulomb_src, **where})
+
+
 def zwidth(Bs, k_max, noise_n, limit: float | None) -> tuple[float, float | None]:
     """(area [N^2 s/m^2], B_limit): the area under K_max(B), piecewise linear on the grid
     ``Bs`` (sorted), from the first B to the largest B whose noise is within ``limit``, the

@@ -80,10 +80,13 @@ def register(subparsers) -> None:
 
 
 def device_of(args):
-    """The ``labbench.design.Device`` the arguments and the rig's sessions describe."""
+    """The rig and the ``labbench.design.Device`` the arguments and the rig's sessions
+    describe (``labbench.design.device_for``, the given values over it)."""
+    from dataclasses import replace
+
     from labbench import device_delay
     from labbench.campaign.plan import commission_facts
-    from labbench.design import Device, rig_noise
+    from labbench.design import device_for
     from labbench.rig import load_rig
     from labbench.session_catalogue import last_identified
     from labbench.ve import Plant
@@ -95,35 +98,27 @@ def device_of(args):
 
     if (args.plant_m_kg is None) != (args.plant_b is None):
         raise UserError("give --plant-m-kg and --plant-b together")
-    found = None
-    if args.plant_m_kg is not None:
-        plant, plant_src = Plant(args.plant_m_kg, args.plant_b), "given"
-    else:
-        found = last_identified(args.out, rig.name, on_skip=skipped) \
-            if args.plant_from == "last-id" else None
-        plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant
-        plant_src = f"chirp-ID {found['session']}" if found else "the rig's nominal model"
-    coulomb, coulomb_src = None, "unknown (no chirp-ID with a Coulomb term, no commissioning)"
-    if args.coulomb_n is not None:
-        coulomb, coulomb_src = _nonneg(args.coulomb_n, "--coulomb-n"), "given"
-    elif found and found.get("coulomb_n") is not None:
-        coulomb, coulomb_src = found["coulomb_n"], f"chirp-ID {found['session']}"
-    else:
-        facts = commission_facts(args.out, rig.name, on_skip=skipped)
-        if facts.get("coulomb_n") is not None:
-            coulomb, coulomb_src = facts["coulomb_n"], f"commissioning {facts['session']}"
-    delay = device_delay.resolve(rig, explicit=None if args.device_delay_s is None else
-                                 device_delay.checked(args.device_delay_s, "--device-delay-s"))
-    sources, where = rig_noise(rig, args.simulated)
-    quantum = sources.quantum_m if args.quantum_m is None else \
-        _nonneg(args.quantum_m, "--quantum-m")
-    amp = sources.force_noise_n if args.force_noise_n is None else \
-        _nonneg(args.force_noise_n, "--force-noise-n")
-    return rig, Device(
-        plant, delay.s, quantum, amp, coulomb,
-        {"plant": plant_src, "latency": f"{delay.origin}: {delay.source}", "coulomb": coulomb_src,
-         "quantum": "given" if args.quantum_m is not None else where["quantum"],
-         "force_noise": "given" if args.force_noise_n is not None else where["force_noise"]})
+    found = last_identified(args.out, rig.name, on_skip=skipped) \
+        if args.plant_m_kg is None and args.plant_from == "last-id" else None
+    device = device_for(rig, args.simulated, found,
+                        commission_facts(args.out, rig.name, on_skip=skipped))
+    given, sources = {}, dict(device.sources)
+    for key, value, field, check in (
+            ("plant", args.plant_m_kg, "plant", None),
+            ("coulomb", args.coulomb_n, "coulomb_n", "--coulomb-n"),
+            ("latency", args.device_delay_s, "latency", None),
+            ("quantum", args.quantum_m, "quantum_m", "--quantum-m"),
+            ("force_noise", args.force_noise_n, "force_noise_n", "--force-noise-n")):
+        if value is None:
+            continue
+        if field == "plant":
+            value = Plant(args.plant_m_kg, args.plant_b)
+        elif field == "latency":
+            value = device_delay.checked(args.device_delay_s, "--device-delay-s")
+        else:
+            value = _nonneg(value, check)
+        given[field], sources[key] = value, "given"
+    return rig, replace(device, **given, sources=sources)
 
 
 def _nonneg(v: float, what: str) -> float:
