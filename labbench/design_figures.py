@@ -18,6 +18,17 @@ def _canvas(size) -> Figure:
     return fig
 
 
+def _log_x(ax, ticks) -> None:
+    """A log axis of a few w0, labelled at them in plain numbers."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator, ScalarFormatter
+
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(FixedLocator(list(ticks)))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+
+
 def _style(ax, xlabel: str, ylabel: str) -> None:
     ax.set_xlabel(xlabel, fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
@@ -59,7 +70,7 @@ def tradeoff_figure(points: list[DesignPoint], recommendation: dict | None,
             ax.axvline(recommendation["w0"], color="0.3", ls="--", lw=1,
                        label=f"recommended w0 = {recommendation['w0']:g} rad/s")
             ax.legend(fontsize=7)
-        ax.set_xscale("log")
+        _log_x(ax, [r["w0"] for r in rows])
         what = ("Z-width under the noise limit (N^2 s/m^2)" if recommendation["objective"]
                 == "zwidth" else "w_b* under the noise limit (rad/s)")
     else:
@@ -114,7 +125,7 @@ def check_figure(c) -> Figure:
                                (c.best_measured, "--", "measured best")):
             if w is not None:
                 ax.axvline(w, color="0.3", ls=style, lw=1, label=f"{name} w0 = {w:g}")
-        ax.set_xscale("log")
+        _log_x(ax, ws)
         ax.legend(fontsize=7)
     _style(ax, "velocity filter cut-off w0 (rad/s)", "Z-width under the noise limit (N^2 s/m^2)")
     fig.suptitle(f"Design predicted vs measured: K = {c.K:g} N/m, T = {c.T:g} s", fontsize=9)
