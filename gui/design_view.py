@@ -12,7 +12,6 @@ B, w0, T: moving K reuses it), one noise spectrum and two impedance curves
 from __future__ import annotations
 
 import math
-from html import escape
 
 import numpy as np
 import pyqtgraph as pg
@@ -77,10 +76,7 @@ class DesignView(QtWidgets.QWidget):
         controls.addWidget(self.limit, len(SLIDERS), 1)
         self.device_line = QtWidgets.QLabel()
         self.device_line.setWordWrap(True)
-        self.numbers = QtWidgets.QLabel()
-        self.numbers.setTextFormat(QtCore.Qt.TextFormat.RichText)
-        self.numbers.setAlignment(QtCore.Qt.AlignmentFlag.AlignTop)
-        self.numbers.setToolTip("\n".join(f"{k}: {v}" for k, v in MODELS.items()))
+        self.numbers = Numbers()
 
         self.plots = pg.GraphicsLayoutWidget()
         self.noise_plot = self.plots.addPlot(
@@ -187,7 +183,7 @@ class DesignView(QtWidgets.QWidget):
             f"noise {fmt(1e3 * d.force_noise_n)} mN")
         p, fn = self.designer.detail(K, B, w0, T)
         self.point = p
-        self.numbers.setText(_numbers_html(p, self.designer.targets))
+        self.numbers.show_point(p, self.designer.targets)
         if fn is not None:
             # the model's grid (up to 2^21 points near a sharp resonance) thinned to
             # N_SPECTRUM log-spaced points: a curve of more costs paint time, shows nothing more
@@ -217,35 +213,82 @@ class DesignView(QtWidgets.QWidget):
         self.redrawn.emit()
 
 
-def _numbers_html(p, targets: Targets) -> str:
-    def row(name: str, value: str, model: str) -> str:
-        return (f"<tr><td>{escape(name)}</td><td align='right'><b>{escape(value)}</b></td>"
-                f"<td><small>{escape(model)}</small></td></tr>")
+# the numbers panel: (key, name, model); a key None is a heading
+ROWS = (
+    (None, "stability", ""),
+    ("k_max", "K_max", "exact sampled loop"),
+    ("margin", "margin K_max / K", "exact sampled loop"),
+    ("k_passive", "passive K", "Colgate & Schenkel"),
+    ("k_quantised", "passive K, friction", "Abbott & Okamura 2 fc/Δ"),
+    (None, "accuracy", ""),
+    ("ws_star", "w_s*", "exact sampled ES"),
+    ("wb_star", "w_b*", "exact sampled ED"),
+    ("rendered_B", "rendered B", "ED(0), exact sampled"),
+    ("ed_error_sampled", "ED error at 10 Hz", "exact sampled (an ETFE)"),
+    ("ed_error_paper", "ED error at 10 Hz", "paper eq. 2 (felt)"),
+    (None, "force noise, 10-500 Hz", ""),
+    ("noise_command", "command", "labbench.model.noise"),
+    ("noise_felt", "felt (held, + amplifier)", "labbench.model.noise"),
+)
 
-    state = ("<span style='color:#b00020'><b>UNSTABLE</b>: K above K_max</span>" if not p.stable
-             else "stable" + ("" if p.within_limit else
-                              " <span style='color:#b00020'>but over the noise limit</span>"))
-    limit = "none" if targets.noise_limit_n is None else f"{fmt(1e3 * targets.noise_limit_n)} mN"
-    rows = [
-        "<tr><td colspan=3><b>stability</b> — " + state + "</td></tr>",
-        row("K_max", f"{fmt(p.k_max)} N/m", "exact sampled loop"),
-        row("margin K_max / K", fmt(p.margin, 3), "exact sampled loop"),
-        row("passive K", f"{fmt(p.k_passive)} N/m", "Colgate & Schenkel"),
-        row("passive K, friction", f"{fmt(p.k_quantised)} N/m", "Abbott & Okamura 2 fc/Δ"),
-        "<tr><td colspan=3><b>accuracy</b></td></tr>",
-        row("w_s*", f"{fmt(p.ws_star)} rad/s", "exact sampled ES"),
-        row("w_b*", f"{fmt(p.wb_star)} rad/s", "exact sampled ED"),
-        row("rendered B", f"{fmt(p.rendered_B)} N s/m", "ED(0), exact sampled"),
-        row("ED error at 10 Hz", _pct(p.ed_error_sampled), "exact sampled (an ETFE)"),
-        row("ED error at 10 Hz", _pct(p.ed_error_paper), "paper eq. 2 (felt)"),
-        f"<tr><td colspan=3><b>force noise</b>, 10-500 Hz (limit {escape(limit)})</td></tr>",
-        row("command", _mn(p.noise_command), "labbench.model.noise"),
-        row("felt (held, + amplifier)", _mn(p.noise_felt), "labbench.model.noise"),
-    ]
-    if p.noise_white is False:
-        rows.append("<tr><td colspan=3>the hand's motion is too slow for white quantisation "
-                    "noise</td></tr>")
-    return "<table cellspacing=3>" + "".join(rows) + "</table>"
+
+class Numbers(QtWidgets.QWidget):
+    """The numbers of one setting: a grid of plain labels whose values alone change (a rich
+    text table laid out again at every move cost more than the plots: 6 ms of 13)."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        grid = QtWidgets.QGridLayout(self)
+        grid.setContentsMargins(0, 0, 0, 0)
+        grid.setVerticalSpacing(2)
+        self.state = QtWidgets.QLabel()
+        grid.addWidget(self.state, 0, 0, 1, 3)
+        self.cells: dict[str, QtWidgets.QLabel] = {}
+        for row, (key, name, model) in enumerate(ROWS, start=1):
+            head = QtWidgets.QLabel(name)
+            if key is None:
+                head.setStyleSheet("font-weight: bold")
+                grid.addWidget(head, row, 0, 1, 3)
+                continue
+            value = QtWidgets.QLabel()
+            value.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight)
+            value.setStyleSheet("font-weight: bold")
+            value.setToolTip(MODELS.get(key, ""))
+            small = QtWidgets.QLabel(model)
+            small.setStyleSheet("color: #555; font-size: small")
+            grid.addWidget(head, row, 0)
+            grid.addWidget(value, row, 1)
+            grid.addWidget(small, row, 2)
+            self.cells[key] = value
+        grid.setRowStretch(len(ROWS) + 1, 1)
+
+    def show_point(self, p, targets: Targets) -> None:
+        limit = ("none" if targets.noise_limit_n is None else
+                 f"{fmt(1e3 * targets.noise_limit_n)} mN")
+        if not p.stable:
+            state, colour = "UNSTABLE: K above K_max", "#b00020"
+        elif not p.within_limit:
+            state, colour = f"stable, but over the noise limit ({limit})", "#b00020"
+        else:
+            state, colour = f"stable; noise limit {limit}", "#1b5e20"
+        if p.noise_white is False:
+            state += "; the hand is too slow for white quantisation noise"
+        self.state.setText(state)
+        self.state.setStyleSheet(f"color: {colour}; font-weight: bold")
+        for key, text in (
+                ("k_max", f"{fmt(p.k_max)} N/m"), ("margin", fmt(p.margin, 3)),
+                ("k_passive", f"{fmt(p.k_passive)} N/m"),
+                ("k_quantised", f"{fmt(p.k_quantised)} N/m"),
+                ("ws_star", f"{fmt(p.ws_star)} rad/s"), ("wb_star", f"{fmt(p.wb_star)} rad/s"),
+                ("rendered_B", f"{fmt(p.rendered_B)} N s/m"),
+                ("ed_error_sampled", _pct(p.ed_error_sampled)),
+                ("ed_error_paper", _pct(p.ed_error_paper)),
+                ("noise_command", _mn(p.noise_command)), ("noise_felt", _mn(p.noise_felt))):
+            self.cells[key].setText(text)
+
+    def text(self) -> str:
+        """Everything shown, as one text (tests read it)."""
+        return "\n".join([self.state.text(), *(c.text() for c in self.cells.values())])
 
 
 def _pct(v) -> str:
