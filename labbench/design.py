@@ -9,9 +9,13 @@ number here comes from one model, named in ``MODELS`` (and in every ``as_dict``)
   delay (``labbench.model.linear.k_max``), and ``margin`` = k_max / K; beside it the passive
   bounds of ``labbench.model.passivity``: ``k_passive`` (Colgate & Schenkel's sampled-data
   condition for this filter and delay) and ``k_quantised``, Abbott & Okamura's K <= 2 f_c /
-  Delta with the device's Coulomb friction and encoder step (None where no friction is known).
-  Friction dissipates what the sampled loop generates, so a rubbing device may measure stable
-  above ``k_max``; the statistical linearisation of friction (issue 41) is not used here.
+  Delta with the device's Coulomb friction and encoder step (None where no friction is known);
+  and ``k_friction``, the stiffness up to which an oscillation of the stated amplitude decays
+  on the rubbing device (``labbench.model.stability_friction``: friction's describing-function
+  damping 4 f_c / (pi w X) covering the sampled loop's deficit; Diolaiti et al. 2006).
+  ``stable`` stays the linear loop's: a rubbing device renders stably above ``k_max`` only
+  for motions small enough. With a stated hand speed, ``b_friction`` is the damping friction
+  adds to what is rendered (Booton's statistical linearisation, ``labbench.model.friction``).
 * **accuracy**: ``ws_star`` and ``wb_star`` read off the exact sampled model's ES and ED as
   a measurement is read (``labbench.predictions``); the rendered stiffness and damping, the
   model's low-frequency limits ES(0) = K and ED(0) (``labbench.model.linear.low_frequency``);
@@ -40,7 +44,7 @@ import numpy as np
 
 from labbench import predictions
 from labbench.errors import UserError
-from labbench.model import linear, noise, passivity
+from labbench.model import friction, linear, noise, passivity, stability_friction
 from labbench.ve import Plant, VirtualEnvironment
 
 ACCURACY_W = 2 * math.pi * 10.0  # rad/s: the top of volitional motion (paper sec. 5)
@@ -53,6 +57,11 @@ MODELS = {
     "k_passive": "sampled-data passivity, Colgate & Schenkel 1997 (labbench.model.passivity)",
     "k_quantised": "passivity with Coulomb friction and encoder step, Abbott & Okamura 2005: "
                    "K <= 2 f_c / Delta",
+    "k_friction": "stable for oscillations of the stated amplitude with Coulomb friction: its "
+                  "describing-function damping 4 f_c / (pi w X) against the sampled loop's "
+                  "deficit (labbench.model.stability_friction)",
+    "b_friction": "Coulomb friction's equivalent damping at the stated hand speed, "
+                  "f_c sqrt(2/pi) / sigma_v (Booton; labbench.model.friction)",
     "ws_star": "read off the exact sampled model's ES (labbench.predictions)",
     "wb_star": "read off the exact sampled model's ED (labbench.predictions)",
     "rendered_K": "ES(0) of the exact sampled model",
@@ -93,11 +102,14 @@ class Targets:
     """What the design is held to: ``noise_limit_n`` [N rms] on the force noise ``noise_of``
     ("command": the noise the loop commands, which a record shows and a campaign measures;
     "felt": the held force at the actuator, the amplifier's own noise included) in the felt
-    band ``band_hz`` (None: no limit); the accuracy frequency ``at_w`` [rad/s]; the hand's rms
-    speed ``motion_m_s`` (None: the quantisation error taken as white)."""
+    band ``band_hz`` (None: no limit); the oscillation amplitude ``amplitude_m`` the
+    friction-aware stability boundary is for (oscillations that large decay below it); the
+    accuracy frequency ``at_w`` [rad/s]; the hand's rms speed ``motion_m_s`` (None: the
+    quantisation error taken as white, and friction's equivalent damping not given)."""
 
     noise_limit_n: float | None = None
     noise_of: str = "command"
+    amplitude_m: float = 1e-3
     band_hz: tuple[float, float] = noise.FELT_BAND_HZ
     at_w: float = ACCURACY_W
     motion_m_s: float | None = None
@@ -112,6 +124,9 @@ class Targets:
                             f"{self.noise_limit_n!r}")
         if not (math.isfinite(self.at_w) and self.at_w > 0):
             raise UserError(f"accuracy frequency must be positive rad/s, got {self.at_w!r}")
+        if not (math.isfinite(self.amplitude_m) and self.amplitude_m > 0):
+            raise UserError(f"oscillation amplitude must be a positive number of m, got "
+                            f"{self.amplitude_m!r}")
         if self.motion_m_s is not None and not (math.isfinite(self.motion_m_s)
                                                 and self.motion_m_s > 0):
             raise UserError(f"hand speed must be a positive number of m/s, got {self.motion_m_s!r}")
@@ -132,10 +147,12 @@ class DesignPoint:
     margin: float | None
     k_passive: float | None
     k_quantised: float | None
+    k_friction: float | None
     ws_star: float | None
     wb_star: float | None
     rendered_K: float | None
     rendered_B: float | None
+    b_friction: float | None
     ed_error_sampled: float | None
     ed_error_paper: float | None
     noise_felt: float | None
@@ -167,13 +184,18 @@ class Designer:
         return VirtualEnvironment("spring-damper", K=K, B=B, w0=w0, T=T)
 
     def bounds(self, B: float, w0: float, T: float) -> tuple:
-        """(k_max, k_passive) of the exact sampled loop for B, w0, T (cached)."""
-        key = (B, w0, T)
+        """(k_max, k_passive, k_friction) for B, w0, T (cached; k_friction for the targets'
+        amplitude, None where the device's friction is not known)."""
+        d = self.device
+        key = (B, w0, T, self.targets.amplitude_m if d.coulomb_n else None)
         if key not in self._bounds:
-            d = self.device
             ve = self.ve(1.0, B, w0, T)
-            self._bounds[key] = (linear.k_max(d.plant, ve, latency=d.latency),
-                                 passivity.passive_k_max(d.plant, ve, d.latency))
+            self._bounds[key] = (
+                linear.k_max(d.plant, ve, latency=d.latency),
+                passivity.passive_k_max(d.plant, ve, d.latency),
+                stability_friction.friction_boundary(d.plant, ve, d.coulomb_n,
+                                                     self.targets.amplitude_m, d.latency)
+                if d.coulomb_n else None)
         return self._bounds[key]
 
     def evaluate(self, K: float, B: float, w0: float, T: float) -> DesignPoint:
@@ -186,7 +208,7 @@ class Designer:
         if not K > 0:
             raise UserError(f"K must be > 0 N/m for a spring-damper design, got {K!r}")
         ve = self.ve(K, B, w0, T)
-        k_max, k_passive = self.bounds(B, w0, T)
+        k_max, k_passive, k_friction = self.bounds(B, w0, T)
         stable = k_max is not None and K < k_max
         bw = predictions.bandwidths(d.plant, ve, d.latency)
         base = d.plant.b + B
@@ -208,9 +230,12 @@ class Designer:
             K=K, B=B, w0=w0, T=T, stable=stable, k_max=k_max,
             margin=(k_max / K) if k_max is not None else None, k_passive=k_passive,
             k_quantised=passivity.quantisation_bound(d.coulomb_n, d.quantum_m),
+            k_friction=k_friction,
             ws_star=bw.ws_star, wb_star=bw.wb_star, rendered_K=K if stable else None,
             rendered_B=(linear.low_frequency(d.plant, ve, "sampled", d.latency)[0] if stable
                         else None),
+            b_friction=(friction.gaussian_equivalent_damping(d.coulomb_n, t.motion_m_s)
+                        if d.coulomb_n and t.motion_m_s else None),
             ed_error_sampled=abs(ed_s - base) / base if base > 0 else None,
             ed_error_paper=abs(ed_p - base) / base if base > 0 else None,
             noise_felt=felt, noise_command=command, noise_white=white,

@@ -11,7 +11,7 @@ from labbench import design, predictions
 from labbench.cli.main import main
 from labbench.design_check import check, table_lines
 from labbench.errors import UserError
-from labbench.model import linear, noise, passivity
+from labbench.model import linear, noise, passivity, stability_friction
 from labbench.rig import Rig, rig_from_dict
 from labbench.ve import Plant, VirtualEnvironment
 
@@ -29,6 +29,10 @@ def test_every_number_is_its_models():
     assert p.margin == pytest.approx(p.k_max / 50.0)
     assert p.k_passive == passivity.passive_k_max(PLANT, ve)
     assert p.k_quantised == pytest.approx(2 * 0.02 / DELTA)
+    assert p.k_friction == stability_friction.friction_boundary(PLANT, ve, 0.02, 1e-3)
+    assert p.k_friction > p.k_max and p.b_friction is None  # no hand speed stated
+    moving = design.Designer(ROUGH, design.Targets(motion_m_s=0.05)).evaluate(50, 1, 125, 1e-3)
+    assert moving.b_friction == pytest.approx(0.02 * math.sqrt(2 / math.pi) / 0.05)
     bw = predictions.bandwidths(PLANT, ve)
     assert (p.ws_star, p.wb_star) == (bw.ws_star, bw.wb_star)
     assert p.rendered_B == linear.low_frequency(PLANT, ve, "sampled")[0]
@@ -129,7 +133,8 @@ def test_rig_noise_sources():
                                       ({"noise_limit_n": math.nan}, "noise limit"),
                                       ({"noise_of": "loud"}, "applies to"),
                                       ({"at_w": 0.0}, "accuracy frequency"),
-                                      ({"motion_m_s": -0.1}, "hand speed")])
+                                      ({"motion_m_s": -0.1}, "hand speed"),
+                                      ({"amplitude_m": 0.0}, "amplitude")])
 def test_targets_refuse_bad_values(kw, match):
     with pytest.raises(UserError, match=match):
         design.Targets(**kw)

@@ -65,8 +65,12 @@ def register(subparsers) -> None:
                    help="frequency of the ED error (default 62.8 rad/s = 10 Hz, the top of "
                         "volitional motion)")
     p.add_argument("--motion-m-s", type=float, metavar="M_S",
-                   help="the hand's rms speed, for the quantisation error's colour (default: "
-                        "white, as for any motion faster than ~half a step per sample)")
+                   help="the hand's rms speed, for the quantisation error's colour and "
+                        "friction's equivalent damping (default: white quantisation error, "
+                        "as for any motion faster than ~half a step per sample; no b_eq)")
+    p.add_argument("--amplitude-m", type=float, default=1e-3, metavar="M",
+                   help="oscillation amplitude the friction-aware stability boundary is for: "
+                        "oscillations that large decay below it (default 0.001)")
     p.add_argument("--objective", choices=OBJECTIVES, default="zwidth",
                    help="what the recommended w0 maximises: the Z-width under the noise limit "
                         "(default) or the accurate band w_b* at the first --B")
@@ -134,7 +138,8 @@ def targets_of(args):
         raise UserError(f"--band-hz takes two numbers LO,HI, got {len(args.band_hz)}")
     return Targets(noise_limit_n=args.noise_limit_n, noise_of=args.noise_of,
                    band_hz=(args.band_hz[0], args.band_hz[1]),
-                   at_w=ACCURACY_W if args.at_w is None else args.at_w, motion_m_s=args.motion_m_s)
+                   at_w=ACCURACY_W if args.at_w is None else args.at_w, motion_m_s=args.motion_m_s,
+                   amplitude_m=args.amplitude_m)
 
 
 def run(args) -> int:
@@ -172,7 +177,7 @@ def run(args) -> int:
             "device": device.as_dict(), "targets": {
                 "noise_limit_n": targets.noise_limit_n, "noise_of": targets.noise_of,
                 "band_hz": list(targets.band_hz), "at_w": targets.at_w,
-                "motion_m_s": targets.motion_m_s},
+                "motion_m_s": targets.motion_m_s, "amplitude_m": targets.amplitude_m},
             "models": MODELS, "points": [p.as_dict() for p in points],
             "pareto": [points.index(p) for p in front], "recommendation": rec,
             "check": check.as_dict() if check else None})))
@@ -242,13 +247,15 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         f" in {fmt(targets.band_hz[0])}-{fmt(targets.band_hz[1])} Hz; ED error at "
         f"{fmt(targets.at_w)} rad/s",
         "models: K_max exact sampled loop; K_pass Colgate & Schenkel sampled-data passivity; "
-        "K_q Abbott & Okamura 2 fc/Delta; w_s*, w_b*, rendered B, ED error (sampled: as an "
+        f"K_q Abbott & Okamura 2 fc/Delta; K_fric stable for {fmt(1e3 * targets.amplitude_m)} mm "
+        "oscillations with friction (describing function); w_s*, w_b*, rendered B, ED error "
+        "(sampled: as an "
         "ETFE measures; paper: eq. 2, as felt) exact sampled unless said; noise "
         "labbench.model.noise (command = recorded, felt = held force + amplifier)",
         "",
         f"{'K':>6} {'B':>5} {'w0':>6} {'T ms':>5} | {'K_max':>7} {'margin':>6} {'K_pass':>7} "
-        f"{'K_q':>6} | {'w_s*':>6} {'w_b*':>6} {'B rend':>6} {'EDerr s':>7} {'EDerr p':>7} | "
-        f"{'cmd mN':>6} {'felt mN':>7} | ok  P",
+        f"{'K_q':>6} {'K_fric':>7} | {'w_s*':>6} {'w_b*':>6} {'B rend':>6} {'EDerr s':>7} "
+        f"{'EDerr p':>7} | {'cmd mN':>6} {'felt mN':>7} | ok  P",
     ]
     for p in points:
         mark = "*" if p in front else ""
@@ -256,11 +263,14 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         lines.append(
             f"{fmt(p.K):>6} {fmt(p.B):>5} {fmt(p.w0):>6} {fmt(1e3 * p.T):>5} | "
             f"{fmt(p.k_max):>7} {fmt(p.margin, 3):>6} {fmt(p.k_passive):>7} "
-            f"{fmt(p.k_quantised):>6} | {fmt(p.ws_star):>6} {fmt(p.wb_star):>6} "
-            f"{fmt(p.rendered_B):>6} {_pct(p.ed_error_sampled):>7} {_pct(p.ed_error_paper):>7} | "
+            f"{fmt(p.k_quantised):>6} {fmt(p.k_friction):>7} | {fmt(p.ws_star):>6} "
+            f"{fmt(p.wb_star):>6} {fmt(p.rendered_B):>6} {_pct(p.ed_error_sampled):>7} {_pct(p.ed_error_paper):>7} | "
             f"{_mn(p.noise_command):>6} {_mn(p.noise_felt):>7} | {ok} {mark}")
     lines.append(f"P: on the Pareto front of margin, w_b* and felt noise ({len(front)} of "
                  f"{len(points)} settings)")
+    if d.coulomb_n and targets.motion_m_s:
+        lines.append(f"friction adds {fmt(points[0].b_friction)} N s/m of damping to what is "
+                     f"rendered at a hand speed of {fmt(targets.motion_m_s)} m/s rms")
     if rec is not None:
         lines.append("")
         what = ("Z-width under the noise limit (area under K_max(B) up to the noise-limited B)"
