@@ -227,3 +227,27 @@ def test_zwidth_campaign_on_the_rough_rig_gives_a_boundary_or_the_reason_it_has_
     friction_col = points.columns.index("with friction, at the swing (N/m)")
     cells = {row[0]: row[friction_col] for row in points.rows}
     assert cells[str(unknown["index"])] == "-" and "mm" in cells[str(known["index"])]
+
+
+def test_a_campaign_takes_the_friction_of_the_chirp_id_that_gave_its_plant(tmp_path):
+    # the plant of a campaign from the rig's last chirp-ID (its default): that fit's Coulomb
+    # term is the friction its probes plan and compare with, before a commissioning's
+    import argparse
+
+    from labbench.cli import main
+    from labbench.cli.campaign import make_context
+
+    rig_file = tmp_path / "rough.toml"
+    rig_file.write_text('[rig]\nname = "rough"\n[sim]\ncoulomb_n = 0.02\nquantize = true\n'
+                        "force_noise_n = 0.002\n")
+    out = tmp_path / "s"
+    assert main(["run", "chirp-id", "--rig", str(rig_file), "--duration-s", "20", "--methods",
+                 "l2", "--model", "mbc", "--out", str(out)]) == 0
+    args = argparse.Namespace(rig=str(rig_file), device="sim", out=str(out), plant_m_kg=None,
+                              plant_b=None, plant_from="last-id", skip_commissioning=False)
+    ctx = make_context(args)
+    assert ctx.plant_from.endswith(".lbsession") and ctx.commission == {}
+    assert ctx.coulomb_n == pytest.approx(0.02, rel=0.1)  # the fit's, not the truth's
+    assert ctx.coulomb_n != 0.02
+    nominal = make_context(argparse.Namespace(**{**vars(args), "plant_from": "nominal"}))
+    assert nominal.coulomb_n is None

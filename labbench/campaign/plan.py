@@ -52,12 +52,15 @@ class Context:
     settings: CampaignSettings
     commission: dict = field(default_factory=dict)  # {"session", "coulomb_n", ...} or {}
     skip_commissioning: bool = False
+    identified_coulomb_n: float | None = None  # the plant's chirp-ID's Coulomb term, if any
 
     @property
     def coulomb_n(self) -> float | None:
-        """The device's Coulomb friction as the rig's last commissioning estimated it (None:
-        not known): the friction-aware stability boundary's (the stability probe's
-        ``plant_coulomb_n``, unless the spec gives it)."""
+        """The device's Coulomb friction (None: not known): the chirp-ID's that gave the plant,
+        else the rig's last commissioning's estimate. The friction-aware stability boundary's
+        (the stability probe's ``plant_coulomb_n``, unless the spec gives it)."""
+        if self.identified_coulomb_n is not None:
+            return self.identified_coulomb_n
         return self.commission.get("coulomb_n")
 
     @property

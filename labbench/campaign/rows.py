@@ -33,7 +33,8 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
   went beyond: below the low end of the interval, or below the lower bound
   ``zw.k_max_above``) and ``zw.stopped`` (where the probe stopped and why: the reason a
   point has no measured boundary);
-* with the device's Coulomb friction known (the commissioning's, passed to the probe as
+* with the device's Coulomb friction known (the chirp-ID's that gave the plant, else the
+  commissioning's, passed to the probe as
   ``plant_coulomb_n``): ``pred.k_max_friction`` (the friction-aware boundary at the swing
   the probe's pulses were planned to give, ``labbench.model.stability_friction``), and from
   the run ``zw.k_friction`` (the same at the swing the steps near the boundary started

@@ -122,6 +122,7 @@ def make_context(args):
 
     if (args.plant_m_kg is None) != (args.plant_b is None):
         raise UserError("give --plant-m-kg and --plant-b together")
+    found = None
     if args.plant_m_kg is not None:
         plant, source = Plant(args.plant_m_kg, args.plant_b), "given"
     else:
@@ -132,7 +133,7 @@ def make_context(args):
     commission = commission_facts(args.out, rig.name, on_skip=skipped)
     return Context(args.device, rig, plant, source, simulated,
                    CampaignSettings.from_rig(rig, simulated), commission,
-                   args.skip_commissioning)
+                   args.skip_commissioning, found.get("coulomb_n") if found else None)
 
 
 def point_runner(args):
