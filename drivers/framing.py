@@ -2,7 +2,9 @@
 
 Two board -> host forms (docs/serial-protocol.md is the user-facing spec):
 
-* ASCII, one sample per line: ``<micros>,<count>`` (see ``ASCII_LINE``).
+* ASCII, one sample per line: ``<micros>,<count>`` by default (``ASCII_LINE``), or the
+  columns a lab's own sketch prints, named in order (``ascii_line``): a time field
+  (``micros`` or ``millis``) or none, the ``count``, and extra fields (ignored).
 * Binary, COBS-framed (Cheshire & Baker, "Consistent Overhead Byte Stuffing",
   IEEE/ACM Trans. Networking 7(2), 1999) with a 0x00 delimiter after every
   frame and a CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection) over
@@ -50,11 +52,42 @@ STATUS_ENCODER = 0x10  # v2: the encoder skipped a state (an edge came too fast 
 STATUS_RENDERING = 0x20  # v2: the board renders the VE itself ('F' values are excitation)
 STATUS_RENDER_LATE = 0x40  # v2: a rendered force was not ready by its tick (the last one held)
 
-# One accepted ASCII line: decimal micros (0..4294967295, at most 10 digits),
-# one separator (comma, semicolon, tab or spaces; blanks allowed around it),
-# decimal count with optional minus sign; optional trailing blanks and CR.
-ASCII_LINE = re.compile(rb"[ \t]*(\d{1,10})[ \t]*(?:[,;\t]|[ ]+)[ \t]*(-?\d{1,11})[ \t]*\r?")
-ASCII_MAX_LINE = 48  # longer lines are malformed; bounds the buffer under garbage
+# ASCII lines: the time field's unit in microseconds, by its name in a rig's ``fields``.
+TIME_FIELDS = {"micros": 1, "millis": 1000}
+DEFAULT_FIELDS = ("micros", "count")
+# One separator between fields: a comma, semicolon, tab or spaces, blanks around it.
+_SEP = rb"[ \t]*(?:[,;\t]|[ ]+)[ \t]*"
+_TIME = rb"(?P<t>\d{1,10})"  # decimal, 0..4294967295 (an unsigned long: micros(), millis())
+_COUNT = rb"(?P<c>-?\d{1,11})"  # decimal with an optional minus sign
+_EXTRA = rb"[^\s,;]+"  # any other field: one token, ignored
+
+
+def ascii_line(fields=DEFAULT_FIELDS) -> re.Pattern:
+    """The accepted line for ``fields`` (names in order: a time field of ``TIME_FIELDS``
+    or none, ``count``, any other name an extra field): the fields, one separator between
+    each two, blanks at both ends, an optional CR. Groups: ``t`` the time (if any), ``c``
+    the count."""
+    parts = [_TIME if f in TIME_FIELDS else _COUNT if f == "count" else _EXTRA for f in fields]
+    return re.compile(rb"[ \t]*" + _SEP.join(parts) + rb"[ \t]*\r?")
+
+
+def ascii_form(fields=DEFAULT_FIELDS) -> str:
+    """The expected line for people, e.g. ``<micros>,<count>``."""
+    return ",".join(f"<{f}>" for f in fields)
+
+
+ASCII_LINE = ascii_line()
+# Longer lines are malformed: bounds the buffer under garbage (and a wrong baud rate,
+# whose bytes seldom form a newline). Room for a CSV line of 8 fields or a banner.
+ASCII_MAX_LINE = 96
+# A line of text (a banner, a CSV header, a message): printable ASCII with a word of at
+# least three letters. Skipped and counted as a comment, never a sample or a link error;
+# a corrupted digit (one letter) is not text.
+TEXT_LINE = re.compile(rb"[\x20-\x7e\t\r]*[A-Za-z]{3}[\x20-\x7e\t\r]*")
+KEPT_LINES = 5  # text and rejected lines kept for the messages (the first ones)
+# RawSample.status of an ASCII line (outside a board's 8 status bits): the first text line
+# the board sent (its banner) came again before this sample, after samples: a reboot.
+BANNER_AGAIN = 0x100
 _U32 = 1 << 32
 
 
@@ -128,11 +161,13 @@ def format_ascii(t_us: int, count: int) -> bytes:
 class RawSample(NamedTuple):
     """A sample as the board sent it: ``seq`` is None for ASCII lines.
 
-    ``skipped``: frames or lines discarded between the previous good sample and this one.
+    ``t_us``: the board's time field as sent: micros() (binary, ASCII ``micros``), millis()
+    (ASCII ``millis``), None (an ASCII stream without a time field). ``skipped``: frames or
+    lines discarded between the previous good sample and this one.
     """
 
     seq: int | None
-    t_us: int
+    t_us: int | None
     count: int
     status: int = 0
     skipped: int = 0
@@ -223,17 +258,24 @@ class CommandParser(FrameParser):
 
 
 class AsciiSampleParser:
-    """``micros,count`` lines (``ASCII_LINE``); blank lines and ``#`` lines are skipped.
+    """Sample lines of ``fields`` (``ascii_line``); blank lines are skipped, ``#`` lines
+    and text lines (``TEXT_LINE``: a banner, a CSV header) are skipped and counted.
 
-    Counters: ``lines`` good, ``comments`` (``#...``), ``malformed`` (anything
-    else, including lines over ``ASCII_MAX_LINE`` bytes), ``garbage_bytes``.
+    Counters: ``lines`` good, ``comments`` (``#...`` and text), ``malformed`` (anything
+    else, including lines over ``ASCII_MAX_LINE`` bytes), ``garbage_bytes``. ``text`` and
+    ``rejected`` keep the first ``KEPT_LINES`` of each (for the driver's messages).
     """
 
-    def __init__(self):
+    def __init__(self, fields=DEFAULT_FIELDS):
+        self._line = ascii_line(fields)
+        self._has_time = any(f in TIME_FIELDS for f in fields)
         self._buf = b""
         self._overlong = 0  # bytes of an over-long line still waiting for its newline
         self._skipped = 0
         self.lines = self.comments = self.malformed = self.garbage_bytes = 0
+        self.text: list[bytes] = []
+        self.rejected: list[bytes] = []
+        self._again = 0  # BANNER_AGAIN for the next sample
 
     def feed(self, data: bytes) -> list[RawSample]:
         parts = (self._buf + data).split(b"\n")
@@ -246,22 +288,30 @@ class AsciiSampleParser:
                 self._overlong += len(tail)
                 tail = b""
         out = []
-        match = ASCII_LINE.fullmatch
+        match, timed = self._line.fullmatch, self._has_time
         for line in parts:
             m = match(line) if len(line) <= ASCII_MAX_LINE else None
             if m is not None:
-                t_us = int(m[1])
-                if t_us < _U32:
+                t_us = int(m["t"]) if timed else None
+                if not timed or t_us < _U32:
                     self.lines += 1
-                    out.append(RawSample(None, t_us, int(m[2]), 0, self._skipped))
-                    self._skipped = 0
+                    out.append(RawSample(None, t_us, int(m["c"]), self._again,
+                                         self._skipped))
+                    self._skipped = self._again = 0
                     continue
             stripped = line.strip(b" \t\r")
             if not stripped:
                 continue
-            if stripped[:1] == b"#" and len(line) <= ASCII_MAX_LINE:
+            if len(line) <= ASCII_MAX_LINE and (stripped[:1] == b"#"
+                                                or TEXT_LINE.fullmatch(stripped)):
                 self.comments += 1
+                if self.lines and self.text and stripped == self.text[0]:
+                    self._again = BANNER_AGAIN
+                if len(self.text) < KEPT_LINES:
+                    self.text.append(stripped)
             else:
+                if len(self.rejected) < KEPT_LINES:
+                    self.rejected.append(stripped[:ASCII_MAX_LINE])
                 self._discard(len(line) + 1)
         if len(tail) > ASCII_MAX_LINE:
             self._overlong = len(tail)

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
 from labbench.drivers import framing
+from labbench.drivers import serial_diagnosis as diagnosis
 from labbench.drivers.unwrap import Unwrapper
 from labbench.device import ESTOP_STATE, DeviceDescription, DeviceFault, DeviceStatus, Sample
 from labbench.errors import DeviceConnectionError, UserError, unknown_name
@@ -57,7 +58,9 @@ _STATUS_FLAGS = (
 )
 
 SYNC_SAMPLES = 5  # consecutive good samples that make a stream "in sync"
-PERIOD_TOLERANCE = 0.1  # relative mismatch allowed between board period and rig sample time
+SYNC_LINES = 12  # ASCII: good lines that make it, and show their timing
+HOST_TIMED_S = 0.25  # an untimed ASCII board: the host's clock measures its period this long
+PERIOD_TOLERANCE = diagnosis.PERIOD_TOLERANCE
 
 
 @dataclass(frozen=True)
@@ -67,7 +70,12 @@ class SerialConfig:
     port: str = ""
     baudrate: int = 500_000
     format: str = "binary"  # "binary" | "ascii"
+    # ASCII: the columns of a line in order (framing.ascii_line): a time field ("micros" or
+    # "millis"; none: the host numbers lines at the rig's period), "count", other names ignored
+    fields: tuple = framing.DEFAULT_FIELDS
+    on_change: bool = False  # ASCII: the board prints only when its count changes (held)
     count_bits: int = 32  # width of the board's encoder counter: 16 | 32
+    count_signed: bool = True  # the counter is signed (int, long) or unsigned
     direction: int = 1  # +1 | -1: sign of counts at the handle
     force_command: bool = False  # send framed force commands to the board
     command_units: str = "N"  # "N" at the handle | "N*m" joint torque via lever_arm_m
@@ -87,7 +95,12 @@ class SerialConfig:
             "port": (lambda v: isinstance(v, str), "a string (device path or pyserial URL)"),
             "baudrate": (lambda v: _is_int(v) and v > 0, "a positive integer"),
             "format": (lambda v: v in ("binary", "ascii"), '"binary" or "ascii"'),
+            "fields": (_fields_ok, 'a list of 1 to 8 distinct names in line order, with '
+                                   '"count" once and at most one time field ("micros" or '
+                                   '"millis"), e.g. ["millis", "count"]'),
+            "on_change": (lambda v: isinstance(v, bool), "true or false"),
             "count_bits": (lambda v: _is_int(v) and v in (16, 32), "16 or 32"),
+            "count_signed": (lambda v: isinstance(v, bool), "true or false"),
             "direction": (lambda v: _is_int(v) and v in (1, -1), "1 or -1"),
             "force_command": (lambda v: isinstance(v, bool), "true or false"),
             "command_units": (lambda v: v in ("N", "N*m"), '"N" or "N*m"'),
@@ -103,7 +116,27 @@ class SerialConfig:
             ok, what = checks[name]
             if not ok(value):
                 raise UserError(f"{rig.source}: [serial] {name} must be {what}, got {value!r}")
+        if "fields" in table:
+            table["fields"] = tuple(table["fields"])
+        fmt = table.get("format", cls.format)
+        for name in ("fields", "on_change"):
+            if fmt == "binary" and name in table and table[name] != getattr(cls, name):
+                raise UserError(f"{rig.source}: [serial] {name} is for text lines (format = "
+                                '"ascii"); a binary board sends the frames of '
+                                "docs/serial-protocol.md")
+        if table.get("on_change") and table.get("force_command"):
+            raise UserError(f"{rig.source}: [serial] on_change = true cannot take force commands: "
+                            "a board that prints only on change looks the same dead or still, so "
+                            "no stale limit can stop the force: print at a fixed rate, or set "
+                            "force_command = false")
         return cls(**table)
+
+
+def _fields_ok(v) -> bool:
+    names = list(v) if isinstance(v, (list, tuple)) else []
+    return (1 <= len(names) <= 8 and all(isinstance(n, str) and n.isidentifier() for n in names)
+            and len(set(names)) == len(names) and names.count("count") == 1
+            and sum(n in framing.TIME_FIELDS for n in names) <= 1)
 
 
 def _is_int(v) -> bool:
@@ -123,63 +156,97 @@ class Reboot(NamedTuple):
     reason: str
 
 
+class Mismatch(NamedTuple):
+    """A count the rig's counter cannot have printed: the line naming the change."""
+
+    reason: str
+
+
 class StreamDecoder:
     """Bytes -> calibrated samples, with unwrapping and gap/reboot detection (no I/O).
 
-    ``seq`` of a sample is the unwrapped board sequence number (binary) or
-    ``round(micros / T)`` (ASCII, which carries no sequence number), so a gap
-    in ``seq`` is a loss in both forms. Board time going backwards (or a
-    binary sequence number not advancing) is a reboot: the unwrappers restart.
+    ``seq`` of a sample: binary, the unwrapped board sequence number; an ASCII line with
+    a time field, the previous line's seq plus its board-time step in periods (rounded: a
+    step under half a period is a second line in one period, a duplicate, dropped), so a
+    gap in ``seq`` is a loss in both forms; an ASCII line without a time field (or printed
+    on change), its number: a lost line cannot be seen. ``t_s``: binary, the board's
+    time; ASCII, ``seq * T`` (the loop and the analyses take samples a period apart: what
+    the board's own stamps say of its timing is in ``seen``). Board time going backwards,
+    a binary sequence number not advancing, or an untimed board's banner coming again
+    (``framing.BANNER_AGAIN``) is a reboot: the unwrappers restart. A count the rig's
+    counter cannot have printed is a ``Mismatch`` (``serial_diagnosis.count_problem``).
     """
 
     def __init__(self, config: SerialConfig, sample_time_s: float, metres_per_count: float):
         self.binary = config.format == "binary"
-        self.parser = framing.BinarySampleParser() if self.binary else framing.AsciiSampleParser()
-        self._T_us = sample_time_s * 1e6
+        self.parser = (framing.BinarySampleParser() if self.binary
+                       else framing.AsciiSampleParser(config.fields))
+        self._T, self._T_us = sample_time_s, sample_time_s * 1e6
+        field = next((f for f in config.fields if f in framing.TIME_FIELDS), None)
+        self.time_field = "micros" if self.binary else None if config.on_change else field
+        self._unit_us = framing.TIME_FIELDS.get(self.time_field or "", 0)
         self._scale = config.direction * metres_per_count
-        self._count = Unwrapper(config.count_bits, signed=True)
+        self._bits, self._signed = config.count_bits, config.count_signed
+        self._count = Unwrapper(config.count_bits, signed=config.count_signed)
         self._time = Unwrapper(32, signed=False)
         self._seq = Unwrapper(16, signed=False)
         self._last_seq: int | None = None
+        self._raw_count: int | None = None
         self.samples = self.lost = self.reboots = self.duplicates = 0
         self._base: dict = {}  # the counters when the stream was established
+        # (board time [us] or None, raw count, arrival) of the first lines or frames
+        self.seen: list = []
 
     def reset(self) -> None:
         """Forget the stream position (after a reboot or before a new sync)."""
         self._count.reset()
         self._time.reset()
         self._seq.reset()
-        self._last_seq = None
+        self._last_seq = self._raw_count = None
 
-    def feed(self, data: bytes) -> list[Decoded | Reboot]:
-        out: list[Decoded | Reboot] = []
-        for raw in self.parser.feed(data):
+    def _place(self, raw) -> tuple[int | None, bool, str]:
+        """(seq, went back, what went back) of ``raw``; seq None: a duplicate line."""
+        if self.binary:
             t_prev = self._time.value
-            t_us = self._time.update(raw.t_us)
-            if self.binary:
-                seq = self._seq.update(raw.seq)
-                went_back = self._last_seq is not None and seq <= self._last_seq
-            else:
-                seq = round(t_us / self._T_us)
-                went_back = False
-                if (
-                    self._last_seq is not None
-                    and seq <= self._last_seq
-                    and self._time.last_step >= 0
-                ):
-                    self.duplicates += 1  # two lines in one period: keep the first
-                    continue
-            if self._time.last_step < 0 or went_back:
+            self._time.update(raw.t_us)
+            seq = self._seq.update(raw.seq)
+            back = self._time.last_step < 0 or (self._last_seq is not None and seq <= self._last_seq)
+            return seq, back, (f"time went from {t_prev} us to {raw.t_us} us, sequence to "
+                               f"{raw.seq}")
+        if self.time_field is None:
+            seq = 0 if self._last_seq is None else self._last_seq + 1
+            return seq, bool(raw.status & framing.BANNER_AGAIN), "its banner came again"
+        unit = "us" if self._unit_us == 1 else "ms"
+        t_prev = self._time.value
+        t = self._time.update(raw.t_us)
+        if self._last_seq is None:
+            return round(t * self._unit_us / self._T_us), False, ""
+        step = self._time.last_step * self._unit_us / self._T_us
+        if step < 0:
+            return None, True, f"time went from {t_prev} {unit} to {raw.t_us} {unit}"
+        return (None if step < 0.5 else self._last_seq + round(step)), False, ""
+
+    def feed(self, data: bytes, arrival: float | None = None) -> list[Decoded | Reboot | Mismatch]:
+        out: list[Decoded | Reboot | Mismatch] = []
+        for raw in self.parser.feed(data):
+            if len(self.seen) < diagnosis.KEPT_SAMPLES:
+                t = None if raw.t_us is None or not self._unit_us else raw.t_us * self._unit_us
+                self.seen.append((t, raw.count, arrival))
+            problem = diagnosis.count_problem(raw.count, self._raw_count, self._bits,
+                                              self._signed)
+            if problem:
+                out.append(Mismatch(problem))
+                continue
+            seq, back, why = self._place(raw)
+            if back:
                 self.reboots += 1
-                out.append(
-                    Reboot(
-                        f"board rebooted: time went from {t_prev} us to {raw.t_us} us"
-                        + (f", sequence to {raw.seq}" if self.binary else "")
-                    )
-                )
+                out.append(Reboot(f"board rebooted: {why}"))
                 self.reset()
-                t_us = self._time.update(raw.t_us)
-                seq = self._seq.update(raw.seq) if self.binary else round(t_us / self._T_us)
+                seq = self._place(raw)[0]
+            elif seq is None:
+                self.duplicates += 1  # two lines in one period: keep the first
+                continue
+            self._raw_count = raw.count
             lost = 0 if self._last_seq is None else seq - self._last_seq - 1
             self._last_seq = seq
             count = self._count.update(raw.count)
@@ -189,7 +256,8 @@ class StreamDecoder:
                     flags |= flag
             self.samples += 1
             self.lost += lost
-            out.append(Decoded(Sample(seq, t_us * 1e-6, count * self._scale, flags), lost))
+            t_s = self._time.value * 1e-6 if self.binary else seq * self._T
+            out.append(Decoded(Sample(seq, t_s, count * self._scale, flags), lost))
         return out
 
     def _raw_counters(self) -> dict:
@@ -266,6 +334,10 @@ class SerialStream:
         self._simulated, self._warnings = simulated, list(warnings)
         self._delay = (device_delay_s, device_delay_why)
         self.handshake: dict = {}  # what the handshake discarded (``wait_for_stream``)
+        self.seen: diagnosis.Seen | None = None  # what arrived during the handshake
+        # on_change: the newest line's sample, held; sampled every T of the host's clock
+        self._held: Sample | None = None
+        self._held_flags, self._tick0, self._k = 0, 0.0, 0
         self._estopped = False
         self.timing_log: list | None = None  # labbench.device.TimingProbe (preflight)
         self._arrivals: dict = {}  # seq -> (silence began, arrival), while timing_log is on
@@ -308,6 +380,9 @@ class SerialStream:
                 "paced": self._paced,
                 "stale_s": self._stale_s,
                 "metres_per_count": self.rig.metres_per_count,
+                "stream": self.stream_info(),
+                # the board's sketch fixes its period: a host tool never rewrites it alone
+                **({} if c.on_change else {"period_fixed_by": "the board's sketch"}),
                 **({"warnings": list(self._warnings)} if self._warnings else {}),
             },
             device_delay_s=self._delay[0],
@@ -322,6 +397,26 @@ class SerialStream:
     def counters(self) -> dict:
         return {**self._decoder.counters(), "stale_trips": self.stale_trips}
 
+    def stream_info(self) -> dict:
+        """How samples are timed and what the handshake measured: ``time`` (the board's
+        micros or millis field, or the host: lines numbered at the rig's period, or the
+        count held and sampled every T), ``period_s`` (median step of the board's time
+        field, or the host's clock over the handshake's lines; None on change), the
+        handshake's step range ``steps_s`` and ``lines``."""
+        c, field = self.config, self._decoder.time_field
+        time_from = (f"board {field}" if field else "host: the count held and sampled every T"
+                     if c.on_change else "host: lines numbered at the rig's period")
+        info = {"format": c.format, "fields": list(c.fields) if c.format == "ascii" else None,
+                "time": time_from, "period_s": None, "steps_s": None,
+                "lines": len(self.seen.samples) if self.seen else 0}
+        samples = self.seen.samples if self.seen else []
+        steps = diagnosis.periods(samples)
+        if steps:
+            info.update(period_s=statistics.median(steps), steps_s=[min(steps), max(steps)])
+        elif len(samples) > 1 and not c.on_change and samples[0][2] is not None:
+            info["period_s"] = (samples[-1][2] - samples[0][2]) / (len(samples) - 1)
+        return info
+
     stale_periods_max = 3  # SerialConfig's bound: the sketch's own watchdog is 3 periods
 
     @property
@@ -335,47 +430,81 @@ class SerialStream:
     def stale_limit_s(self, seconds: float) -> None:
         self._stale_s = seconds - self._poll_s
 
-    def wait_for_stream(self, timeout: float) -> None:
-        """Block until the board streams ``SYNC_SAMPLES`` good samples in a row.
+    def sync_lines(self) -> int:
+        """Good samples in a row that establish the stream: ``SYNC_SAMPLES`` frames; ASCII,
+        ``SYNC_LINES`` lines (an untimed board's over ``HOST_TIMED_S`` at least, its period
+        measured by the host's clock); one line of a board that prints on change."""
+        c = self.config
+        if c.format == "binary":
+            return SYNC_SAMPLES
+        if c.on_change:
+            return 1
+        if self._decoder.time_field is None:
+            return max(SYNC_LINES, math.ceil(HOST_TIMED_S / self.T))
+        return SYNC_LINES
 
-        Boot noise and garbage before them are discarded (and counted). A board
-        period that does not match the rig's sample time is a ``UserError``.
+    def wait_for_stream(self, timeout: float) -> None:
+        """Block until the board streams ``sync_lines()`` good samples in a row.
+
+        Boot noise, banners and garbage before them are discarded (and counted). A stream
+        that is not what the rig says (silent, another protocol, another baud rate, lines
+        of another layout, another time unit or period, no steady rate, a count the rig's
+        counter cannot have) is a ``UserError`` naming the cause and the change
+        (``labbench.drivers.serial_diagnosis``); ``seen`` keeps what arrived.
         """
         self._check_open()
-        deadline = self._clock() + timeout
+        start = self._clock()
+        deadline = start + timeout
+        c, decoder = self.config, self._decoder
+        seen = self.seen = diagnosis.Seen(getattr(self.port, "port", None) or c.port)
         good: list[Sample] = []
+        need = self.sync_lines()
         self._ready.clear()
-        duplicates = self._decoder.duplicates
-        while len(good) < SYNC_SAMPLES:
-            if self._clock() >= deadline:
-                raise UserError(
-                    f"no {self.config.format} sample stream on "
-                    f"{self.port.port or self.config.port} within {timeout:g} s (got {len(good)} "
-                    f"good samples; counters {self._decoder.counters()}): "
-                    "check port, baudrate, format and that the board runs the labbench sketch"
-                )
-            for item in self._decoder.feed(self._read_chunk()):
-                # An ASCII "loss" is a time gap measured in the rig's T: with a
-                # mismatched period every line is one, and the check below says so.
-                if isinstance(item, Reboot) or (item.lost and self._decoder.binary):
+        while len(good) < need:
+            now = self._clock()
+            if now >= deadline:
+                raise UserError(diagnosis.refusal(self._seen(now - start), c, self.T, timeout,
+                                                  decoder.counters()))
+            data = self._read_chunk()
+            seen.add(data)
+            for item in decoder.feed(data, self._clock()):
+                if isinstance(item, Mismatch):
+                    raise UserError(item.reason)
+                if isinstance(item, Reboot) or (item.lost and decoder.binary):
                     good.clear()
                 if isinstance(item, Decoded):
                     good.append(item.sample)
                     self._last_seq = item.sample.seq
                     self._send(0.0)  # keeps a lock-step board moving and its watchdog fed
-            if self._decoder.duplicates != duplicates:
+            if not decoder.binary and len(decoder.seen) > need:  # enough to judge the lines
+                problem = diagnosis.timing(self._seen(self._clock() - start), c, self.T)
+                if problem:
+                    raise UserError(problem)
+        self._seen(self._clock() - start)
+        problem = diagnosis.timing(seen, c, self.T)
+        if problem:
+            raise UserError(problem)
+        if decoder.binary:
+            period = statistics.median(b.t_s - a.t_s for a, b in itertools.pairwise(good))
+            if abs(period - self.T) > PERIOD_TOLERANCE * self.T:
                 raise UserError(
-                    "the board sends more than one line per sample period: its period is "
-                    f"shorter than the rig's sample_time_s of {self.T * 1e3:.3f} ms"
-                )
-        period = statistics.median(b.t_s - a.t_s for a, b in itertools.pairwise(good))
-        if abs(period - self.T) > PERIOD_TOLERANCE * self.T:
-            raise UserError(
-                f"the board streams every {period * 1e3:.3f} ms but the rig's "
-                f"sample_time_s is {self.T * 1e3:.3f} ms"
-            )
-        self.handshake = self._decoder.start_counting()
+                    f"the board streams every {period * 1e3:.3f} ms but the rig's sample_time_s "
+                    f"is {self.T * 1e3:.3f} ms: set [rig] sample_time_s to the sketch's period "
+                    "(PERIOD_US of the reference sketch)")
+        self.handshake = decoder.start_counting()
         self._last_arrival = self._clock()
+        if c.on_change:
+            self._held, self._held_flags = good[-1], 0
+            self._tick0, self._k = self._clock(), 0
+
+    def _seen(self, seconds: float) -> diagnosis.Seen:
+        """``seen`` with what the parser and decoder kept so far."""
+        seen, parser = self.seen, self._decoder.parser
+        seen.seconds = seconds
+        seen.samples = list(self._decoder.seen)
+        seen.text = list(getattr(parser, "text", ()))
+        seen.rejected = list(getattr(parser, "rejected", ()))
+        return seen
 
     def enable(self, timeout: float = 1.0) -> None:
         """Arm the driver: nonzero forces pass, and stale, lost or rebooted streams fault.
@@ -391,7 +520,8 @@ class SerialStream:
             while len(self._ready) > 1:
                 self._ready.popleft()
         deadline = self._clock() + timeout
-        while not self._ready and self._clock() - self._last_arrival > self._stale_s:
+        while (not self.config.on_change and not self._ready
+               and self._clock() - self._last_arrival > self._stale_s):
             if self._clock() >= deadline:
                 raise DeviceFault(
                     f"cannot enable: no serial sample within {timeout:g} s "
@@ -416,6 +546,8 @@ class SerialStream:
         self._check_open()
         if self._fault:
             raise DeviceFault(self._fault)
+        if self.config.on_change:
+            return self._read_held(timeout)
         if not self._paced:
             # A lock-step board's time is virtual: a caller's wall-time timeout (the
             # loop's watchdog) means nothing there; the board's own stale limit rules.
@@ -452,6 +584,28 @@ class SerialStream:
             began, arrival = self._arrivals.pop(s.seq)
             self.timing_log.append((math.nan, began, arrival, math.nan))
         return s
+
+    def _read_held(self, timeout: float) -> Sample:
+        """on_change: the count of the newest line, held, sampled at the next tick of the
+        host's clock (every T). Silence is no fault: a still handle prints nothing. A host
+        late by whole periods skips their ticks (a gap in seq)."""
+        due = self._tick0 + self._k * self.T
+        deadline = self._clock() + timeout
+        while True:
+            self._ingest(self._read_chunk())
+            while self._ready:
+                s = self._ready.popleft()
+                self._held, self._held_flags = s, self._held_flags | s.flags
+            now = self._clock()
+            if now >= due:
+                break
+            if now >= deadline:
+                raise TimeoutError(f"no serial sample within {timeout:g} s")
+        k = max(self._k, int((now - self._tick0) / self.T))
+        self._k = k + 1
+        flags, self._held_flags = self._held_flags, 0
+        self._last_seq = k
+        return Sample(k, k * self.T, self._held.position_m, flags)
 
     def command(self, force_n: float) -> None:
         if not math.isfinite(force_n):
@@ -539,7 +693,11 @@ class SerialStream:
             return
         arrival = self._clock()
         reason = None
-        for item in self._decoder.feed(data):
+        for item in self._decoder.feed(data, arrival):
+            if isinstance(item, Mismatch):  # the samples are wrong from here on, enabled or not
+                self._latch(item.reason)
+                reason = reason or item.reason
+                continue
             if isinstance(item, Reboot):
                 self._ready.clear()  # positions before a reboot belong to another zero
                 if self._enabled:
@@ -597,6 +755,29 @@ class SerialStream:
         raise DeviceFault(self._fault)
 
 
+def synced(driver: SerialStream) -> SerialStream:
+    """``driver`` once its board streams (``wait_for_stream``, the table's sync_timeout_s);
+    closed (its board stopped) when it never does."""
+    try:
+        driver.wait_for_stream(driver.config.sync_timeout_s)
+    except BaseException:
+        driver.close()
+        raise
+    return driver
+
+
+def open_port(config: SerialConfig, rig):
+    """The pyserial port of ``config`` (a path or any pyserial URL), opened."""
+    import serial
+
+    if not config.port:
+        raise UserError(f'{rig.source}: [serial] port is not set (e.g. port = "/dev/ttyACM0")')
+    try:
+        return serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
+    except (serial.SerialException, ValueError) as exc:
+        raise DeviceConnectionError(f"cannot open serial port {config.port}: {exc}") from None
+
+
 def open_serial(
     rig, realtime: bool = True, seed: int | None = None, port: str | None = None
 ) -> SerialStream:
@@ -607,19 +788,5 @@ def open_serial(
     ``realtime`` and ``seed`` are accepted (and unused: hardware is always real
     time) so that every device opens with the same call.
     """
-    import serial
-
     config = SerialConfig.from_rig(rig, **({"port": port} if port else {}))
-    if not config.port:
-        raise UserError(f'{rig.source}: [serial] port is not set (e.g. port = "/dev/ttyACM0")')
-    try:
-        ser = serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
-    except (serial.SerialException, ValueError) as exc:
-        raise DeviceConnectionError(f"cannot open serial port {config.port}: {exc}") from None
-    dev = SerialStream(ser, config, rig)
-    try:
-        dev.wait_for_stream(config.sync_timeout_s)
-    except BaseException:
-        dev.close()
-        raise
-    return dev
+    return synced(SerialStream(open_port(config, rig), config, rig))

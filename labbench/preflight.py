@@ -193,6 +193,9 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
         "device": desc.kind, "name": desc.name, "simulated": desc.simulated,
         "label": desc.label(), "T_s": T, "seconds": n * T, "cycles": n, "wall_s": wall_s,
         "enabled": enable, "realtime": granted,
+        # who fixes the period ("" when the host does): a rig's sample_time_s is never
+        # rewritten alone then (rig_changes)
+        "period_fixed_by": desc.details.get("period_fixed_by", ""),
         "stale_limit_s": stale_s,
         "over_stale": int(np.sum(judged > stale_s)) if stale_s else 0,
         "stale_clock": "the bus (frame timestamps)" if wired else "the loop",
@@ -352,12 +355,13 @@ def _ms(s) -> str:
 def rig_changes(m: dict, judged: dict, table: str) -> dict:
     """``{table: {fields}}`` of the rig file that ``--write-rig`` sets: the suggested
     ``stale_periods`` in the device's table, a longer ``[rig] sample_time_s`` when the
-    rig's does not hold."""
+    rig's does not hold, unless the device fixes its period itself (a serial board's
+    sketch: its period changes with the sketch, never in the rig file alone)."""
     s = judged["suggest"]
     out = {}
     if "stale_periods" in s and table:
         out[table] = {"stale_periods": s["stale_periods"]}
-    if "sample_time_s" in s:
+    if "sample_time_s" in s and not m.get("period_fixed_by"):
         out["rig"] = {"sample_time_s": s["sample_time_s"]}
     return out
 
@@ -406,4 +410,8 @@ def lines(m: dict, judged: dict) -> list[str]:
     s = judged["suggest"]
     if "shortest_sample_time_s" in s:
         out.append(f"  shortest sample time that would hold: {ms(s['shortest_sample_time_s'])}")
+    if "sample_time_s" in s and m.get("period_fixed_by"):
+        out.append(f"  the period is fixed by {m['period_fixed_by']}: a sample time of "
+                   f"{ms(s['sample_time_s'])} needs the sketch changed too (then [rig] "
+                   "sample_time_s); --write-rig never writes it alone")
     return out

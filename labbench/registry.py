@@ -46,6 +46,7 @@ _BUILTIN = {
     PROBE_GROUP: {
         "sim-canopen": "labbench.sim_backend.canopen_peer:probe_sim_canopen",
         "canopen": "labbench.drivers.canopen_drive:probe_canopen",
+        "serial": "labbench.drivers.serial_probe:probe_serial",
     },
     RIG_TABLE_GROUP: {
         "sim": "labbench.sim_backend.sim_device:sim_options",

@@ -26,6 +26,13 @@ Pacing and delay (sample k = position at the start of period k):
   on the reference sketch, provided the host answers within one period.
 
 Faults are scheduled by sample index (``schedule``) so tests are repeatable.
+
+Lab sketches (docs/serial-protocol.md, "What your sketch must do"): ``fields`` prints
+the columns a rig's ``[serial] fields`` names (``micros``, ``millis`` = micros // 1000,
+``count``, extra fields as 0), ``on_change`` prints a line only when the count changed,
+``count_signed = False`` prints the counter unsigned, ``banner`` is its first line, and
+``wire`` maps every write (``labbench.sim_backend.uart_wire``: the bytes a receiver at the
+wrong baud rate reads).
 """
 
 from __future__ import annotations
@@ -88,8 +95,16 @@ class ArduinoPeer:
         count0: int = 0,
         seed: int | None = None,
         faults=(),
+        fields: tuple = framing.DEFAULT_FIELDS,
+        on_change: bool = False,
+        count_signed: bool = True,
+        banner: bytes = BANNER,
+        wire=None,
     ):
         self.plant, self.T = plant, T
+        self.fields, self.on_change, self.count_signed = tuple(fields), on_change, count_signed
+        self.banner, self._wire = banner, wire
+        self._printed: int | None = None  # on_change: the count last printed
         self.fmt, self.count_bits, self.direction = fmt, count_bits, direction
         self._mpc, self._unit = metres_per_count, unit
         self.realtime, self.lockstep_timeout_s = realtime, lockstep_timeout_s
@@ -126,13 +141,17 @@ class ArduinoPeer:
         """Open the platform's transport; returns what the host opens with
         ``serial.serial_for_url`` (a pty's path or a ``socket://`` URL)."""
         self._transport = open_transport(warn)
-        self._write = self._transport.write
+        self._write = self._wired(self._transport.write)
         self.url = self._transport.url
         return self.url
 
     def attach_loop(self, port) -> None:
         """Board -> host over a pyserial ``loop://`` port (no command channel)."""
-        self._write = port.write
+        self._write = self._wired(port.write)
+
+    def _wired(self, write):
+        wire = self._wire
+        return write if wire is None else (lambda data: write(wire(data)))
 
     # -- the board --------------------------------------------------------------------
     def schedule(self, fault: Fault) -> None:
@@ -146,7 +165,8 @@ class ArduinoPeer:
             ).tobytes()
             self._write(noise + b"\r\n")
         # A zero after the banner ends whatever frame the noise started (binary form).
-        self._write(BANNER + (b"\x00" if self.fmt == "binary" else b""))
+        if self.banner:
+            self._write(self.banner + (b"\x00" if self.fmt == "binary" else b""))
 
     def frame(self, k: int) -> bytes:
         """Bytes of sample k (position now, time and count as the board holds them)."""
@@ -157,10 +177,17 @@ class ArduinoPeer:
         )
         bits = self.count_bits
         count &= (1 << bits) - 1
-        if count >> (bits - 1):
+        if count >> (bits - 1) and (self.count_signed or self.fmt == "binary"):
             count -= 1 << bits  # the board's signed int of that width
         if self.fmt == "ascii":
-            return framing.format_ascii(t_us, count)
+            if self.on_change:
+                if count == self._printed:
+                    return b""
+                self._printed = count
+            if self.fields == framing.DEFAULT_FIELDS:
+                return framing.format_ascii(t_us, count)
+            values = {"micros": t_us, "millis": t_us // 1000, "count": count}
+            return (",".join(str(values.get(f, 0)) for f in self.fields) + "\r\n").encode()
         return framing.encode_sample(seq, t_us, count, self._status)
 
     def emit(self, n: int = 1, force_n: float = 0.0) -> None:
@@ -327,7 +354,7 @@ def connect_sim_serial(
     """
     import serial
 
-    from labbench.drivers.serial_stream import SerialConfig, SerialStream
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream, synced
 
     from labbench.sim_backend.sim_device import sim_options, true_geometry
 
@@ -355,6 +382,8 @@ def connect_sim_serial(
         count0=count0,
         seed=seed,
         faults=faults,
+        fields=config.fields,
+        count_signed=config.count_signed,
     )
     url = peer.open_port()
     try:
@@ -383,12 +412,40 @@ def connect_sim_serial(
                              if realtime else "")) if late else "",
     )
     peer.start()
+    return synced(driver), peer
+
+
+def connect_lab_stream(rig, motion, *, prints=None, wire=None, banner: bytes = b"",
+                       board_T: float | None = None, seed: int | None = None):
+    """A free-running board that streams its count as ``prints`` (a rig; default ``rig``)
+    says in its ``[serial]`` table (format, fields, on_change, count_bits, count_signed,
+    direction), read by the driver as ``rig`` says; its handle moved by ``motion(t) ->
+    metres``, a line every ``board_T`` (default the rig's period). ``wire`` maps its bytes
+    (``uart_wire``); ``banner`` is its first line. Returns ``(driver, peer)`` once the
+    driver has the stream (``wait_for_stream``)."""
+    import serial
+
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream, synced
+    from labbench.sim_backend.plant import PrescribedMotion
+
+    config = SerialConfig.from_rig(rig, port="pty")
+    board = SerialConfig.from_rig(prints or rig, port="pty")
+    T = board_T or rig.sample_time_s
+    peer = ArduinoPeer(PrescribedMotion(motion, T), T, rig.metres_per_count, fmt=board.format,
+                       count_bits=board.count_bits, direction=board.direction, realtime=True,
+                       boot_noise=False, seed=seed, fields=board.fields,
+                       on_change=board.on_change, count_signed=board.count_signed,
+                       banner=banner, wire=wire)
+    url = peer.open_port()
     try:
-        driver.wait_for_stream(config.sync_timeout_s)
+        ser = serial.serial_for_url(url, baudrate=config.baudrate, timeout=0)
     except BaseException:
-        driver.close()
+        peer.close()
         raise
-    return driver, peer
+    driver = SerialStream(ser, config, rig, on_close=peer.close, kind="sim-serial",
+                          simulated="a lab's encoder sketch (a Python peer) on a pty")
+    peer.start()
+    return synced(driver), peer
 
 
 class SimPlant:

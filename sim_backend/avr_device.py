@@ -56,6 +56,7 @@ class Trace:
     """Events the harness wrote (``--trace``), times in seconds of emulated time."""
 
     tx: list  # (first_s, last_s, nbytes) per 0x00-terminated run sent by the board
+    line: list  # (first_s, last_s, nbytes) per '\n'-terminated run sent by the board
     rx: list  # (first_s, last_s, nbytes) per host frame handed to the UART
     vec: list  # (pending_s, running_s, return_s, count_pending, count_running) per traced ISR
     force: list  # (t_s, newton) from then on
@@ -96,10 +97,10 @@ class Trace:
 
     @classmethod
     def read(cls, path: Path, period_s: float) -> Trace:
-        out = {"tx": [], "rx": [], "vec": [], "force": []}
+        out = {"tx": [], "line": [], "rx": [], "vec": [], "force": []}
         for line in path.read_text().splitlines():
             kind, *fields = line.split()
-            if kind in ("tx", "rx"):
+            if kind in ("tx", "rx", "line"):
                 out[kind].append((int(fields[0]) / CPU_HZ, int(fields[1]) / CPU_HZ, int(fields[2])))
             elif kind == "vec":
                 t = [int(v) / CPU_HZ for v in fields[:3]]
@@ -136,6 +137,7 @@ class AvrBoard:
         sample_time_s: float = 0.001,
         drive_cps: float | None = None,
         drive_ms: tuple[float, float] = (0.0, 0.0),
+        drive_sine: tuple[float, float] = (0.0, 0.0),
         max_ms: float = 0.0,
     ):
         exe = avr_build.build_harness()
@@ -156,7 +158,8 @@ class AvrBoard:
             args += ["--trace", str(self.trace_path), "--trace-vector", str(trace_vector)]
         if drive_cps is not None:
             args += ["--drive-cps", repr(drive_cps), "--drive-start-ms", repr(drive_ms[0]),
-                     "--drive-stop-ms", repr(drive_ms[1])]
+                     "--drive-stop-ms", repr(drive_ms[1]), "--drive-sine-counts",
+                     repr(drive_sine[0]), "--drive-sine-hz", repr(drive_sine[1])]
         if max_ms:
             args += ["--max-ms", repr(max_ms)]
         self._stderr = open(self._dir / "stderr.txt", "w+b")
@@ -261,7 +264,7 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
     """
     import serial
 
-    from labbench.drivers.serial_stream import SerialConfig, SerialStream
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream, synced
 
     from labbench.sim_backend.sim_device import sim_options, true_geometry
 
@@ -313,12 +316,53 @@ def connect_avr_sim(rig, realtime: bool = False, trace: bool = False,
                   "ATmega328P, in a simulated mass-damper",
         device_delay_s=T, device_delay_why=BOARD_DELAY_WHY, warnings=warnings,
     )
+    return synced(driver), board
+
+
+SKETCH_STALE_S = 2.0  # wall time: the emulator of a free-running sketch is not real time
+
+
+def connect_sketch(rig, sketch: Path, *, defines: dict | None = None, drive_cps: float = 0.0,
+                   drive_ms: tuple[float, float] = (0.0, 1e9),
+                   drive_sine: tuple[float, float] = (0.0, 0.0), trace: bool = True):
+    """A lab's own sketch (docs/arduino/styles/, or any that reads an encoder on pins 2/3
+    and prints its count) on the emulated ATmega328P, its encoder moved by a prescribed
+    motion (counts: ``drive_cps`` from ``drive_ms[0]`` to ``drive_ms[1]`` plus
+    ``drive_sine`` = (amplitude, Hz) over that window), read by the real driver as the
+    rig's ``[serial]`` table says (nothing forced). Returns ``(driver, board)`` once the
+    driver has the stream. The sketch runs free (no lock-step: it takes no commands), its
+    time the emulator's, so the driver does not judge it by wall time (``paced`` False,
+    a stale limit of ``SKETCH_STALE_S``)."""
+    import serial
+
+    from labbench.drivers.serial_stream import SerialConfig, SerialStream, synced
+
+    config = SerialConfig.from_rig(rig, port="avr-sim")
+    hex_path = avr_build.build_firmware(dict(defines or {}), sketch=Path(sketch))
+    board = AvrBoard(hex_path, mass_kg=rig.nominal_mass_kg, damping_ns_m=rig.nominal_damping_ns_m,
+                     metres_per_count=rig.metres_per_count, full_scale_n=0.0, baud=config.baudrate,
+                     trace=trace, sample_time_s=rig.sample_time_s, drive_cps=drive_cps,
+                     drive_ms=drive_ms, drive_sine=drive_sine)
     try:
-        driver.wait_for_stream(config.sync_timeout_s)
+        ser = serial.Serial(board.pty, baudrate=config.baudrate, timeout=0)
+        board.start()
     except BaseException:
-        driver.close()
+        board.close()
         raise
-    return driver, board
+    driver = SerialStream(ser, config, rig, on_close=board.close, paced=False,
+                          stale_s=SKETCH_STALE_S, kind="avr-sim",
+                          simulated=f"{Path(sketch).name} on simavr's ATmega328P, its encoder "
+                                    "moved by a prescribed motion")
+    return synced(driver), board
+
+
+def drive_counts(t_s, drive_cps: float, drive_ms: tuple[float, float],
+                 drive_sine: tuple[float, float]) -> np.ndarray:
+    """The count the harness's prescribed motion shows at emulated times ``t_s`` (its
+    drive_position and count_of, for a plant starting at x0 = 0)."""
+    t_ms = np.clip(np.asarray(t_s, float) * 1e3, *drive_ms) - drive_ms[0]
+    counts = drive_cps * t_ms * 1e-3 + drive_sine[0] * np.sin(2 * np.pi * drive_sine[1] * t_ms * 1e-3)
+    return np.floor(counts + 0.5).astype(np.int64)
 
 
 def _plant_table(rig, options: dict) -> dict:

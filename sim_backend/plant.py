@@ -7,6 +7,8 @@ simulation of the loop equals the exact sampled-data model of ``labbench.model.l
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from labbench.model.linear import zoh_matrices
@@ -30,3 +32,16 @@ class MassDamperPlant:
 
     def step(self, force: float) -> None:
         self.state = self.Ad @ self.state + self.Bd * force
+
+
+class PrescribedMotion:
+    """A handle moved by hand, not by the force: ``position = motion(k T)`` at step k
+    (``step`` ignores the force); for boards that only stream their count."""
+
+    def __init__(self, motion: Callable[[float], float], T: float):
+        self.motion, self.T, self.k = motion, T, 0
+        self.position = float(motion(0.0))
+
+    def step(self, force: float) -> None:
+        self.k += 1
+        self.position = float(self.motion(self.k * self.T))

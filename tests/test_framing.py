@@ -117,7 +117,7 @@ ACCEPTED = [
 ]
 REJECTED = [
     b"123,456,789\n",
-    b"abc\n",
+    b"ab,1\n",
     b"1.5,3\n",
     b"+1,2\n",
     b"123,\n",
@@ -142,6 +142,26 @@ def test_ascii_rejected_forms(line):
     p = AsciiSampleParser()
     assert p.feed(line) == []
     assert p.malformed == 1
+
+
+@pytest.mark.parametrize("fields, line, expected", [
+    (("count",), b"-17\r\n", (None, -17)),
+    (("millis", "count"), b"10240 -3\r\n", (10240, -3)),
+    (("count", "micros"), b"5;77\n", (77, 5)),
+    (("micros", "count", "speed", "dir"), b"100,7,1.5e3,-1\r\n", (100, 7)),
+])
+def test_ascii_lines_of_declared_fields(fields, line, expected):
+    p = AsciiSampleParser(fields)
+    assert p.feed(line) == [RawSample(None, *expected)]
+    assert p.feed(b"1,2,3,4,5\n") == [] and p.malformed == 1 and p.rejected == [b"1,2,3,4,5"]
+
+
+def test_text_lines_are_comments_kept_and_a_repeated_banner_marks_the_next_sample():
+    p = AsciiSampleParser(("count",))
+    got = p.feed(b"Encoder ready\r\nt_us,count,dir\r\n5\r\n12a4\r\nEncoder ready\r\n6\r\n")
+    assert [(g.count, g.status) for g in got] == [(5, 0), (6, framing.BANNER_AGAIN)]
+    assert p.text == [b"Encoder ready", b"t_us,count,dir", b"Encoder ready"]
+    assert p.comments == 3 and p.malformed == 1 and p.rejected == [b"12a4"]  # one letter: corrupt
 
 
 def test_ascii_comments_blank_lines_and_partial_tail():

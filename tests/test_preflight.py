@@ -378,3 +378,13 @@ def test_the_stale_limit_is_judged_on_the_bus_where_frames_carry_timestamps():
     (text, *_) = judge(m)["findings"]
     assert text.startswith("stale limit 20 ms (20 periods): holds, longest wait 2 ms "
                            "(p99.9 1 ms, on the bus)"), text
+
+
+def test_write_rig_never_rewrites_a_period_the_board_fixes():
+    from labbench.preflight import rig_changes
+
+    judged = {"suggest": {"sample_time_s": 0.0279, "stale_periods": 3}}
+    host_paced = rig_changes({"period_fixed_by": ""}, judged, "canopen")
+    assert host_paced == {"canopen": {"stale_periods": 3}, "rig": {"sample_time_s": 0.0279}}
+    board_paced = rig_changes({"period_fixed_by": "the board's sketch"}, judged, "serial")
+    assert board_paced == {"serial": {"stale_periods": 3}}  # the stale limit only

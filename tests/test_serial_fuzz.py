@@ -8,7 +8,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from labbench.drivers import framing
-from labbench.drivers.serial_stream import Decoded, Reboot, SerialConfig, StreamDecoder
+from labbench.drivers import serial_diagnosis as diagnosis
+from labbench.drivers.serial_stream import (SYNC_LINES, Decoded, Mismatch, Reboot, SerialConfig,
+                                           StreamDecoder)
 from labbench.rig import rig_from_dict
 
 SHORT = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -48,7 +50,7 @@ def _any_bytes(data, cuts):
     for fmt in ("binary", "ascii"):
         dec = decoder(fmt, 16)
         for item in feed_all(dec, chunked(data, cuts)):
-            assert isinstance(item, (Decoded, Reboot))
+            assert isinstance(item, (Decoded, Reboot, Mismatch))
 
 
 @SHORT
@@ -190,6 +192,7 @@ junk_line = st.binary(max_size=30).filter(
         b"\n" not in b
         and framing.ASCII_LINE.fullmatch(b) is None
         and not b.strip(b" \t\r").startswith(b"#")
+        and framing.TEXT_LINE.fullmatch(b.strip(b" \t\r")) is None
         and b.strip(b" \t\r") != b""
     )
 )
@@ -264,7 +267,7 @@ def _driver_on_any_input(fmt, prefix, chunks):
         framing.encode_sample(k, 1000 * k, k)
         if fmt == "binary"
         else framing.format_ascii(1000 * k, k)
-        for k in range(6)
+        for k in range(SYNC_LINES + 1)  # enough for either form's handshake
     ]
     port = ScriptedPort([b"".join(good), *prefix, *chunks], now)
     drv = SerialStream(port, SerialConfig.from_rig(rig), rig, clock=lambda: now[0])
@@ -301,3 +304,34 @@ def test_driver_on_any_input_raises_only_faults(fmt, prefix, chunks):
 )
 def test_driver_on_any_input_raises_only_faults_long(fmt, prefix, chunks):
     _driver_on_any_input(fmt, prefix, chunks)
+
+
+# -- a lab's own layout, and the diagnosis of what never became a stream ----------------------
+layouts = st.lists(st.sampled_from(["count", "micros", "millis", "speed", "dir"]), min_size=1,
+                   max_size=5, unique=True).filter(
+    lambda f: "count" in f and not {"micros", "millis"} <= set(f))
+text_bytes = st.lists(st.sampled_from([b"1", b"-", b",", b" ", b"\t", b";", b"\r\n", b"x",
+                                       b"Encoder ", b"\x00", b"\xff", b"65535", b"#"]),
+                      max_size=120).map(b"".join)
+
+
+@SHORT
+@given(layouts, st.one_of(text_bytes, st.binary(max_size=400)),
+       st.lists(st.integers(0, 10_000), max_size=8), st.booleans())
+def test_any_layout_on_any_bytes_parses_the_same_however_chunked(fields, data, cuts, on_change):
+    whole = framing.AsciiSampleParser(fields)
+    parts = framing.AsciiSampleParser(fields)
+    assert whole.feed(data) == feed_all(parts, chunked(data, cuts))
+    assert (whole.lines, whole.comments, whole.malformed) == (parts.lines, parts.comments,
+                                                              parts.malformed)
+    assert len(parts._buf) <= framing.ASCII_MAX_LINE and len(parts.rejected) <= framing.KEPT_LINES
+    rig = rig_from_dict({"serial": {"format": "ascii", "fields": fields, "on_change": on_change,
+                                    "count_bits": 16}})
+    dec = StreamDecoder(SerialConfig.from_rig(rig), rig.sample_time_s, rig.metres_per_count)
+    feed_all(dec, chunked(data, cuts))
+    seen = diagnosis.Seen("fuzz", head=bytearray(data[:diagnosis.HEAD_BYTES]), nbytes=len(data))
+    seen.samples = [(t, c, 0.01 * i) for i, (t, c, _) in enumerate(dec.seen)]  # 10 ms apart
+    seen.text, seen.rejected = dec.parser.text, dec.parser.rejected
+    cfg = SerialConfig.from_rig(rig)
+    for line in (diagnosis.refusal(seen, cfg, 0.001, 1.0, {}), diagnosis.timing(seen, cfg, 0.001)):
+        assert line is None or (isinstance(line, str) and "\n" not in line)

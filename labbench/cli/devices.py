@@ -5,11 +5,15 @@ Each backend the registry offers a probe for (``labbench.registry.device_probe``
 and the rig configures is asked, read-only, what it is: for a CANopen drive
 the capability report (identity, device type, CiA 402 state, torque modes,
 the planned PDO mapping, how it watches the host, bus load, error history
-0x1003, every obstacle and warning). "no answer" (nothing on the bus answered)
+0x1003, every obstacle and warning); for a serial board what it sends, read with the
+rig's ``[serial]`` table as a run reads it (``labbench.drivers.serial_probe``: the first
+lines, the period, whether the count moves, and the one-line refusal when the table
+cannot read it). "no answer" (nothing on the bus answered)
 is told apart from an object the drive says it does not have ("absent").
 A probe that raises does not hide the others: its row says what went wrong
 in one line. Exit code, from all the rows: 2 when a probe found a bad
-setting (``UserError``), else 1 when one failed otherwise or none of the
+setting (``UserError``, or a serial board the rig's table cannot read), else 1 when
+one failed otherwise or none of the
 configured hardware answers (with no hardware configured: no simulated
 device answers), else 0. ``--fault-reset`` is the operator's fault reset:
 FAULT -> SWITCH ON DISABLED, never further.
@@ -183,6 +187,8 @@ def _probe(name: str, rig) -> dict:
 def _status(rows: list[dict]) -> int:
     """The exit code of the listing (module doc), from every row."""
     worst = max((r["exit"] for r in rows if "exit" in r), default=0)
+    if any("refused" in r.get("answer", {}) and "no_answer" not in r["answer"] for r in rows):
+        worst = max(worst, 2)  # the board answers, but not as the rig's table says
     if worst:
         return worst
     probed = [r for r in rows if "answer" in r]
@@ -216,6 +222,33 @@ def _list_serial(as_json: bool) -> int:
     return 0
 
 
+def _describe_serial(a: dict) -> list[str]:
+    """A serial board's answer (``labbench.drivers.serial_probe``) for people."""
+    from labbench.numfmt import fmt
+
+    s = a["stream"]
+    out = [f"port {a['port']} at {a['baudrate']} baud: {a['bytes']} bytes in "
+           f"{a['seconds']:g} s"]
+    if a["first_lines"]:
+        out.append("first lines: " + "  ".join(f"`{ln}`" for ln in a["first_lines"]))
+    layout = f", fields {json.dumps(s['fields'])}" if s["fields"] else ""
+    out.append(f"stream: {s['format']}{layout}; time from the {s['time']}")
+    if s["period_s"]:
+        steps = (f" (steps {fmt(s['steps_s'][0] * 1e3, 4)} to {fmt(s['steps_s'][1] * 1e3, 4)} "
+                 f"ms over {s['lines']} lines)" if s["steps_s"] else f" (over {s['lines']} lines)")
+        out.append(f"period: {fmt(s['period_s'] * 1e3, 4)} ms{steps}")
+    c = a.get("counts")
+    if c:
+        moved = (f"moving, {c['min']} .. {c['max']} (first {c['first']}, last {c['last']})"
+                 if c["moving"] else "still" + (f" at {c['first']}" if "first" in c else "")
+                 + ": move the handle to see it count")
+        out.append(f"counts over {c.get('seconds', 0):g} s: {c['n']} samples, {moved}"
+                   + (f"; then {c['error']}" if "error" in c else ""))
+    out.append(f"refused: {a['refused']}" if "refused" in a else
+               "ok: the rig's [serial] table reads this board")
+    return out
+
+
 def _hex(value, digits: int = 8) -> str:
     return "absent" if value is None else f"0x{value:0{digits}X}"
 
@@ -223,6 +256,8 @@ def _hex(value, digits: int = 8) -> str:
 def _describe(a: dict | None) -> list[str]:
     if a is None:
         return []
+    if a.get("kind") == "serial":
+        return _describe_serial(a)
     if "no_answer" in a:
         return [f"no answer: {a['no_answer']}"]
     dt = a["device_type"]

@@ -13,8 +13,10 @@
  *   plant: mass-damper m x'' = F - b x' - Fc sign(x') (--coulomb-n Fc, default 0:
  *     sticking while |F| <= Fc), integrated exactly between force changes and
  *     velocity reversals (zero-order hold, the model of labbench.theory and of
- *     sim_backend/friction.py); or, with --drive-cps, a prescribed constant count
- *     rate (encoder tests). --amp-delay-us D: the amplifier applies each force
+ *     sim_backend/friction.py); or, with --drive-cps, a prescribed motion (encoder
+ *     tests): a constant count rate between --drive-start-ms and --drive-stop-ms, plus
+ *     --drive-sine-counts A sin(2 pi --drive-sine-hz f t) counts over the same
+ *     window (t from its start). --amp-delay-us D: the amplifier applies each force
  *     D later than the board set it (a slow current loop the rig file may not state).
  *   host <-> board: UART0 bytes to and from a pty. Host bytes are handed to the
  *     UART at the real line rate (10 bits per byte at the set baud): simavr itself
@@ -32,6 +34,7 @@
  * Output: at exit one line of JSON
  * statistics. --trace FILE writes one line per event (all times in CPU cycles):
  *   tx <first> <last> <nbytes>           a 0x00-terminated run of bytes sent by the board
+ *   line <first> <last> <nbytes>         a '\n'-terminated run of bytes sent by the board
  *   rx <first> <last> <nbytes>           a host frame handed to the UART
  *   vec <pending> <running> <return> <c_pending> <c_running>   the --trace-vector ISR:
  *                                         when it was raised, entered and left, and the
@@ -67,7 +70,7 @@ enum { R_PIND = 0x29, R_DDRB = 0x24, R_PORTB = 0x25, R_TCCR1A = 0x80, R_TCCR1B =
 static struct {
     const char *hex;
     double mass, damping, metres_per_count, full_scale_n, x0, v0, coulomb, amp_delay_us;
-    double drive_cps, drive_start_ms, drive_stop_ms;
+    double drive_cps, drive_start_ms, drive_stop_ms, sine_counts, sine_hz;
     long baud;
     double host_latency_us, lockstep_timeout_ms, max_ms;
     int lockstep_frame_len, realtime, trace_vector;
@@ -151,7 +154,8 @@ static void evolve(double dt, double f, double *x, double *v) {
 static double drive_position(uint64_t cycle) {
     double t_ms = cycle * 1e3 / avr->frequency;
     double tt = fmin(fmax(t_ms, opt.drive_start_ms), opt.drive_stop_ms) - opt.drive_start_ms;
-    return opt.drive_cps * tt * 1e-3 * opt.metres_per_count + opt.x0;
+    double counts = opt.drive_cps * tt * 1e-3 + opt.sine_counts * sin(2 * M_PI * opt.sine_hz * tt * 1e-3);
+    return counts * opt.metres_per_count + opt.x0;
 }
 
 static void state_at(uint64_t cycle, double *x, double *v) {
@@ -207,7 +211,9 @@ static void step_count(int dir) {
 }
 
 /* The encoder's outputs drive the pins: simavr lets a pull-up switched on later
- * (pinMode INPUT_PULLUP) override a level set before it; set them again then. */
+ * (pinMode INPUT_PULLUP) override a level set before it; set them again at the next
+ * instruction, before the firmware can read the pulled-up level (a sketch that reads
+ * its encoder's state right after pinMode would count the glitch as steps). */
 static void hold_pins(void) {
     uint8_t ab = AB[plant.count & 3], pins = (avr->data[R_PIND] >> 2) & 0x03;
     if (pins != (uint8_t)((ab >> 1) | (ab & 1) << 1)) {
@@ -305,7 +311,7 @@ static uint64_t rx_frame_first; static unsigned rx_frame_n;
 static avr_irq_t *uart_in;
 static int host_frames_waiting;  /* complete host frames (0x00 seen) in rxq */
 static int awaiting_host;
-static uint64_t tx_first; static unsigned tx_run;
+static uint64_t tx_first, line_first; static unsigned tx_run, line_run;
 static uint8_t txbuf[4096]; static size_t tx_len;
 static unsigned long long tx_bytes, rx_bytes, tx_dropped, lockstep_timeouts, uart_fifo_full;
 
@@ -328,6 +334,13 @@ static void on_uart_out(struct avr_irq_t *irq, uint32_t value, void *param) {
     txbuf[tx_len++] = b;
     tx_bytes++;
     if (tx_run++ == 0) tx_first = avr->cycle;
+    if (line_run++ == 0) line_first = avr->cycle;
+    if (b == '\n') {  /* a text line is out: flushed now, as a frame is at its 0x00 */
+        if (trace) fprintf(trace, "line %llu %llu %u\n", (unsigned long long)line_first,
+                           (unsigned long long)avr->cycle, line_run);
+        line_run = 0;
+        flush_tx();
+    }
     if (b == 0) {
         if (trace) fprintf(trace, "tx %llu %llu %u\n", (unsigned long long)tx_first,
                            (unsigned long long)avr->cycle, tx_run);
@@ -475,7 +488,8 @@ static void usage(void) {
     fprintf(stderr, "usage: avr_harness --hex FILE [--mass KG --damping NS_M --metres-per-count M "
             "--full-scale-n N --x0 M --v0 M_S --coulomb-n N --amp-delay-us US --baud B --host-latency-us US --lockstep-timeout-ms MS "
             "--lockstep-frame-len N --realtime --max-ms MS --trace FILE --trace-vector N "
-            "--drive-cps C --drive-start-ms MS --drive-stop-ms MS]\n");
+            "--drive-cps C --drive-start-ms MS --drive-stop-ms MS --drive-sine-counts A "
+            "--drive-sine-hz F]\n");
     exit(2);
 }
 
@@ -488,6 +502,7 @@ int main(int argc, char **argv) {
         {"realtime", 0, 0, 'r'}, {"max-ms", 1, 0, 'M'}, {"trace", 1, 0, 't'},
         {"trace-vector", 1, 0, 'V'}, {"drive-cps", 1, 0, 'c'}, {"drive-start-ms", 1, 0, 's'},
         {"drive-stop-ms", 1, 0, 'S'}, {"coulomb-n", 1, 0, 'C'}, {"amp-delay-us", 1, 0, 'D'},
+        {"drive-sine-counts", 1, 0, 'a'}, {"drive-sine-hz", 1, 0, 'F'},
         {0, 0, 0, 0}};
     int c;
     while ((c = getopt_long(argc, argv, "", longopts, NULL)) != -1) {
@@ -512,6 +527,8 @@ int main(int argc, char **argv) {
         case 'S': opt.drive_stop_ms = atof(optarg); break;
         case 'C': opt.coulomb = atof(optarg); break;
         case 'D': opt.amp_delay_us = atof(optarg); break;
+        case 'a': opt.sine_counts = atof(optarg); break;
+        case 'F': opt.sine_hz = atof(optarg); break;
         default: usage();
         }
     }
@@ -576,7 +593,6 @@ int main(int argc, char **argv) {
     while (!stop_requested && avr->cycle < max_cycles) {
         if (avr->cycle >= step_end) {
             step_end = avr->cycle - avr->cycle % step + step;
-            hold_pins();
             plan_edges();
             if (opt.realtime) {
                 double ahead = (double)avr->cycle / avr->frequency - (wall_s() - wall0);
@@ -599,6 +615,7 @@ int main(int argc, char **argv) {
         emit_due_edges();
         state = avr_run(avr);
         if (state == cpu_Done || state == cpu_Crashed) break;
+        hold_pins();
         update_force();
     }
     flush_tx();
