@@ -25,9 +25,10 @@ pytestmark = pytest.mark.usefixtures("avr_toolchain")  # tests/conftest.py
 
 STYLES = Path(__file__).resolve().parents[1] / "docs" / "arduino" / "styles"
 READ_WINDOW_S = 1e-3  # a count is read at most this long before its line's first byte
-# +-100 counts at 1 Hz for 1.1 s of emulated time, then at rest: both signs; through 0 (an
-# unsigned 16-bit counter wraps to 65535 there); at most 628 counts/s
-DRIVE = {"drive_cps": 0.0, "drive_ms": (0.0, 1100.0), "drive_sine": (100.0, 1.0)}
+# From 20 ms (the sketch has set its counter to 0 by then), +-100 counts at 1 Hz for 1.1 s
+# of emulated time, then at rest: both signs; through 0 (an unsigned 16-bit counter wraps to
+# 65535 there); at most 628 counts/s
+DRIVE = {"drive_cps": 0.0, "drive_ms": (20.0, 1120.0), "drive_sine": (100.0, 1.0)}
 
 
 def truth_range(line_first_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -79,7 +80,7 @@ def test_timed_sketch_read_with_its_rig_matches_the_encoder(name, n, period_s):
 
 def test_count_on_change_is_held_and_sampled_by_the_host():
     rig = load_rig(str(STYLES / "count_on_change.toml"))
-    end = int(drive_counts(1.1, **DRIVE))  # where the motion stops
+    end = int(drive_counts(1.12, **DRIVE))  # where the motion stops
     drv, board = connect_sketch(rig, STYLES / "count_on_change.ino", **DRIVE)
     held = []
     try:
@@ -132,3 +133,30 @@ def test_the_rig_a_lab_writes_first_is_refused_in_one_line_naming_the_change(nam
             drv.close()
     assert "\n" not in str(err.value)
     assert isinstance(err.value, UserError) or name == "count16_unsigned"
+
+
+def test_the_reference_sketchs_ascii_build_is_read_as_text_every_count_exact():
+    """``labbench_encoder.ino -DLABBENCH_ASCII=1``: ``<t_us>,<count>`` lines, the count
+    latched by the tick (t_us = tick x period): each is one the pins showed between the
+    tick and its interrupt (the harness traces both), at up to 25 k counts/s."""
+    from labbench.sim_backend.avr_build import SKETCH
+    from labbench.sim_backend.avr_device import firmware_defines
+
+    rig = rig_from_dict({"rig": {"sample_time_s": 0.001},
+                         "serial": {"port": "x", "format": "ascii", "baudrate": 500000}})
+    drive = {"drive_cps": 0.0, "drive_ms": (20.0, 1e6), "drive_sine": (2000.0, 2.0)}
+    drv, board = connect_sketch(rig, SKETCH, defines={**firmware_defines(rig, 500000),
+                                                      "LABBENCH_ASCII": 1}, **drive)
+    try:
+        drv.enable()
+        samples = [drv.read(3.0) for _ in range(400)]
+        assert drv.counters()["lost"] == 0
+    finally:
+        drv.close()
+    seq = np.array([s.seq for s in samples])
+    assert np.all(np.diff(seq) == 1)
+    counts = np.array([round(s.position_m / rig.metres_per_count) for s in samples])
+    vec = board.trace().sample_ticks()  # row k: the tick that latched the line of t_us = k T
+    lo, hi = np.minimum(vec[seq, 3], vec[seq, 4]), np.maximum(vec[seq, 3], vec[seq, 4])
+    assert off_by(counts, lo, hi).max() == 0
+    assert np.ptp(counts) > 1000  # it moved, both ways within the sine

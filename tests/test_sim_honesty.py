@@ -71,7 +71,8 @@ def test_a_paced_simulated_run_keeps_the_wall_clock(backend):
     opened = time.perf_counter()
     result = run(device, protocol, [], rig=rig)
     since_open = time.perf_counter() - opened
-    assert result.status == "success", result.reason
+    # ran to its end: 100 samples are too few for the ETFE's analysis (failed, cause analysis)
+    assert result.status == "success" or result.cause == "analysis", result.reason
     t = result.timing
     assert t["paced"] and t["periods"] == 99
     assert (t["wall_s"] if backend == "sim-canopen" else since_open) >= 0.95, (since_open, t)
