@@ -309,9 +309,9 @@ class AsciiSampleParser:
                     self._again = BANNER_AGAIN
                 if len(self.text) < KEPT_LINES:
                     self.text.append(stripped)
-            else:
-                if len(self.rejected) < KEPT_LINES:
-                    self.rejected.append(stripped[:ASCII_MAX_LINE])
+            else:  # (an over-long line is not kept: chunked, its bytes are gone by its end)
+                if len(self.rejected) < KEPT_LINES and len(line) <= ASCII_MAX_LINE:
+                    self.rejected.append(stripped)
                 self._discard(len(line) + 1)
         if len(tail) > ASCII_MAX_LINE:
             self._overlong = len(tail)
