@@ -497,19 +497,47 @@ def check_text(readout: Readout, check: str, units=None) -> str:
 
 
 def _stability(protocol: str, results: dict) -> Readout:
+    """The measured boundary against the exact sampled one and the paper's; with the device's
+    friction known, the friction-aware boundary at the probe's swing and the measurement
+    against it (``protocols/stability_probe.py``'s ``friction``); where the probe stopped
+    and why (its ``stopped``; a one-page summary keeps it where no boundary was measured: there
+    it is the reason)."""
+    fr_label = "boundary (K), with friction at the probe's swing"
+    none = _num(results.get("measured_boundary")) is None
     r = Readout(protocol, "Stability boundary", headline=(
         "boundary (K), measured", "boundary (K), exact sampled", "boundary (td), measured",
-        "boundary (td), exact sampled", "measured against exact"))
+        "boundary (td), exact sampled", "measured against exact", fr_label,
+        "measured against friction-aware", *(("stopped",) if none else ())))
     var = results.get("variable")
     unit = "N/m" if var == "K" else "s"
     steps = results.get("steps") if isinstance(results.get("steps"), list) else []
     r.rows.append(("probed variable", f"{var} ({unit}), {len(steps)} steps"))
+    lo, hi = _pair(results.get("measured_ci95"))
     for label, key in (("measured", "measured_boundary"), ("exact sampled", "exact_boundary"),
                        ("paper's approximation", "approx_boundary")):
-        r.rows.append((f"boundary ({var}), {label}", Value(_num(results.get(key)), unit=unit)))
+        r.rows.append((f"boundary ({var}), {label}", Value(
+            _num(results.get(key)), *((lo, hi) if key == "measured_boundary" else ()), unit=unit)))
     rel = _num(results.get("rel_error_vs_exact"))
     if rel is not None:
         r.rows.append(("measured against exact", f"{100 * rel:+.2g} %"))
+    fr = results.get("friction") if isinstance(results.get("friction"), dict) else {}
+    k, (k_lo, k_hi), swing, fc = (_num(fr.get("k_max")), _pair(fr.get("k_range")),
+                                  _num(fr.get("swing_m")), _num(fr.get("coulomb_n")))
+    if k is not None and swing is not None and fc is not None:
+        span = f" (range {k_lo:.4g} to {k_hi:.4g} over the steps' swings)" \
+            if k_lo is not None and k_hi is not None else ""
+        r.rows.append((fr_label, f"{k:.4g} N/m{span} at {1e3 * swing:.3g} mm; Coulomb "
+                                 f"friction {fc:.3g} N"))
+        rel = _num(fr.get("rel_error"))
+        if rel is not None:
+            agrees, tol = fr.get("agrees"), _num(fr.get("tolerance"))
+            widened = f", widened by its {100 * tol:.2g} % tolerance," if tol else ""
+            said = "" if not isinstance(agrees, bool) else \
+                (f": {'agrees' if agrees else 'disagrees'} (the prediction's range{widened} "
+                 f"{'meets' if agrees else 'misses'} the measured interval)")
+            r.rows.append(("measured against friction-aware", f"{100 * rel:+.2g} %{said}"))
+    if isinstance(results.get("stopped"), str):
+        r.rows.append(("stopped", results["stopped"]))
     return r
 
 

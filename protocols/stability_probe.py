@@ -874,13 +874,12 @@ def _td_boundaries(plant: Plant, ve: VirtualEnvironment, cfg: StabilityConfig,
 
 
 def _report_sections(protocol: StabilityProbe, session):
-    from labbench.report.blocks import Figure, Paragraph, ReportSections, Table, fmt, new_figure
+    from labbench.report.blocks import Figure, ReportSections, Table, fmt, new_figure
 
     res = session.results
     var = res.get("variable", protocol.config.variable)
     steps = res.get("steps") or []
-    details = [Paragraph(f"Where the probe stopped: {res['stopped']}.")] \
-        if isinstance(res.get("stopped"), str) else []
+    details = []  # where the probe stopped is the readout's row (labbench.readout)
     if steps:
         details.append(Table("Probe steps", ["K (N/m)", "td (ms)", "status", "growth rate (1/s)",
                                              "unstable"],

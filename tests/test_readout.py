@@ -174,3 +174,72 @@ def test_a_headline_the_etfe_does_not_vouch_for_says_so_first_on_every_surface(t
     ok = readout.of_session(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
                                  "--duration-s", "30", "--seed", "3")["session"])
     assert ok.verdicts[0].verdict.level == "ok" and ok.text_lines()[0].startswith("renders K = ")
+
+
+def test_a_stability_probe_on_a_rubbing_device_says_why_on_every_surface(tmp_path, capsys):
+    # issue 41: on the rough rig the probe's boundary lies far beyond the linear one (the CLI
+    # said "measured against exact: +80 %" and nothing else); the friction-aware boundary at
+    # the probe's swing, the measurement against it and where the probe stopped are rows of
+    # the one readout: the CLI's text, its JSON (replay's), the report's page 1
+    rig = tmp_path / "rough.toml"
+    rig.write_text('[rig]\nname = "rough"\n[sim]\ncoulomb_n = 0.02\nquantize = true\n'
+                   "force_noise_n = 0.002\n")
+    assert main(["run", "stability", "--rig", str(rig), "--device", "sim", "--ve", "spring-damper",
+                 "--B", "1", "--w0-rad-s", "125", "--K", "900", "--ratio", "1.08", "--refine", "0",
+                 "--plant-coulomb-n", "0.02", "--out", str(tmp_path / "s")]) == 0
+    text = capsys.readouterr().out
+    path = next(word for word in text.split() if word.endswith(".lbsession"))
+    back = readout.of_session(path)
+    res = back_results(path)
+    f = res["friction"]
+    rows = dict(back.row_texts())
+    # the numbers are the results', in the stopped line's words
+    fr = rows["boundary (K), with friction at the probe's swing"]
+    assert fr == (f"{f['k_max']:.4g} N/m (range {f['k_range'][0]:.4g} to {f['k_range'][1]:.4g} "
+                  f"over the steps' swings) at {1e3 * f['swing_m']:.3g} mm; Coulomb friction "
+                  f"{f['coulomb_n']:.3g} N"), fr
+    assert fr.split(" at ")[0] in res["stopped"]  # the stopped line's words
+    assert rows["measured against friction-aware"] == (  # it agrees on this rig
+        f"{100 * f['rel_error']:+.2g} %: agrees (the prediction's range, widened by its "
+        f"{100 * f['tolerance']:.2g} % tolerance, meets the measured interval)")
+    assert rows["stopped"] == res["stopped"] and res["stopped"].startswith("boundary measured")
+    lo, hi = res["measured_ci95"]
+    assert rows["boundary (K), measured"] == fmt_ci(res["measured_boundary"], lo, hi, "N/m")
+    for line in back.text_lines():
+        assert line in text, line
+    assert main(["replay", path, "--json"]) == 0
+    assert _same(json.loads(capsys.readouterr().out)["readout"], back.as_dict())
+    report = build([path])
+    html = render_html(report.title, report.subtitle, report.blocks)
+    page = dict(page_one_rows(back))
+    for label in ("boundary (K), with friction at the probe's swing",
+                  "measured against friction-aware", "measured against exact"):
+        assert page[label] == rows[label] and rows[label] in html, label
+    # a boundary was measured: where it stopped is a detail (page 1 keeps it where none was)
+    assert "stopped" not in page and rows["stopped"] in html
+
+
+def back_results(path) -> dict:
+    from labbench import records
+    from labbench.session_format import SessionReader
+
+    got = records.StreamCollector()
+    with SessionReader(path, decode_pages=False) as reader:
+        records.fan_out(reader, [got])
+    return got.stop["results"]
+
+
+def test_a_stability_readout_without_friction_says_where_it_stopped():
+    # no friction known: no friction-aware rows, the reason stays (and a disagreement says so)
+    res = {"variable": "K", "steps": [], "measured_boundary": None, "exact_boundary": 200.0,
+           "stopped": "no sustained oscillation up to K = 294 N/m: friction?"}
+    r = readout.of_results("stability", res)
+    rows = dict(r.row_texts())
+    assert rows["stopped"] == res["stopped"] == dict(page_one_rows(r))["stopped"]
+    assert not any("friction" in label for label in rows)
+    off = {**res, "measured_boundary": 200.0, "friction": {
+        "coulomb_n": 0.02, "k_max": 321.0, "k_range": [310.0, 330.0], "swing_m": 0.005,
+        "rel_error": -0.377, "agrees": False}}
+    rows = dict(readout.of_results("stability", off).row_texts())
+    assert rows["measured against friction-aware"] == \
+        "-38 %: disagrees (the prediction's range misses the measured interval)"
