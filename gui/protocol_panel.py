@@ -242,7 +242,9 @@ def settings_rows(config: dict, prefix: str = "") -> list[tuple[str, str]]:
 
 
 def precheck_text(rep: dict) -> str:
-    """One line per checked VE: stable or not, spectral radius, K_max and margin."""
+    """One line per checked VE: stable or not, spectral radius, K_max and margin; and what the
+    device's Coulomb friction will do at the planned excitation, where the plan says
+    (``labbench.analysis.friction.plan``)."""
     lines = []
     for c in rep.get("checks", []):
         ve = c["ve"]
@@ -263,6 +265,8 @@ def precheck_text(rep: dict) -> str:
                  "swing" if kf is not None and math.isfinite(kf) and kl else "beyond its cap")
         lines.append(f"with Coulomb friction {friction['coulomb_n']:.3g} N the probe expects the "
                      f"boundary at {where}")
+    if isinstance(rep.get("friction"), dict):  # the ETFE's excitation against the device's friction
+        lines.append(rep["friction"]["text"])
     return "pre-check: " + ("; ".join(lines) if lines else "nothing to check (open loop)")
 
 

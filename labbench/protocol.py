@@ -251,6 +251,9 @@ class ProtocolBase:
     # before ``check_plan`` and ``segments``: what a protocol that plans from the exact
     # boundary (the stability probe) must know of the rig.
     device_delay_s: float = 0.0
+    # The device's Coulomb friction on this run (``labbench.device_friction``), set by the
+    # run's checks (``labbench.runner.checks``) before ``check_plan``; None: not resolved yet.
+    device_friction = None
 
     def __init__(self, config):
         self.config = config

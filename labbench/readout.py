@@ -18,7 +18,8 @@ from pathlib import Path
 from labbench.numfmt import band_text, fmt, fmt_ci, frequencies_in, frequency_text
 from labbench.verdict import FAILED, OK, Verdict, from_dict, worst
 
-NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory"}
+NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory",
+         "levels": "amplitude"}
 
 
 @dataclass(frozen=True)
@@ -288,6 +289,7 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
                 headline=("|Z - Z_theory| / |Z_theory|", "friction", "w_s*", "w_b*",
                           "device model of the theory"))
     r.verdicts = (_judged(NAMES["etfe"], e) + _judged(NAMES["rendered"], results.get("rendered"))
+                  + _judged(NAMES["levels"], results.get("levels"))
                   + _judged(NAMES["loop_fit"], results.get("loop_fit")))
     plant = results.get("plant") if isinstance(results.get("plant"), dict) else {}
     m, b = _num(plant.get("m")), _num(plant.get("b"))
@@ -307,6 +309,13 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
                        f"{_pct(dev.get('max_rel'))}{_where_max(dev)} over {band_text(band)}{against}"))
     if _num(fr.get("n")) is not None:
         r.rows.append(("friction", _friction_row(fr, start)))
+    plan = (start.get("precheck") or {}).get("friction") if isinstance(start.get("precheck"), dict) else None
+    if isinstance(plan, dict) and isinstance(plan.get("text"), str):
+        r.rows.append(("excitation", plan["text"]))
+    levels = results.get("levels") if isinstance(results.get("levels"), dict) else {}
+    for row in levels.get("levels") or []:
+        if isinstance(row, dict) and _num(row.get("std_n")) is not None and _num(row.get("B")) is not None:
+            r.rows.append((f"at {fmt(row['std_n'])} N", _level_text(row)))
     bw = results.get("bandwidths") if isinstance(results.get("bandwidths"), dict) else {}
     for sym, key in (("w_s*", "ws_star"), ("w_b*", "wb_star")):
         got, want = _num(bw.get(f"{key}_measured")), _num(bw.get(f"{key}_predicted"))
@@ -364,6 +373,16 @@ def friction_text(fr: dict, start: dict) -> str:
         return ""
     at = f" at this run's {fmt(v, 2)} m/s rms" if v is not None else ""
     return f"Coulomb friction {fmt(n, 2)} N ({friction_source(fr, start)}){at}"
+
+
+def _level_text(row: dict) -> str:
+    """One excitation level's rendered K, B and the theory it is compared with."""
+    (klo, khi), (blo, bhi) = _pair(row.get("K_ci95")), _pair(row.get("B_ci95"))
+    theory = _num(row.get("B_theory"))
+    said = "" if theory is None else (f"; {'friction-aware' if row.get('compared') == 'friction' else 'linear'}"
+                                      f" theory {fmt(theory)} N s/m")
+    return (f"K = {fmt_ci(row['K'], klo, khi, 'N/m')}, damping {fmt_ci(row['B'], blo, bhi, 'N s/m')}"
+            f"{said}")
 
 
 def _friction_row(fr: dict, start: dict) -> str:

@@ -138,7 +138,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         if protocol.allow_unstable and not simulated:
             raise UserError(f"allow_unstable is for the simulator only, not a {desc.kind} device")
         plant, delay, check = checks(protocol, rig, desc, simulated, skip_commissioning)
-        friction = device_friction.resolve(protocol, desc)
+        friction = protocol.device_friction  # resolved by checks
         safety = SafetyConfig.from_rig(rig)
         rt = realtime or RealtimeConfig()
         if not desc.details.get("paced", True):  # as fast as it can: nothing to keep time with
@@ -190,14 +190,17 @@ def checks(protocol: ProtocolBase, rig, desc=None, simulated: bool = True,
     (``run``; the window's pre-check line and Start): the plant its theory takes, the
     commissioning gate (``gate_words``: its message's ``remedy`` and ``where``) and the exact
     sampled stability check with the device's own delay (``device_delay.resolve``: the rig's
-    measured one, else what the device declares). ``desc``: the device's
-    ``DeviceDescription``; None before one is connected (a delay the device would declare
-    is then not known). Returns (plant, delay, the pre-check's report); UserError when refused."""
+    measured one, else what the device declares), the device's Coulomb friction
+    (``device_friction.resolve``, set as the protocol's ``device_friction`` for its plan and
+    analysis). ``desc``: the device's ``DeviceDescription``; None before one is connected (a
+    delay or friction the device would declare is then not known). Returns (plant, delay,
+    the pre-check's report); UserError when refused."""
     if desc is not None and desc.cannot_act:  # never pulse a device that cannot act
         raise UserError(f"{protocol.name} drives a force, but {desc.cannot_act}")
     plant = protocol.plant(rig)
     commissioning.gate(protocol.vetted_ves(plant), rig, simulated, skip_commissioning, **gate_words)
     delay = device_delay.resolve(rig, desc)
+    protocol.device_friction = device_friction.resolve(protocol, desc)
     return plant, delay, precheck(protocol, plant, rig, delay)
 
 

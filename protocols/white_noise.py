@@ -34,6 +34,17 @@ from labbench.protocol import (
     setting,
 )
 
+MAX_LEVELS = 2  # excitation levels beyond std_n (issue 41: two or three levels in one session)
+
+
+def _float(x):
+    """A level as given: a number, or the CLI's word for one."""
+    try:
+        return float(x) if isinstance(x, str) else x
+    except ValueError:
+        return x
+
+
 # Summary figures stop at this fraction of Nyquist: above, the sampled loop's ED and EM
 # swing towards Nyquist and would set the scale of panels meant for the rendered band.
 SUMMARY_W_MAX_NYQUIST = 0.1
@@ -60,7 +71,12 @@ class EtfeConfig(Config):
     band_hi_hz: float | None = setting(None, "upper edge of the excitation's band; none: up "
                                        "to the Nyquist frequency", "Hz")
     duration_s: float = setting(120.0, f"length of the record, 1 to {MAX_DURATION_S:g} s "
-                                "(longer: narrower frequency bins)", "s")
+                                "(longer: narrower frequency bins); each level's", "s")
+    levels_n: tuple = setting((), "more excitation levels after std_n, comma-separated "
+                              "standard deviations (at most 2), each a record of duration_s: the "
+                              "rendered K and B at each show whether the response depends on "
+                              "amplitude (friction's equivalent damping falls as the excitation "
+                              "grows)", "N")
     seed: int | None = setting(None, "seed of the noise; none: drawn at random and recorded "
                                "in the session")
     window: int = setting(200, "Hamming window of the paper estimator, in frequency bins "
@@ -88,6 +104,14 @@ class EtfeConfig(Config):
                             f"({self.band_hi_hz:g}) Hz")
         self._set("duration_s", number("duration_s", self.duration_s, "s", lo=1.0,
                                               hi=MAX_DURATION_S))
+        levels = self.levels_n if isinstance(self.levels_n, (list, tuple)) else (self.levels_n,)
+        if len(levels) > MAX_LEVELS:
+            raise UserError(f"levels_n takes at most {MAX_LEVELS} more levels, got {len(levels)}")
+        self._set("levels_n", tuple(number("levels_n", _float(x), "N", lo=0, lo_open=True, hi=MAX_FORCE_N)
+                                    for x in levels))
+        if (1 + len(self.levels_n)) * self.duration_s > MAX_DURATION_S:
+            raise UserError(f"{1 + len(self.levels_n)} levels of {self.duration_s:g} s exceed the "
+                            f"longest run, {MAX_DURATION_S:g} s")
         if self.seed is None:
             self._set("seed", secrets.randbits(32))
         self._set("seed", integer("seed", self.seed, lo=0))
@@ -116,14 +140,26 @@ class WhiteNoiseEtfe(ProtocolBase):
         return self.config.make_ve()
 
     @property
-    def n_samples(self) -> int:
+    def n_level(self) -> int:
+        """Samples of one excitation level's record."""
         return round(self.config.duration_s / self.config.sample_time_s)
 
-    def excitation(self) -> np.ndarray:
+    @property
+    def n_samples(self) -> int:
+        return self.n_level * (1 + len(self.config.levels_n))
+
+    @property
+    def levels(self) -> tuple[float, ...]:
+        """The excitation's standard deviations [N], std_n first."""
+        return (self.config.std_n, *self.config.levels_n)
+
+    def excitation(self, level: int = 0) -> np.ndarray:
+        """The white noise of excitation level ``level`` (0: std_n), each with its own seed."""
         c = self.config
         band = None if (c.band_lo_hz == 0 and c.band_hi_hz is None) else (
             c.band_lo_hz, c.band_hi_hz if c.band_hi_hz is not None else 0.5 / c.sample_time_s)
-        return excitation.white_noise(self.n_samples, c.sample_time_s, c.std_n, band, c.seed)
+        return excitation.white_noise(self.n_level, c.sample_time_s, self.levels[level], band,
+                                      c.seed + level)
 
     def analysis_band(self) -> tuple[float, float]:
         """The band [rad/s] the verdict and the accuracy figures speak of: the accuracy
@@ -139,6 +175,22 @@ class WhiteNoiseEtfe(ProtocolBase):
 
     def segments(self, plant: Plant):
         yield Segment("white-noise", self.ve, self.excitation())
+        for k in range(1, len(self.levels)):
+            yield Segment(f"white-noise {self.levels[k]:g} N", self.ve, self.excitation(k))
+
+    def check_plan(self, plant: Plant, rig=None) -> dict:
+        """With the device's Coulomb friction known (``device_friction``, set by the run's
+        checks; else the config's): what it will act as at this excitation, and the white
+        noise that keeps it below ``labbench.analysis.friction.SHARE`` of B + b."""
+        from labbench import device_friction
+        from labbench.analysis import friction
+
+        fr = getattr(self, "device_friction", None) or device_friction.resolve(self)
+        if not fr.known or fr.n == 0:
+            return {}
+        return {"friction": friction.plan(plant, self.ve, fr, self.excitation(),
+                                          getattr(self, "device_delay_s", 0.0),
+                                          None if rig is None else rig.force_limit_n)}
 
     def analyze(self, data: dict, meta: dict) -> dict:
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
@@ -155,6 +207,9 @@ class WhiteNoiseEtfe(ProtocolBase):
         from labbench.analysis.loopfit import fit_loop
         from labbench.analysis.rendered import rendered_impedance
 
+        n = self.n_level
+        levels = [{k: v[i * n:(i + 1) * n] for k, v in data.items()} for i in range(len(self.levels))]
+        data = levels[0]
         rec = recording_from_arrays(data["t"], data["excitation"], data["position"],
                                     {**meta, "protocol": self.name})
         asked = self.analysis_band()
@@ -191,7 +246,13 @@ class WhiteNoiseEtfe(ProtocolBase):
                                         FELT_BAND_HZ).as_dict()
         except UserError as exc:  # a record too short for the band
             noise = {"error": str(exc)}
+        more = {}
+        if len(self.levels) > 1:  # the same analysis at each level: does the response follow?
+            more["levels"] = friction.levels(
+                [rendered] + [self._level(block, meta, plant, ve, latency, asked) for block in levels[1:]],
+                self.levels)
         return {
+            **more,
             "force_noise": noise,
             "etfe": est.as_dict(),
             "loop_fit": loop_fit,
@@ -212,6 +273,22 @@ class WhiteNoiseEtfe(ProtocolBase):
                 "wb_star_w0": predicted.wb_star_w0,
             },
         }
+
+    def _level(self, data: dict, meta: dict, plant: Plant, ve, latency: float, asked) -> dict | None:
+        """The rendered K, B of one further excitation level against the theories (None: too
+        short a record for the VE's bandwidths)."""
+        from labbench import device_friction
+        from labbench.analysis import friction
+        from labbench.analysis.dataio import recording_from_arrays
+        from labbench.analysis.etfe import etfe
+        from labbench.analysis.rendered import rendered_impedance
+
+        rec = recording_from_arrays(data["t"], data["excitation"], data["position"],
+                                    {**meta, "protocol": self.name})
+        est = etfe(rec, estimator=self.config.estimator, window=self.config.window, band_rad_s=asked)
+        fr, rendered = friction.analyse(est, rendered_impedance(est, ve, plant, latency, asked),
+                                        plant, ve, device_friction.from_meta(meta), rec, latency)
+        return None if rendered is None else {**rendered, "friction_used": fr.as_dict()}
 
     def report_sections(self, session):
         """Page 1: the rendered impedance against the exact sampled theory (deviation,

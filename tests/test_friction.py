@@ -187,3 +187,71 @@ def test_analyze_told_no_friction_says_the_response_depends_on_amplitude(rough):
     fr = etfe_recording(load_recording(path))
     assert fr.rendered["compared"]["model"] == "friction" and fr.rendered["verdict"]["level"] == "ok"
     assert fr.friction["origin"] == "device"
+
+
+# ----------------------------------------------------------------------------- excitation
+def test_precheck_says_how_strong_an_excitation_keeps_friction_small():
+    from labbench.analysis.friction import SHARE
+    from labbench.registry import make_protocol
+    from labbench.rig import Rig
+    from labbench.runner import checks
+
+    proto = make_protocol("etfe", duration_s=30.0, seed=1, plant_coulomb_n=0.02)
+    _, _, rep = checks(proto, Rig())
+    plan = rep["friction"]
+    assert plan["b_eq"] == pytest.approx(0.55, rel=0.05)  # the analysis' own prediction
+    assert "50 % of B + b = 1.1 N s/m" in plan["text"] and f"below {100 * SHARE:g} %" in plan["text"]
+    # at the excitation it names, friction acts as that share of B + b (its own record)
+    strong = make_protocol("etfe", duration_s=30.0, seed=1, plant_coulomb_n=0.02, std_n=plan["std_for_share_n"])
+    _, _, rep = checks(strong, Rig())
+    assert rep["friction"]["b_eq"] == pytest.approx(SHARE * 1.1, rel=0.05)
+    # nothing to say without friction
+    assert "friction" not in checks(make_protocol("etfe", duration_s=30.0), Rig())[2]
+
+
+def test_levels_settings_are_checked():
+    from labbench.registry import make_protocol
+
+    assert make_protocol("etfe", levels_n=("1", "2")).levels == (0.5, 1.0, 2.0)
+    for bad in (("1", "2", "3"), ("x",), (-1.0,), ("1e9",)):
+        with pytest.raises(UserError):
+            make_protocol("etfe", levels_n=bad)
+    with pytest.raises(UserError, match="exceed the longest run"):
+        make_protocol("etfe", duration_s=1000.0, levels_n=(1.0, 2.0))
+
+
+@pytest.fixture(scope="module")
+def levels_run(tmp_path_factory):
+    """30 s at each of 0.5, 1 and 2 N on the rough simulator with 0.02 N of friction."""
+    d = tmp_path_factory.mktemp("levels")
+    return _run(d, 0.02, duration_s=30.0, levels_n=(1.0, 2.0))
+
+
+def test_levels_show_the_amplitude_dependence_friction_predicts(levels_run):
+    results, path = levels_run
+    lv = results["levels"]
+    B = [row["B"] for row in lv["levels"]]
+    assert B[0] > B[1] > B[2] > 1.1  # friction's damper shrinks as the excitation grows
+    assert lv["verdict"]["level"] == "ok"
+    assert "depends on amplitude" in lv["verdict"]["notes"][0] and "as Coulomb friction predicts" in lv["verdict"]["notes"][0]
+    from labbench import readout
+
+    r = readout.of_session(path)
+    rows = dict(r.row_texts())
+    assert "at 2 N" in rows and "excitation" in rows
+    assert any(j.what == "amplitude" for j in r.verdicts)
+
+
+def test_levels_told_no_friction_doubt_the_linear_theory(levels_run):
+    # the same session analysed with Fc = 0 known: damping falls with amplitude and the linear
+    # theory cannot follow: doubtful, naming friction's mark
+    from labbench.registry import make_protocol
+    from labbench.session_content import analysis_meta, load_session
+
+    _, path = levels_run
+    start, desc, ch, *_ = load_session(path)
+    meta = {**analysis_meta(start, desc), "coulomb_n": 0.0, "plant": {"m": PLANT.m, "b": PLANT.b}}
+    proto = make_protocol("etfe", duration_s=30.0, seed=start["seed"], levels_n=(1.0, 2.0))
+    res = proto.analyze(ch, meta)
+    v = res["levels"]["verdict"]
+    assert v["level"] == "doubtful" and "Coulomb friction's mark" in v["reasons"][0]

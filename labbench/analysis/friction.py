@@ -329,3 +329,78 @@ def _whole(tv: float, ve: VirtualEnvironment) -> float:
     """The fit's VE-path delay as the VE's td where it is whole samples (the fit's model)."""
     n = round(tv / ve.T)
     return n * ve.T if abs(tv / ve.T - n) < 0.01 else ve.td
+
+
+# ----------------------------------------------------------------------------- excitation
+SHARE = 0.1  # the pre-check's limit: friction's equivalent damping below this share of B + b
+
+
+def plan(plant: Plant, ve: VirtualEnvironment, friction: DeviceFriction, excitation,
+         latency: float = 0.0, force_limit_n: float | None = None) -> dict:
+    """Before a white-noise ETFE, with the device's Coulomb friction known: the damper it will
+    act as under the planned ``excitation`` (``model.linearise``, the same prediction the
+    analysis makes), its share of the damping B + b the VE should render, and the white noise
+    that keeps that share below ``SHARE`` (``model.excitation_for``, over the excitation's
+    band), in one sentence (``text``)."""
+    f = np.asarray(excitation, float)
+    std = float(np.std(f))
+    lin = model.linearise(plant, ve, friction.n, f, latency)
+    target = plant.b + ve.B
+    need = model.excitation_for(plant, ve, friction.n, SHARE * target, latency=latency)
+    head = f"Coulomb friction {friction.n:.2g} N ({friction.source})"
+    if not lin.holds:
+        text = (f"{head} holds the handle against this {std:.2g} N excitation: no damper stands for "
+                f"it; {need:.2g} N of white noise keeps it below {100 * SHARE:g} % of B + b")
+    else:
+        share = lin.b_eq / target
+        text = (f"{head} will act as {lin.b_eq:.2g} N s/m at this {std:.2g} N excitation, "
+                f"{100 * share:.0f} % of B + b = {target:.3g} N s/m; {need:.2g} N of white noise keeps "
+                f"it below {100 * SHARE:g} %")
+    if force_limit_n is not None and need > force_limit_n:
+        text += f", beyond the rig's force limit {force_limit_n:g} N: the ETFE measures friction too"
+    return {"coulomb_n": friction.n, "source": friction.source, "std_n": std,
+            "b_eq": lin.b_eq if lin.holds else None, "share_limit": SHARE,
+            "std_for_share_n": need, "text": text}
+
+
+def levels(rendered: list, stds) -> dict:
+    """The rendered K and B at each excitation level (``rendered``: each level's rendered block,
+    ``analyse``'s, None where too short) and the verdict on how they follow the amplitude:
+    where two levels' damping differs beyond both intervals (the 95 % half-widths added in
+    quadrature), the response depends on amplitude: a note naming the levels where the
+    compared theory follows it at each (friction predicts b_eq falling as the excitation
+    grows), doubtful where it does not, naming the likely cause."""
+    rows = []
+    for std, rd in zip(stds, rendered):
+        if rd is None:
+            rows.append({"std_n": std})
+            continue
+        cmp = rd.get("compared") or {}
+        rows.append({"std_n": std, "K": rd["K"], "K_ci95": rd["K_ci95"], "B": rd["B"], "B_ci95": rd["B_ci95"],
+                     "compared": cmp.get("model"), "K_theory": cmp.get("K"), "B_theory": cmp.get("B"),
+                     "B_linear": rd["theory"]["B"], "B_friction": (rd.get("friction") or {}).get("B"),
+                     "holds": bool(rd["K_ci95"][0] <= cmp.get("K", math.nan) <= rd["K_ci95"][1]
+                                   and rd["B_ci95"][0] <= cmp.get("B", math.nan) <= rd["B_ci95"][1])})
+    got = [r for r in rows if "B" in r]
+    apart = []
+    for i in range(len(got)):
+        for j in range(i + 1, len(got)):
+            a, b = got[i], got[j]
+            half = math.hypot((a["B_ci95"][1] - a["B_ci95"][0]) / 2, (b["B_ci95"][1] - b["B_ci95"][0]) / 2)
+            if abs(a["B"] - b["B"]) > half:
+                apart.append((a, b))
+    seen = ", ".join(f"{r['B']:.3g} [{r['B_ci95'][0]:.3g}, {r['B_ci95'][1]:.3g}] N s/m at {r['std_n']:g} N"
+                     for r in got)
+    if not apart:
+        v = verdict.judge([], notes=[f"no dependence on amplitude resolved: damping {seen}"] if len(got) > 1 else [])
+    elif all(r["holds"] for r in got) and any(r["compared"] == "friction" for r in got):
+        v = verdict.judge([], notes=[
+            f"the response depends on amplitude: damping {seen}, as Coulomb friction predicts ("
+            + ", ".join(f"{r['B_friction'] or r['B_theory']:.3g}" for r in got) + " N s/m)"])
+    else:
+        v = verdict.judge([(verdict.DOUBTFUL, f"the response depends on amplitude: damping {seen}; the "
+                            "compared theory does not follow it ("
+                            + ", ".join(f"{r['B_theory']:.3g}" for r in got) + " N s/m): damping that falls "
+                            "as the excitation grows is Coulomb friction's mark (b_eq ~ Fc / sigma_v); give "
+                            "the device's friction (a chirp-ID's)")])
+    return {"levels": rows, "verdict": v.as_dict()}
