@@ -144,7 +144,8 @@ def build_run(spec, params: dict):
     protocol = make_protocol(spec.protocol, **proto_opts)
     if seed is None:
         seed = protocol.seed
-    truth = {"m": m, "b": b, "device_delay_s": latency, "plant": plant}
+    truth = {"m": m, "b": b, "device_delay_s": latency, "plant": plant,
+             "coulomb_n": float(dev.get("coulomb_n", 0.0))}
     return rig, protocol, {"seed": seed, **dev}, truth
 
 
@@ -190,7 +191,8 @@ def _truth(ve, truth: dict, results: dict) -> dict:
     from labbench.model import linear
 
     plant, latency = truth["plant"], truth["device_delay_s"]
-    out = {"truth.m": truth["m"], "truth.b": truth["b"], "truth.device_delay_s": latency}
+    out = {"truth.m": truth["m"], "truth.b": truth["b"], "truth.device_delay_s": latency,
+           "truth.coulomb_n": truth.get("coulomb_n", 0.0)}
     out["truth.stable"] = bool(linear.stability(plant, ve, latency).stable)
     if ve.kind in ("spring", "spring-damper"):
         out["truth.k_max"] = linear.k_max(plant, ve, latency=latency)
@@ -208,6 +210,8 @@ def _truth(ve, truth: dict, results: dict) -> dict:
     if isinstance(fit, dict) and "m" in fit:
         out["truth.fit_m_rel"] = _rel(fit["m"], truth["m"])
         out["truth.fit_b_rel"] = _rel(fit["b"], truth["b"])
+        if fit.get("b_viscous") is not None:  # friction's part taken out (analysis.friction)
+            out["truth.fit_b_viscous_rel"] = _rel(fit["b_viscous"], truth["b"])
     if "identification" in results:
         out.update(_id_errors(results.get("m"), results.get("b"), truth["m"], truth["b"]))
     return out
