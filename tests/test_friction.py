@@ -255,3 +255,30 @@ def test_levels_told_no_friction_doubt_the_linear_theory(levels_run):
     res = proto.analyze(ch, meta)
     v = res["levels"]["verdict"]
     assert v["level"] == "doubtful" and "Coulomb friction's mark" in v["reasons"][0]
+
+
+def test_chirp_id_friction_separates_the_loop_fits_viscous_b(tmp_path):
+    # issue 41: the loop fit reported friction as the device's damping (b = 0.63 for a viscous
+    # 0.10 N s/m, intervals a few percent wide, ok) even after a chirp-ID had found Fc. A slice
+    # of bench/bench_friction.py (150 of 150 covered there): the chirp-ID's m, b and Fc given to
+    # the ETFE as --plant-from last-id gives them; the viscous b's interval holds the truth.
+    from labbench.registry import make_protocol
+    from labbench.rig import Rig
+    from labbench.runner import run
+    from labbench.session_catalogue import plant_options
+    from labbench.sim_backend.sim_device import open_sim
+
+    rig = Rig()
+    chirp = run(open_sim(rig, seed=4, coulomb_n=0.02, quantize=True, force_noise_n=0.002),
+                make_protocol("chirp-id", duration_s=60.0), [], rig=rig).results
+    l2 = chirp["identification"]["l2"]
+    found = {"m": l2["m"], "b": l2["b"], "coulomb_n": l2["coulomb"], "coulomb_ci95": l2["ci95"]["coulomb"]}
+    assert found["coulomb_ci95"][0] <= 0.02 <= found["coulomb_ci95"][1] * 1.02
+    results, _ = _run(tmp_path, 0.02, seed=4, **plant_options(found, {"plant_coulomb_n"}))
+    fit = results["loop_fit"]
+    assert fit["b"] > 0.5  # the whole damping at this excitation, as before
+    lo, hi = fit["ci95"]["b_viscous"]
+    assert lo <= 0.10 <= hi and hi - lo < 0.1
+    assert "includes Coulomb friction" in " ".join(fit["verdict"]["notes"])
+    assert results["friction"]["origin"] == "given"
+    assert results["rendered"]["compared"]["model"] == "friction"
