@@ -282,3 +282,13 @@ def test_chirp_id_friction_separates_the_loop_fits_viscous_b(tmp_path):
     assert "includes Coulomb friction" in " ".join(fit["verdict"]["notes"])
     assert results["friction"]["origin"] == "given"
     assert results["rendered"]["compared"]["model"] == "friction"
+
+
+def test_friction_that_makes_the_handle_stick_is_said(tmp_path):
+    # 0.4 N of friction under 0.5 N of white noise: the handle sticks much of the time; the
+    # friction-aware theory still holds the damping (80 N s/m) but the velocity the record
+    # shows is far from the linearisation's, and the verdict says so
+    results, _ = _run(tmp_path, 0.4, duration_s=30.0)
+    rd, fr = results["rendered"], results["friction"]
+    assert fr["velocity_rms_measured"] < 0.9 * fr["velocity_rms"]
+    assert any("sticks for part of the record" in n for n in rd["verdict"].get("notes", []))

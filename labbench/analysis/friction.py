@@ -186,6 +186,11 @@ def judge(rendered: dict, cmp: dict, pred: Prediction | None, quantum: float | N
         notes.append(f"the device is not linear: Coulomb friction {pred.friction.n:.2g} N acts as "
                      f"{lin.b_eq:.2g} N s/m at this run's {lin.velocity_rms:.2g} m/s rms, and as "
                      "less at a stronger excitation: this Z holds at this excitation only")
+    measured = pred.velocity_rms_measured if pred is not None else None
+    if lin is not None and lin.holds and measured and abs(measured / lin.velocity_rms - 1) > VELOCITY_MISMATCH:
+        notes.append(f"the handle moved at {measured:.2g} m/s rms where the linearisation has it at "
+                     f"{lin.velocity_rms:.2g}: it sticks for part of the record, which the "
+                     "linearisation leaves out")
     return verdict.judge(findings, notes=notes)
 
 
