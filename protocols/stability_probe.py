@@ -62,6 +62,7 @@ from itertools import pairwise
 import numpy as np
 
 from labbench.errors import UserError
+from labbench.model.pulse import PulsePlan
 from labbench.rig import Rig
 from labbench.safety import CLAMP, FADE, GATED, RATE, TRIPPED
 from labbench.ve import Plant, VirtualEnvironment
@@ -282,9 +283,9 @@ class StabilityProbe(ProtocolBase):
     def k_friction(self, plant: Plant) -> float | None:
         """The friction-aware boundary the plan expects (``plant_coulomb_n`` given, variable K):
         where an oscillation of the swing each step's pulse is planned to start neither grows nor
-        decays (``labbench.model.stability_friction.friction_boundary``); ``math.inf`` beyond
+        decays (``labbench.model.stability_friction.planned_boundary``); ``math.inf`` beyond
         ``friction_cap`` x the linear boundary; None without friction or a linear boundary."""
-        from labbench.model.stability_friction import friction_boundary
+        from labbench.model.stability_friction import planned_boundary
 
         c = self.config
         km = self.k_exact(plant)
@@ -292,11 +293,21 @@ class StabilityProbe(ProtocolBase):
             return None
         key = (plant.m, plant.b, self.device_delay_s, self._limits)
         if key not in self._k_friction:
-            self._k_friction[key] = friction_boundary(
-                plant, self.ve, c.plant_coulomb_n,
-                lambda K: self.planned_amplitude(self.ve.with_(K=K), plant),
-                latency=self.device_delay_s, k_cap=c.friction_cap * km)
+            self._k_friction[key] = planned_boundary(plant, self.ve, c.plant_coulomb_n,
+                                                     self.pulse_plan(), c.friction_cap,
+                                                     self.device_delay_s)
         return self._k_friction[key]
+
+    def friction_plan(self) -> dict | None:
+        """What ``k_friction`` follows from besides the plant, the VE and the delay: the
+        friction believed, ``friction_cap`` and the pulse plan (None where it has none), so
+        that it can be computed again at any B (``labbench.model.stability_friction
+        .planned_boundary``; a campaign's chart draws it over B)."""
+        c = self.config
+        if not c.plant_coulomb_n or c.variable != "K":
+            return None
+        return {"coulomb_n": c.plant_coulomb_n, "friction_cap": c.friction_cap,
+                "pulse": self.pulse_plan().as_dict()}
 
     def k_ceiling(self, plant: Plant) -> float:
         """The last K tried: ``K_stop``, else ``max_over`` x the exact boundary, or with
@@ -377,37 +388,25 @@ class StabilityProbe(ProtocolBase):
                                     self.ve.with_(K=min(kf, ves[-1].K)), plant)}
         return {"plan": plan}
 
+    def pulse_plan(self) -> PulsePlan:
+        """What each step's pulse and the swing it starts follow from: this probe's
+        ``swing``, ``pulse_s`` and ``pulse_n`` with the rig's limits
+        (``labbench.model.pulse``)."""
+        c = self.config
+        f_lim, x_lim, v_lim = self._limits or _limits(Rig())
+        return PulsePlan(c.swing, c.pulse_s, f_lim, x_lim, v_lim, c.pulse_n)
+
     def pulse_n(self, ve: VirtualEnvironment, plant: Plant) -> float:
         """Peak of the step's half-sine pulse [N]: ``pulse_n`` when given, else sized so the
-        free response spends ``swing`` of the tightest limit of the rig.
-
-        A half-sine of peak P and length tau gives the impulse I = 2 P tau / pi; on the
-        free mass-spring m x'' = -K x (damping and the sampling aside) it starts an
-        oscillation of velocity amplitude I / m and position amplitude I / sqrt(K m),
-        whose VE force K x + B v has amplitude (I / m) sqrt(K m + B^2) (x and v in
-        quadrature). The pulse itself is held below ``swing`` x the force limit too.
-        """
-        c = self.config
-        if c.pulse_n is not None:
-            return c.pulse_n
-        f_lim, x_lim, v_lim = self._limits or _limits(Rig())
-        km = ve.K * plant.m
-        impulse = c.swing * min(x_lim * math.sqrt(km), v_lim * plant.m,
-                                f_lim * plant.m / math.sqrt(km + ve.B**2))
-        return min(impulse * math.pi / (2 * c.pulse_s), c.swing * f_lim)
+        free response spends ``swing`` of the tightest limit of the rig
+        (``labbench.model.pulse.PulsePlan.peak``)."""
+        return self.pulse_plan().peak(plant.m, ve.K, ve.B)
 
     def planned_amplitude(self, ve: VirtualEnvironment, plant: Plant) -> float:
-        """Position amplitude [m] the step's pulse is planned to start: the impulse's
-        oscillation I / sqrt(K m), I = 2 P tau / pi, times the half-sine's spectrum at
-        w = sqrt(K / m) relative to its area, cos(w tau / 2) / (1 - (w tau / pi)^2) (a
-        pulse not short against the period gives less). Damping, friction and sampling are
-        left out: a plan, not the measurement (``analyze`` uses the swing measured)."""
-        tau = self.config.pulse_s
-        w = math.sqrt(ve.K / plant.m)
-        r = w * tau / math.pi
-        shape = math.pi / 4 if abs(r - 1) < 1e-9 else math.cos(w * tau / 2) / (1 - r * r)
-        impulse = 2 * self.pulse_n(ve, plant) * tau / math.pi
-        return abs(impulse * shape) / math.sqrt(ve.K * plant.m)
+        """Position amplitude [m] the step's pulse is planned to start
+        (``labbench.model.pulse.PulsePlan.swing``): a plan, not the measurement (``analyze``
+        uses the swing measured)."""
+        return self.pulse_plan().swing(plant.m, ve.K, ve.B)
 
     def pulse(self, n: int, peak_n: float | None = None) -> np.ndarray:
         c = self.config

@@ -251,3 +251,63 @@ def test_a_campaign_takes_the_friction_of_the_chirp_id_that_gave_its_plant(tmp_p
     assert ctx.coulomb_n != 0.02
     nominal = make_context(argparse.Namespace(**{**vars(args), "plant_from": "nominal"}))
     assert nominal.coulomb_n is None
+
+
+def _planned_rows(rig, **fixed):
+    """The rows a Z-width campaign over B = 0 and 2 plans (not run): its predictions."""
+    from labbench.campaign.plan import Context, make_plan
+    from labbench.campaign.rows import skipped_row
+    from labbench.campaign.settings import CampaignSettings
+    from labbench.sweep.spec import spec_from_dict
+
+    spec = spec_from_dict({"sweep": {"name": "z", "protocol": "stability"},
+                           "fixed": {"ve": "spring-damper", "w0_rad_s": 125.0, "K_frac_k_max": 0.5,
+                                     "ratio": 1.08, **fixed}, "grid": {"B": [0.0, 2.0]}})
+    ctx = Context("sim", rig, PLANT, "nominal", True, CampaignSettings.from_rig(rig, True))
+    return [skipped_row(pp, ctx) for pp in make_plan(spec, ctx).points]
+
+
+def test_the_zwidth_chart_draws_the_friction_aware_boundary_over_b_as_the_probe_plans_it():
+    # 41B's chart had a diamond per point only: the probe's swing changes with K and B, so
+    # the curve between points needs the plan's swing at each B, from the table alone
+    from matplotlib.figure import Figure
+
+    from labbench.campaign.figures import _friction_curve
+
+    rig = rough_rig(0.02)
+    rows = _planned_rows(rig, plant_coulomb_n=0.02)
+    ax = Figure().add_subplot()
+    _friction_curve(ax, rows, 125.0, 2.0, "C0", "w0 = 125 rad/s")
+    (line,) = ax.get_lines()
+    assert "with friction 0.02 N, at the swing the probe plans at each B" in line.get_label()
+    curve = dict(zip(line.get_xdata(), line.get_ydata()))
+    for r in rows:  # through each point's planned prediction
+        assert curve[r["ve.B"]] == pytest.approx(r["pred.k_max_friction"], rel=1e-12)
+    # between the points: what a probe planned at that B expects (1438 N/m at B = 1.05) ...
+    between = make_protocol("stability", ve="spring-damper", B=1.05, w0_rad_s=125.0, K=300.0,
+                            ratio=1.08, plant_coulomb_n=0.02)
+    precheck(between, PLANT, rig)
+    assert curve[1.05] == pytest.approx(between.k_friction(PLANT), rel=1e-12)
+    # ... not the boundary at either point's swing (1302 and 1527 N/m: -9 % and +6 %)
+    for r in rows:
+        x = between.planned_amplitude(ve(r["pred.k_max_friction"], r["ve.B"]), PLANT)
+        assert abs(sf.friction_boundary(PLANT, ve(B=1.05), 0.02, x) / curve[1.05] - 1) > 0.05
+    assert all(curve[b] > linear.k_max(PLANT, ve(B=b)) for b in curve)
+
+
+def test_the_friction_aware_curve_stops_at_the_probes_safety_cap():
+    from matplotlib.figure import Figure
+
+    from labbench.campaign.figures import _friction_curve
+
+    rows = _planned_rows(rough_rig(0.05), plant_coulomb_n=0.05, friction_cap=2.0)
+    assert rows[0]["pred.k_max_friction"] is None  # B = 0: beyond 2 x the linear boundary
+    ax = Figure().add_subplot()
+    _friction_curve(ax, rows, 125.0, 2.0, "C0", "w0 = 125 rad/s")
+    curve = dict(zip(*ax.get_lines()[0].get_data()))
+    assert math.isnan(curve[0.0]) and curve[2.0] == pytest.approx(rows[1]["pred.k_max_friction"])
+    assert curve[2.0] <= 2.0 * linear.k_max(PLANT, ve(B=2.0))
+    # a campaign that does not know the friction draws none
+    ax = Figure().add_subplot()
+    _friction_curve(ax, _planned_rows(rough_rig(0.05)), 125.0, 2.0, "C0", "w0 = 125 rad/s")
+    assert not ax.get_lines()

@@ -7,6 +7,8 @@ study when they are ETFE runs at more than one sample time (``rate_figure``);
 """
 from __future__ import annotations
 
+import functools
+import json
 import math
 import textwrap
 from pathlib import Path
@@ -22,6 +24,7 @@ from labbench.numfmt import fmt
 from labbench.ve import Plant, VirtualEnvironment
 
 N_CURVE = 41  # B values of each theory curve
+N_FRICTION = 21  # of the friction-aware curve (each point a search over K: ~20 ms)
 
 
 def table_rows(cols: dict) -> list[dict]:
@@ -45,8 +48,9 @@ def zwidth_figure(cols: dict) -> Figure | None:
     passive too; a triangle: no step grew, K_max above it), the exact sampled boundary, the
     paper's approximation, Colgate & Schenkel's line, the passive envelope of the filtered
     VE and Abbott & Okamura's quantisation bound; with the device's friction known, the
-    friction-aware boundary at each probe's swing (diamonds, over the swings of its steps);
-    the rig's facts below."""
+    friction-aware boundary over B at the swing the probe plans there (a curve) and at the
+    swing each point's steps started from (diamonds, over the swings of its steps); the
+    rig's facts below."""
     rows = zwidth_rows(cols)
     if not rows:
         return None
@@ -61,6 +65,7 @@ def zwidth_figure(cols: dict) -> Figure | None:
         color = f"C{n}"
         name = f"w0 = {fmt(w0)} rad/s" if w0 is not None else "no filter"
         _theory_curves(ax, group[0], w0, b_top, color, name, first=n == 0)
+        _friction_curve(ax, group, w0, b_top, color, name)
         _measured(ax, group, color, name)
         _friction_aware(ax, group, color, name)
     q = _num(rows[0].get("pred.k_passive_quantised"))
@@ -94,15 +99,23 @@ def rig_line(r: dict) -> str:
             f"{fmt(_num(r.get('rig.device_delay_s')) * 1e3)} ms; {commission}")
 
 
+def _loop(r: dict, w0) -> tuple[Plant, float, float, float]:
+    """(plant, device delay, T, td) of a row's loop: what every curve over B is drawn for
+    (the VE at damping B: ``spring-damper`` K = 1 with filter ``w0``, T and td)."""
+    latency, td = _num(r.get("rig.device_delay_s")), _num(r.get("ve.td_s"))
+    return (Plant(float(r["plant.m"]), float(r["plant.b"])),
+            latency if math.isfinite(latency) else 0.0, float(r["rig.sample_time_s"]),
+            td if math.isfinite(td) else 0.0)
+
+
+def _ve_at(B: float, w0, T: float, td: float) -> VirtualEnvironment:
+    return VirtualEnvironment("spring-damper", 1.0, B, math.inf if w0 is None else w0, T, td)
+
+
 def _theory_curves(ax, r: dict, w0, b_top: float, color: str, name: str, first: bool) -> None:
-    plant = Plant(float(r["plant.m"]), float(r["plant.b"]))
-    T, latency = float(r["rig.sample_time_s"]), _num(r.get("rig.device_delay_s"))
-    latency = latency if math.isfinite(latency) else 0.0
-    td = _num(r.get("ve.td_s"))
-    td = td if math.isfinite(td) else 0.0
+    plant, latency, T, td = _loop(r, w0)
     Bs = np.linspace(0.0, 1.05 * b_top, N_CURVE)
-    ves = [VirtualEnvironment("spring-damper", 1.0, B, math.inf if w0 is None else w0, T, td)
-           for B in Bs]
+    ves = [_ve_at(B, w0, T, td) for B in Bs]
     exact = [linear.k_max(plant, ve, latency=latency) for ve in ves]
     passive = [passivity.passive_k_max(plant, ve, latency) for ve in ves]
     ax.plot(Bs, exact, "-", color=color, lw=1.3, label=literal_mpl(f"stable, exact sampled ({name})"))
@@ -144,23 +157,56 @@ def _measured(ax, group: list[dict], color: str, name: str) -> None:
         ax.plot(B[bad], y[bad], "x", color="tab:red", ms=7, label="point not ok (see its row)")
 
 
+def _friction_curve(ax, group: list[dict], w0, b_top: float, color: str, name: str) -> None:
+    """The friction-aware boundary over B as the probe plans it: at each B, where an
+    oscillation of the swing its pulse starts at that K neither grows nor decays
+    (``pred.k_max_friction_plan``: the friction believed, the safety cap and the pulse plan;
+    ``labbench.model.stability_friction.planned_boundary``), through each row's
+    ``pred.k_max_friction``; not drawn beyond the probe's safety cap. One curve for each
+    plan the series holds (a campaign over the friction believed has several)."""
+    plans: dict = {}
+    for r in group:
+        if isinstance(r.get("pred.k_max_friction_plan"), str):
+            plans.setdefault(r["pred.k_max_friction_plan"], []).append(r)
+    for text, rows in plans.items():
+        plant, latency, T, td = _loop(rows[0], w0)
+        Bs = np.union1d(np.linspace(0.0, 1.05 * b_top, N_FRICTION),
+                        [_num(r.get("ve.B")) for r in rows if math.isfinite(_num(r.get("ve.B")))])
+        k = _planned_curve(text, plant, w0, T, td, latency, tuple(Bs))
+        fc = json.loads(text)["coulomb_n"]
+        ax.plot(Bs, k, ls=(0, (6, 2, 1, 2)), color=color, lw=1.2,
+                label=literal_mpl(f"stable with friction {fmt(fc)} N, at the swing the probe plans "
+                                  f"at each B ({name}): describing function"))
+
+
+@functools.lru_cache(maxsize=32)
+def _planned_curve(text: str, plant: Plant, w0, T: float, td: float, latency: float,
+                   Bs: tuple) -> np.ndarray:
+    """``planned_boundary`` at each of ``Bs`` (nan beyond the cap); kept, since a window
+    redraws its chart with every new row (about 20 ms a point)."""
+    from labbench.model.pulse import PulsePlan
+    from labbench.model.stability_friction import planned_boundary
+
+    basis = json.loads(text)
+    plan = PulsePlan.from_dict(basis["pulse"])
+    k = [planned_boundary(plant, _ve_at(B, w0, T, td), basis["coulomb_n"], plan,
+                          basis["friction_cap"], latency) for B in Bs]
+    return np.array([x if x is not None and math.isfinite(x) else math.nan for x in k])
+
+
 def _friction_aware(ax, group: list[dict], color: str, name: str) -> None:
-    """Each point's friction-aware boundary: at the swing its steps started from
-    (``zw.k_friction``, with its range), else the plan's (``pred.k_max_friction``); beyond
-    the probe's safety cap (inf) it is not drawn."""
+    """Each point's friction-aware boundary at the swing its steps started from
+    (``zw.k_friction``, with its range): what its measurement is compared with."""
     B = np.array([_num(r.get("ve.B")) for r in group])
-    k = np.array([_num(r.get("zw.k_friction")) if r.get("zw.k_friction") is not None
-                  else _num(r.get("pred.k_max_friction")) for r in group])
+    k = np.array([_num(r.get("zw.k_friction")) for r in group])
     lo = np.array([_num(r.get("zw.k_friction_lo")) for r in group])
     hi = np.array([_num(r.get("zw.k_friction_hi")) for r in group])
     has = np.isfinite(k)
     if not has.any():
         return
-    order = np.argsort(B[has])
-    ax.plot(B[has][order], k[has][order], "D", ls=(0, (6, 2, 1, 2)), color=color, mfc="none",
-            ms=9, lw=1.0,
-            label=literal_mpl(f"stable with friction, at the probe's swing ({name}): "
-                              "describing function"))
+    ax.plot(B[has], k[has], "D", color=color, mfc="none", ms=9,
+            label=literal_mpl(f"stable with friction, at the swing the steps started from "
+                              f"({name}): compared with the measured"))
     ranged = has & np.isfinite(lo) & np.isfinite(hi)
     ax.errorbar(B[ranged], k[ranged], yerr=np.vstack([k - lo, hi - k])[:, ranged], fmt="none",
                 ecolor=color, capsize=2, lw=0.6, alpha=0.6)

@@ -36,7 +36,10 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
 * with the device's Coulomb friction known (the chirp-ID's that gave the plant, else the
   commissioning's, passed to the probe as
   ``plant_coulomb_n``): ``pred.k_max_friction`` (the friction-aware boundary at the swing
-  the probe's pulses were planned to give, ``labbench.model.stability_friction``), and from
+  the probe's pulses were planned to give, ``labbench.model.stability_friction``) and
+  ``pred.k_max_friction_plan`` (what it follows from, as JSON: the friction believed,
+  ``friction_cap`` and the pulse plan, ``labbench.model.pulse``; the chart draws it over B
+  from these), and from
   the run ``zw.k_friction`` (the same at the swing the steps near the boundary started
   from, ``zw.swing_m``) with ``zw.k_friction_lo`` / ``zw.k_friction_hi`` (its range over
   those steps, widened by its tolerance f_c / (K X)), ``zw.rel_error_friction`` (measured
@@ -142,6 +145,9 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
             context.commission.get("coulomb_n"), pp.rig.metres_per_count)
         planned = getattr(pp.protocol, "k_friction", None)
         out["pred.k_max_friction"] = planned(plant) if planned else None
+        basis = getattr(pp.protocol, "friction_plan", None)
+        basis = basis() if basis else None
+        out["pred.k_max_friction_plan"] = json.dumps(basis, sort_keys=True) if basis else None
     if results.get("variable") == "K":
         out.update(_zwidth(results, out))
         out.update(_friction(results))

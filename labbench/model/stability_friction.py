@@ -153,3 +153,15 @@ def friction_boundary(plant: Plant, ve: VirtualEnvironment, coulomb_n: float, am
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if holds(mid) else (lo, mid)
     return 0.5 * (lo + hi)
+
+
+def planned_boundary(plant: Plant, ve: VirtualEnvironment, coulomb_n: float, plan,
+                     friction_cap: float, latency: float = 0.0) -> float | None:
+    """The friction-aware boundary a stability probe plans for: ``friction_boundary`` at the
+    swing its pulses start at each K (``plan``: a ``labbench.model.pulse.PulsePlan``), with
+    ``math.inf`` beyond ``friction_cap`` x the linear boundary (the probe's safety cap)."""
+    k_lin = linear.k_max(plant, ve, latency=latency)
+    if k_lin is None or not 0 < k_lin < math.inf:
+        return k_lin
+    return friction_boundary(plant, ve, coulomb_n, lambda K: plan.swing(plant.m, K, ve.B),
+                             latency, k_cap=friction_cap * k_lin)
