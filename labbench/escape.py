@@ -1,7 +1,10 @@
 """User text (rig names, file names, reasons) made safe for each place it is written.
 
-HTML goes through ``html.escape`` where it is rendered (``labbench.report``);
-the two other sinks are here:
+HTML goes through ``html.escape`` of ``one_line`` where it is rendered
+(``labbench.report``), so a control character (a terminal escape in a spec or rig name)
+shows as its escape there too; the terminal's lines (the CLI's errors, warnings, progress
+and summaries) go through ``one_line``; JSON output stays JSON (``json.dumps`` escapes
+controls). The two other sinks are here:
 
 * ``one_line``: a header line of a text file (the CSV export's ``# key=value``
   lines) ends at the first line break, so line breaks and other control
@@ -24,5 +27,6 @@ def one_line(text) -> str:
 
 
 def literal_mpl(text) -> str:
-    """``str(text)`` that matplotlib draws as typed (no mathtext)."""
-    return str(text).replace("$", r"\$")
+    """``str(text)`` that matplotlib draws as typed (no mathtext), on one line (``one_line``:
+    a control character in a name is drawn as its escape)."""
+    return one_line(text).replace("$", r"\$")

@@ -24,6 +24,7 @@ missing never breaks the others. A built-in name cannot be taken over.
 """
 from __future__ import annotations
 
+import functools
 import importlib
 from importlib.metadata import entry_points
 
@@ -62,10 +63,18 @@ _BUILTIN = {
 }
 
 
+@functools.lru_cache(maxsize=None)
+def _installed(group: str) -> tuple:
+    """(name, "module:attribute") of the installed packages' entry points of ``group``, read
+    once a process (each reading scans every installed distribution: 0.2 s on a loaded
+    machine, and a campaign looks a protocol up for every point it plans)."""
+    return tuple((ep.name, ep.value) for ep in entry_points(group=group))
+
+
 def _table(group: str) -> dict[str, str]:
     table = dict(_BUILTIN[group])
-    for ep in entry_points(group=group):
-        table.setdefault(ep.name, ep.value)
+    for name, value in _installed(group):
+        table.setdefault(name, value)
     return table
 
 

@@ -9,7 +9,8 @@ Rules, checked before any work and again at the moment of writing:
   the GUI picks a free name instead (``free_name``);
 * the folder holding the output must exist: no folder is created that the
   user did not name (``output_folder`` creates exactly the one named, never
-  its parents; ``new_folder`` also removes it again when what was to go into it failed);
+  its parents, and refuses a link at its name; ``new_folder`` also removes it again when
+  what was to go into it failed);
 * the data go to a new file in the same folder that is renamed into place when
   complete, so an interrupted write leaves the old file (or no file), never a
   truncated one;
@@ -90,13 +91,26 @@ def output_path(path, inputs: Iterable = (), force: bool = False) -> Path:
     return p
 
 
-def output_folder(path) -> Path:
-    """The named output folder, created if missing (its parent must exist)."""
+def usable_folder(path) -> Path:
+    """``path`` once it can be an output folder (``output_folder``), without making it: no
+    link at its name (never followed: labbench writes its tables, charts and reports into
+    real folders only; a link planted at ``NAME.charts`` had a campaign's report written
+    wherever it pointed), not a file."""
     if not str(path).strip():
         raise UserError("empty output folder name")
     d = Path(path)
+    if os.path.islink(d):
+        raise UserError(f"output folder {d} is a link: labbench writes only into a real "
+                        "folder (give the folder it points at, or remove the link)")
     if d.exists() and not d.is_dir():
         raise UserError(f"output {d} is a file, not a folder")
+    return d
+
+
+def output_folder(path) -> Path:
+    """The named output folder (``usable_folder``), created if missing (its parent must
+    exist)."""
+    d = usable_folder(path)
     try:
         d.mkdir(exist_ok=True)
     except FileNotFoundError:

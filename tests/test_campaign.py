@@ -249,7 +249,7 @@ def test_the_plan_is_checked_before_anything_moves():
         make_plan(spec_from_dict(d), context())
     d = etfe_spec(1)
     d["fixed"]["duration_s"] = -1.0
-    with pytest.raises(UserError, match="point 0: duration_s"):
+    with pytest.raises(UserError, match="duration_s must be"):
         make_plan(spec_from_dict(d), context())
 
 

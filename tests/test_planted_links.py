@@ -83,8 +83,31 @@ def sweep(work: Path) -> None:
                  "--csv", str(work / "t.csv"), "--force", "--flush-rows", "2"]) == 0
 
 
+CAMPAIGN = """[sweep]
+protocol = "etfe"
+[fixed]
+ve = "spring"
+duration_s = 1.0
+[grid]
+K = [10.0, 20.0]
+[[chart]]
+kind = "lines"
+x = "K"
+y = "acc.ed_median"
+"""
+
+
+def campaign(work: Path) -> None:
+    spec = work / "spec.toml"
+    if not spec.exists():
+        spec.write_text(CAMPAIGN)
+    assert main(["campaign", str(spec), "--device", "sim", "--table", str(work / "t.sweep"),
+                 "--out", str(work / "s"), "--report"]) == 0
+
+
 WRITERS = {"session": write_session, "export csv": export_csv, "export hdf5": export_hdf5,
-           "report": report, "figure": figure, "rig edit": rig_edit, "sweep": sweep}
+           "report": report, "figure": figure, "rig edit": rig_edit, "sweep": sweep,
+           "campaign": campaign}
 NEEDS_SOURCE = {export_csv, export_hdf5, report}
 
 
@@ -152,6 +175,30 @@ def test_no_writer_writes_through_a_link_planted_at_any_name_it_uses(tmp_path, m
     assert sorted(p.name for p in victims.iterdir()) == (
         [] if dangling else sorted(v.name for v, _ in planted.values()))
     print(f"{name}: {len(planted)} links planted, 0 written through")
+
+
+# The folders a writer makes and fills (a table, its charts and report beside it, a report's
+# folder): a link planted at one is refused in one line, never written through (before, a
+# link at NAME.charts had a campaign's campaign.html and .pdf written where it pointed).
+FOLDERS = {"sweep": ("t.sweep", "t.charts"), "campaign": ("t.sweep", "t.charts"),
+           "report": ("rep",)}
+
+
+@pytest.mark.parametrize("name, folder", [(n, f) for n, fs in FOLDERS.items() for f in fs])
+def test_no_writer_fills_a_folder_through_a_planted_link(tmp_path, capsys, name, folder):
+    writer = WRITERS[name]
+    src = _session(tmp_path / "src") if writer in NEEDS_SOURCE else None
+    work, victim = tmp_path / "work", tmp_path / "victim"
+    work.mkdir()
+    victim.mkdir()
+    (work / folder).symlink_to(victim, target_is_directory=True)
+    capsys.readouterr()
+    with pytest.raises(AssertionError):  # the writer's command did not exit 0
+        writer(work, *((src,) if src else ()))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert f"output folder {work / folder} is a link" in err[-1], err
+    assert list(victim.iterdir()) == []
+    assert not list((work / "s").glob("*.lbsession")) if name == "campaign" else True
 
 
 def test_a_link_where_a_table_keeps_its_own_folder_is_refused(tmp_path, capsys):

@@ -222,13 +222,13 @@ def test_a_spec_or_a_chart_the_disk_refuses_is_one_line(tmp_path, capsys, monkey
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     with monkeypatch.context() as m:
-        m.setattr(Path, "write_text", full)  # _spec.json
+        m.setattr(Path, "write_text", full)  # _table.json, the first of the table's own files
         assert main(["sweep", str(spec), "--out", str(out), "--workers", "0"]) == 2
-        assert "_spec.json: the disk is full (No space left on device)" in one_line(capsys)
-    from labbench.sweep import charts
+        assert "_table.json: the disk is full (No space left on device)" in one_line(capsys)
+    from matplotlib.figure import Figure
 
     with monkeypatch.context() as m:
-        m.setattr(charts.Figure, "savefig", lambda self, *a, **kw: full(self))
+        m.setattr(Figure, "savefig", lambda self, *a, **kw: full(self))
         assert main(["sweep", str(spec), "--out", str(out), "--workers", "0", "--json"]) == 2
         cap = capsys.readouterr()
         line = [x for x in cap.err.splitlines() if "error" in x]

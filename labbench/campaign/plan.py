@@ -11,16 +11,23 @@ of the exact sampled K_max of the point's VE on the campaign's plant with the ri
 
 The plant every point is checked and predicted with is the campaign's (``Context``): the
 one given, else the rig's last identified one, else its nominal one, so that every row's
-prediction is made from one model. Before the first point the whole plan is checked:
-every point's settings (one ``UserError`` for the first that cannot be made), the
-commissioning gate (``labbench.commissioning.gate``, as ``labbench run`` applies it), and
-the pre-check of each point (``labbench.protocol.precheck``); a point the pre-check calls
-unstable is planned as *skipped* (its row says why) unless its protocol is the stability
-probe, whose steps beyond the boundary are its purpose (its first step must be stable).
+prediction is made from one model. Points are planned as they are asked for, as a sweep's
+(a 10^6-point spec starts at once in little memory; the list took 19.5 s and 719 MB before
+its first point could be refused): ``make_plan`` checks every distinct set of parameter
+names first (``check_names``: a name nothing knows stops the campaign before any point);
+``Plan.plan_point`` makes one point's settings (those that cannot be made are its
+``refused`` reason: its row says why, as a sweep's), applies the commissioning gate
+(``labbench.commissioning.gate``, as ``labbench run`` does) and the pre-check
+(``labbench.protocol.precheck``); a point the pre-check calls unstable is planned as
+*skipped* (its row says why) unless its protocol is the stability probe, whose steps beyond
+the boundary are its purpose (its first step must be stable). On real hardware every point
+is planned before anything moves (``describe``: the operator sees the whole plan).
 """
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +35,7 @@ import numpy as np
 from labbench import commissioning, device_delay
 from labbench.campaign.settings import CampaignSettings
 from labbench.errors import UnstableVEError, UserError
+from labbench.escape import one_line
 from labbench.numfmt import fmt
 from labbench.rig import Rig, rig_from_dict
 from labbench.sweep.point import DEVICE_DELAY, K_FRACTION, route
@@ -99,6 +107,7 @@ class PlannedPoint:
     protocol: object
     plant_from: dict | None = None  # where the plant in ``options`` came from (its start record's)
     skipped: str | None = None  # the pre-check's refusal: the point is not run
+    refused: str | None = None  # why its settings cannot be made (``protocol`` is None then)
     est_s: float = 0.0  # device time [s] (an upper bound for an adaptive protocol)
     peak_force_n: float = 0.0  # largest exogenous force planned [N]
     max_k: float = 0.0  # stiffest VE it renders [N/m]
@@ -116,44 +125,99 @@ class PlannedPoint:
 
 @dataclass
 class Plan:
+    """A spec's points on a context's device, planned as they are asked for (``plan_point``):
+    a 10^6-point spec holds no list (``points`` makes one, for a small spec shown whole)."""
+
     spec: Spec
     context: Context
-    points: list[PlannedPoint]
 
     @property
     def target(self) -> dict:
         return target(self.spec, self.context)
 
-    def summary(self, keys_done: set | None = None) -> dict:
+    def key(self, point: Point) -> str:
+        return point_key(self.target, point.params, point.tags)
+
+    @functools.cached_property
+    def varying(self) -> tuple:
+        """The parameters that differ between points (for labels), from the spec's axes."""
+        s = self.spec
+        names = [k for k, v in s.grid.items() if len(v) > 1] + list(s.ranges)
+        for cases in s.cases.values():
+            for k in dict.fromkeys(k for _, p in cases for k in p):
+                if len({repr(p.get(k)) for _, p in cases}) > 1:
+                    names.append(k)
+        return tuple(dict.fromkeys(names))
+
+    def plan_point(self, point: Point) -> PlannedPoint:
+        """``point`` as it will run; settings that cannot be made are its ``refused`` reason
+        (its row says so: the campaign goes on), the commissioning gate and a simulator's
+        option on real hardware one UserError (``check_names`` finds them first)."""
+        pp = _plan_point(self.spec, self.context, point, self.target)
+        pp.varying = self.varying
+        return pp
+
+    def iter_points(self) -> Iterator[PlannedPoint]:
+        for point in self.spec.iter_points():
+            yield self.plan_point(point)
+
+    @functools.cached_property
+    def points(self) -> list[PlannedPoint]:
+        """Every point planned, as a list (a window showing a small spec whole)."""
+        return list(self.iter_points())
+
+    def summary(self, keys_done=None, progress: Callable[[int, int], None] | None = None) -> dict:
         """Points, device time, the largest force and stiffness commanded, of the points
-        still to run (all when ``keys_done`` is None)."""
-        todo = [p for p in self.points if not keys_done or p.key not in keys_done]
-        run = [p for p in todo if p.skipped is None]
-        pause = self.context.settings.pause_s
-        return {"points": len(self.points), "to_run": len(run),
-                "skipped": len(todo) - len(run), "done": len(self.points) - len(todo),
-                "device_s": sum(p.est_s for p in run),
-                "est_s": sum(p.est_s for p in run) + pause * max(len(run) - 1, 0),
-                "peak_force_n": max((p.peak_force_n for p in run), default=0.0),
-                "force_limit_n": max((p.rig.force_limit_n for p in run), default=0.0),
-                "max_k": max((p.max_k for p in run), default=0.0)}
+        still to run (all when ``keys_done`` is None; anything with ``in``), every point
+        planned once and let go (``progress(n, total)`` hears how far)."""
+        total, pause = self.spec.count(), self.context.settings.pause_s
+        s = {"points": 0, "to_run": 0, "skipped": 0, "refused": 0, "done": 0, "device_s": 0.0,
+             "peak_force_n": 0.0, "force_limit_n": 0.0, "max_k": 0.0, "first_refused": None}
+        for n, point in enumerate(self.spec.iter_points(), 1):
+            s["points"] += 1
+            if progress is not None:
+                progress(n, total)
+            if keys_done and self.key(point) in keys_done:
+                s["done"] += 1
+                continue
+            p = self.plan_point(point)
+            if p.refused is not None:
+                s["refused"] += 1
+                s["first_refused"] = s["first_refused"] or f"point {point.index}: {p.refused}"
+            elif p.skipped is not None:
+                s["skipped"] += 1
+            else:
+                s["to_run"] += 1
+                s["device_s"] += p.est_s
+                s["peak_force_n"] = max(s["peak_force_n"], p.peak_force_n)
+                s["force_limit_n"] = max(s["force_limit_n"], p.rig.force_limit_n)
+                s["max_k"] = max(s["max_k"], p.max_k)
+        s["est_s"] = s["device_s"] + pause * max(s["to_run"] - 1, 0)
+        return s
 
 
-def describe(plan: Plan, done: set, where) -> list[str]:
-    """What a person sees before a campaign starts (the CLI prints it, the window shows it):
-    the points, those already in the table ``where``, the time, the largest force and
-    stiffness it will command, the plant."""
-    s = plan.summary(done)
+def describe(plan: Plan, done, where, progress=None) -> list[str]:
+    """What a person sees before a campaign starts on real hardware (the CLI prints it, the
+    window shows it): the points, those already in the table ``where`` (``done``: their keys,
+    anything with ``in``), the time, the largest force and stiffness it will command, the
+    points whose settings cannot be made, the plant. Every point is planned for it
+    (``progress(n, total)``)."""
+    s = plan.summary(done, progress)
     c = plan.context
     kind = "simulator" if c.simulated else "real hardware"
-    return [f"campaign {plan.spec.name} on {c.device} ({kind}), rig {c.rig.name!r}: "
-            f"{s['points']} points, {s['done']} already in {where}, {s['to_run']} to run, "
-            f"{s['skipped']} skipped by the pre-check",
-            f"  estimated {fmt(s['est_s'] / 60, 3)} min ({fmt(s['device_s'] / 60, 3)} min "
-            f"device time, pause {fmt(c.settings.pause_s)} s between points)",
-            f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
-            f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
-            f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m ({c.plant_label})"]
+    lines = [f"campaign {one_line(plan.spec.name)} on {c.device} ({kind}), rig "
+             f"{one_line(repr(c.rig.name))}: {s['points']} points, {s['done']} already in "
+             f"{one_line(where)}, {s['to_run']} to run, {s['skipped']} skipped by the pre-check",
+             f"  estimated {fmt(s['est_s'] / 60, 3)} min ({fmt(s['device_s'] / 60, 3)} min "
+             f"device time, pause {fmt(c.settings.pause_s)} s between points)",
+             f"  largest force planned {fmt(s['peak_force_n'])} N (every command clamped at "
+             f"{fmt(s['force_limit_n'])} N), stiffest VE {fmt(s['max_k'])} N/m",
+             f"  plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m "
+             f"({one_line(c.plant_label)})"]
+    if s["refused"]:
+        lines.insert(1, f"  {s['refused']} points refused (their settings cannot be made; a row "
+                        f"each says why), the first {one_line(s['first_refused'])}")
+    return lines
 
 
 def commission_facts(directory, rig_name: str, on_skip=None) -> dict:
@@ -177,20 +241,68 @@ def target(spec: Spec, context: Context) -> dict:
             "rig": context.rig.name}
 
 
+def identity(context: Context) -> dict:
+    """What a campaign adds to a table (``labbench.sweep.table.claim_identity``)."""
+    return {"made_by": "campaign", "kind": "run", "device": context.device, "analysis": None,
+            "rig": context.rig.name}
+
+
 def make_plan(spec: Spec, context: Context) -> Plan:
-    """Every point of ``spec`` on ``context``'s device, checked (module doc)."""
+    """``spec``'s points on ``context``'s device (module doc), its names checked
+    (``check_names``); the points are planned as they are asked for."""
     if spec.kind != "run":
         raise UserError(f"{spec.source}: a campaign runs a protocol: [sweep] kind must be run")
-    points = spec.points()
-    varying = tuple(k for k in dict.fromkeys(k for p in points for k in p.params)
-                    if len({repr(p.params.get(k)) for p in points}) > 1)
-    tgt = target(spec, context)
-    planned = []
-    for p in points:
-        pp = _plan_point(spec, context, p, tgt)
-        pp.varying = varying
-        planned.append(pp)
-    return Plan(spec, context, planned)
+    plan = Plan(spec, context)
+    check_names(plan)
+    return plan
+
+
+def check_names(plan: Plan) -> None:
+    """Refuse a spec whose points the campaign cannot make, before any point: one point of
+    every distinct set of names (``Spec.name_samples``: the fixed values, the first of each
+    axis, one case of each set of names) is planned, and on a simulator its device opened
+    with the point's options and closed. That point's settings, a name nothing knows, a
+    simulator's option on real hardware, the commissioning gate: one UserError naming it
+    (before, an unknown name in a case stopped the campaign when its first point opened the
+    device, and a bad fixed value in a 10^6-point spec was refused after 19.5 s and 719 MB).
+    Any other point whose settings cannot be made is a row saying so."""
+    from labbench.registry import open_device
+
+    spec, context = plan.spec, plan.context
+    seen = set()
+    for p in spec.name_samples():
+        names = frozenset(p.params)
+        if names in seen:
+            continue
+        seen.add(names)
+        where = f"{spec.source}: the point {one_line(p.tags) if p.tags else ''}"
+        dev = _device_options(spec, context, route(spec.protocol, p.params), where)
+        refused = plan.plan_point(p).refused
+        if refused is not None:
+            raise UserError(f"{where.rstrip()} ({_shown(p.params)}): {refused}")
+        if dev and context.simulated:
+            try:
+                open_device(context.device, context.rig, **dev).close()
+            except UserError as exc:
+                if "unknown" in str(exc):
+                    raise UserError(f"{spec.source}: {exc}") from None
+
+
+def _shown(params: dict, n: int = 4) -> str:
+    items = [f"{k}={v}" for k, v in params.items()]
+    return one_line(", ".join(items[:n]) + (", ..." if len(items) > n else ""))
+
+
+def _device_options(spec: Spec, context: Context, r: dict, where: str) -> dict:
+    """The point's simulator options (seed aside); a name a campaign refuses is a UserError."""
+    if DEVICE_DELAY in r["sweep"]:
+        raise UserError(f"{where}: {DEVICE_DELAY} sets a sweep simulator's delay; a campaign "
+                        "measures the device it runs on (the rig's measured_td_s is its delay)")
+    dev = {k: v for k, v in r["device"].items() if k != "seed"}
+    if dev and not context.simulated:
+        raise UserError(f"{where}: {', '.join(sorted(dev))}: not a setting of protocol "
+                        f"{spec.protocol} or of the rig (a simulator's options are for simulators)")
+    return dev
 
 
 def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> PlannedPoint:
@@ -199,15 +311,9 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
 
     where = f"{spec.source}: point {point.index}"
     r = route(spec.protocol, point.params)
-    if DEVICE_DELAY in r["sweep"]:
-        raise UserError(f"{where}: {DEVICE_DELAY} sets a sweep simulator's delay; a campaign "
-                        "measures the device it runs on (the rig's measured_td_s is its delay)")
-    dev = {k: v for k, v in r["device"].items() if k != "seed"}
-    if dev and not context.simulated:
-        raise UserError(f"{where}: {', '.join(sorted(dev))}: not a setting of protocol "
-                        f"{spec.protocol} or of the rig (a simulator's options are for simulators)")
+    dev = _device_options(spec, context, r, where)
     seed = r["device"].get("seed")
-    rig = point_rig(context.rig, r["rig"], where)
+    key = point_key(tgt, point.params, point.tags)
     fields = set(protocol_class(spec.protocol).Config.__dataclass_fields__)
     opts = {k: v for k, v in r["protocol"].items() if k != "sample_time_s"}  # the rig's
     plant_from = None  # the start record's: a plant the point's own settings give says so itself
@@ -216,18 +322,20 @@ def _plan_point(spec: Spec, context: Context, point: Point, tgt: dict) -> Planne
         plant_from = context.plant_record()
     if "plant_coulomb_n" in fields and "plant_coulomb_n" not in opts and context.coulomb_n:
         opts["plant_coulomb_n"] = context.coulomb_n
-    plant = Plant(opts.get("plant_m_kg", context.plant.m), opts.get("plant_b", context.plant.b))
-    delay = device_delay.resolve(rig)
     try:
+        rig = point_rig(context.rig, r["rig"], where)
+        plant = Plant(opts.get("plant_m_kg", context.plant.m), opts.get("plant_b", context.plant.b))
+        delay = device_delay.resolve(rig)
         if K_FRACTION in r["sweep"]:
             opts["K"] = _k_from_fraction(spec.protocol, opts, rig, plant, delay.s,
                                          r["sweep"][K_FRACTION])
         protocol = make_protocol(spec.protocol, sample_time_s=rig.sample_time_s, **opts)
     except UserError as exc:
-        raise UserError(f"{where}: {exc}") from None
+        return PlannedPoint(point, key, spec.protocol, opts, context.rig, {}, None,
+                            refused=one_line(exc))
     commissioning.gate(protocol.vetted_ves(plant), rig, context.simulated,
                        context.skip_commissioning)
-    pp = PlannedPoint(point, point_key(tgt, point.params, point.tags), spec.protocol, opts, rig,
+    pp = PlannedPoint(point, key, spec.protocol, opts, rig,
                       {**dev, **({"seed": seed} if seed is not None else {})}, protocol,
                       plant_from=plant_from)
     try:

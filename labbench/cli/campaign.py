@@ -14,13 +14,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
-from labbench.cli.progress import ProgressBar, clock_text
+from labbench.cli.progress import ProgressBar, clock_text, warner
 from labbench.errors import UserError
+from labbench.escape import one_line
+from labbench.numfmt import fmt
 from labbench.interrupts import StopRequest, stopping
 
 EXIT_STRICT = 3
+_warn = warner("campaign")
 
 
 def register(subparsers) -> None:
@@ -54,14 +58,17 @@ def register(subparsers) -> None:
                         "`labbench run commission`")
     p.add_argument("--report", action="store_true",
                    help="when complete, write the campaign's report (HTML and PDF) in the table")
+    p.add_argument("--repair", action="store_true", help="move damaged part files of the "
+                   "table aside (NAME.sweep/_damaged) and run their points again on the device")
     p.add_argument("--strict", action="store_true",
-                   help=f"exit {EXIT_STRICT} when a point's status is not ok")
+                   help=f"exit {EXIT_STRICT} when a point's status is not ok (skipped by the "
+                        "pre-check and refused included)")
     p.add_argument("--json", action="store_true", help="print one JSON object: the summary")
     p.set_defaults(func=cmd_campaign)
 
 
 def cmd_campaign(args) -> int:
-    from labbench.campaign.engine import run_campaign
+    from labbench.campaign.engine import CampaignTable
     from labbench.campaign.plan import make_plan
     from labbench.sweep import table as tables
     from labbench.sweep.spec import load_spec
@@ -73,24 +80,28 @@ def cmd_campaign(args) -> int:
         Path("campaigns") / f"{Path(args.spec).stem}-{args.device}{tables.SUFFIX}")
     if not args.table:
         out.parent.mkdir(exist_ok=True)
-    done = tables.done_keys(out) if tables.is_table(out) else set()
     asking = not context.simulated and not args.yes
     if asking and not (sys.stdin and sys.stdin.isatty()):
         raise UserError(f"{args.device} is real hardware and stdin is not a terminal to ask "
                         "on: give --yes to start without asking (the plan is printed)")
-    print_plan(plan, done, out)
-    if asking:
-        ask(f"start on {args.device} (real hardware)?")
     stop = StopRequest()
     progress = CampaignProgress(spec.name)
     confirm = _confirm if args.confirm else None
     try:
-        with stopping(stop):
-            summary = run_campaign(plan, out, point_runner(args), stop, progress, confirm)
+        with CampaignTable(plan, out, args.repair, progress, _warn) as table:
+            print_plan(plan, out, table.index)
+            if asking:
+                ask(f"start on {args.device} (real hardware)?")
+            with stopping(stop):
+                summary = table.run(point_runner(args), stop, progress, confirm)
     finally:
         progress.close()
     result = summary.as_dict()
     result["charts"] = []
+    if summary.repaired:
+        _warn(f"{len(summary.repaired)} damaged part file{'s' * (len(summary.repaired) > 1)} "
+              f"moved to {summary.repaired[0].parent}; their points ran again")
+    tab = tables.read_table(out)
     if summary.complete:
         result["charts"] = [str(p) for p in write_charts(spec, out)]
         if args.report:
@@ -98,12 +109,18 @@ def cmd_campaign(args) -> int:
 
             html, pdf = write_campaign_report(out)
             result["report"] = {"html": str(html), "pdf": str(pdf)}
+    result["not_ok_in_table"] = _not_ok(tab)
     print_summary(args, spec, summary, result)
     if summary.exit_code:
         return summary.exit_code
     if summary.interrupted:
         return 1
-    return EXIT_STRICT if args.strict and summary.not_ok else 0
+    return EXIT_STRICT if args.strict and result["not_ok_in_table"] else 0
+
+
+def _not_ok(tab) -> int:
+    """Rows of the table whose status is not ok (skipped and refused ones included)."""
+    return sum(s != "ok" for s in tab["status"].to_pylist()) if tab.num_rows else 0
 
 
 def make_context(args):
@@ -150,11 +167,39 @@ def point_runner(args):
     return run_point
 
 
-def print_plan(plan, done: set, out: Path) -> None:
+def print_plan(plan, out: Path, done) -> None:
+    """On real hardware the whole plan (every point planned, the progress said every 2 s:
+    ``labbench.campaign.plan.describe``; ``done``: the keys in the table); on a simulator
+    its first line (the points are planned as they run, the progress says the rest)."""
     from labbench.campaign.plan import describe
 
-    for line in describe(plan, done, out):
+    c = plan.context
+    if c.simulated:
+        lines = [f"campaign {one_line(plan.spec.name)} on {c.device} (simulator), rig "
+                 f"{one_line(repr(c.rig.name))}: {plan.spec.count()} points into "
+                 f"{one_line(out)}; plant m = {fmt(c.plant.m)} kg, b = {fmt(c.plant.b)} N s/m "
+                 f"({one_line(c.plant_label)})"]
+    else:
+        lines = describe(plan, done, out, PlanProgress())
+    for line in lines:
         print(f"labbench campaign: {line}", file=sys.stderr)
+
+
+class PlanProgress:
+    """``planning: n/N points checked`` on stderr every 2 s while a plan is made whole."""
+
+    def __init__(self, stream=None, interval_s: float = 2.0):
+        self.stream = stream if stream is not None else sys.stderr
+        self.interval_s, self.t0 = interval_s, time.monotonic()
+        self._last = self.t0
+
+    def __call__(self, n: int, total: int) -> None:
+        now = time.monotonic()
+        if now - self._last >= self.interval_s:
+            self._last = now
+            print(f"labbench campaign: planning: {n}/{total} points checked "
+                  f"({100 * n / max(total, 1):.1f} %), {clock_text(now - self.t0)} elapsed",
+                  file=self.stream, flush=True)
 
 
 def ask(question: str) -> None:
@@ -177,11 +222,13 @@ class CampaignProgress:
         self.bar = ProgressBar(f"campaign {name}", self.stream)
 
     def __call__(self, p) -> None:
+        point = one_line(p.point) if p.point else p.message
         if self.bar.enabled:
-            self.bar((p.done + p.fraction) / max(p.total, 1), f"{p.done}/{p.total} {p.point}")
+            self.bar((p.done + p.fraction) / max(p.total, 1), f"{p.done}/{p.total} {point}")
         elif p.phase != "run":
             eta = "?" if p.eta_s is None else clock_text(p.eta_s)
-            print(f"labbench campaign: {p.done}/{p.total} points, {p.point}: {p.message}, "
+            what = f"{point}: {p.message}" if p.point else p.message
+            print(f"labbench campaign: {p.done}/{p.total} points, {what}, "
                   f"{clock_text(p.elapsed_s)} elapsed, ETA {eta}", file=self.stream, flush=True)
 
     def close(self) -> None:
@@ -211,15 +258,17 @@ def print_summary(args, spec, summary, result: dict) -> None:
     if args.json:
         print(json.dumps(result, allow_nan=False))
         return
-    state = "complete" if summary.complete else f"stopped ({summary.interrupted})"
-    print(f"campaign {spec.name}: {state}; {summary.already + summary.ran + summary.skipped}/"
-          f"{summary.total} points in {summary.table} ({summary.ran} run now, "
-          f"{summary.rerun} of them again after an interruption, {summary.skipped} skipped, "
-          f"{summary.not_ok} not ok, {summary.wall_s:.1f} s)")
+    state = "complete" if summary.complete else f"stopped ({one_line(summary.interrupted)})"
+    others = f", {summary.by_others} by another campaign" if summary.by_others else ""
+    print(f"campaign {one_line(spec.name)}: {state}; {summary.ran} run now in "
+          f"{one_line(summary.table)} of {summary.total} points ({summary.already} there before"
+          f"{others}; {summary.rerun} run again after an interruption, {summary.skipped} "
+          f"skipped, {summary.refused} refused, {summary.not_ok} not ok, "
+          f"{summary.wall_s:.1f} s)")
     for path in result["charts"]:
-        print(f"  chart {path}")
+        print(f"  chart {one_line(path)}")
     if "report" in result:
-        print(f"  report {result['report']['html']}  {result['report']['pdf']}")
+        print(f"  report {one_line(result['report']['html'])}  {one_line(result['report']['pdf'])}")
     if not summary.complete:
         print("  run the same command again to run the rest")
     sys.stdout.flush()

@@ -22,6 +22,7 @@ import threading
 
 from labbench import __version__
 from labbench.errors import Cancelled, DeviceError, LabbenchError, UserError, missing_extra
+from labbench.escape import one_line
 from labbench.interrupts import raising
 from labbench.units import SI, DisplayUnits
 
@@ -79,8 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         except Cancelled as exc:  # an analysis asked to stop: as an interrupt
             print(f"labbench {args.command}: {exc}", file=sys.stderr)
             return 130
-        except LabbenchError as exc:
-            print(f"labbench {args.command}: error: {exc}", file=sys.stderr)
+        except LabbenchError as exc:  # one line, its controls escaped (names, paths in it)
+            print(f"labbench {args.command}: error: {one_line(exc)}", file=sys.stderr)
             return 1 if isinstance(exc, DeviceError) else 2
         except ModuleNotFoundError as exc:
             top = (exc.name or "").split(".")[0]
@@ -117,6 +118,14 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+class _OneLine(logging.Formatter):
+    """A log line on one line, its controls escaped (``labbench.escape.one_line``); a
+    traceback, when one is logged, follows as it is."""
+
+    def formatMessage(self, record) -> str:
+        return one_line(super().formatMessage(record))
+
+
 def setup_logging(verbosity: int) -> None:
     """One stderr handler on the root logger; ``verbosity`` 0 = warnings, 1 = info,
     2 = debug, -1 = errors only; the libraries' loggers speak from 1 on."""
@@ -126,7 +135,7 @@ def setup_logging(verbosity: int) -> None:
     if not any(h.get_name() == _HANDLER_NAME for h in root.handlers):
         handler = _StderrHandler()
         handler.set_name(_HANDLER_NAME)
-        handler.setFormatter(logging.Formatter("%(name)s: %(levelname)s: %(message)s"))
+        handler.setFormatter(_OneLine("%(name)s: %(levelname)s: %(message)s"))
         root.addHandler(handler)
     root.setLevel(level)
     for name in LIBRARY_LOGGERS:

@@ -1,8 +1,20 @@
-"""A one-line terminal progress bar on stderr with elapsed time and ETA, drawn only on a terminal."""
+"""What a command says on stderr besides its error: a one-line progress bar with elapsed time and
+ETA (drawn only on a terminal), and warnings (``warner``)."""
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
+
+
+def warner(command: str) -> Callable[[str], None]:
+    """``warn(line)`` printing ``labbench <command>: warning: <line>`` on one line."""
+    from labbench.escape import one_line
+
+    def warn(line: str) -> None:
+        print(f"labbench {command}: warning: {one_line(line)}", file=sys.stderr, flush=True)
+
+    return warn
 
 
 def clock_text(seconds: float) -> str:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from labbench.cli.progress import ProgressBar, clock_text
 from labbench.errors import UserError
+from labbench.escape import one_line
 from labbench.interrupts import StopRequest, stopping
 
 EXIT_STRICT = 3
@@ -70,7 +71,7 @@ class SweepProgress:
         if now - self._last >= self.interval_s or p.done == p.total:
             self._last = now
             eta = "?" if p.eta_s is None else clock_text(p.eta_s)
-            print(f"labbench sweep: {self.name}: {text}, {clock_text(p.elapsed_s)} elapsed, "
+            print(f"labbench sweep: {one_line(self.name)}: {text}, {clock_text(p.elapsed_s)} elapsed, "
                   f"ETA {eta}", file=self.stream, flush=True)
 
     def close(self) -> None:
@@ -90,6 +91,10 @@ def cmd_sweep(args) -> int:
     out = Path(args.out) if args.out else Path("sweeps") / f"{Path(args.spec).stem}{table.SUFFIX}"
     if not args.out:
         out.parent.mkdir(exist_ok=True)
+    if spec.charts and not args.charts:  # before the work: the charts go there at the end
+        from labbench.safe_write import usable_folder
+
+        usable_folder(table.charts_folder(out))
     stop = StopRequest()
     progress = SweepProgress(spec.name)
     try:
@@ -122,14 +127,14 @@ def cmd_sweep(args) -> int:
         print(json.dumps(result, allow_nan=False))
     else:
         state = "stopped" if summary.stopped else "complete"
-        print(f"sweep {spec.name}: {state}, {summary.before + summary.computed}/{summary.total} "
-              f"points in {summary.table} ({summary.computed} computed now"
+        print(f"sweep {one_line(spec.name)}: {state}, {summary.before + summary.computed}/"
+              f"{summary.total} points in {one_line(summary.table)} ({summary.computed} computed now"
               + (f" on {summary.workers} workers" if summary.workers else " in this process")
               + f", {summary.failed} not ok, {summary.wall_s:.1f} s)")
         for path in result["charts"]:
-            print(f"  chart {path}")
+            print(f"  chart {one_line(path)}")
         if "csv" in result:
-            print(f"  csv {result['csv']}")
+            print(f"  csv {one_line(result['csv'])}")
         if summary.stopped:
             print("  run the same command again to compute the rest")
     if stop.exit_code:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import base64
 import html
 
+from labbench.escape import one_line
 from labbench.report.blocks import Figure, Heading, PageBreak, Paragraph, Table, as_markup
 
 _CSS = """
@@ -30,10 +31,12 @@ figcaption{font-size:13px;color:#444;margin-top:.3rem}
 
 
 def render_html(title: str, subtitle: str, blocks: list) -> str:
-    e = html.escape
+    def e(text) -> str:  # an attribute's or the head's text: escaped, controls shown as escapes
+        return html.escape(one_line(text))
+
     out = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(title)}</title>"
-           f"<style>{_CSS}</style></head><body><header><h1>{e(title)}</h1>"
-           f"<p>{e(subtitle)}</p></header>"]
+           f"<style>{_CSS}</style></head><body><header><h1>{as_markup(title)}</h1>"
+           f"<p>{as_markup(subtitle)}</p></header>"]
     for b in blocks:
         if isinstance(b, Heading):
             out.append(f"<h{b.level}>{as_markup(b.text)}</h{b.level}>")

@@ -20,8 +20,6 @@ part of the answer: where a run was refused as unstable, where it failed).
 from __future__ import annotations
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from labbench.errors import UserError, unknown_name
 from labbench.escape import literal_mpl
@@ -68,16 +66,23 @@ def columns(table) -> dict[str, list]:
     return {n: table[n].to_pylist() for n in table.column_names}
 
 
-def draw(cols: dict[str, list], chart: dict) -> Figure:
-    """The figure of ``chart`` (``check_chart``-valid) from the table's columns."""
-    check_chart(chart, "chart")
-    rows = _where(cols, chart.get("where") or {})
-    for k in ("x", "color", "series", "metric", "warnings", "facet"):
-        if k in chart:
-            _need(cols, chart[k])
+def columns_named(chart: dict) -> list[str]:
+    """The table columns a (``check_chart``-valid) chart draws from."""
     ys = chart["y"] if isinstance(chart["y"], list) else [chart["y"]]
-    for y in ys:
-        _need(cols, y)
+    named = [chart[k] for k in ("x", "color", "series", "metric", "warnings", "facet") if k in chart]
+    return list(dict.fromkeys([*named, *ys, *(chart.get("where") or {})]))
+
+
+def draw(cols: dict[str, list], chart: dict):
+    """The figure of ``chart`` (``check_chart``-valid) from the table's columns (matplotlib is
+    imported here: reading a spec, which checks its charts, does not need it)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    check_chart(chart, "chart")
+    for name in columns_named(chart):
+        _need(cols, name)
+    rows = _where(cols, chart.get("where") or {})
     facets = [None]
     if "facet" in chart:
         facets = list(dict.fromkeys(cols[chart["facet"]][i] for i in rows))
@@ -121,7 +126,6 @@ def _where(cols: dict, where: dict) -> list[int]:
     n = len(cols.get("key", []))
     rows = list(range(n))
     for k, v in where.items():
-        _need(cols, k)
         rows = [i for i in rows if cols[k][i] == v]
     return rows
 

@@ -107,6 +107,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
     spec_d = spec.as_dict()
     with sharing.Share(out) as share:
         with share.locked():
+            tables.claim_identity(out, tables.sweep_identity(spec), bool(share.others()))
             index = tables.KeyIndex(out, verify=repair)
             repaired = []
             if index.damaged:
@@ -200,20 +201,17 @@ class _Claims:
 
 
 def _wait_for_others(share, state: Progress, stop, progress, t0: float) -> bool:
-    """Wait until no other sweep has points claimed (they finish them, or their claims go
-    with them); False when stopped meanwhile."""
-    last = 0.0
-    while not _stopping(stop):
-        with share.locked():
-            state.waiting = len(share.others())
-        if not state.waiting:
-            return True
+    """Wait until no other sweep has points claimed (``sharing.wait_for_others``), the
+    progress said every 2 s; False when stopped meanwhile."""
+    def tick(waiting: int) -> None:
+        state.waiting = waiting
         state.elapsed_s = time.perf_counter() - t0
-        if progress is not None and state.elapsed_s - last >= 2.0:
-            last = state.elapsed_s
+        if progress is not None:
             progress(state)
-        time.sleep(POLL_S)
-    return False
+
+    done = sharing.wait_for_others(share, stop, tick, POLL_S)
+    state.waiting = 0
+    return done
 
 
 class _Compute:

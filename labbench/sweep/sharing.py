@@ -9,6 +9,12 @@ Inside ``NAME.sweep/`` (names starting with ``_`` are skipped by Parquet readers
   not yet written (one a line, rewritten under the table lock). Its sweep holds a lock on
   it for as long as it runs: a claim whose lock can be taken belongs to a sweep that
   ended without removing it (killed), and is removed; its points are free again.
+* ``_hardware``: held (``Share.hold``) by a campaign on real hardware for as long as it
+  runs, so that a second one into the table is refused instead of driving the same rig.
+
+Campaigns share a table the same way, claiming one point at a time
+(``labbench.campaign.engine``): two campaigns of one spec on a simulator run every point
+once between them (before, each ran every point).
 
 A sweep claims the next few points of its spec that are neither in the table nor
 claimed; once it has no more of its own it waits for the points others claimed, then
@@ -98,6 +104,7 @@ class Share:
     def __init__(self, directory):
         self.directory = Path(directory)
         self.mine: set[str] = set()
+        self._held: list[int] = []  # descriptors of ``hold``'s locks
         try:
             self._lock_fd = _open_lock(self.directory / LOCK_FILE)
         except OSError as exc:
@@ -165,6 +172,19 @@ class Share:
         while data:
             data = data[os.write(self._fd, data):]
 
+    def hold(self, name: str) -> bool:
+        """An exclusive lock on the table's file ``name`` for as long as this share is open;
+        False when another process holds it."""
+        try:
+            fd = _open_lock(self.directory / name)
+        except OSError as exc:
+            raise UserError(f"cannot use table {self.directory}: {why(exc)}") from None
+        if not _lock(fd, wait=False):
+            os.close(fd)
+            return False
+        self._held.append(fd)
+        return True
+
     def close(self) -> None:
         """Remove the claim and let go of the table (safe twice)."""
         if self._fd is None:
@@ -172,7 +192,8 @@ class Share:
         with contextlib.suppress(OSError):
             self.path.unlink()
         os.close(self._fd)  # its lock goes with it
-        os.close(self._lock_fd)
+        for fd in [self._lock_fd, *self._held]:
+            os.close(fd)
         self._fd = None
 
     def __enter__(self):
@@ -180,6 +201,23 @@ class Share:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def wait_for_others(share: Share, stop, tick=None, poll_s: float = 0.5) -> bool:
+    """Wait until no other user of the table has points claimed (they finish them, or their
+    claims go with them); ``tick(n)`` hears how many they hold, every 2 s. False when
+    ``stop`` is set meanwhile."""
+    last = -float("inf")
+    while stop is None or not stop.is_set():
+        with share.locked():
+            waiting = len(share.others())
+        if not waiting:
+            return True
+        if tick is not None and time.monotonic() - last >= 2.0:
+            last = time.monotonic()
+            tick(waiting)
+        time.sleep(poll_s)
+    return False
 
 
 def _read_all(fd: int) -> bytes:

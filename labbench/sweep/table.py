@@ -3,6 +3,7 @@
 Layout of ``NAME.sweep/``::
 
     _spec.json            the spec of the last sweep into it (labbench.sweep.spec, as data)
+    _table.json           what made the table: a sweep or a campaign, its kind, device, rig
     part-*.parquet        rows, appended in parts
     _lock, _claims/       sweeps sharing the table (labbench.sweep.sharing)
     _damaged/             damaged parts set aside by ``--repair``
@@ -20,6 +21,13 @@ when it is read. Dot and underscore names are skipped by Parquet readers, so
 one table too (``read_table`` also drops the duplicate rows a merge cut short may leave).
 A part that cannot be read (truncated, empty, garbled) is named in one line with the fix
 (``--repair``: ``set_aside``).
+
+One table holds one kind of rows: ``_table.json`` (written by the first sweep or campaign into
+it, ``claim_identity``) says whether a sweep (its kind, run or analysis, and its simulator or
+analysis) or a campaign (its device and rig) made it, and a command that would add another
+kind, another device or another rig is refused in one line. Before, ``labbench sweep --repair``
+on a campaign's table recomputed its points on a simulator beside the measured ones (4 rows
+for 2 points), and a campaign into a sweep's table doubled every point.
 """
 from __future__ import annotations
 
@@ -33,9 +41,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from labbench.errors import UserError
-from labbench.safe_write import new_output, output_folder, replacing
+from labbench.safe_write import new_output, output_folder, replacing, usable_folder
 
 SPEC_FILE = "_spec.json"
+IDENTITY_FILE = "_table.json"
 PART_GLOB = "part-*.parquet"
 SUFFIX = ".sweep"
 CHARTS = ".charts"
@@ -57,7 +66,7 @@ def open_table(directory) -> Path:
     """``directory`` as a sweep table folder (created if missing, its parent must exist);
     refuses a folder holding anything else (dot and underscore names aside: a sweep that
     is starting has no more yet)."""
-    d = Path(directory)
+    d = usable_folder(directory)
     if d.is_dir() and not is_table(d) and any(not n.startswith((".", "_")) for n in os.listdir(d)):
         raise UserError(f"{d} is not a sweep table (no {SPEC_FILE}, no part files): "
                         "give a new or a sweep folder")
@@ -83,6 +92,73 @@ def read_spec(directory) -> dict:
         raise UserError(f"{directory}: no {SPEC_FILE}: not a sweep table") from None
     except (OSError, ValueError) as exc:
         raise UserError(f"{p}: unreadable ({exc})") from None
+
+
+def sweep_identity(spec) -> dict:
+    """What a sweep of ``spec`` (``labbench.sweep.spec.Spec``) adds to a table."""
+    return {"made_by": "sweep", "kind": spec.kind, "device": spec.device if spec.kind == "run"
+            else None, "analysis": spec.analysis, "rig": None}
+
+
+def describe_identity(ident: dict) -> str:
+    """What made a table, in words."""
+    if ident["made_by"] == "campaign":
+        return f"a campaign's points measured on {ident['device']}, rig {ident['rig']!r}"
+    if ident["kind"] == "analysis":
+        return f"a sweep's {ident['analysis']} analyses of exact records"
+    return f"a sweep's runs on the simulator {ident['device']}"
+
+
+def _legacy_identity(directory: Path) -> dict | None:
+    """A table written before ``_table.json``: what its ``_spec.json`` says made it."""
+    try:
+        spec = json.loads((directory / SPEC_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(spec, dict) or not isinstance(spec.get("sweep"), dict):
+        return None
+    sweep, campaign = spec["sweep"], spec.get("campaign")
+    if isinstance(campaign, dict):
+        return {"made_by": "campaign", "kind": "run", "device": campaign.get("device"),
+                "analysis": None, "rig": campaign.get("rig")}
+    kind = sweep.get("kind", "run")
+    return {"made_by": "sweep", "kind": kind, "device": sweep.get("device", "sim")
+            if kind == "run" else None, "analysis": sweep.get("analysis"), "rig": None}
+
+
+def read_identity(directory) -> dict | None:
+    """What made the table (``_table.json``, else inferred from an older table's spec), or
+    None for a table nothing has written yet."""
+    d = Path(directory)
+    try:
+        got = json.loads((d / IDENTITY_FILE).read_text())
+    except FileNotFoundError:
+        return _legacy_identity(d)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{d / IDENTITY_FILE}: unreadable ({exc})") from None
+    if not isinstance(got, dict) or got.get("made_by") not in ("sweep", "campaign"):
+        raise UserError(f"{d / IDENTITY_FILE}: not a table's identity")
+    return got
+
+
+def claim_identity(directory, ident: dict, in_use: bool = False) -> None:
+    """Make ``ident`` the table's, or refuse in one line when another kind, device or rig made
+    it. A table without rows takes the new one unless another is writing it (``in_use``: it
+    holds claims). The caller holds the table's lock."""
+    d = Path(directory)
+    have = read_identity(d)
+    if have is None or (not in_use and not parts(d)):
+        with replacing(d / IDENTITY_FILE, force=True) as tmp:
+            tmp.write_text(json.dumps(ident, indent=1, sort_keys=True))
+    elif {k: have.get(k) for k in ident} != ident:
+        fix = (f"its points run again only on {have['device']}: labbench campaign SPEC --device "
+               f"{have['device']} --table {d} (with --repair for damaged parts)"
+               if have["made_by"] == "campaign" else "give another table folder")
+        raise UserError(f"{d} holds {describe_identity(have)}; this would add "
+                        f"{describe_identity(ident)}: one table holds one kind of rows; {fix}")
+    elif not (d / IDENTITY_FILE).exists():
+        with replacing(d / IDENTITY_FILE, force=True) as tmp:  # an older table: said from now
+            tmp.write_text(json.dumps(ident, indent=1, sort_keys=True))
 
 
 class DamagedTable(UserError):
@@ -222,6 +298,35 @@ def _column(values: list) -> pa.Array:
         return pa.array(values)
     except (pa.ArrowInvalid, pa.ArrowTypeError):  # mixed kinds: as text
         return pa.array([None if v is None else str(v) for v in values], pa.string())
+
+
+def discard_unused(directory, own: tuple = ()) -> None:
+    """Remove a table folder this command made and wrote no row into (an operator who said
+    no, a check that refused): its bookkeeping files (and the caller's ``own``), then the
+    folder; anything else in it keeps it."""
+    from labbench.sweep.sharing import CLAIMS, LOCK_FILE
+
+    d = Path(directory)
+    if parts(d):
+        return
+    for name in (LOCK_FILE, SPEC_FILE, IDENTITY_FILE, *own):
+        with contextlib.suppress(FileNotFoundError):
+            (d / name).unlink()
+    for folder in (d / CLAIMS, d):
+        with contextlib.suppress(OSError):
+            folder.rmdir()  # only when empty
+
+
+def column_names(directory) -> list[str]:
+    """The columns of the table's parts, from their schemas (a part that cannot be read adds
+    none: reading the table says so)."""
+    names: dict = {}
+    for p in parts(directory):
+        try:
+            names.update(dict.fromkeys(pq.read_schema(p).names))
+        except _UNREADABLE:
+            continue
+    return list(names)
 
 
 def done_keys(directory) -> set[str]:
