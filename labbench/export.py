@@ -48,7 +48,7 @@ def _json(obj) -> str:
     return json.dumps(json_safe(obj))
 
 
-def export_hdf5(session_path, out_path, force: bool = False) -> Path:
+def export_hdf5(session_path, out_path, force: bool = False, warn=None) -> Path:
     """Write the whole session to one HDF5 file; returns its path.
 
     An existing ``out_path`` is replaced only with ``force`` (``labbench.safe_write``).
@@ -56,7 +56,7 @@ def export_hdf5(session_path, out_path, force: bool = False) -> Path:
     import h5py
 
     output_path(out_path, [session_path], force)  # before the work
-    start, desc, ch, events, stop, problem = load_session(session_path)
+    start, desc, ch, events, stop, problem = load_session(session_path, warn)
     units = dict(desc.get("channels") or records.CHANNELS)
     with replacing(out_path, [session_path], force) as tmp:
         try:
@@ -104,13 +104,13 @@ def _fill_hdf5(f, session_path, start, desc, ch, events, stop, problem, units) -
     r["events"] = _json(events)
 
 
-def export_csv(session_path, out_path, force: bool = False) -> Path:
+def export_csv(session_path, out_path, force: bool = False, warn=None) -> Path:
     """Write the analysis CSV (``# key=value`` lines, header, columns); returns its path.
 
     An existing ``out_path`` is replaced only with ``force`` (``labbench.safe_write``).
     """
     out = output_path(out_path, [session_path], force)  # before the work
-    start, desc, ch, _events, _stop, _problem = load_session(session_path)
+    start, desc, ch, _events, _stop, _problem = load_session(session_path, warn)
     meta = analysis_meta(start, desc)
     table = {"force": ch["excitation"], **ch}
     cols = np.column_stack([np.asarray(table[c], dtype=float) for c in CSV_COLUMNS])

@@ -73,6 +73,10 @@ def event_record(t_s: float, name: str, reason: str, **extra) -> dict:
     return {"kind": EVENT, "t": t_s, "name": name, "reason": reason, **extra}
 
 
+STATUSES = ("success", "aborted", "failed")  # a stop record's status
+CAUSES = ("device", "safety", "recording", "analysis", "error")  # a failed run's cause
+
+
 def stop_record(status: str, reason: str = "", **extra) -> dict:
     """``status``: "success", "aborted" or "failed"; a failed run's ``cause`` (in ``extra``)
     says whose: "device" (a fault), "safety" (a trip), "recording" (the session could not

@@ -183,6 +183,15 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     return rig
 
 
+def check_recorded(d: dict, where: str) -> None:
+    """A start record's ``rig`` (``Rig.as_dict``) as labbench writes it: its ``[rig]`` fields
+    of the right types and within their ranges, as ``rig_from_dict`` checks a file's. Names
+    this labbench does not know are left alone (an older or newer writer's), and so are the
+    backend tables (a session is read on machines without the rig's EDS). UserError else."""
+    known = set(Rig.__dataclass_fields__) - {"sections", "source"}
+    rig_from_dict({"rig": {k: v for k, v in d.items() if k in known and v is not None}}, where)
+
+
 def load_rig(path: str | Path | None) -> Rig:
     """Read a rig file (a regular file of at most 1 MiB); ``None`` gives the default simulated rig."""
     if path is None:

@@ -445,10 +445,17 @@ def load(path) -> Session:
     return _from_csv(p)
 
 
+def _warn(line: str) -> None:
+    """A notebook hears a session read up to a damaged record as a Python warning."""
+    import warnings
+
+    warnings.warn(line, stacklevel=4)
+
+
 def _from_session(p: Path) -> Session:
     from labbench.session_content import analysis_meta, load_session
 
-    start, desc, ch, events, stop, problem = load_session(p)
+    start, desc, ch, events, stop, problem = load_session(p, warn=_warn)
     meta = analysis_meta(start, desc)
     if start.get("time") is not None:
         meta["started"] = records.iso_time(start["time"])

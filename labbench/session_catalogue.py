@@ -41,10 +41,14 @@ class _HeaderCollector(records.StreamCollector):
 
 
 def summarize(path) -> SessionSummary:
-    """Header facts of one session without decoding its sample arrays."""
+    """Header facts of one session without decoding its sample arrays. A session holding a
+    record labbench would not have written is a UserError naming it (a torn tail, a run cut
+    short, is a session: "incomplete")."""
     got = _HeaderCollector()
     with SessionReader(path, decode_pages=False) as reader:
         records.fan_out(reader, [got])
+    if reader.not_as_written:
+        raise UserError(f"stream ends early: {reader.problem}")
     start, stop, n = got.start, got.stop, got.n_samples
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     try:

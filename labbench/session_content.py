@@ -46,12 +46,22 @@ def _number(d: dict, key: str, default, where: str = "protocol"):
     return float(value)
 
 
-def load_session(path) -> tuple[dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
-    """(start, descriptor, channels, events, stop, problem) of a session, pages joined."""
+def ends_early(path, problem: str) -> str:
+    """The one line every reader says of a session read up to a damaged record or one
+    labbench would not have written (``SessionReader.problem``)."""
+    return f"{path}: stream ends early: {problem}; the records before it are used"
+
+
+def load_session(path, warn=None) -> tuple[dict, dict, dict[str, np.ndarray], list[dict],
+                                           dict | None, str | None]:
+    """(start, descriptor, channels, events, stop, problem) of a session, pages joined;
+    ``warn(line)`` hears ``ends_early`` when the stream ends early."""
     reader = read_session(path)
     got = records.StreamCollector()
     with reader:
         records.fan_out(reader, [got])
+    if reader.problem and warn is not None:
+        warn(ends_early(path, reader.problem))
     return (got.start, got.descriptor, records.concat_pages(got.pages), got.events, got.stop,
             reader.problem)
 
@@ -87,15 +97,19 @@ def analysis_meta(start: dict, desc: dict) -> dict:
     return meta
 
 
-def load_analysis_arrays(path) -> dict:
+def load_analysis_arrays(path, warn=None) -> dict:
     """``dict(t, force, position, meta)`` for the analysis.
 
     ``force`` is the exogenous force (the "excitation" channel), ``position`` the
     sampled position; ``meta`` has fs, ve, K, B, w0, td, protocol (docs/analysis.md).
+    ``warn``: as ``load_session``'s.
     """
-    start, desc, ch, _events, _stop, _problem = load_session(path)
-    if ch["t"].size == 0:
-        raise UserError(f"session {path} holds no samples")
+    start, desc, ch, _events, _stop, problem = load_session(path)
+    if ch["t"].size == 0:  # the one line says why, when the stream ended early
+        raise UserError(f"session {path} holds no samples"
+                        + (f" (stream ends early: {problem})" if problem else ""))
+    if problem and warn is not None:
+        warn(ends_early(path, problem))
     return {
         "t": ch["t"].astype(float),
         "force": ch["excitation"].astype(float),

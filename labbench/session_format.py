@@ -171,6 +171,56 @@ def _check_fields(head: dict) -> None:
             lo_hi = _RANGES.get(name)
             if lo_hi is not None and v is not None and not lo_hi[0] <= v <= lo_hi[1]:
                 raise ValueError(f"{kind} field {name!r} = {v!r} out of range")
+    try:
+        _CONTENT.get(kind, lambda _h: None)(head)
+    except UserError as exc:  # as a file's: one line naming the field
+        raise NotAsWritten(f"{kind} record not as labbench writes it: {exc}") from None
+
+
+class NotAsWritten(ValueError):
+    """A record whose checksum holds but whose content labbench would not have written."""
+
+
+def _start_content(head: dict) -> None:
+    """The start record's rig, safety limits and device as the runner writes them: numbers
+    within the ranges a rig file's are held to (a session edited with its checksums
+    recomputed, force limit 1e308 or sample time "abc", was read without a word)."""
+    from dataclasses import fields
+
+    from labbench.rig import check_recorded
+    from labbench.safety import SafetyConfig
+
+    if isinstance(head.get("rig"), dict):
+        check_recorded(head["rig"], "rig")
+    safety = head.get("safety")
+    if isinstance(safety, dict):
+        known = {f.name for f in fields(SafetyConfig)}
+        try:
+            SafetyConfig(**{k: v for k, v in safety.items() if k in known})
+        except TypeError as exc:
+            raise UserError(f"safety: {exc}") from None
+    device = head.get("device")
+    if isinstance(device, dict):
+        for name, (lo, hi) in _DEVICE_RANGES.items():
+            v = device.get(name)
+            if v is not None and not (_fits(v, (_NUMBER,)) and lo <= v <= hi):
+                raise UserError(f"device {name} = {str(v)[:40]} is not a number in "
+                                f"[{lo:g}, {hi:g}]")
+
+
+def _stop_content(head: dict) -> None:
+    """A stop record's status and cause are among those the runner writes."""
+    if "status" in head and head["status"] not in records.STATUSES:
+        raise UserError(f"status {str(head['status'])[:40]!r} is none of "
+                        f"{', '.join(records.STATUSES)}")
+    cause = head.get("cause")
+    if cause is not None and cause not in records.CAUSES:
+        raise UserError(f"cause {str(cause)[:40]!r} is none of {', '.join(records.CAUSES)}")
+
+
+_CONTENT = {records.START: _start_content, records.STOP: _stop_content}
+_DEVICE_RANGES = {"sample_time_s": (1e-9, 1.0), "force_limit_n": (0.0, 1000.0),
+                  "device_delay_s": (0.0, 1.0)}
 
 
 def _depth_ok(obj, limit: int) -> bool:
@@ -232,6 +282,7 @@ class SessionReader:
     def __init__(self, path, decode_pages: bool = True):
         self.path = _check_session_file(path)
         self.problem: str | None = None
+        self.not_as_written = False  # the problem is content labbench would not write
         self.n_records = 0
         self.good_bytes = len(MAGIC)
         self._decode = decode_pages
@@ -291,6 +342,7 @@ class SessionReader:
             elif data_len:
                 raise ValueError(f"{head['kind']} record with a data part")
         except (ValueError, TypeError, KeyError) as exc:
+            self.not_as_written = isinstance(exc, NotAsWritten)
             return self._stop(f"undecodable record ({exc})")
         self._chunk_len = _HEADER.size + json_len + data_len
         return head

@@ -11,6 +11,7 @@ Property: tests/fuzzing.py.
 """
 from __future__ import annotations
 
+import os
 import random
 import tracemalloc
 
@@ -22,6 +23,7 @@ from session_recorder import synthetic_stream
 
 from labbench.analysis import dataio
 from labbench import records
+from labbench.errors import UserError
 from labbench.session_format import SessionWriter
 
 RIG = """[rig]
@@ -187,3 +189,53 @@ def test_a_long_csv_is_read_in_chunks(tmp_path, n_rows):
     print(f"\n{n_rows} rows: peak {peak / 2**20:.1f} MiB = {peak / arrays:.2f} x the arrays "
           f"({arrays / 2**20:.1f} MiB); file {path.stat().st_size / 2**20:.0f} MiB")
     assert peak <= 2 * arrays + chunk
+
+
+# ----- what a CSV holds, bounded (issue 44) ---------------------------------------------------
+def _rows(n: int) -> str:
+    return "# fs=1000\nt,force,position\n" + "".join(
+        f"{k * 1e-3:.6f},{np.sin(k):.6f},{1e-3 * np.cos(k):.6f}\n" for k in range(n))
+
+
+def _refused_within(path, words: str, budget: float = 64e6) -> float:
+    """The CSV at ``path`` refused in one line with ``words``, reading it under tracemalloc:
+    the peak [bytes] it took."""
+    tracemalloc.start()
+    try:
+        with pytest.raises(UserError) as info:
+            dataio.load_recording(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert words in str(info.value) and "\n" not in str(info.value), str(info.value)
+    assert peak < budget, peak
+    return peak
+
+
+def test_a_gigabyte_csv_ending_in_nuls_is_refused_at_its_first_nul(tmp_path):
+    """A sparse file: 200 rows, then zeros to 1 GiB (no disk used). Before: read as one line,
+    30.7 s and 2.2 GB before a MemoryError traceback under a 3 GB cap."""
+    path = tmp_path / "nul.csv"
+    path.write_text(_rows(200))
+    os.truncate(path, 1 << 30)
+    peak = _refused_within(path, "line 203 holds a NUL byte")
+    print(f"\n1 GiB ending in NULs: refused, peak {peak / 2**20:.1f} MiB traced")
+    o = run_cli(["analyze", "etfe", path])
+    assert o.code == 2 and o.crash is None and "NUL" in o.err, o.err
+
+
+def test_a_long_line_blank_lines_and_too_many_rows_are_refused_as_they_come(tmp_path,
+                                                                         monkeypatch):
+    long = tmp_path / "long.csv"
+    long.write_text(_rows(100) + "1," * (dataio.MAX_LINE_CHARS // 2 + 10) + "\n" + _rows(10))
+    _refused_within(long, "line 103 is longer than 65536 characters")
+    blank = tmp_path / "blank.csv"
+    blank.write_text(_rows(100) + "\n" * (dataio.MAX_BLANK_LINES + 1) + "0.1,0,0\n")
+    _refused_within(blank, f"more than {dataio.MAX_BLANK_LINES} blank lines")
+    monkeypatch.setattr(dataio, "MAX_ROWS", 1000)
+    many = tmp_path / "many.csv"
+    many.write_text(_rows(1500))
+    _refused_within(many, "more than 1000 rows")
+    few = tmp_path / "few.csv"
+    few.write_text(_rows(800) + "\n\n")  # within the bounds, trailing blank lines: read
+    assert len(dataio.load_recording(few)) == 800

@@ -27,9 +27,15 @@ UNIFORM_RTOL = 1e-3
 # Largest magnitude of each column: beyond any bench (and squares of 1e308 overflow).
 MAX_ABS = {"t": (1e9, "s"), "force": (1e6, "N"), "position": (1e3, "m")}
 CHUNK_ROWS = 1 << 18  # CSV rows parsed at a time
+BLOCK_CHARS = 1 << 18  # characters read at a time (a chunk is cut at a block's end)
 MAX_CSV_BYTES = 4 << 30  # 4 GiB: ~100 million rows
-MAX_LINE_CHARS = 1 << 16  # of a comment or header line
+MAX_LINE_CHARS = 1 << 16  # of any line
 MAX_META_LINES = 10_000
+MAX_BLANK_LINES = 10_000  # among the rows
+# Rows of one CSV: 33.5 million (805 MiB as three columns; a run records at most 10^7
+# samples, an hour at 10 kHz is 3.6 x 10^7): a file of short rows ("0,0,0") could otherwise
+# ask for more memory than the machine has.
+MAX_ROWS = 1 << 25
 
 
 @dataclass
@@ -101,8 +107,9 @@ def _check_uniform(t: np.ndarray, source: str) -> None:
         )
 
 
-def load_recording(path) -> Recording:
-    """Load a CSV (see module doc) or a labbench session; a clear UserError otherwise."""
+def load_recording(path, warn=None) -> Recording:
+    """Load a CSV (see module doc) or a labbench session; a clear UserError otherwise.
+    ``warn(line)``: a session read up to a damaged record says so."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
@@ -112,26 +119,22 @@ def load_recording(path) -> Recording:
         from labbench.session_format import looks_like_session
 
         if looks_like_session(path):
-            return recording_from_arrays(**load_analysis_arrays(path), source=str(path))
+            return recording_from_arrays(**load_analysis_arrays(path, warn), source=str(path))
     return _load_csv(path)
 
 
 def _load_csv(path: Path) -> Recording:
     """Metadata and header line by line, then the numbers in chunks of ``CHUNK_ROWS`` rows
-    (numpy's parser): memory stays near twice the three arrays, whatever the file's length."""
+    (numpy's parser) from blocks of ``BLOCK_CHARS`` (``_data_lines``): memory stays near
+    twice the three arrays, whatever the file holds."""
     src = str(path)
     with open_regular(path, "CSV file", MAX_CSV_BYTES) as raw:
         text = io.TextIOWrapper(raw, encoding="utf-8", newline="")
         try:
             meta, header, line_no = _csv_head(text, src)
             cols = [header.index(c) for c in REQUIRED]
-            parts = []
-            while True:
-                lines = list(itertools.islice(text, CHUNK_ROWS))
-                if not lines:
-                    break
-                parts.append(_parse_rows(lines, cols, line_no, src))
-                line_no += len(lines)
+            parts = [_parse_rows(lines, cols, before, src)
+                     for before, lines in _data_lines(text, line_no, src)]
         except UnicodeDecodeError as exc:
             raise UserError(f"{src}: not UTF-8 text (byte {exc.start} of a block)") from None
         except OSError as exc:
@@ -168,6 +171,43 @@ def _csv_head(text, src: str) -> tuple[dict, list[str], int]:
                             f"(header: {','.join(header)[:200]})")
         return meta, header, line_no
     raise AssertionError("unreachable")
+
+
+def _data_lines(text, before: int, src: str):
+    """(lines before it, ``CHUNK_ROWS`` lines or a few more) of a CSV stream's data, read
+    ``BLOCK_CHARS`` characters at a time, every line checked as it comes: a NUL, a line
+    longer than ``MAX_LINE_CHARS``, more than ``MAX_BLANK_LINES`` blank lines or
+    ``MAX_ROWS`` lines is one UserError at once. (A line was read whole: a 1 GiB file ending
+    in NULs took 30.7 s and 2.2 GB before a MemoryError.)"""
+    lines: list[str] = []
+    rest, seen, blank = "", before, 0
+    while block := text.read(BLOCK_CHARS):
+        nul = block.find("\x00")
+        if nul >= 0:
+            at = seen + len(lines) + (rest + block[:nul]).count("\n") + 1
+            raise UserError(f"{src}: line {at} holds a NUL byte: not a CSV of numbers")
+        pieces = (rest + block).split("\n")
+        rest = pieces.pop()
+        if len(rest) > MAX_LINE_CHARS or any(len(p) > MAX_LINE_CHARS for p in pieces):
+            k = next((i for i, p in enumerate(pieces) if len(p) > MAX_LINE_CHARS), len(pieces))
+            raise UserError(f"{src}: line {seen + len(lines) + k + 1} is longer than "
+                            f"{MAX_LINE_CHARS} characters")
+        blank += sum(not p.strip() for p in pieces)
+        if blank > MAX_BLANK_LINES:
+            raise UserError(f"{src}: more than {MAX_BLANK_LINES} blank lines among the rows")
+        lines += pieces
+        if seen + len(lines) - before > MAX_ROWS:
+            raise UserError(f"{src}: more than {MAX_ROWS} rows; at most {MAX_ROWS} are read "
+                            f"({MAX_ROWS * 24 >> 20} MiB of samples)")
+        if len(lines) >= CHUNK_ROWS:  # a chunk and the rest of its block (< BLOCK_CHARS)
+            chunk, lines = lines, []
+            yield seen, chunk
+            seen += len(chunk)
+            del chunk
+    if rest:
+        lines.append(rest)
+    if lines:
+        yield seen, lines
 
 
 def _parse_rows(lines: list[str], cols: list[int], before: int, src: str) -> np.ndarray:

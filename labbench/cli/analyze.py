@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 
+from labbench.cli.progress import warner
 from labbench.jsonutil import json_safe
 
 
@@ -95,7 +96,8 @@ def run_id(args) -> int:
     from labbench.session_api import identify_recording
 
 
-    ident = identify_recording(load_recording(args.file), model=args.model, method=args.method,
+    ident = identify_recording(load_recording(args.file, warner("analyze")), model=args.model,
+                               method=args.method,
                                cutoff_hz=args.cutoff, solver=args.solver, force_hold=args.force_hold)
     d, read = ident.as_dict(), ident.readout
     if args.json:
@@ -124,7 +126,8 @@ def run_etfe(args) -> int:
         if out:
             output_path(out, [args.file], args.force)  # before the work
 
-    fr = etfe_recording(load_recording(args.file), args.estimator, args.window, m=args.m, b=args.b,
+    fr = etfe_recording(load_recording(args.file, warner("analyze")), args.estimator, args.window,
+                        m=args.m, b=args.b,
                         fit=args.fit, fit_ve=args.fit_ve,
                         band_rad_s=tuple(args.band) if args.band else None, coulomb_n=args.coulomb)
     d = fr.as_dict(args.units)

@@ -39,7 +39,10 @@ def run(args) -> int:
         for line in read.text_lines():
             print(f"result    {line}")
     if reader.problem:
-        print(f"labbench replay: warning: stream ends early: {reader.problem}", file=sys.stderr)
+        from labbench.cli.progress import warner
+        from labbench.session_content import ends_early
+
+        warner("replay")(ends_early(reader.path, reader.problem))
     return 0
 
 

@@ -18,9 +18,11 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from labbench.cli.progress import warner
     from labbench.report import write_report
 
-    html_path, pdf_path = write_report(args.sessions, args.out, force=args.force)
+    html_path, pdf_path = write_report(args.sessions, args.out, force=args.force,
+                                       warn=warner("report"))
     if args.json:
         print(json.dumps({"html": str(html_path), "pdf": str(pdf_path)}))
     else:

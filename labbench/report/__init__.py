@@ -16,13 +16,14 @@ from labbench.report.blocks import fmt
 __all__ = ["write_report", "fmt"]
 
 
-def write_report(session_path, out_dir, force: bool = False) -> tuple[Path, Path]:
+def write_report(session_path, out_dir, force: bool = False, warn=None) -> tuple[Path, Path]:
     """Write ``<name>.html`` and ``<name>.pdf`` into ``out_dir`` for one session or a list.
 
     Returns ``(html_path, pdf_path)``. Raises UserError for a missing or foreign
     session file or an unusable output folder (created if missing, never its
     parents); existing outputs are replaced only with ``force``, each atomically
-    (``labbench.safe_write``).
+    (``labbench.safe_write``). ``warn(line)``: a session read up to a damaged record (the
+    report flags it too).
     """
     from labbench.report.content import build
     from labbench.report.render_html import render_html
@@ -43,7 +44,7 @@ def write_report(session_path, out_dir, force: bool = False) -> tuple[Path, Path
     elif not out.parent.is_dir():
         raise UserError(f"cannot create output folder {out}: {out.parent} does not exist "
                         "(labbench creates no folders you did not name)")
-    report = build(paths)
+    report = build(paths, warn)
     with new_folder(out):  # removed again if it was made for this report and stays empty
         with replacing(html_path, paths, force) as tmp:  # a refused write: one UserError
             tmp.write_text(render_html(report.title, report.subtitle, report.blocks),

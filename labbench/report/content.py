@@ -63,9 +63,9 @@ class Report:
     blocks: list = field(default_factory=list)
 
 
-def build(paths) -> Report:
+def build(paths, warn=None) -> Report:
     """Load the sessions and lay out the whole report."""
-    sessions = [load(p, index=i + 1) for i, p in enumerate(paths)]
+    sessions = [load(p, index=i + 1, warn=warn) for i, p in enumerate(paths)]
     parts = [_sections(s) for s in sessions]
     title = "labbench report"
     rigs = sorted({s.rig_name for s in sessions})

@@ -105,10 +105,10 @@ class ReportSession:
         return summary({k: v for k, v in timing.items() if k != "realtime"})
 
 
-def load(path, index: int = 1) -> ReportSession:
+def load(path, index: int = 1, warn=None) -> ReportSession:
     """The session, its start and stop records conformed to what the report reads
-    (``labbench.report.shapes``)."""
-    start, desc, ch, events, stop, problem = load_session(path)
+    (``labbench.report.shapes``); ``warn``: as ``load_session``'s."""
+    start, desc, ch, events, stop, problem = load_session(path, warn)
     malformed: list[str] = []
     start = shapes.conform(start, shapes.START, "start", malformed)
     if stop is not None:
