@@ -56,7 +56,7 @@ def export_hdf5(session_path, out_path, force: bool = False, warn=None) -> Path:
     import h5py
 
     output_path(out_path, [session_path], force)  # before the work
-    start, desc, ch, events, stop, problem = load_session(session_path, warn)
+    start, desc, ch, events, stop, problem = load_session(session_path, warn, need_start=True)
     units = dict(desc.get("channels") or records.CHANNELS)
     with replacing(out_path, [session_path], force) as tmp:
         try:
@@ -110,7 +110,7 @@ def export_csv(session_path, out_path, force: bool = False, warn=None) -> Path:
     An existing ``out_path`` is replaced only with ``force`` (``labbench.safe_write``).
     """
     out = output_path(out_path, [session_path], force)  # before the work
-    start, desc, ch, _events, _stop, _problem = load_session(session_path, warn)
+    start, desc, ch, _events, _stop, _problem = load_session(session_path, warn, need_start=True)
     meta = analysis_meta(start, desc)
     table = {"force": ch["excitation"], **ch}
     cols = np.column_stack([np.asarray(table[c], dtype=float) for c in CSV_COLUMNS])

@@ -52,14 +52,18 @@ def ends_early(path, problem: str) -> str:
     return f"{path}: stream ends early: {problem}; the records before it are used"
 
 
-def load_session(path, warn=None) -> tuple[dict, dict, dict[str, np.ndarray], list[dict],
-                                           dict | None, str | None]:
+def load_session(path, warn=None, need_start: bool = False) -> tuple[
+        dict, dict, dict[str, np.ndarray], list[dict], dict | None, str | None]:
     """(start, descriptor, channels, events, stop, problem) of a session, pages joined;
-    ``warn(line)`` hears ``ends_early`` when the stream ends early."""
+    ``warn(line)`` hears ``ends_early`` when the stream ends early. ``need_start``: a session
+    without a readable start record is one UserError saying why (nothing to export)."""
     reader = read_session(path)
     got = records.StreamCollector()
     with reader:
         records.fan_out(reader, [got])
+    if need_start and not got.start:
+        raise UserError(f"session {path} has no readable start record"
+                        + (f" (stream ends early: {reader.problem})" if reader.problem else ""))
     if reader.problem and warn is not None:
         warn(ends_early(path, reader.problem))
     return (got.start, got.descriptor, records.concat_pages(got.pages), got.events, got.stop,

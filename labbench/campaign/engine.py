@@ -37,6 +37,7 @@ one never run by another); ``Summary`` counts what happened.
 """
 from __future__ import annotations
 
+import difflib
 import itertools
 import json
 import os
@@ -48,7 +49,7 @@ from pathlib import Path
 from labbench import records
 from labbench.campaign import plan as plans
 from labbench.campaign import rows
-from labbench.errors import UnstableVEError, UserError, unknown_name
+from labbench.errors import UnstableVEError, UserError
 from labbench.escape import one_line
 from labbench.safe_write import replacing, usable_folder
 from labbench.sweep import sharing, table as tables
@@ -195,7 +196,8 @@ class CampaignTable:
                 self.repaired = []
                 if self.index.damaged:
                     if not repair:
-                        raise tables.DamagedTable(self.directory, self.index.damaged)
+                        raise tables.DamagedTable(self.directory, self.index.damaged,
+                                                  f"run on {context.device}")
                     self.repaired = tables.set_aside(self.directory, self.index.damaged)
                     self.index = tables.KeyIndex(self.directory)
                 tables.write_spec(self.directory,
@@ -441,8 +443,11 @@ def check_charts(plan, directory, progress=None, warn=None) -> None:
         return
     for i, c in wanted:
         if c not in known:
+            near = difflib.get_close_matches(c, known, n=1, cutoff=0.6)
+            hint = (f"did you mean {near[0]!r}?" if near else
+                    f"its rows have {len(known)} columns: {', '.join(sorted(known)[:8])}, ...")
             raise UserError(f"{spec.source}: [[chart]] {i} names column {c!r}, which no row of "
-                            f"this campaign has: {unknown_name('column', c, known)}")
+                            f"this campaign has; {hint}")
 
 
 def _first_runnable(plan):

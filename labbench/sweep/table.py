@@ -162,16 +162,17 @@ def claim_identity(directory, ident: dict, in_use: bool = False) -> None:
 
 
 class DamagedTable(UserError):
-    """Part files that cannot be read; the message names them and the fix."""
+    """Part files that cannot be read; the message names them and the fix (``redo``: what the
+    command does with their points: a sweep computes them, a campaign runs them)."""
 
-    def __init__(self, directory, damaged: dict):
+    def __init__(self, directory, damaged: dict, redo: str = "compute"):
         self.damaged = dict(damaged)
         listed = [f"{p.name} ({why})" for p, why in list(self.damaged.items())[:3]]
         more = f" and {len(self.damaged) - 3} more" if len(self.damaged) > 3 else ""
         super().__init__(f"{directory}: {len(self.damaged)} damaged part file"
                          f"{'s' * (len(self.damaged) > 1)}: {', '.join(listed)}{more}; run the "
                          f"same command with --repair to move them to "
-                         f"{Path(directory) / DAMAGED} and compute their points again")
+                         f"{Path(directory) / DAMAGED} and {redo} their points again")
 
 
 def _damage(p: Path, exc: BaseException) -> str:
