@@ -150,6 +150,40 @@ def test_two_campaigns_into_one_table_run_every_point_once(tmp_path):
     assert sum(pq.read_table(p).num_rows for p in tables.parts(table)) == 4
 
 
+def test_a_campaign_waits_for_points_another_claimed_and_takes_over_a_dead_ones(tmp_path):
+    """Two shares of one table in this process: a live claim is left to its owner and waited
+    for; once its campaign is gone (killed: its lock goes, its claim file stays) the points
+    are run here. Nothing runs twice: every point's run_point call once."""
+    import os
+    import threading
+
+    from labbench.sweep import sharing
+
+    plan = make_plan(spec_from_dict({"sweep": {"protocol": "etfe"},
+                                     "fixed": {"duration_s": 1.0, "ve": "spring"},
+                                     "grid": {"K": [10.0, 20.0, 30.0, 40.0]}}), context())
+    out = tables.open_table(tmp_path / "t.sweep")
+    keys = [plan.key(p) for p in plan.spec.iter_points()]
+    other = sharing.Share(out)
+    with other.locked():
+        other.claim(keys[:2])
+    ran = []
+
+    def run_point(pp, stop_, progress, consumers):
+        ran.append(pp.key)
+        return RunResult("success", "completed", n_samples=10), None
+
+    def die():  # the other campaign killed while this one waits for its points
+        os.close(other._fd)
+        other._fd = None
+        os.close(other._lock_fd)
+
+    threading.Timer(1.0, die).start()
+    summary = engine.run_campaign(plan, out, run_point, StopRequest())
+    assert summary.complete and sorted(ran) == sorted(keys) and len(ran) == 4
+    assert len(rows(out)) == 4 and list((out / sharing.CLAIMS).iterdir()) == []
+
+
 def context(simulated=True, device="sim", rig=None) -> Context:
     rig = rig or Rig(direction_checked="2026-01-01")
     return Context(device, rig, Plant(0.094, 0.1), "nominal", simulated,

@@ -309,7 +309,10 @@ class _Campaign:
                     self.done += 1
                     self.summary.already += self.first_round
                     continue
-                if key in busy or not self._claim(key):
+                if key in busy:
+                    self.deferred += 1
+                    continue
+                if not self._claim(key):
                     continue
                 if not self._point(point, key):
                     self.share.release([key])
