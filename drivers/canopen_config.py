@@ -46,6 +46,10 @@ UNITS = {"permille": None, "mNm": (1e-3, ""), "Nm": (1.0, ""), "mA": (1e-3, "A")
 TYPE_NAMES = {"INTEGER8": 0x2, "INTEGER16": 0x3, "INTEGER32": 0x4, "UNSIGNED8": 0x5,
               "UNSIGNED16": 0x6, "UNSIGNED32": 0x7}
 
+# python-can's interfaces with no adapter behind them: a bus inside this computer (or its
+# network), on which only programs of this computer answer
+SOFTWARE_BUSES = ("virtual", "udp_multicast")
+
 
 def type_name(code: int) -> str:
     return next((n for n, c in TYPE_NAMES.items() if c == code), f"data type 0x{code:04X}")

@@ -61,10 +61,10 @@ from labbench.drivers import cia402, emcy
 from labbench.drivers.can_echo import EchoFreeBus
 from labbench.drivers.can_trace import TracedBus
 from labbench.drivers.canopen_check import Assessment, assess
-from labbench.drivers.canopen_config import CanopenConfig
+from labbench.drivers.canopen_config import SOFTWARE_BUSES, CanopenConfig
 from labbench.drivers.canopen_objects import object_name, read_eds, survey
 from labbench.drivers.canopen_pdo import SYNC_ID
-from labbench.drivers.canopen_sdo import MatchingSdoClient, Sdo, hexval, where
+from labbench.drivers.canopen_sdo import MatchingSdoClient, NoAnswer, Sdo, hexval, where
 from labbench.drivers.cia402 import Command, State
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 from labbench.realtime import sleep_until
@@ -163,10 +163,27 @@ class CanopenDrive:
         self.connect()
         try:
             self._bring_up(timeout)
+        except NoAnswer as exc:  # every other hardware error says what to check: so does this
+            self.close()
+            raise NoAnswer(f"{exc}: {self._what_to_check()}") from None
         except BaseException:
             self.close()
             raise
         return self
+
+    def _what_to_check(self) -> str:
+        """Where a drive that answers nothing is usually lost, for the bus opened."""
+        cfg = self.config
+        bus = ", ".join(f"{k} {v}" for k, v in cfg.bus_kwargs().items()
+                        if k in ("interface", "channel", "bitrate")) or "python-can's own configuration"
+        if cfg.interface in SOFTWARE_BUSES:
+            return (f"{cfg.interface} is a software bus (no adapter, no wire): only a program on "
+                    "this computer, such as labbench's simulated drive, answers on it; choose the "
+                    "drive's adapter as the CAN bus")
+        return (f"check that the drive is powered and wired to this bus ({bus}), that its node "
+                f"id is {cfg.node_id} ([canopen] node_id), that its bitrate is the bus's, that "
+                "the bus is terminated (120 ohm at each end), and that the CAN bus chosen on the "
+                "Device panel (or [canopen] interface and channel) is the drive's")
 
     def connect(self) -> "CanopenDrive":
         """Bus, SDO client and receive thread only: nothing is sent to the drive."""

@@ -18,6 +18,10 @@ from canopen.sdo.constants import (REQUEST_DOWNLOAD, REQUEST_UPLOAD, RESPONSE_AB
 
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
 
+
+class NoAnswer(DeviceConnectionError):
+    """The node did not answer an SDO request at all (no abort, no response)."""
+
 ABSENT = (0x06020000, 0x06090011)  # object / subindex does not exist
 WRITE_ONLY = 0x06010001  # the object exists and cannot be read
 ABORT_TEXT = {
@@ -106,8 +110,8 @@ class Sdo:
             return None, exc.code
         except SdoCommunicationError as exc:
             self._check()
-            raise DeviceConnectionError(f"node {self.node_id}: no answer to SDO read of "
-                                        f"{where(index, sub)} ({exc})") from None
+            raise NoAnswer(f"node {self.node_id}: no answer to SDO read of "
+                           f"{where(index, sub)} ({exc})") from None
 
     def upload(self, index: int, sub: int) -> bytes | None:
         """The raw value, or ``None`` when the node says the object does not exist."""
@@ -135,8 +139,8 @@ class Sdo:
                               "refusing to enable") from None
         except SdoCommunicationError as exc:
             self._check()
-            raise DeviceConnectionError(f"node {self.node_id}: no answer to SDO write of "
-                                        f"{where(index, sub)} ({exc})") from None
+            raise NoAnswer(f"node {self.node_id}: no answer to SDO write of "
+                           f"{where(index, sub)} ({exc})") from None
 
     def write_checked(self, index: int, sub: int, fmt: str, value: int) -> None:
         """Write, then read back: a drive that ignores a write is caught here."""

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from labbench.gui.campaign_chart import CampaignChart
 from labbench.gui.tables import row_list
 from labbench.numfmt import fmt
 
@@ -41,27 +42,16 @@ def row_cells(r: dict) -> list[str]:
             error if r.get("status") == "ok" else (r.get("error") or error), session]
 
 
-def table_and_chart(directory) -> tuple[list[dict], bytes | None]:
-    """The campaign table's rows and its chart as PNG bytes (None: no table, or neither a
-    Z-width nor a rate study in it yet); no Qt: the window runs it off the GUI thread."""
-    import io
-
+def table_rows(directory) -> list[dict]:
+    """The campaign table's rows ([] before it has any); no Qt: the window runs it off the
+    GUI thread."""
     from labbench.campaign import figures
     from labbench.sweep import charts, table as tables
 
     if not tables.is_table(directory):
-        return [], None
+        return []
     tab = tables.read_table(directory)
-    if not tab.num_rows:
-        return [], None
-    cols = charts.columns(tab)
-    fig = figures.zwidth_figure(cols) or figures.rate_figure(cols)
-    png = None
-    if fig is not None:
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=80)
-        png = buf.getvalue()
-    return figures.table_rows(cols), png
+    return figures.table_rows(charts.columns(tab)) if tab.num_rows else []
 
 
 def point_label(r: dict) -> str:
@@ -99,12 +89,19 @@ class CampaignView(QtWidgets.QWidget):
         self.table = row_list(COLUMNS)
         self.table.horizontalHeader().setSectionResizeMode(
             QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
-        self.chart = QtWidgets.QLabel("")
-        self.chart.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.chart = CampaignChart()
         self.chart.setMinimumHeight(200)
+        self.chart.row_hovered.connect(self._show_hovered)
+        self.chart.row_clicked.connect(lambda i: i >= 0 and self.table.selectRow(i))
+        self.limit = QtWidgets.QSpinBox()  # a slice of a long campaign from the page
+        self.limit.setRange(0, 1_000_000)
+        self.limit.setSpecialValueText("points: all")
+        self.limit.setPrefix("points: at most ")
+        self.limit.setToolTip("how many of the points still to run Start campaign runs now (the "
+                              "rest at the next Start, as after Stop); all: every one")
 
         top = QtWidgets.QHBoxLayout()
-        for b in (self.open_button, self.start_button, self.stop_button):
+        for b in (self.open_button, self.limit, self.start_button, self.stop_button):
             top.addWidget(b)
         top.addWidget(self.state_label, 1)
         split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
@@ -147,8 +144,8 @@ class CampaignView(QtWidgets.QWidget):
         self.running = running
         self._sync()
 
-    def show_table(self, rows: list[dict], chart_png: bytes | None) -> None:
-        """The campaign's rows so far and its chart (a PNG, or None: none yet)."""
+    def show_table(self, rows: list[dict]) -> None:
+        """The campaign's rows so far, in the table and on the chart."""
         keep = self.selected_session()
         self.rows = rows
         self.table.setRowCount(len(rows))
@@ -160,14 +157,14 @@ class CampaignView(QtWidgets.QWidget):
                 self.table.setItem(i, j, item)
             if keep and r.get("session") == keep:
                 self.table.selectRow(i)
-        if chart_png:
-            pix = QtGui.QPixmap()
-            pix.loadFromData(chart_png, "PNG")
-            self.chart.setPixmap(pix.scaledToHeight(max(self.chart.height(), 200),
-                                                    QtCore.Qt.TransformationMode.SmoothTransformation))
-        else:
-            self.chart.clear()
+        self.chart.show(rows)
         self._sync()
+
+    def _show_hovered(self, i: int) -> None:
+        """The row under the mouse, under the chart (as the table writes it)."""
+        if 0 <= i < len(self.rows):
+            cells_ = row_cells(self.rows[i])
+            self.chart.caption.setText("; ".join(f"{c}: {v}" for c, v in zip(COLUMNS, cells_)))
 
     def follow(self, state) -> None:
         """Start only when a run could start (and a plan is there); Stop while running."""
@@ -185,6 +182,7 @@ class CampaignView(QtWidgets.QWidget):
         self.start_button.setEnabled(self.planned and self._can_start and not self.running)
         self.stop_button.setEnabled(self.running)
         self.open_button.setEnabled(not self.running)
+        self.limit.setEnabled(not self.running)
         self.session_button.setEnabled(bool(self.selected_session()))
 
     def _choose_spec(self) -> None:

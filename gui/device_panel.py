@@ -224,8 +224,11 @@ class DevicePanel(QtWidgets.QGroupBox):
         else:
             while combo.count() > 1:
                 combo.removeItem(1)
+            from labbench.drivers.canopen_config import SOFTWARE_BUSES
+
             for config in found:
-                combo.addItem(f"{config.get('interface')}: {config.get('channel')}", config)
+                soft = " (software bus, no adapter)" if config.get("interface") in SOFTWARE_BUSES else ""
+                combo.addItem(f"{config.get('interface')}: {config.get('channel')}{soft}", config)
             combo.setToolTip(f"{len(found)} CAN interfaces found by python-can; "
                              f"'{FROM_RIG}': the rig's [canopen] or python-can's own configuration")
         index = combo.findText(chosen)

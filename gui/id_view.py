@@ -6,7 +6,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
-from labbench.gui.live_plots import COLOURS, DecadeAxis
+from labbench.gui.live_plots import COLOURS, DecadeAxis, no_si_prefix
 from labbench.gui.verdict_view import VerdictLabel, judged
 from labbench.numfmt import fmt
 
@@ -133,12 +133,23 @@ def _table(table: QtWidgets.QTableWidget, header: list[str], rows: list[tuple[st
             item = QtWidgets.QTableWidgetItem(text)
             item.setToolTip(text)  # all of it, should the column be narrower than the text
             table.setItem(i, j, item)
-    table.resizeColumnsToContents()
     table.setVisible(True)
-    # all rows at once (the side panel scrolls), and room for a horizontal scroll bar
+    _fit_rows(table)
+
+
+def _fit_rows(table: QtWidgets.QTableWidget) -> None:
+    """The columns share the table's width (a value with its interval wraps in its cell: at
+    1280 x 800 the l1 column was off to the right), every row at once (the side scrolls)."""
+    table.resizeRowsToContents()
     table.setFixedHeight(table.horizontalHeader().sizeHint().height() + 2 * table.frameWidth()
-                         + sum(table.rowHeight(r) for r in range(table.rowCount()))
-                         + table.horizontalScrollBar().sizeHint().height())
+                         + sum(table.rowHeight(r) for r in range(table.rowCount())))
+
+
+def _sharing_columns(table: QtWidgets.QTableWidget) -> None:
+    table.setWordWrap(True)
+    table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
+    table.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    table.horizontalHeader().sectionResized.connect(lambda *_: _fit_rows(table))
 
 
 def cells(table: QtWidgets.QTableWidget) -> dict[str, list[str]]:
@@ -169,7 +180,7 @@ class IdView(QtWidgets.QWidget):
         self.impedance.addLegend(offset=(10, 5), brush=pg.mkBrush(255, 255, 255, 200))
         self.z_measured = self.impedance.plot(pen=None, symbol="o", symbolSize=5,
                                               symbolBrush=COLOURS["measured"], symbolPen=None,
-                                              name="measured (ETFE, coherent points)")
+                                              name="measured (coherent ETFE)")
         self.z_model = self.impedance.plot(pen=pg.mkPen(COLOURS["theory"], width=2),
                                            name="identified model")
         self.residual_plot = plots.addPlot(row=1, col=0)
@@ -205,6 +216,7 @@ class IdView(QtWidgets.QWidget):
         for table in (self.table, self.fit_table):
             table.verticalHeader().setDefaultSectionSize(22)
             table.setVerticalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+            _sharing_columns(table)
             table.setVisible(False)  # until there is something to show
         self.splitter = QtWidgets.QSplitter()
         self.splitter.addWidget(plots)
@@ -239,7 +251,7 @@ class IdView(QtWidgets.QWidget):
         self.units = units
         freq = "f" if units.frequency == "Hz" else "ω"
         self.impedance.setLabel("bottom", f"frequency {freq}", units=units.frequency)
-        self.impedance.getAxis("bottom").enableAutoSIPrefix(False)
+        no_si_prefix(self.impedance.getAxis("bottom"))
         for label in (self.verdicts, self.fit_verdict):
             label.set_units(units)
         if self.results and self._data is not None:
@@ -248,8 +260,8 @@ class IdView(QtWidgets.QWidget):
             self.show_loop_fit(self.loop_fit, self.fit_source.text())
 
     def show_overlay(self, text: str) -> None:
-        """The plant the theory overlay uses and where it came from."""
-        self.overlay.setText(f"theory overlay plant: {text}")
+        """The plant the theory overlay uses and where it came from (rich text)."""
+        self.overlay.setText(f"theory overlay plant {text}")
 
     def show_results(self, results: dict[str, dict], data: dict | None = None, source: str = "",
                      used: str | None = None) -> None:
@@ -277,7 +289,7 @@ class IdView(QtWidgets.QWidget):
         rows = [(f"{label} ({unit})" if unit else label,
                  *(cells_[key].get(m, "") for m in results))
                 for key, label, unit in ROWS if key in cells_]
-        _table(self.table, [f"{m} fit" + (" (overlay)" if m == used else "") for m in results], rows)
+        _table(self.table, [f"{m} fit" + (" (next runs)" if m == used else "") for m in results], rows)
         self.verdicts.show_judged([j for m, res in results.items()
                                    for j in judged(f"{m} fit", res.get("verdict"))])
         self.flags.setText("<br>".join(f"<b>{m}</b>: {f}" for m, res in results.items()

@@ -23,7 +23,7 @@ pg.setConfigOptions(antialias=False, background="w", foreground="k")
 W_SHOWN_OF_NYQUIST = 1 / 3
 # Stacked plots below this height each had their axis titles printed over each other (the
 # log dragged taller): the splitters stop there instead.
-MIN_PLOT_HEIGHT = 110
+MIN_PLOT_HEIGHT = 90  # three of them, the verdicts and the log fit 1280 x 800
 # The y ranges follow the estimate only where it is trustworthy: its 95 % radius within
 # this fraction of |Z|. Early in a run the wide-band points (6 s into white noise: ES of
 # +-400 000 N/m) would otherwise set the range and flatten the curve into a line.
@@ -102,7 +102,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         for i, (key, title, unit) in enumerate(rows):
             p = self.addPlot(row=i, col=0)
             p.setLabel("left", title, units=unit)
-            p.getAxis("left").enableAutoSIPrefix(False)  # the display unit chosen (set_units)
+            no_si_prefix(p.getAxis("left"))  # the display unit chosen (set_units)
             p.enableAutoRange(x=False, y=False)
             _plot_options_off(p)
             if i:
@@ -192,6 +192,15 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         return a.x() * dpr, (b.x() - a.x()) * dpr / span
 
 
+def no_si_prefix(axis) -> None:
+    """Numbers on ``axis`` as they are, in its label's unit. pyqtgraph's
+    ``enableAutoSIPrefix(False)`` applies once the prefix of the range it has at that moment
+    (a frequency axis read "kHz" with ticks 0.001-0.1 after a switch to Hz): cleared here."""
+    axis.enableAutoSIPrefix(False)
+    axis.autoSIPrefixScale, axis.labelUnitPrefix = 1.0, ""
+    axis._updateLabel()  # noqa: SLF001 - pyqtgraph's own re-label, no public form
+
+
 class DecadeAxis(pg.AxisItem):
     """Log axis labelled at decades only (pyqtgraph labels minor ticks too when a
     plot spans less than about two decades, and they overlap)."""
@@ -224,9 +233,13 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.bode = pg.GraphicsLayoutWidget()
         self.addTab(self.effective, "Effective impedances")
         self.addTab(self.bode, "Bode |Z|, phase")
-        self.title = self.effective.addLabel("effective impedances: waiting for data", row=0, col=0)
+        # the title and the legend above the plots: a legend inside the stiffness plot lay
+        # over the w_s* mark's label at 1280 x 800
+        head = self.effective.addLayout(row=0, col=0)
+        self.title = head.addLabel("effective impedances: waiting for data", row=0, col=0, size="9pt")
         self.plots, self.curves, self.bands, self.marks = {}, {}, {}, {}
-        rows = [("ES", "stiffness ES", "N/m"), ("ED", "damping ED", "N s/m"), ("EM", "mass EM", "kg")]
+        # two lines: one rotated line was longer than a plot is tall at 1280 x 800 (they overlapped)
+        rows = [("ES", "stiffness<br>ES", "N/m"), ("ED", "damping<br>ED", "N s/m"), ("EM", "mass<br>EM", "kg")]
         for i, (key, title, unit) in enumerate(rows, start=1):
             p = _log_plot(self.effective, i)
             self._setup(p, title, unit, zero_line=True)
@@ -244,7 +257,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                                                       (True, False))
             self.plots[key] = p
         # one legend serves all rows; "theory" only while a theory curve is drawn
-        self.legend = self.plots["ES"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
+        self.legend = pg.LegendItem(colCount=2, labelTextSize="9pt", verSpacing=-6)
+        head.addItem(self.legend, row=1, col=0)
         self.legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")
         # the labels where the curves are not: right of w_s* (ES is not drawn there), low
         # beside w_b* (ED starts at B + b, at the top)
@@ -257,6 +271,9 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
         self.effective.setMinimumHeight(len(rows) * MIN_PLOT_HEIGHT + 40)  # and the title
+        grid = self.effective.ci.layout  # the room beyond the head's own goes to the plots
+        for row in range(len(rows) + 1):
+            grid.setRowStretchFactor(row, 1 if row else 0)
         self.bode_plots = {"mag": _log_plot(self.bode, 0, logy=True), "phase": _log_plot(self.bode, 1)}
         self._setup(self.bode_plots["mag"], "|Z|", "N s/m", logy=True)
         self.bode_legend = self.bode_plots["mag"].addLegend(offset=(-10, -10),  # bottom right: empty
@@ -287,8 +304,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         p.setLogMode(x=True, y=logy)  # the axes; the curves map their own data (PathCurve.log)
         _plot_options_off(p)
         _add_rules(p, zero_line)
-        p.getAxis("left").enableAutoSIPrefix(False)
-        p.getAxis("bottom").enableAutoSIPrefix(False)
+        no_si_prefix(p.getAxis("left"))
+        no_si_prefix(p.getAxis("bottom"))
 
     def clear_data(self) -> None:
         for c in self.curves.values():
@@ -350,17 +367,20 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 # measured, then the one prediction (labbench.predictions: exact sampled
                 # model with the device delay, the paper's closed form labelled beside it)
                 # two lines: the prediction under the measurement (one line ran off the plot)
-                text = predictions.label(key, value, est.predicted, self.units).replace(" (", "\n(", 1)
+                # three: the prediction's two parts under the measurement (two ran off the plot)
+                text = predictions.label(key, value, est.predicted, self.units).replace(
+                    " (", "\n(", 1).replace("; ", ";\n", 1)
                 if text != line.label.format:  # new text: a re-layout of the label on the next paint
                     line.label.setFormat(text)
             else:
                 line.setVisible(False)
-        plant = (f"theory: m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m ({est.plant_source})"
+        # its source on a line of its own: a session's name ran past the plots at 1280 x 800
+        plant = (f"theory: m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m,<br>{est.plant_source}"
                  if est.plant else "plant unknown: no theory overlay")
         masked = int(np.count_nonzero(~excited))
-        unexcited = (f"; {masked} of {excited.size} frequencies not excited (yet): not drawn"
+        unexcited = (f";<br>{masked} of {excited.size} frequencies not excited (yet): not drawn"
                      if masked else "")
-        # two lines: one long line set the plot column's minimum width past the window's
+        # short lines: a long one set the plot column's minimum width past the window's
         title = f"effective impedances from {est.n_samples} samples{unexcited}<br>{plant}"
         if title != self.title.text:  # a new text re-lays out the whole plot column
             self.title.setText(title)

@@ -22,7 +22,8 @@ from labbench.predictions import recorded_plant
 # the theory overlay's plant: the session's (as its analysis and report), or identified live
 PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
 RUN_PLANT, IDENTIFIED = range(2)
-VERDICT_SHARE = 0.3  # of the page's height: the verdicts' room
+VERDICT_SHARE = 1  # parts of the page's height against the plots' PLOTS_SHARE: the verdicts' room
+PLOTS_SHARE = 3
 
 
 class LiveView(QtWidgets.QWidget):
@@ -44,15 +45,16 @@ class LiveView(QtWidgets.QWidget):
         self.theory_plant.setToolTip("plant m, b used for the theory overlay: the run's own (what "
                                      "its analysis and report use), or l2 identified on its data")
         # the verdicts of the result shown, in room of their own that depends on the page's
-        # size only (the plots never move when a result shows): 30 % of it, at least 5 lines;
-        # a 5-line box hid a note inside the verdict's band below its fold at 1280 x 800
+        # size only (the plots never move when a result shows): a quarter of it, at least 5
+        # lines; a 5-line box hid a note inside the verdict's band at 1280 x 800
         self.verdicts = VerdictLabel(placeholder="the verdicts of a run, a replay or a "
                                      "re-analysis show here once it ends")
         self.verdict_room = room = QtWidgets.QScrollArea()
         room.setWidgetResizable(True)
         room.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
         room.setWidget(self.verdicts)
-        room.setFixedHeight(self._least_room())
+        room.setMinimumHeight(5 * self.verdicts.fontMetrics().lineSpacing() + 8)
+        room.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Ignored)
         self.traces = TimeTraces()
         self.impedance = ImpedancePlots()
         self.splitter = QtWidgets.QSplitter()
@@ -67,16 +69,9 @@ class LiveView(QtWidgets.QWidget):
         row.addWidget(self.theory_plant)
         row.addStretch(1)
         lay.addLayout(row)
-        lay.addWidget(room)
-        lay.addWidget(self.splitter, 1)
+        lay.addWidget(room, VERDICT_SHARE)
+        lay.addWidget(self.splitter, PLOTS_SHARE)
         self.theory_plant.currentIndexChanged.connect(lambda *_: self.invalidate_estimate())
-
-    def _least_room(self) -> int:
-        return 5 * self.verdicts.fontMetrics().lineSpacing() + 8
-
-    def resizeEvent(self, event) -> None:  # noqa: N802 - Qt override
-        super().resizeEvent(event)
-        self.verdict_room.setFixedHeight(max(self._least_room(), int(VERDICT_SHARE * self.height())))
 
     # ----- the stream -------------------------------------------------------------------------
     def reset(self) -> None:

@@ -28,7 +28,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
-from labbench.gui.campaign_view import CampaignView, table_and_chart
+from labbench.gui.campaign_view import CampaignView, table_rows
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, has_file, rig_where
 from labbench.gui.design_view import DesignView
 from labbench.gui.device_panel import DevicePanel, EStopButton
@@ -37,6 +37,7 @@ from labbench.gui.event_log import EventLog
 from labbench.gui.exports import export_in_child
 from labbench.gui.guide import Guide, RigState
 from labbench.gui.id_view import IdView
+from labbench.gui.labels import fixed_lines
 from labbench.gui.jobs import (catalogue, load_identification, plant_data, reanalyse_session,
                                timing_preflight, used_method)
 from labbench.gui.live_view import LiveView
@@ -173,6 +174,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.campaign_plan = None  # labbench.campaign.plan.Plan of the spec opened
         self.campaign_table: Path | None = None  # its table folder
         self.campaign_stop = None  # StopRequest of the campaign under way
+        self._points_left: int | None = None  # points the campaign may still start (None: all)
         self._point = None  # the point running: (planned point, consumers, answer, Event)
 
         self.setWindowTitle(f"labbench: {rig.name}")
@@ -201,12 +203,30 @@ class MainWindow(QtWidgets.QMainWindow):
         # Esc and Space: E-STOP anywhere in the application while a device is connected
         self.estop_keys = EStopKeys(lambda: self.state.armed, self.emergency_stop, self)
         QtWidgets.QApplication.instance().focusChanged.connect(self._show_keys_rule)
+        self._watching_focus = True  # until the window closes (closeEvent may come twice)
         QtGui.QShortcut(QtGui.QKeySequence.StandardKey.Quit, self).activated.connect(self.close)
         self.log.add("info", f"rig: {rig.name} ({rig_where(rig)}); sessions in {self.session_dir}")
         self._follow_state()
         self._rig_changed()
         self._show_overlay()  # the rig's nominal until the sessions folder is read
         self.refresh_sessions()
+
+    def showEvent(self, event) -> None:  # noqa: N802 - Qt override
+        super().showEvent(event)
+        if not self._laid_out:
+            self._laid_out = True
+            self._lay_out()
+
+    def _lay_out(self) -> None:
+        """The first sizes for this window's size: the left column wider on a wide screen
+        (440 px up to 1600, then 30 % of the rest, at most 560), the Device panel as tall
+        as it needs but at most 45 % of the panels' height, the rest to the settings."""
+        width = self.width()
+        left = int(min(max(440 + 0.3 * (width - 1600), 440), 560))
+        self.body.setSizes([left, max(width - left, 400)])
+        total = max(self.panels.height(), 300)
+        device = min(self.device_panel.sizeHint().height(), int(0.45 * total))
+        self.panels.setSizes([device, total - device])
 
     @property
     def mode(self) -> str:
@@ -240,24 +260,31 @@ class MainWindow(QtWidgets.QMainWindow):
         self.strip.addWidget(self.banner)
         self.strip.setFixedHeight(3 * QtGui.QFontMetrics(self.banner.font()).lineSpacing() + 14)
 
-        # the panels scroll on a short screen (their rows keep their heights); E-STOP never
-        panels = QtWidgets.QWidget()
-        pl = QtWidgets.QVBoxLayout(panels)
-        pl.setContentsMargins(0, 0, 0, 0)
-        pl.addWidget(self.device_panel)
-        pl.addWidget(self.protocol_panel, 1)
+        # the panels scroll on a short screen (their rows keep their heights); E-STOP, the
+        # E-STOP keys' rule, the pre-check, Start, Stop and the progress never do
+        self.keys_hint = fixed_lines(QtWidgets.QLabel(), 2)  # the E-STOP keys' rule, as it holds now
+        self.keys_hint.setToolTip(RULE)
+        # the Device panel (scrolling on a short screen) above the Protocol panel (whose form
+        # scrolls), with a splitter between them: at 1280 x 800 both show
         scroll = QtWidgets.QScrollArea()
         scroll.setWidgetResizable(True)
         scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
         scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        scroll.setWidget(panels)
+        scroll.setWidget(self.device_panel)
+        self.panels = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        self.panels.addWidget(scroll)
+        self.panels.addWidget(self.protocol_panel)
+        self.panels.setChildrenCollapsible(False)
+        self.panels.setStretchFactor(1, 1)
         left = QtWidgets.QWidget()
         ll = QtWidgets.QVBoxLayout(left)
         ll.setContentsMargins(4, 4, 4, 4)
         ll.addWidget(self.estop)
-        ll.addWidget(scroll, 1)
+        ll.addWidget(self.keys_hint)
+        ll.addWidget(self.panels, 1)
+        ll.addWidget(self.protocol_panel.run_box)
         left.setMinimumWidth(360)
-        left.setMaximumWidth(460)
+        left.setMaximumWidth(600)  # a wide screen's room goes to the settings and the pre-check
 
         self.tabs = QtWidgets.QTabWidget()
         for page, title in ((self.live, "Live"), (self.id_view, "Identification"),
@@ -275,18 +302,17 @@ class MainWindow(QtWidgets.QMainWindow):
         body.addWidget(left)
         body.addWidget(right)
         body.setStretchFactor(1, 1)
-        body.setSizes([440, 1160])  # room for the device's own description
+        body.setSizes([440, 1160])  # room for the device's own description (resizeEvent: wider)
         self.splitters = {"live": self.live.splitter, "identification": self.id_view.splitter,
-                          "log": right, "body": body}
+                          "log": right, "body": body, "panels": self.panels}
+        self._laid_out = False  # the splitters sized to the window once (unless restored)
         central = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(central)
         cl.setContentsMargins(4, 4, 4, 4)
         cl.addWidget(self.strip)
         cl.addWidget(body, 1)
         self.setCentralWidget(central)
-        self.keys_hint = QtWidgets.QLabel()  # the E-STOP keys' rule, as it holds now
-        self.keys_hint.setToolTip(RULE)
-        self.statusBar().addPermanentWidget(self.keys_hint)
+        self.body = body
         self.loop_status = LoopStatus(self.statusBar())
 
     def _wire(self) -> None:
@@ -732,6 +758,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if yes != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
         self.campaign_stop = StopRequest()
+        self._points_left = self.campaign.limit.value() or None  # None: every point still to run
         self.state.campaign_started()
         self.campaign.set_running(True)
         self.campaign.show_state("starting ...")
@@ -767,11 +794,18 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_campaign_point_done(self, point) -> None:
         pp, _consumers, answer, done = point
         self._point = point
+        if self._points_left == 0 and self.campaign_stop is not None:  # as Stop: the rest next Start
+            from labbench.gui.sweep_runner import limit_reached
+
+            self.campaign_stop.set(limit_reached(self.campaign.limit.value()))
         if self.campaign_stop is None or self.campaign_stop.is_set():
             from labbench.runner import RunResult
 
-            self._finish_point(result=RunResult("aborted", "campaign stopped"), session=None)
+            self._finish_point(result=RunResult("aborted", getattr(self.campaign_stop, "reason", "")
+                                                or "campaign stopped"), session=None)
             return
+        if self._points_left is not None:
+            self._points_left -= 1
         self.campaign.show_state(f"point {pp.point.index + 1} of {len(self.campaign_plan.points)}: "
                                  f"{pp.label}")
         try:  # a fresh device per point, opened with the point's rig (as labbench campaign)
@@ -814,7 +848,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.campaign.show_state(f"{p.done} of {p.total} points; {p.point}: {p.message}{eta}")
 
     def _on_campaign_done(self, summary) -> None:
-        state = "complete" if summary.complete else f"stopped: {summary.interrupted}"
+        why = getattr(self.campaign_stop, "reason", "")  # the window's own stop says why first
+        state = "complete" if summary.complete else f"stopped: {why or summary.interrupted}"
         self._campaign_over(f"campaign {state}; {summary.ran} run now ({summary.rerun} again "
                             f"after an interruption), {summary.skipped} skipped, "
                             f"{summary.not_ok} not ok")
@@ -830,11 +865,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _show_campaign_table(self) -> None:
         if self.campaign_table is not None:
-            run_in_background(self.mailbox, "campaign_table", table_and_chart, self.campaign_table)
+            run_in_background(self.mailbox, "campaign_table", table_rows, self.campaign_table)
 
-    def _on_campaign_table_done(self, value) -> None:
-        rows, png = value
-        self.campaign.show_table(rows, png)
+    def _on_campaign_table_done(self, rows) -> None:
+        self.campaign.show_table(rows)
 
     # ----- remembered state -----------------------------------------------------------------
     def _restore_state(self) -> None:
@@ -848,8 +882,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 restore(value)
         for name, splitter in self.splitters.items():
             value = s.value(f"splitters/{name}")
-            if isinstance(value, QtCore.QByteArray):
-                splitter.restoreState(value)
+            if isinstance(value, QtCore.QByteArray) and splitter.restoreState(value):
+                self._laid_out = True
         self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
         self.units_choice.set_units(parse_or_si(s.value("display/units", "", type=str)))
 
@@ -1079,8 +1113,11 @@ class MainWindow(QtWidgets.QMainWindow):
             from labbench.session_content import analysis_meta
 
             meta = analysis_meta(buf.start or {}, buf.descriptor or {})
+            ahead = ((ran_here and protocol == "chirp-id")  # this rig's newest: the next runs'
+                     or session == (self.identified or {}).get("session"))
             self.id_view.show_results(ident, plant_data(buf.snapshot(), meta),
-                                      source=f"chirp-ID {name}", used=used_method(ident))
+                                      source=f"chirp-ID {name}",
+                                      used=used_method(ident) if ahead else None)
             self._id_session_shown = session
             self.tabs.setCurrentWidget(self.id_view)
         if ran_here and protocol == "chirp-id" and session:
@@ -1238,38 +1275,44 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_overlay()
 
     def _show_overlay(self) -> None:
-        """The Identification page says which plant the theory overlay uses, and whence."""
+        """The Identification page says which plant the theory overlay of the record shown
+        uses, and whence, and which the next run takes (right after a chirp-ID they differ:
+        its record's theory used the plant it ran with, the next run takes its fit; one line
+        said the first above the column marked as the second)."""
         est = self.live.impedance.last
         if est is not None and est.theory:
-            text = f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m, {est.plant_source}"
+            shown = f"m = {fmt(est.plant.m)} kg, b = {fmt(est.plant.b)} N s/m, {est.plant_source}"
         elif est is not None and est.plant is None:
-            text = "none: the plant could not be identified on this record"
+            shown = "none: the plant could not be identified on this record"
         elif est is not None:
-            text = "none for this record (no VE); " + self._next_plant_text()
+            shown = "none (the record renders no VE)"
         else:
-            text = self._next_plant_text()
-        self.id_view.show_overlay(text)
+            shown = None
+        ahead = f"of the next run: {self._next_plant_text()}"
+        self.id_view.show_overlay(ahead if shown is None else f"of the record shown: {shown}<br>{ahead}")
 
     def _next_plant_text(self) -> str:
         """The plant the next run's theory will use, and where it comes from."""
         if self.identified:
             f = self.identified
             return (f"m = {fmt(f['m'])} kg, b = {fmt(f['b'])} N s/m, identified in "
-                    f"{session_label(f['session'])} (the next run's, unless its settings give m, b)")
+                    f"{session_label(f['session'])} (its l2 fit), unless its settings give m, b")
         p = self.rig.nominal_plant
-        return f"m = {fmt(p.m)} kg, b = {fmt(p.b)} N s/m, the rig's nominal model (the next run's)"
+        return f"m = {fmt(p.m)} kg, b = {fmt(p.b)} N s/m, the rig's nominal model"
 
     def _on_identified_done(self, value):
         ident, data, path = value
         if path != self._id_session_shown or not ident:
             return  # a newer one was asked for meanwhile
-        self.id_view.show_results(ident, data, source=f"chirp-ID {Path(path).name}: the "
-                                  "identification the theory overlay uses", used=used_method(ident))
+        self.id_view.show_results(ident, data, source=f"chirp-ID {Path(path).name}: this rig's "
+                                  "newest, whose plant the next runs take", used=used_method(ident))
 
     # ----- shutdown -------------------------------------------------------------------------
     def closeEvent(self, event):
         self.estop_keys.remove()  # the application's filter: a closed window stops nothing
-        QtWidgets.QApplication.instance().focusChanged.disconnect(self._show_keys_rule)
+        if self._watching_focus:
+            QtWidgets.QApplication.instance().focusChanged.disconnect(self._show_keys_rule)
+            self._watching_focus = False
         self.wheel_guard.remove()
         self.save_state()
         self.stop_event.set()

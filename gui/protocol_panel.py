@@ -311,7 +311,9 @@ def remember_form(settings, name: str, form: SettingsForm) -> None:
 class ProtocolPanel(QtWidgets.QGroupBox):
     """The protocol the next Start runs, as the person chose it (nothing else changes the
     choice), its settings, the pre-check, Start / Stop and the run's progress. It owns its
-    forms and what it remembers of them (``settings``: a QSettings, or None)."""
+    forms and what it remembers of them (``settings``: a QSettings, or None). The pre-check,
+    Start, Stop and the progress are in ``run_box``, which the window places where it never
+    scrolls away (at 1280 x 800 they scrolled out of view with the panels)."""
 
     start_requested = QtCore.Signal()
     stop_requested = QtCore.Signal()
@@ -328,7 +330,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         # QTreeWidgetItem (not QObjects), and PySide 6.11 crashed in releaseWrapper deleting
         # such an item whose wrapper it had already dropped, when a closed window was deleted
         self.forms = QtWidgets.QStackedWidget()
-        self.forms.setMinimumHeight(220)
+        self.forms.setMinimumHeight(150)  # about five settings; the window fits 1280 x 720
         # the room left over, whatever a form's own size: another protocol's longer form
         # scrolls in it instead of pushing Start down
         self.forms.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred,
@@ -358,6 +360,9 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(self.choice)
         lay.addWidget(self.forms, 1)
+        self.run_box = QtWidgets.QWidget()
+        lay = QtWidgets.QVBoxLayout(self.run_box)
+        lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(precheck_room)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.start_button)

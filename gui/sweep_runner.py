@@ -20,9 +20,15 @@ from multiprocessing.connection import wait as wait_handles
 from labbench.gui.acquisition import SharedFlag, main_module_hidden
 
 CANCELLED = "cancelled in the window"
+FILL_S = 1.0  # rows reach the table at least this often: the page's map fills in as they come
 
 
-def _child(spec_path: str, table: str, workers: int | None, messages, cancel) -> None:
+def limit_reached(limit: int) -> str:
+    return f"the {limit} point{'s' if limit != 1 else ''} asked for ran"
+
+
+def _child(spec_path: str, table: str, workers: int | None, messages, cancel,
+           limit: int = 0) -> None:
     from labbench.gui.worker import describe_error
     from labbench.interrupts import StopRequest
     from labbench.sweep.engine import run_sweep
@@ -42,10 +48,12 @@ def _child(spec_path: str, table: str, workers: int | None, messages, cancel) ->
 
     def progress(p) -> None:
         messages.put(("progress", {**asdict(p), "eta_s": p.eta_s}))
+        if limit and p.computed >= limit and not stop.is_set():  # as Cancel: the rest next Run
+            stop.set(limit_reached(limit))
 
     try:
         summary = run_sweep(load_spec(spec_path), table, workers=workers, progress=progress,
-                            stop=stop)
+                            stop=stop, flush_s=FILL_S)
         messages.put(("done", {**asdict(summary), "table": str(summary.table),
                                "reason": stop.reason}))
     except BaseException as exc:  # noqa: BLE001 - the window shows it in one line
@@ -58,9 +66,10 @@ class SweepRun:
     """One sweep of spec ``spec_path`` into table ``table``: ``post(kind, payload)`` is
     called on a reader thread with ("progress", Progress as a dict), then ("done", Summary
     as a dict) or ("error", one line). ``workers``: as ``labbench sweep --workers`` (None:
-    one per CPU; 0: in the child itself)."""
+    one per CPU; 0: in the child itself); ``limit``: stop (as Cancel) once that many points
+    were computed (0: all; the points under way on other workers finish too)."""
 
-    def __init__(self, spec_path, table, workers: int | None, post):
+    def __init__(self, spec_path, table, workers: int | None, post, limit: int = 0):
         ctx = mp.get_context("spawn")
         self.cancel_flag = SharedFlag(ctx)
         self._messages = ctx.Queue()
@@ -68,7 +77,7 @@ class SweepRun:
         # not a daemon: a sweep on Dask starts worker processes of its own
         self.process = ctx.Process(target=_child, name="labbench-sweep",
                                    args=(str(spec_path), str(table), workers, self._messages,
-                                         self.cancel_flag))
+                                         self.cancel_flag, limit))
         with main_module_hidden():
             self.process.start()
         self._reader = threading.Thread(target=self._forward, name="labbench-sweep-reader",

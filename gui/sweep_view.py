@@ -30,6 +30,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
+from labbench.gui.live_plots import no_si_prefix
 from labbench.gui.sweep_runner import SweepRun
 from labbench.gui.worker import Mailbox, describe_error, run_in_background
 from labbench.numfmt import fmt
@@ -153,6 +154,7 @@ class SweepView(QtWidgets.QWidget):
         self.selected: int | None = None
         self._rerun_of: dict = {}  # the table's row of the point being re-run
         self._reread = 0.0  # when the running sweep's table was read last
+        self._parts_read = -1  # how many part files it had then
         self.mailbox = Mailbox()
         self.poll = QtCore.QTimer(self)
         self.poll.setInterval(POLL_MS)
@@ -175,6 +177,12 @@ class SweepView(QtWidgets.QWidget):
         self.workers.setPrefix("workers: ")
         self.workers.setToolTip("local worker processes, as labbench sweep --workers "
                                 "(0: computed in one process, no Dask)")
+        self.limit = QtWidgets.QSpinBox()  # a slice of a long spec from the page
+        self.limit.setRange(0, 1_000_000)
+        self.limit.setSpecialValueText("points: all")
+        self.limit.setPrefix("points: at most ")
+        self.limit.setToolTip("how many of the points still to compute Run computes now (the "
+                              "rest at the next Run, as after Cancel); all: every one")
         self.run_button = QtWidgets.QPushButton("Run sweep")
         self.run_button.clicked.connect(self.run_spec)
         self.cancel_button = QtWidgets.QPushButton("Cancel")
@@ -196,7 +204,7 @@ class SweepView(QtWidgets.QWidget):
         self.plot = pg.PlotWidget()
         self.plot.showGrid(x=True, y=True, alpha=0.3)
         for side in ("bottom", "left"):  # the numbers as they are: no "(x0.001)" scaling
-            self.plot.getAxis(side).enableAutoSIPrefix(False)
+            no_si_prefix(self.plot.getAxis(side))
         self.points = pg.ScatterPlotItem(size=9, hoverable=True, tip=None, hoverSize=14,
                                          hoverPen=pg.mkPen("k", width=2))
         self.points.sigHovered.connect(self._on_hover)
@@ -227,7 +235,7 @@ class SweepView(QtWidgets.QWidget):
             top.addWidget(w)
         top.addWidget(self.table_label, 1)
         running = QtWidgets.QHBoxLayout()
-        for w in (self.workers, self.run_button, self.cancel_button):
+        for w in (self.workers, self.limit, self.run_button, self.cancel_button):
             running.addWidget(w)
         running.addWidget(self.progress, 1)
         running.addWidget(self.progress_text, 2)
@@ -310,8 +318,10 @@ class SweepView(QtWidgets.QWidget):
             return
         table = self.table_of(self.spec_path)
         table.parent.mkdir(parents=True, exist_ok=True)
+        self._parts_read = -1
         self.run = SweepRun(self.spec_path, table, self.workers.value(),
-                            lambda kind, value: self.mailbox.put(f"sweep {kind}", value))
+                            lambda kind, value: self.mailbox.put(f"sweep {kind}", value),
+                            limit=self.limit.value())
         self.poll.start()
         self._say(f"running {self.spec_path.name} into {table} ...")
         self._sync_buttons()
@@ -330,14 +340,22 @@ class SweepView(QtWidgets.QWidget):
         eta = p.get("eta_s")
         self._show_progress(p["done"], p["total"], f"{p['failed']} not ok, {p['elapsed_s']:.0f} s"
                             + (f", about {eta:.0f} s left" if eta is not None else ""))
-        now = time.monotonic()
-        if now - self._reread >= REREAD_S:  # the map fills in as rows reach the table
-            self._reread = now
-            table = self.table_of(self.spec_path)
-            from labbench.sweep.table import is_table
+        self._fill_in()
 
-            if is_table(table):
-                self.open_table(table)
+    def _fill_in(self) -> None:
+        """The map fills in as rows reach the table (the child writes them at least once a
+        second, ``sweep_runner.FILL_S``): read again at most every REREAD_S, when it has new
+        parts."""
+        from labbench.sweep.table import is_table, parts
+
+        now = time.monotonic()
+        if self.run is None or now - self._reread < REREAD_S:
+            return
+        self._reread = now
+        table = self.table_of(self.spec_path)
+        if is_table(table) and len(parts(table)) != self._parts_read:
+            self._parts_read = len(parts(table))
+            self.open_table(table)
 
     def _on_run_end(self, kind: str, value) -> None:
         self.run = None
@@ -346,7 +364,8 @@ class SweepView(QtWidgets.QWidget):
             self._say(f"sweep failed: {value}", error=True)
             return
         done = value["before"] + value["computed"]
-        state = "stopped" if value["stopped"] else "complete"
+        why = value.get("reason") if value["stopped"] else ""
+        state = ("stopped: " + why if why else "stopped") if value["stopped"] else "complete"
         self._show_progress(done, value["total"], f"{value['failed']} not ok, {state}")
         self.open_table(value["table"])
         self._say(f"sweep {state}: {done} of {value['total']} points in {value['table']} "
@@ -537,6 +556,7 @@ class SweepView(QtWidgets.QWidget):
         self.run_button.setEnabled(self.spec_path is not None and not running)
         self.cancel_button.setEnabled(running)
         self.workers.setEnabled(not running)
+        self.limit.setEnabled(not running)
         for w in (self.open_spec_button, self.open_table_button):
             w.setEnabled(not running)
         if self.spec is not None and not runs:
@@ -582,6 +602,7 @@ class SweepView(QtWidgets.QWidget):
                     self._say(f"re-run failed: {value[1]}", error=True)
                 else:
                     self._rerun_done(old, value[1])
+        self._fill_in()  # between progress messages too: a row flushed after the last one
         if self.run is None and not self._rerun_of:
             self.poll.stop()
 

@@ -82,9 +82,17 @@ def test_the_zwidth_chart_fills_in_and_estop_ends_the_campaign(qtbot, win, tmp_p
                  'B = [0.0, 1.0, 2.0]\n')
     page.open_requested.emit(str(p))
     page.start_button.click()
-    qtbot.waitUntil(lambda: page.table.rowCount() >= 1 and page.chart.pixmap() is not None
-                    and not page.chart.pixmap().isNull(), timeout=120_000)
+    qtbot.waitUntil(lambda: page.table.rowCount() >= 1 and bool(page.chart.points), timeout=120_000)
     assert "K_max" in page.table.item(0, 3).text()
+    # the chart is live (issue 43: a 430 x 300 bitmap with 6 px text): a point under the mouse
+    # names its row under the chart, a click selects it in the table
+    assert page.chart.kind == "zwidth"
+    item = page.chart.points[0]
+    spot = item.points()[0]
+    item.sigHovered.emit(item, [spot], None)
+    assert page.chart.caption.text().startswith(f"#: {page.rows[spot.data()]['index']}; point: B = ")
+    item.sigClicked.emit(item, [spot], None)
+    assert page.selected_session() == page.rows[spot.data()].get("session")
     qtbot.waitUntil(lambda: win.mode == "running", timeout=30_000)
     win.emergency_stop()
     qtbot.waitUntil(lambda: not page.running, timeout=30_000)

@@ -258,7 +258,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert table["mass m"] == [_read_id(fits[m], m)["mass m"] for m in ("l2", "l1")]
     assert table["verdict"] == [fits["l2"]["verdict"]["level"], fits["l1"]["verdict"]["level"]]
     assert view.verdicts.levels() == {f"{m} fit": fits[m]["verdict"]["level"] for m in ("l2", "l1")}
-    assert [view.table.horizontalHeaderItem(c).text() for c in range(2)] == ["l2 fit (overlay)", "l1 fit"]
+    assert [view.table.horizontalHeaderItem(c).text() for c in range(2)] == ["l2 fit (next runs)", "l1 fit"]
 
     # the next ETFE takes that identification, says so before Start, and records where from
     qtbot.waitUntil(lambda: (win.identified or {}).get("session") == chirp_path, timeout=10_000)

@@ -330,3 +330,139 @@ def test_the_noise_seed_is_new_each_run_unless_one_is_typed(qtbot, window, tmp_p
     again = window(settings=open_settings(ini))  # a restart remembers no drawn seed
     again.protocol_panel.choice.setCurrentText("etfe")
     assert again.protocol_panel.form.fields["seed"].widget.text() == ""
+
+
+def test_right_after_a_chirp_id_the_identification_header_names_both_plants(qtbot, window):
+    """Right after a chirp-ID the page said "theory overlay plant: the rig's nominal model"
+    above a column "l2 fit (overlay)": the header spoke of the record's theory, the column of
+    the next run's, and neither said so. Now the header names both, and the column says
+    which runs take it."""
+    from labbench.numfmt import fmt
+    from labbench.readout import session_label
+
+    win = window()
+    path = run_protocol(qtbot, win, "chirp-id", duration_s=20.0)
+    view = win.id_view
+    assert win.tabs.currentWidget() is view
+    fit = win.last_run.results["identification"]["l2"]
+    qtbot.waitUntil(lambda: win.live.impedance.last is not None, timeout=30_000)
+    lines = plain(view.overlay)
+    # the chirp's own theory used the plant it ran with (here the rig's nominal)
+    assert lines[0] == "theory overlay plant of the record shown: m = 0.094 kg, b = 0.1 N s/m, " \
+                       "the rig's nominal model"
+    assert lines[1].startswith(f"of the next run: m = {fmt(fit['m'])} kg, b = {fmt(fit['b'])} N s/m, "
+                               f"identified in {session_label(path)} (its l2 fit)")
+    assert view.table.horizontalHeaderItem(0).text() == "l2 fit (next runs)"
+    # a live switch to Hz: the axis reads Hz with its numbers as they are (it read "kHz",
+    # ticks 0.001-0.1: pyqtgraph applied the prefix of the range it then had)
+    win.units_choice.combos["frequency"].setCurrentText("Hz")
+    axis = view.impedance.getAxis("bottom")
+    assert "(Hz)" in axis.labelString() and axis.labelUnitPrefix == "" and axis.autoSIPrefixScale == 1.0
+
+
+SPRINGS = """[sweep]
+name = "springs"
+protocol = "etfe"
+
+[fixed]
+duration_s = 20.0
+
+[grid]
+K = [20.0, 50.0, 80.0, 110.0]
+seed = [1, 2]
+"""
+
+
+def test_a_sweep_fills_its_map_as_rows_come_and_runs_the_points_asked_for(qtbot, window, tmp_path):
+    """The Sweeps chart stayed empty with blank axes until the sweep ended (its rows reached
+    the table only every 64 rows or 10 s), and the page could not run fewer points than the
+    spec. Now rows reach the map within a second, and 'points: at most N' runs N now and
+    the rest at the next Run."""
+    from labbench.sweep.table import done_keys
+
+    spec = tmp_path / "springs.toml"
+    spec.write_text(SPRINGS)
+    win = window()
+    view = win.sweeps
+    win.tabs.setCurrentWidget(view)
+    assert view.open_spec(spec)
+    view.workers.setValue(0)
+    view.limit.setValue(5)
+    view.run_button.click()
+    seen = []
+
+    def ended() -> bool:  # (points done, rows on the map), looked at while the sweep runs
+        if view.run is not None:
+            done = int(view.progress_text.text().split(" of ")[0] or 0) if " of " in view.progress_text.text() else 0
+            seen.append((done, len(view.cols.get("key", []))))
+        return view.run is None
+
+    qtbot.waitUntil(ended, timeout=120_000)
+    assert any(rows for _done, rows in seen), sorted(set(seen))  # rows on the map mid-sweep
+    assert len(done_keys(view.table_of(spec))) == 5
+    assert "stopped: the 5 points asked for ran" in view.progress_text.text()
+    assert view.points.data.size == 5  # the map: the five rows
+    view.limit.setValue(0)  # all: the rest
+    view.run_button.click()
+    qtbot.waitUntil(lambda: view.run is None, timeout=120_000)
+    assert len(done_keys(view.table_of(spec))) == 8 and "complete" in view.progress_text.text()
+
+
+def test_a_campaign_runs_the_points_asked_for_from_its_page(qtbot, window, tmp_path):
+    """Neither page could run fewer points than the spec: 'points: at most N' on the
+    Campaign page runs N now, the rest at the next Start (as after Stop)."""
+    from labbench.sweep import table as tables
+
+    spec = tmp_path / "k.toml"
+    spec.write_text('[sweep]\nname = "k"\nprotocol = "etfe"\n[fixed]\nve = "spring"\n'
+                    'duration_s = 1.0\nseed = 3\n[grid]\nK = [10.0, 20.0, 30.0]\n')
+    win = window()
+    page = win.campaign
+    page.open_requested.emit(str(spec))
+    page.limit.setValue(1)
+    page.start_button.click()
+    qtbot.waitUntil(lambda: not page.running, timeout=120_000)
+    assert "stopped: the 1 point asked for ran" in page.state_label.text()
+    assert [r["K"] for r in tables.read_table(win.campaign_table).to_pylist()] == [10.0]
+    page.limit.setValue(0)
+    page.open_requested.emit(str(spec))
+    page.start_button.click()
+    qtbot.waitUntil(lambda: not page.running, timeout=120_000)
+    assert "complete" in page.state_label.text()
+    assert len(tables.read_table(win.campaign_table).to_pylist()) == 3
+
+
+def test_a_can_drive_that_answers_nothing_says_what_to_check(qtbot, window, monkeypatch, tmp_path):
+    """A CAN connect that got no SDO answer said only "no SDO response received" (every other
+    hardware error says what to check), and python-can's software buses were listed as if
+    they were adapters. Now the list says which are software buses, and no answer names
+    where a drive is usually lost (on a software bus: that no adapter is behind it)."""
+    from labbench.drivers import canopen_drive
+    from labbench.gui import device_panel
+
+    monkeypatch.setattr(device_panel, "can_configs", lambda: [
+        {"interface": "virtual", "channel": "bench-bus"}, {"interface": "socketcan", "channel": "can0"}])
+    monkeypatch.setenv("HOME", str(tmp_path))
+    win = window()
+    panel = win.device_panel
+    panel.backend.setCurrentText("canopen")
+    soft = "virtual: bench-bus (software bus, no adapter)"
+    qtbot.waitUntil(lambda: panel.interface.findText(soft) >= 0, timeout=10_000)
+    assert panel.interface.findText("socketcan: can0") >= 0  # an adapter's entry: as it is
+    panel.interface.setCurrentIndex(panel.interface.findText(soft))
+    panel.connect_button.click()
+    qtbot.waitUntil(lambda: win.state.link == "none" and win.banner.isVisible(), timeout=60_000)
+    text = win.banner.text()
+    assert "no answer to SDO read" in text and "virtual is a software bus" in text
+
+    # the same silence on what the driver takes for an adapter: what to check, by name
+    monkeypatch.setattr(canopen_drive, "SOFTWARE_BUSES", ())
+    from labbench.rig import Rig
+    import dataclasses
+
+    rig = Rig()
+    rig = dataclasses.replace(rig, sections={**rig.sections, "canopen": {
+        "interface": "virtual", "channel": "silent-bus", "node_id": 5, "sdo_timeout_s": 0.2}})
+    with pytest.raises(canopen_drive.NoAnswer) as got:
+        canopen_drive.open_canopen(rig)
+    assert "node id is 5 ([canopen] node_id)" in str(got.value) and "terminated" in str(got.value)

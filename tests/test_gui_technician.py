@@ -548,12 +548,12 @@ def test_the_can_interface_is_picked_on_the_device_panel(qtbot, window, monkeypa
     panel = win.device_panel
     panel.backend.setCurrentText("canopen")
     assert panel.link_title.text() == "CAN bus"
-    qtbot.waitUntil(lambda: panel.interface.findText("virtual: bench-bus") >= 0, timeout=10_000)
+    qtbot.waitUntil(lambda: panel.interface.findText("virtual: bench-bus (software bus, no adapter)") >= 0, timeout=10_000)
     assert panel.interface.currentText() == FROM_RIG
     panel.connect_button.click()  # none in the rig, none configured: the window's list named
     qtbot.waitUntil(lambda: win.banner.isVisible(), timeout=30_000)
     assert win.banner.text() == f"connect: {NO_CAN}" and "~/.canrc" not in win.banner.text()
-    panel.interface.setCurrentIndex(panel.interface.findText("virtual: bench-bus"))
+    panel.interface.setCurrentIndex(panel.interface.findText("virtual: bench-bus (software bus, no adapter)"))
     assert panel.link_choice() == {"interface": "virtual", "channel": "bench-bus"}
     panel.connect_button.click()  # that bus is opened: no drive answers on it
     qtbot.waitUntil(lambda: win.state.link == "none" and "no CAN interface" not in win.banner.text()
