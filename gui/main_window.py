@@ -175,6 +175,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.campaign_table: Path | None = None  # its table folder
         self.campaign_stop = None  # StopRequest of the campaign under way
         self._points_left: int | None = None  # points the campaign may still start (None: all)
+        self._campaign_spec: str | None = None  # the spec the plan was made of
         self._point = None  # the point running: (planned point, consumers, answer, Event)
 
         self.setWindowTitle(f"labbench: {rig.name}")
@@ -735,6 +736,7 @@ class MainWindow(QtWidgets.QMainWindow):
         table_dir = self.session_dir / "campaigns" / f"{Path(path).stem}-{backend}{tables.SUFFIX}"
         done = tables.done_keys(table_dir) if tables.is_table(table_dir) else set()
         self.campaign_plan, self.campaign_table = plan, table_dir
+        self._campaign_spec = path
         self.campaign.show_plan(describe(plan, done, table_dir))
         self._show_campaign_table()
 
@@ -747,10 +749,15 @@ class MainWindow(QtWidgets.QMainWindow):
         from labbench.interrupts import StopRequest
 
         self._new_action()
-        plan = self.campaign_plan
-        if plan is None:
+        if self.campaign_plan is None:
             raise UserError("open a campaign spec first")
         self.state.check_start()
+        # planned again now: a chirp-ID or a commissioning run since the spec was opened is
+        # what the points take and record (the plan said "no commissioning found" after one)
+        self.open_campaign(self._campaign_spec)
+        plan = self.campaign_plan
+        if plan is None:
+            return  # the plan no longer holds: the page says why
         if not plan.context.simulated:
             lines = describe(plan, set(), self.campaign_table)
             yes = QtWidgets.QMessageBox.question(
@@ -1010,6 +1017,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._run_finished(f"{tag} failed: {message}")
         if tag in ("connect", "run"):
             self._finish_point(error=f"{tag}: {message}")
+        if tag == "export":
+            self.sessions.export_ended(f"export failed: {message}")
         if tag == "campaign":
             self._campaign_over(f"campaign ended: {message}")
         self.show_error(f"{tag}: {message}")
@@ -1194,7 +1203,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._new_action()
         out_dir = self.session_dir / "exports"
         out_dir.mkdir(parents=True, exist_ok=True)
-        self.log.add("info", f"exporting {Path(path).name} as {fmt} ...")
+        what = {"report": "a report (HTML and PDF: 10-30 s)"}.get(fmt, fmt)
+        line = f"exporting {Path(path).name} as {what} into {out_dir} ..."
+        self.log.add("info", line)
+        self.sessions.show_export(line)  # a report took 24 s with nothing said meanwhile
         run_in_background(self.mailbox, "export", export_in_child, path, fmt, out_dir)
 
     def _on_reanalyse_done(self, value):
@@ -1240,7 +1252,9 @@ class MainWindow(QtWidgets.QMainWindow):
             f"; {len(kept)} result(s) not replaced (see the Live page)" if kept else ""), 1.0)
 
     def _on_export_done(self, paths):
-        self.info("exported: " + ", ".join(str(p) for p in paths))
+        line = "exported: " + ", ".join(str(p) for p in paths)
+        self.sessions.export_ended(line)
+        self.info(line)
 
     def _on_sessions_done(self, value):
         summaries, found = value

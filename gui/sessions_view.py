@@ -13,8 +13,8 @@ from labbench.gui.tables import row_list
 from labbench.gui.verdict_view import COLOURS
 from labbench.numfmt import fmt
 
-COLUMNS = ("date", "protocol", "VE", "K [N/m]", "B [N s/m]", "duration [s]", "status",
-           "verdict", "samples", "rig", "file")
+COLUMNS = ("date", "protocol", "device", "VE", "K [N/m]", "B [N s/m]", "duration [s]",
+           "status", "verdict", "samples", "rig", "file")
 NUMBERS = ("K [N/m]", "B [N s/m]", "duration [s]", "samples")  # the filter matches them whole
 
 
@@ -42,7 +42,10 @@ def cells(s) -> tuple[str, ...]:
     applicable: an open-loop run, VE "none", has no K, B)."""
     date = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s.time)) if s.time else "?"
     ve = s.ve or ("none" if s.protocol else "")  # a run's start names no VE: it rendered none
-    return (date, s.protocol or "?", ve, fmt(s.K) if s.K is not None else "",
+    k = fmt(s.K) if s.K is not None else ""
+    if k and s.protocol == "stability":  # a probe's VE is where it starts, not its K_max
+        k = f"from {k}"
+    return (date, s.protocol or "?", s.device or "?", ve, k,
             fmt(s.B) if s.B is not None else "",
             f"{s.duration_s:.1f}" if s.duration_s is not None else "",
             s.status + (f", {s.overruns} overrun{'s' if s.overruns > 1 else ''}" if s.overruns else ""),
@@ -211,6 +214,18 @@ class SessionsView(QtWidgets.QWidget):
         self.progress.setValue(int(1000 * frac))
         self.progress_line.setText(text)
         self._sync()
+
+    def show_export(self, text: str) -> None:
+        """An export under way (a report takes 10-30 s): the bar busy, what is written."""
+        if not self._analysing:  # a re-analysis' own progress keeps the bar
+            self.progress.setRange(0, 0)
+        self.progress_line.setText(text)
+
+    def export_ended(self, text: str) -> None:
+        if not self._analysing:
+            self.progress.setRange(0, 1000)
+            self.progress.setValue(1000)
+        self.progress_line.setText(text)
 
     def _sync(self) -> None:
         self.cancel_button.setEnabled(self._analysing)

@@ -28,6 +28,7 @@ class SessionSummary:
     duration_s: float | None = None
     verdict: str | None = None
     overruns: int = 0  # loop periods over 1.5 T of a paced run (its stop record's timing)
+    device: str | None = None  # the backend it ran on ("sim", "avr-sim", "canopen (simulated)")
 
 
 class _HeaderCollector(records.StreamCollector):
@@ -72,7 +73,18 @@ def summarize(path) -> SessionSummary:
         duration_s=n * T if T else None,
         verdict=worst_level((stop or {}).get("results")),
         overruns=_overruns(stop),
+        device=_device(start.get("device")),
     )
+
+
+def _device(d) -> str | None:
+    """The backend a start record's device description names (a simulated peer of a real
+    protocol says so: the simulated CANopen drive's kind is "canopen")."""
+    kind = d.get("kind") if isinstance(d, dict) else None
+    if not isinstance(kind, str) or not kind:
+        return None
+    simulated = d.get("simulated") is True and not kind.startswith(("sim", "avr-sim"))
+    return kind + (" (simulated)" if simulated else "")
 
 
 def _overruns(stop) -> int:

@@ -228,7 +228,9 @@ def test_what_the_status_bar_showed_of_a_run_is_in_its_session(qtbot, window, tm
 
     # the Sessions table's status, and the report's flags (page 1)
     row = win.sessions.table.findItems(path.rsplit("/", 1)[-1], QtCore.Qt.MatchFlag.MatchExactly)[0].row()
-    status = win.sessions.table.item(row, 6).text()
+    from labbench.gui.sessions_view import COLUMNS
+
+    status = win.sessions.table.item(row, COLUMNS.index("status")).text()
     assert status == f"success, {n} overrun{'s' if n > 1 else ''}"
     report = build([path])
     html = render_html(report.title, report.subtitle, report.blocks)
@@ -419,11 +421,18 @@ def test_a_campaign_runs_the_points_asked_for_from_its_page(qtbot, window, tmp_p
     win = window()
     page = win.campaign
     page.open_requested.emit(str(spec))
+    assert "(nominal)" in page.plan_label.text()
+    # a chirp-ID after the spec was opened: the campaign takes it (the plan was stale: its
+    # caption named the old plant, "no commissioning found" after one ran)
+    chirp = run_protocol(qtbot, win, "chirp-id", f0_hz=0.5, duration_s=3.0)
+    qtbot.waitUntil(lambda: (win.identified or {}).get("session") == chirp, timeout=20_000)
     page.limit.setValue(1)
     page.start_button.click()
+    assert chirp in page.plan_label.text()
     qtbot.waitUntil(lambda: not page.running, timeout=120_000)
     assert "stopped: the 1 point asked for ran" in page.state_label.text()
-    assert [r["K"] for r in tables.read_table(win.campaign_table).to_pylist()] == [10.0]
+    rows = tables.read_table(win.campaign_table).to_pylist()
+    assert [r["K"] for r in rows] == [10.0] and chirp in str(rows[0]["plant.from"])
     page.limit.setValue(0)
     page.open_requested.emit(str(spec))
     page.start_button.click()
@@ -466,3 +475,34 @@ def test_a_can_drive_that_answers_nothing_says_what_to_check(qtbot, window, monk
     with pytest.raises(canopen_drive.NoAnswer) as got:
         canopen_drive.open_canopen(rig)
     assert "node id is 5 ([canopen] node_id)" in str(got.value) and "terminated" in str(got.value)
+
+
+def test_an_export_says_it_is_under_way_and_when_it_is_done(qtbot, window):
+    """A report export took 24 s with nothing on screen meanwhile. Now the Sessions page
+    says what is being written (the bar busy) until it is written, then where. (CSV here:
+    the same path as a report's, in a second instead of 24.)"""
+    win = window()
+    path = run_protocol(qtbot, win, "chirp-id", f0_hz=0.5, duration_s=3.0)
+    qtbot.waitUntil(lambda: path in win.sessions.paths, timeout=20_000)
+    win.sessions.select_path(path)
+    win.sessions.buttons["Export CSV"].click()
+    assert win.sessions.progress_line.text().startswith(f"exporting {path.rsplit('/', 1)[-1]} as csv")
+    assert win.sessions.progress.maximum() == 0  # busy
+    qtbot.waitUntil(lambda: win.sessions.progress_line.text().startswith("exported: "), timeout=60_000)
+    assert ".csv" in win.sessions.progress_line.text() and win.sessions.progress.maximum() == 1000
+
+
+def test_the_sessions_table_names_the_backend_and_a_probes_start():
+    """The backend was missing from the Sessions table, and a campaign's stability probes
+    were listed with the probe's starting K in the K column, as if it were their K_max."""
+    from pathlib import Path
+
+    from labbench.gui.sessions_view import COLUMNS, cells
+    from labbench.session_catalogue import SessionSummary, _device
+
+    probe = SessionSummary(Path("p.lbsession"), "u", 0.0, "rig", "stability", "success", 100,
+                           ve="spring-damper", K=60.0, B=1.0, device=_device({"kind": "avr-sim"}))
+    row = dict(zip(COLUMNS, cells(probe)))
+    assert row["K [N/m]"] == "from 60" and row["device"] == "avr-sim"
+    assert _device({"kind": "canopen", "simulated": True}) == "canopen (simulated)"
+    assert _device({"kind": "sim", "simulated": True}) == "sim" and _device("junk") is None

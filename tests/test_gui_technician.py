@@ -425,7 +425,7 @@ def test_a_number_in_the_filter_matches_whole_numbers_not_a_timestamp():
     # "200" typed at 20:05 also showed every session whose file was stamped 20:05 (CI, 20:0x)
     from labbench.gui.sessions_view import matches
 
-    row = ("2026-12-04 20:05:12", "etfe", "spring-damper", "50", "1", "2.0", "success", "ok",
+    row = ("2026-12-04 20:05:12", "etfe", "sim", "spring-damper", "50", "1", "2.0", "success", "ok",
            "2000", "default", "etfe-20261204-200512.lbsession")
     assert not matches(row, ["200"]) and not matches(row, ["etfe", "200"])
     assert matches(row, ["50"]) and matches(row, ["2026"]) and matches(row, ["etfe", "50"])
@@ -450,6 +450,7 @@ def test_sessions_show_ve_k_b_duration_and_verdict_and_filter(qtbot, window):
     assert set(rows) == {("chirp-id", ""), ("etfe", "50"), ("etfe", "200")}
     chirp, k50, k200 = rows[("chirp-id", "")], rows[("etfe", "50")], rows[("etfe", "200")]
     assert chirp[col["VE"]] == "none" and chirp[col["B [N s/m]"]] == ""  # open loop: no K, B
+    assert {r[col["device"]] for r in rows.values()} == {"sim"}  # the backend each ran on
     assert (k50[col["VE"]], k50[col["B [N s/m]"]], k50[col["duration [s]"]]) == ("spring-damper", "1", "2.0")
     assert (k200[col["B [N s/m]"]], k200[col["duration [s]"]]) == ("0.5", "3.0")
     for r in (chirp, k50, k200):
