@@ -40,7 +40,11 @@ FCS = (0.0, 0.005, 0.01, 0.02, 0.035, 0.05)
 VES = ((50.0, 1.0), (20.0, 1.0), (200.0, 1.0), (50.0, 0.3), (50.0, 3.0))
 LENGTHS = (30.0, 120.0)
 SEEDS = (1, 2, 3)
-QUICK = {"FCS": (0.0, 0.02, 0.05), "VES": ((50.0, 1.0), (200.0, 1.0)), "LENGTHS": (60.0,), "SEEDS": (1,)}
+# a slice with the device's own delay of 1.5 samples (the simulator's extra_delay_*, the rig's
+# measured_td_s), K 50, B 1, 60 s: friction with a fractional device delay
+DELAYED = {"VES": ((50.0, 1.0),), "LENGTHS": (60.0,), "delay_s": 0.0015}
+QUICK = {"FCS": (0.0, 0.02, 0.05), "VES": ((50.0, 1.0), (200.0, 1.0)), "LENGTHS": (60.0,), "SEEDS": (1,),
+         "DELAYED": {**DELAYED, "LENGTHS": (30.0,)}}
 
 
 def chirp(fc: float, seed: int) -> dict:
@@ -59,7 +63,7 @@ def chirp(fc: float, seed: int) -> dict:
 
 def point(args) -> list[dict]:
     """One ETFE run (friction given from the chirp-ID) and its two re-analyses."""
-    fc, K, B, length, seed, ident = args
+    fc, K, B, length, seed, ident, delay = args
     from labbench import device_friction
     from labbench.registry import make_protocol
     from labbench.rig import Rig
@@ -67,17 +71,22 @@ def point(args) -> list[dict]:
     from labbench.session_content import analysis_meta, load_session
     from labbench.sim_backend.sim_device import open_sim
 
-    rig = Rig()
+    rig = Rig(measured_td_s=delay or None, measured_td_from="the simulator's delay" if delay else "")
+    sim = dict(SIM)
+    if delay:
+        whole = int(delay / rig.sample_time_s + 1e-9)
+        sim.update(extra_delay_samples=whole, extra_delay_fraction=delay / rig.sample_time_s - whole)
     given = {"plant_m_kg": ident["m"], "plant_b": ident["b"]}
     if ident["coulomb"] is not None:
         given.update(plant_coulomb_n=max(ident["coulomb"], 0.0), plant_coulomb_ci95=ident["coulomb_ci95"])
     protocol = make_protocol("etfe", K=K, B=B, duration_s=length, seed=seed, **given)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
-        res, path = run_recorded(open_sim(rig, seed=seed, coulomb_n=fc, **SIM), protocol, d, rig=rig)
+        res, path = run_recorded(open_sim(rig, seed=seed, coulomb_n=fc, **sim), protocol, d, rig=rig)
         t_run = time.perf_counter() - t0
         if res.status != "success" or "error" in res.results:
-            return [{"fc": fc, "K": K, "B": B, "length": length, "seed": seed, "error": res.reason}]
+            return [{"fc": fc, "K": K, "B": B, "length": length, "seed": seed, "delay_s": delay,
+                     "error": res.reason}]
         start, desc, ch, *_ = load_session(path)
     base = {**analysis_meta(start, desc), "plant": {"m": ident["m"], "b": ident["b"]}}
     base = {k: v for k, v in base.items() if not k.startswith("coulomb_")}
@@ -87,6 +96,8 @@ def point(args) -> list[dict]:
         t0 = time.perf_counter()
         results = protocol.analyze(ch, meta)
         out.append(_row(results, source, fc, K, B, length, seed, time.perf_counter() - t0))
+    for row in out:
+        row["delay_s"] = delay
     return out
 
 
@@ -126,13 +137,17 @@ def run_grid(jobs: int, grid: dict) -> list[dict]:
     keys = [(fc, s) for fc in grid["FCS"] for s in grid["SEEDS"]]
     with ProcessPoolExecutor(jobs) as pool:
         idents = dict(zip(keys, pool.map(_chirp_args, keys)))
-        tasks = [(fc, K, B, n, s, idents[(fc, s)]) for fc in grid["FCS"] for (K, B) in grid["VES"]
+        tasks = [(fc, K, B, n, s, idents[(fc, s)], 0.0) for fc in grid["FCS"] for (K, B) in grid["VES"]
                  for n in grid["LENGTHS"] for s in grid["SEEDS"]]
+        slice_ = grid.get("DELAYED")
+        if slice_:
+            tasks += [(fc, K, B, n, s, idents[(fc, s)], slice_["delay_s"]) for fc in grid["FCS"]
+                      for (K, B) in slice_["VES"] for n in slice_["LENGTHS"] for s in grid["SEEDS"]]
         rows = []
         for i, got in enumerate(pool.map(point, tasks)):
             rows += got
             print(f"{i + 1}/{len(tasks)} Fc {tasks[i][0]} K {tasks[i][1]} B {tasks[i][2]} "
-                  f"{tasks[i][3]:g} s seed {tasks[i][4]}: " + ", ".join(
+                  f"{tasks[i][3]:g} s seed {tasks[i][4]} delay {1e3 * tasks[i][6]:g} ms: " + ", ".join(
                       f"{r['source']} {r.get('compared')} {'holds' if r.get('holds') else 'MISS'} "
                       f"{r.get('level')}" for r in got), flush=True)
     for (fc, s), ident in idents.items():
@@ -182,8 +197,10 @@ def write_docs(rows: list[dict], seconds: float, grid: dict) -> None:
         "",
         f"Grid: Fc {', '.join(f'{x:g}' for x in grid['FCS'])} N; (K, B) "
         f"{', '.join(f'({k:g}, {b:g})' for k, b in grid['VES'])}; records "
-        f"{', '.join(f'{x:g}' for x in grid['LENGTHS'])} s; seeds {', '.join(map(str, grid['SEEDS']))}. "
-        f"{len(ok)} analyses of {len(ok) // 3} runs, {seconds / 60:.1f} min.",
+        f"{', '.join(f'{x:g}' for x in grid['LENGTHS'])} s; seeds {', '.join(map(str, grid['SEEDS']))}"
+        + (f"; and K 50, B 1, 60 s with the device's own delay of {1e3 * grid['DELAYED']['delay_s']:g} ms "
+           "(the simulator's, fractional, stated in the rig as measured_td_s)" if grid.get("DELAYED") else "")
+        + f". {len(ok)} analyses of {len(ok) // 3} runs, {seconds / 60:.1f} min.",
         "",
         "Sources of Fc: **chirp-ID** (a 60 s chirp-ID of the same simulator gave m, b, Fc and "
         "its interval, passed as the demo does), **simulator** (the truth the simulator "
@@ -203,7 +220,7 @@ def write_docs(rows: list[dict], seconds: float, grid: dict) -> None:
               "| Fc (N) | chirp-ID Fc (N) | measured B (N s/m) | linear | friction-aware | compared "
               "holds | linear holds | verdicts ok | viscous b covers |", "|---|---|---|---|---|---|---|---|---|"]
     for fc in grid["FCS"]:
-        rs = [r for r in ok if r["source"] == "chirp-ID" and r["fc"] == fc]
+        rs = [r for r in ok if r["source"] == "chirp-ID" and r["fc"] == fc and not r.get("delay_s")]
         ref = [r for r in rs if (r["K"], r["B"]) == (50.0, 1.0)] or rs
         fits = [r for r in rs if r["viscous_covers"] is not None]
         chirp_fc = sorted({round(r["chirp_fc"], 4) for r in rs if r.get("chirp_fc") is not None})
@@ -213,6 +230,18 @@ def write_docs(rows: list[dict], seconds: float, grid: dict) -> None:
                      f"{_pct(sum(r['linear_holds'] for r in rs), len(rs))} | "
                      f"{_pct(sum(r['level'] == 'ok' for r in rs), len(rs))} | "
                      f"{_pct(sum(r['viscous_covers'] for r in fits), len(fits)) if fits else '-'} |")
+    delayed = [r for r in ok if r.get("delay_s") and r["source"] != "record"]
+    if delayed:
+        lines += ["", f"With the device's own delay ({1e3 * delayed[0]['delay_s']:g} ms, fractional; K 50, B 1, "
+                  "60 s; chirp-ID's and simulator's Fc):", "",
+                  "| Fc (N) | measured B (N s/m) | friction-aware | compared holds | viscous b covers |",
+                  "|---|---|---|---|---|"]
+        for fc in grid["FCS"]:
+            rs = [r for r in delayed if r["fc"] == fc]
+            fits = [r for r in rs if r["viscous_covers"] is not None]
+            lines.append(f"| {fc:g} | {np.median([r['B_meas'] for r in rs]):.3f} | {_median([r['B_fric'] for r in rs])} | "
+                         f"{_pct(sum(r['holds'] for r in rs), len(rs))} | "
+                         f"{_pct(sum(r['viscous_covers'] for r in fits), len(fits)) if fits else '-'} |")
     misses = [r for r in ok if not r["holds"]]
     if misses:
         lines += ["", "Every miss of the compared model with Fc known (chirp-ID, simulator) and what the "
@@ -221,7 +250,8 @@ def write_docs(rows: list[dict], seconds: float, grid: dict) -> None:
             if r["source"] == "record":
                 continue
             said = "; ".join(r["reasons"] or r["notes"])
-            lines.append(f"- Fc {r['fc']:g} K {r['K']:g} B {r['B']:g} {r['length']:g} s seed {r['seed']} "
+            lines.append(f"- Fc {r['fc']:g} K {r['K']:g} B {r['B']:g} {r['length']:g} s seed {r['seed']}"
+                         f"{' delay %g ms' % (1e3 * r['delay_s']) if r.get('delay_s') else ''} "
                          f"({r['source']}, {r['compared']}): {r['level']}: {said}")
         rec = [r for r in misses if r["source"] == "record"]
         low = [r["fc_used"] / r["fc"] - 1 for r in ok if r["source"] == "record" and r["fc"] > 0]
@@ -248,7 +278,8 @@ def chart(rows: list[dict], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    sel = [r for r in rows if r["source"] == "chirp-ID" and (r["K"], r["B"]) == (50.0, 1.0)]
+    sel = [r for r in rows if r["source"] == "chirp-ID" and (r["K"], r["B"]) == (50.0, 1.0)
+           and not r.get("delay_s")]
     lengths = sorted({r["length"] for r in sel})
     fig = Figure(figsize=(5.5 * len(lengths), 4.5), layout="constrained")
     FigureCanvasAgg(fig)
@@ -285,7 +316,8 @@ def main(argv=None) -> int:
         saved = json.loads((ROOT / "docs" / "friction-bench.json").read_text())
         write_docs(saved["rows"], saved["seconds"], saved["grid"])
         return 0
-    grid = QUICK if args.quick else {"FCS": FCS, "VES": VES, "LENGTHS": LENGTHS, "SEEDS": SEEDS}
+    grid = QUICK if args.quick else {"FCS": FCS, "VES": VES, "LENGTHS": LENGTHS, "SEEDS": SEEDS,
+                                     "DELAYED": DELAYED}
     t0 = time.perf_counter()
     rows = run_grid(args.jobs, grid)
     seconds = time.perf_counter() - t0

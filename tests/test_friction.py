@@ -292,3 +292,22 @@ def test_friction_that_makes_the_handle_stick_is_said(tmp_path):
     rd, fr = results["rendered"], results["friction"]
     assert fr["velocity_rms_measured"] < 0.9 * fr["velocity_rms"]
     assert any("sticks for part of the record" in n for n in rd["verdict"].get("notes", []))
+
+
+def test_friction_aware_theory_with_a_fractional_device_delay(tmp_path):
+    # the simulator's Coulomb friction with 1.5 samples of device delay (the rig states it as
+    # measured_td_s): the friction-aware theory carries the delay through the exact sampled loop
+    from labbench.registry import make_protocol
+    from labbench.rig import Rig
+    from labbench.runner import run
+    from labbench.sim_backend.sim_device import open_sim
+
+    rig = Rig(measured_td_s=0.0015, measured_td_from="the simulator's delay")
+    dev = open_sim(rig, seed=1, coulomb_n=0.02, quantize=True, force_noise_n=0.002,
+                   extra_delay_samples=1, extra_delay_fraction=0.5)
+    results = run(dev, make_protocol("etfe", duration_s=60.0, seed=1), [], rig=rig).results
+    rd, fit = results["rendered"], results["loop_fit"]
+    assert rd["compared"]["model"] == "friction" and rd["verdict"]["level"] == "ok"
+    assert rd["B_ci95"][0] <= rd["friction"]["B"] <= rd["B_ci95"][1]
+    assert not rd["B_ci95"][0] <= rd["theory"]["B"] <= rd["B_ci95"][1]
+    assert fit["ci95"]["b_viscous"][0] <= 0.10 <= fit["ci95"]["b_viscous"][1]

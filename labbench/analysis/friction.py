@@ -175,7 +175,7 @@ def judge(rendered: dict, cmp: dict, pred: Prediction | None, quantum: float | N
         text = (f"the {name} {'misses' if far else 'lies outside the 95 % interval of'} the measured "
                 f"{label}: {want:.4g} {unit} against {value:.4g} [{lo:.4g}, {hi:.4g}]")
         if far:
-            findings.append((verdict.DOUBTFUL, f"{text}; {_cause(cmp, pred, quantum, rendered)}"))
+            findings.append((verdict.DOUBTFUL, f"{text}; {_cause(cmp, pred, quantum)}"))
         else:
             notes.append(f"{text} (within its 99.9 % interval)")
     lin = pred.linearised if pred is not None else None
@@ -187,7 +187,8 @@ def judge(rendered: dict, cmp: dict, pred: Prediction | None, quantum: float | N
                      f"{lin.b_eq:.2g} N s/m at this run's {lin.velocity_rms:.2g} m/s rms, and as "
                      "less at a stronger excitation: this Z holds at this excitation only")
     measured = pred.velocity_rms_measured if pred is not None else None
-    if lin is not None and lin.holds and measured and abs(measured / lin.velocity_rms - 1) > VELOCITY_MISMATCH:
+    if lin is not None and lin.holds and not findings and measured \
+            and abs(measured / lin.velocity_rms - 1) > VELOCITY_MISMATCH:  # (a miss's cause says it)
         notes.append(f"the handle moved at {measured:.2g} m/s rms where the linearisation has it at "
                      f"{lin.velocity_rms:.2g}: it sticks for part of the record, which the "
                      "linearisation leaves out")
@@ -200,7 +201,7 @@ def _model_name(cmp: dict, pred: Prediction | None) -> str:
     return "linear sampled theory"
 
 
-def _cause(cmp: dict, pred: Prediction | None, quantum: float | None, rendered: dict) -> str:
+def _cause(cmp: dict, pred: Prediction | None, quantum: float | None) -> str:
     """The likely cause of a miss, with the number that shows it (module doc)."""
     ev = pred.evidence if pred is not None else None
     found = ev is not None and ev.get("coulomb_n") is not None and ev["coulomb_n"] > 0
