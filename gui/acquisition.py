@@ -278,6 +278,9 @@ def _describe(exc: BaseException) -> str:
 def _child_main(commands, messages, estop, stop) -> None:
     """Entry point of the acquisition process."""
     logging.basicConfig(level=logging.WARNING)
+    # the drivers turn a library's errors (canopen's SDO timeouts) into the window's one-line
+    # messages; not also into lines of the terminal's (issue 43)
+    logging.getLogger("canopen").propagate = False
     sys.exit(_Child(commands, messages, estop, stop).serve())
 
 

@@ -441,11 +441,14 @@ def test_a_campaign_runs_the_points_asked_for_from_its_page(qtbot, window, tmp_p
     assert len(tables.read_table(win.campaign_table).to_pylist()) == 3
 
 
-def test_a_can_drive_that_answers_nothing_says_what_to_check(qtbot, window, monkeypatch, tmp_path):
+def test_a_can_drive_that_answers_nothing_says_what_to_check(qtbot, window, monkeypatch, tmp_path,
+                                                              capfd):
     """A CAN connect that got no SDO answer said only "no SDO response received" (every other
     hardware error says what to check), and python-can's software buses were listed as if
     they were adapters. Now the list says which are software buses, and no answer names
-    where a drive is usually lost (on a software bus: that no adapter is behind it)."""
+    where a drive is usually lost (on a software bus: that no adapter is behind it); the
+    library's own 'ERROR:canopen.sdo.client: Transfer aborted' lines no longer reach the
+    terminal."""
     from labbench.drivers import canopen_drive
     from labbench.gui import device_panel
 
@@ -463,6 +466,8 @@ def test_a_can_drive_that_answers_nothing_says_what_to_check(qtbot, window, monk
     qtbot.waitUntil(lambda: win.state.link == "none" and win.banner.isVisible(), timeout=60_000)
     text = win.banner.text()
     assert "no answer to SDO read" in text and "virtual is a software bus" in text
+    # said in the window, once: not also as the library's log lines in the terminal
+    assert "canopen.sdo" not in capfd.readouterr().err
 
     # the same silence on what the driver takes for an adapter: what to check, by name
     monkeypatch.setattr(canopen_drive, "SOFTWARE_BUSES", ())
