@@ -104,7 +104,7 @@ def test_the_factory_on_a_udp_multicast_rig_drops_its_own_frames():
     host_bus.shutdown()  # the driver opens its own from the rig, as on hardware
     try:
         hw = rig_from_dict({"canopen": {**FAST, "interface": "udp_multicast", "channel": GROUP,
-                                        "port": peer.port},
+                                        "bus": {"port": peer.port}},
                             "safety": {"watchdog_s": 2.0}}, source="test-rig")
         with open_canopen(hw, realtime=False) as d:
             run_forces(d, FORCES[:50])

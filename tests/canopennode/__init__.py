@@ -63,8 +63,13 @@ class Running:
         """The rig as a TOML file (for the ``labbench`` command line)."""
         lines = []
         for table, values in self.tables.items():
+            subs = {k: v for k, v in values.items() if isinstance(v, dict)}  # [canopen.bus]
             lines.append(f"[{table}]")
-            lines += [f"{k} = {json.dumps(v)}" for k, v in values.items()]  # TOML basic values
+            lines += [f"{k} = {json.dumps(v)}" for k, v in values.items()  # TOML basic values
+                      if k not in subs]
+            for sub, sub_values in subs.items():
+                lines.append(f"[{table}.{sub}]")
+                lines += [f"{k} = {json.dumps(v)}" for k, v in sub_values.items()]
         path.write_text("\n".join(lines) + "\n")
         return path
 
@@ -88,7 +93,7 @@ def start(variant: str = "event", tables: dict | None = None, use_eds: bool = Tr
     built = builder.build(variant)
     tables = {k: dict(v) for k, v in (tables or {}).items()}
     port = _free_port()
-    tables["canopen"] = {"interface": "udp_multicast", "channel": GROUP, "port": port,
+    tables["canopen"] = {"interface": "udp_multicast", "channel": GROUP, "bus": {"port": port},
                          "node_id": node_id, **({"eds": str(built.eds)} if use_eds else {}),
                          **tables.get("canopen", {})}
     rig = rig_from_dict(tables, source="canopennode-rig")
