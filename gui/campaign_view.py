@@ -6,9 +6,10 @@ rig, its identified plant, its last commissioning) and the page shows the plan: 
 already done, time, the largest force and stiffness, the plant. **Start** asks the window,
 which runs each point through the same Start as any run (pre-check, commissioning gate,
 E-STOP, a session per point; on real hardware it asks once first); **Stop** ends the
-campaign after stopping the running point, which then runs again next time. The table
-and the chart (``labbench.campaign.figures``: the Z-width, rate vs accuracy) fill in as
-rows are written; **Open session** replays the selected point's session.
+campaign after stopping the running point, which then runs again next time; **points: at
+most N** runs N of the points still to run. The table and the live chart
+(``labbench.gui.campaign_chart``: the Z-width, rate vs accuracy, the row under the mouse
+named) fill in as rows are written; **Open session** replays the selected point's session.
 """
 from __future__ import annotations
 
