@@ -179,6 +179,78 @@ def test_the_increments_of_an_excited_loop_are_exact(ve):
         assert D[j - 1] == pytest.approx(truth, rel=1e-6)
 
 
+# ------------------------------------------------------------------- Coulomb friction's part
+def test_sign_remnant_is_the_arcsine_law_of_a_gaussian_velocity():
+    """Truth: a Gaussian AR(2) velocity (a resonance, as the loop's) of known spectrum, its
+    d = Fc sign(v) - b_eq v counted over 2^20 samples (b_eq = Fc E|v| / E v^2 from the draw):
+    d's variance is Fc^2 (1 - 2/pi) exactly, and its power in four bands within 3 % of the
+    arcsine law's (Welch's estimate, 64 segments: ~1 % std in the lowest band)."""
+    T, fc, n = 0.001, 0.02, 1 << 20
+    a = [1.0, -1.9, 0.93]  # poles at |z| 0.964, ~25 Hz
+    f = np.linspace(0.0, 0.5 / T, 4097)
+    _, h = signal.freqz([1.0], a, worN=f, fs=1 / T)
+    Sv = 2 * T * np.abs(h) ** 2  # unit white input
+    Sd, sigma = noise.sign_remnant(f, Sv, fc, T)
+    v = signal.lfilter([1.0], a, np.random.default_rng(2).normal(0.0, 1.0, n))[1000:]
+    assert sigma == pytest.approx(np.std(v), rel=0.02)
+    d = fc * np.sign(v) - fc * np.mean(np.abs(v)) / np.mean(v**2) * v
+    assert np.trapezoid(Sd, f) == pytest.approx(fc**2 * (1 - 2 / math.pi), rel=1e-3)
+    fw, Pw = signal.welch(d, fs=1 / T, nperseg=16384)  # 0.06 Hz: no leakage at 1 Hz
+    for lo, hi in ((1.0, 10.0), (10.0, 50.0), (50.0, 200.0), (200.0, 500.0)):
+        sel, selw = (f >= lo) & (f < hi), (fw >= lo) & (fw < hi)
+        assert np.trapezoid(Pw[selw], fw[selw]) == pytest.approx(np.trapezoid(Sd[sel], f[sel]),
+                                                                 rel=0.03)
+
+
+@pytest.mark.parametrize("fc,B,w0,allow", [(0.01, 0.0, 60.0, 0.03), (0.02, 0.0, 60.0, 0.03),
+                                           (0.02, 1.0, 60.0, 0.03), (0.05, 2.0, 125.0, 0.08)])
+def test_friction_aware_prediction_holds_the_rough_simulator_with_friction(fc, B, w0, allow):
+    """Issue 45's goal on issue 41's rough simulator (Coulomb friction, the encoder step, 2 mN):
+    predicted command noise within 10 % of the record's (0.5 N white, 120 s). The linear
+    model misses these by 14-43 % (measured); the friction-aware one lies within the
+    measurement's 95 % interval widened by ``allow``: the Gaussian velocity's own error,
+    measured up to 2.1 % for Fc <= 0.02 N and 7 % at 0.05 N (docs/design.md)."""
+    ve = sd(B, w0)
+    exc, d = rough_run(ve, 0.5, seed=11, coulomb_n=fc)
+    m = force_noise.measure(d["command"], exc, ve.T, BAND)
+    src = noise.NoiseSources(DELTA, 0.002, fc)
+    pred = noise.force_noise(PLANT, ve, src, BAND, excitation=noise.Excitation(0.5))
+    linear_only = noise.force_noise(PLANT, ve, ROUGH, BAND).rms_command
+    assert m.rms_n / linear_only - 1 > 0.10  # the gap this closes
+    assert abs(m.rms_n / pred.rms_command - 1) < 0.10
+    assert m.ci95[0] / (1 + allow) <= pred.rms_command <= m.ci95[1] * (1 + allow)
+    assert pred.friction.gaussian and pred.parts["friction"] > 0
+
+
+def test_the_stick_share_flags_where_the_velocity_is_not_gaussian():
+    """Both ways on the rough simulator, B = 1, w0 = 125: at 0.05 N of excitation and
+    Fc = 0.05 N the handle rests ~60 % of the time (measured); the model, 29 % off there,
+    says its condition fails (stick share far above STICK_SHARE_MAX); at 0.5 N and 0.02 N it
+    holds within 3 % and the flag stays clear (no false alarm)."""
+    ve = sd(1.0, 125.0)
+    for std, fc, holds in ((0.05, 0.05, False), (0.5, 0.02, True)):
+        exc, d = rough_run(ve, std, seed=11, coulomb_n=fc)
+        m = force_noise.measure(d["command"], exc, ve.T, BAND)
+        pred = noise.force_noise(PLANT, ve, noise.NoiseSources(DELTA, 0.002, fc), BAND,
+                                 excitation=noise.Excitation(std))
+        assert pred.friction.gaussian is holds
+        assert (abs(m.rms_n / pred.rms_command - 1) < 0.03) is holds
+    assert pred.friction.stick_share < noise.STICK_SHARE_MAX / 10
+
+
+def test_friction_needs_a_motion_and_says_when_it_holds_the_handle():
+    ve = sd(1.0, 125.0)
+    src = noise.NoiseSources(DELTA, 0.0, 0.05)
+    with pytest.raises(UserError, match="excitation"):
+        noise.force_noise(PLANT, ve, src, BAND)
+    with pytest.raises(UserError, match="holds the handle"):  # Fc sqrt(2/pi) above 0.01 N
+        noise.force_noise(PLANT, ve, src, BAND, excitation=noise.Excitation(0.01))
+    with pytest.raises(UserError, match="excitation std"):
+        noise.Excitation(0.0)
+    with pytest.raises(UserError, match="coulomb_n"):
+        noise.NoiseSources(0.0, 0.0, -0.1)
+
+
 # ------------------------------------------------------------------------- the estimator
 def synthetic(seed, n=16_384, noise_std=0.01):
     """A lightly damped loop's response (a 2 s ring-down at T = 1 ms: leakage for any short

@@ -28,11 +28,10 @@ excitation's rms force (a heavy damper moves as F / b_eq), so it has one root wh
 ``Fc sqrt(2 / pi)`` is below that rms, and none when friction holds the handle (the
 linearisation then does not apply: ``Linearised.holds`` False).
 
-The velocity at the sample instants of the held plant, from the position:
-``V / X = (z - a00) g1(z) / ((z - a11) g0(z) + a01 g1(z))`` with ``Ad``, ``g`` of
-``labbench.model.linear`` (the rows of ``(zI - Ad)^-1 G(z)``; the latency's ``z^-d``
-cancels), and ``X / F_exo = 1 / (jw Z)``, so ``V / F_exo`` follows from the same Z the
-ETFE is compared with (fractional device delays included). Where td is not whole
+The velocity at the sample instants of the held plant per command, ``V / U``
+(``labbench.model.linear.plant_velocity``: a row of ``(zI - Ad)^-1 G(z)``, fractional
+device delays included), through the loop: ``V / F_exo = (V / U) / (1 + G P)`` with
+``G P`` the loop gain of ``labbench.model.linear.loop_parts``. Where td is not whole
 samples the paper's continuous model stands in: ``V / F_exo = 1 / Z``.
 
 What it leaves out: sticking (when |u| < Fc at rest the handle holds, which no damper
@@ -80,17 +79,8 @@ def velocity_response(plant: Plant, ve: VirtualEnvironment, w, latency: float = 
     w = np.asarray(w, float)
     if not linear.whole_samples(ve):
         return 1.0 / linear.z_paper(plant, ve, w, latency)
-    T = ve.T
-    Ad, _ = linear.zoh_matrices(plant.m, plant.b, T)
-    _, alpha = linear.latency_split(latency, T)
-    g_late, g_early = linear.latency_inputs(plant, T, alpha)
-    zinv = np.exp(-1j * w * T)
-    z = 1.0 / zinv
-    g0 = g_late[0] + g_early[0] * zinv
-    g1 = g_late[1] + g_early[1] * zinv
-    z_minus_a00 = np.expm1(1j * w * T) + (1.0 - Ad[0, 0])  # no cancellation near w = 0
-    v_over_x = z_minus_a00 * g1 / ((z - Ad[1, 1]) * g0 + Ad[0, 1] * g1)
-    return v_over_x / (1j * w * linear.z_sampled(plant, ve, w, latency))
+    P, G = linear.loop_parts(plant, ve, w, latency)
+    return linear.plant_velocity(plant, ve.T, w, latency) / (1 + G * P)
 
 
 MAX_GROUPS = 1 << 14  # spectral groups a velocity sum evaluates the loop at (``_spectrum``)

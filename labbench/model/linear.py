@@ -149,6 +149,23 @@ def _plant_response(plant: Plant, T: float, w: np.ndarray, latency: float = 0.0)
     return ((z - Ad[1, 1]) * g0 + Ad[0, 1] * g1) / det
 
 
+def plant_velocity(plant: Plant, T: float, w, latency: float = 0.0) -> np.ndarray:
+    """V/U of the held plant: the velocity at the sample instants per held command, the
+    second row of (zI - Ad)^{-1} G(z) (``_plant_response``'s first). Ad's velocity row does
+    not see the position (a10 = 0), so it is g1(z) / (z - a11), g1 the velocity's share of
+    G(z) = z^-d (G_late + G_early z^-1)."""
+    w = np.asarray(w, dtype=float)
+    Ad, _ = zoh_matrices(plant.m, plant.b, T)
+    d, alpha = latency_split(latency, T)
+    g_late, g_early = latency_inputs(plant, T, alpha)
+    zinv = np.exp(-1j * w * T)
+    g1 = g_late[1] + g_early[1] * zinv
+    if d:
+        g1 = g1 * np.exp(-1j * w * (d * T))
+    # z - a11 as expm1 + (1 - a11): no cancellation near w = 0 on a light damper
+    return g1 / (np.expm1(1j * w * T) + (1.0 - Ad[1, 1]))
+
+
 def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:
     """C(e^{jwT}) = F/X of the sampled VE: K + B (1-a)(1 - z^-1) / (T (1 - a z^-1))."""
     a = ve.filter_pole

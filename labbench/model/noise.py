@@ -46,8 +46,50 @@ puts images of it above its Nyquist frequency.
 stays below 10 Hz (their ref. 9, Lawrence et al. 1996). Force below 10 Hz is felt as the
 environment the hand moves in; above it, up to 500 Hz, as vibration: ``FELT_BAND_HZ``.
 
-The model is linear: it leaves out friction (whose stick-slip adds force not coherent with
-an excitation of its own) and treats the handle as free (no hand in the loop).
+**Coulomb friction** Fc sign(v) (``NoiseSources.coulomb_n``, under a stated excitation:
+``Excitation``) is split by statistical linearisation into the damper it acts as and a
+remnant uncorrelated with the velocity,
+
+    Fc sign(v) = b_eq v + d,      b_eq = Fc sqrt(2/pi) / sigma_v
+
+(Booton, IRE Trans. Circuit Theory 1(1), 1954; ``labbench.model.friction``): the loop is
+the linear one with b + b_eq, and d is one more force noise entering with the command (as
+n_f does: -L/(1 + L) d in the command). For a Gaussian excitation the ETFE's response is
+that loop (Bussgang: the best linear approximation), and d is the nonlinear distortion that
+no linear response to the excitation explains, which a record's noise estimate takes as noise
+(Pintelon & Schoukens, *System Identification*, 2nd ed. 2012, sec. 3.4: nonlinear distortion
+as a noise source). For a Gaussian velocity of correlation rho(tau) the sign's correlation is
+the arcsine law, E[sign v(t) sign v(t + tau)] = (2/pi) arcsin rho(tau) (Van Vleck &
+Middleton, Proc. IEEE 54(1), 1966), so d's correlation is
+
+    R_d(tau) = Fc^2 (2/pi) (arcsin rho(tau) - rho(tau))
+
+(the cross term is b_eq^2 R_v, Bussgang's theorem), and its spectrum one FFT of it
+(``sign_remnant``). rho is the velocity's at the sample instants of the linearised loop,
+driven by the excitation, the amplifier's noise, the quantisation error (white) and d
+itself; b_eq, sigma_v and d are solved together (Brent's method on b_eq sigma_v(b + b_eq) =
+Fc sqrt(2/pi), as ``labbench.model.friction.linearise`` does, d's own share of the velocity
+found by fixed point inside it). The friction a record shows acts continuously; the model
+takes its remnant at the sample instants, held over each step: a record's d reverses
+seldom within a step at the speeds where the rest holds.
+
+**Where it holds.** A Gaussian velocity is the assumption. At a reversal the handle sticks
+when the applied force is within +-Fc; by Rice's density of the slope at a zero crossing
+(Rice, "Mathematical analysis of random noise", Bell Syst. Tech. J. 23, 1944, sec. 3.3:
+a crossing's slope is weighted by its size) the share of reversals that stick is
+
+    p_stick = 1 - exp(-Fc^2 / (2 sigma_u^2)),
+
+sigma_u the applied force's rms in the linearised loop (``FrictionPart.stick_share``).
+Measured on the rough simulator, p_stick follows the share of time the handle is at rest
+(0.5 / 2.0 / 3.1 % predicted, 0.2-0.3 / 1.6-1.8 / 3.0-3.3 % measured) and the model holds
+the command noise within 10 % where p_stick <= ``STICK_SHARE_MAX`` (docs/design.md);
+beyond it ``FrictionPart.gaussian`` is False and the numbers are a rough guess.
+Where friction holds the handle (no b_eq exists: Fc sqrt(2/pi) at or above the force that
+drives it) there is no prediction (UserError).
+
+The handle is free (no hand in the loop); the felt force is the actuator's, friction's own
+force at the handle not counted.
 """
 from __future__ import annotations
 
@@ -56,8 +98,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scipy import optimize
+
 from labbench.errors import UserError
-from labbench.model import linear
+from labbench.model import friction, linear
 from labbench.ve import Plant, VirtualEnvironment
 
 FELT_BAND_HZ = (10.0, 500.0)  # Colonnese et al. sec. 5 (module doc)
@@ -65,22 +109,75 @@ WHITE_RHO = 0.01  # lag-1 correlation of the quantisation error below which it c
 _SERIES = np.arange(1, 4097, dtype=float)  # terms of rho_j's series: error < 6 / (pi^2 4096)
 _LAGS = 256  # lags of the coloured error spectrum (rho has decayed long before)
 _MAX_POINTS = 1 << 21
+STICK_SHARE_MAX = 0.01  # share of reversals that stick up to which friction's part holds (module doc)
+_REMNANT_TOL = 1e-5  # relative change of sigma_v at which d's share of the velocity has settled
 
 
 @dataclass(frozen=True)
 class NoiseSources:
     """What makes the noise: the encoder step ``quantum_m`` [m at the handle] (0: an ideal
-    encoder) and the std ``force_noise_n`` [N] of white force noise added to the applied
-    force (the amplifier's; 0 when the rig states none)."""
+    encoder), the std ``force_noise_n`` [N] of white force noise added to the applied
+    force (the amplifier's; 0 when the rig states none) and the device's Coulomb friction
+    ``coulomb_n`` [N] (0: none, or not known)."""
 
     quantum_m: float = 0.0
     force_noise_n: float = 0.0
+    coulomb_n: float = 0.0
 
     def __post_init__(self):
-        for name in ("quantum_m", "force_noise_n"):
+        for name in ("quantum_m", "force_noise_n", "coulomb_n"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise UserError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class Excitation:
+    """The motion the noise is predicted under: white force of std ``std_n`` [N] added to the
+    command (an ETFE's excitation), flat over ``band_hz`` (None: 0 to the Nyquist frequency;
+    ``std_n`` is the std of the band-limited force, as ``protocols.excitation`` makes it)."""
+
+    std_n: float
+    band_hz: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        if not (isinstance(self.std_n, (int, float)) and math.isfinite(self.std_n)
+                and self.std_n > 0):
+            raise UserError(f"excitation std must be a positive number of N, got {self.std_n!r}")
+        if self.band_hz is not None and not (0 <= self.band_hz[0] < self.band_hz[1]):
+            raise UserError(f"excitation band must be 0 <= low < high Hz, got {self.band_hz!r}")
+
+    def psd(self, f: np.ndarray, T: float) -> np.ndarray:
+        """One-sided spectrum [N^2/Hz] on the grid ``f`` (up to 1 / (2T))."""
+        if self.band_hz is None:
+            return np.full_like(f, 2 * T * self.std_n**2)
+        lo, hi = self.band_hz[0], min(self.band_hz[1], 0.5 / T)
+        return np.where((f >= lo) & (f <= hi), self.std_n**2 / (hi - lo), 0.0)
+
+
+@dataclass(frozen=True)
+class FrictionPart:
+    """Coulomb friction ``coulomb_n`` [N] in the noise model (module doc): the damper
+    ``b_eq`` [N s/m] it acts as at the velocity of rms ``velocity_rms`` [m/s] it leaves under
+    white excitation of std ``excitation_n`` [N]; ``applied_rms`` [N] the applied force's rms;
+    ``stick_share`` the share of reversals at which the handle sticks; ``gaussian``: that share
+    within ``STICK_SHARE_MAX`` (where the model was measured to hold)."""
+
+    coulomb_n: float
+    b_eq: float
+    velocity_rms: float
+    applied_rms: float
+    stick_share: float
+    excitation_n: float
+
+    @property
+    def gaussian(self) -> bool:
+        return self.stick_share <= STICK_SHARE_MAX
+
+    def as_dict(self) -> dict:
+        return {"coulomb_n": self.coulomb_n, "b_eq": self.b_eq, "velocity_rms": self.velocity_rms,
+                "applied_rms": self.applied_rms, "stick_share": self.stick_share,
+                "gaussian": self.gaussian, "excitation_n": self.excitation_n}
 
 
 @dataclass(frozen=True)
@@ -95,7 +192,7 @@ class ForceNoise:
     Nyquist band; ``parts``: each source's share of ``rms_felt`` (root of its part of the
     power); ``white``: whether the quantisation error was taken as white, ``rho1`` its
     lag-1 correlation for the stated motion (None when no motion was stated), ``model``:
-    which model said so.
+    which model said so; ``friction``: Coulomb friction's part (None without friction).
     """
 
     f_hz: np.ndarray
@@ -109,12 +206,14 @@ class ForceNoise:
     white: bool = True
     rho1: float | None = None
     model: str = ""
+    friction: FrictionPart | None = None
 
     def as_dict(self, spectrum: bool = False) -> dict:
         out = {"band_hz": list(self.band_hz), "rms_command_n": self.rms_command,
                "rms_felt_n": self.rms_felt, "rms_command_total_n": self.rms_command_total,
                "parts_n": dict(self.parts), "white": self.white, "rho1": self.rho1,
-               "model": self.model}
+               "model": self.model,
+               "friction": None if self.friction is None else self.friction.as_dict()}
         if spectrum:
             out.update(f_hz=self.f_hz.tolist(), psd_command=self.psd_command.tolist(),
                        psd_force=self.psd_force.tolist())
@@ -128,7 +227,11 @@ def error_correlation(increment_var, quantum: float) -> np.ndarray:
     if quantum <= 0:
         return np.zeros_like(D)
     a = 2 * math.pi**2 * D[:, None] / quantum**2
-    terms = np.exp(-a * _SERIES[None, :] ** 2) / _SERIES[None, :] ** 2
+    # the terms past n fall below e^(-a n^2): a motion of a fair share of a step needs few
+    least = float(a.min()) if a.size else 0.0
+    n = len(_SERIES) if least <= 0 else min(len(_SERIES), math.ceil(math.sqrt(40.0 / least)) + 1)
+    series = _SERIES[None, :n]
+    terms = np.exp(-a * series**2) / series**2
     return (6 / math.pi**2) * terms.sum(axis=1)
 
 
@@ -151,23 +254,101 @@ def increments_from_speed(speed_rms_m_s: float, T: float, lags: int = _LAGS) -> 
 
 
 def increments_from_excitation(plant: Plant, ve: VirtualEnvironment, std_n: float,
-                               latency: float = 0.0, lags: int = _LAGS) -> np.ndarray:
+                               latency: float = 0.0, lags: int = _LAGS,
+                               band_hz: tuple[float, float] | None = None) -> np.ndarray:
     """D_j = var(x[k+j] - x[k]), j = 1..lags, of the loop driven by white force of std
-    ``std_n`` [N] (an ETFE's excitation): the integral of |P / (1 + L)|^2 2 T std^2
-    (2 - 2 cos(2 pi f j T)) over the Nyquist band, each lag's cosine from one FFT."""
+    ``std_n`` [N] (an ETFE's excitation; flat over ``band_hz``, None: the Nyquist band): the
+    integral of |P / (1 + L)|^2 S_F (2 - 2 cos(2 pi f j T)) over the Nyquist band, each
+    lag's cosine from one FFT."""
     f = _off_zero(frequency_grid(plant, ve, latency))
     P, G = linear.loop_parts(plant, ve, 2 * math.pi * f, latency)
-    Sx = np.abs(P / (1 + G * P)) ** 2 * 2 * ve.T * std_n**2
+    Sx = np.abs(P / (1 + G * P)) ** 2 * Excitation(std_n, band_hz).psd(f, ve.T)
     weights = _trapezoid_weights(f)
     # at f -> 0 the integrand tends to Sx (2 pi f j T)^2 (finite even where Sx is not: a
     # damper's position wanders), j^2 times this:
     at_zero = weights[0] * Sx[0] * (2 * math.pi * f[0] * ve.T) ** 2
     power = weights * Sx
     power[0] = 0.0
-    # sum_k c_k Sx_k cos(2 pi f_k j T), f_k = k / (2 M T): the real part of a DFT of length 2M
-    cos_sums = np.fft.rfft(power, n=2 * (len(f) - 1)).real[1:lags + 1]
+    cos_sums = _cosine_sums(power)[1:lags + 1]
     j = np.arange(1, lags + 1)
     return 2 * (np.sum(power) - cos_sums) + at_zero * j**2
+
+
+def _cosine_sums(a: np.ndarray) -> np.ndarray:
+    """sum_i a_i cos(pi i j / M), j = 0..M, of the M + 1 values ``a`` (on the grid f_i =
+    i / (2 M T): the cosine series at lag j T), one real DFT of length 2M."""
+    return np.fft.rfft(a, n=2 * (len(a) - 1)).real
+
+
+def sign_remnant(f: np.ndarray, Sv: np.ndarray, coulomb_n: float, T: float
+                 ) -> tuple[np.ndarray, float]:
+    """(S_d, sigma_v): the one-sided spectrum [N^2/Hz] on the grid ``f`` (``frequency_grid``)
+    of d = Fc sign(v) - b_eq v, b_eq = Fc sqrt(2/pi) / sigma_v, for a Gaussian velocity
+    sampled every ``T`` of one-sided spectrum ``Sv`` [(m/s)^2/Hz] (the arcsine law, module
+    doc); sigma_v its rms. R_v[j] is the cosine series of Sv (trapezoid rule); S_d that of
+    R_d (R_d[j] for j > M wraps around: the grid holds the velocity's correlation's decay)."""
+    R = _cosine_sums(_trapezoid_weights(f) * Sv)
+    rho = np.clip(R / R[0], -1.0, 1.0)
+    Rd = coulomb_n**2 * (2 / math.pi) * (np.arcsin(rho) - rho)
+    Rd[1:-1] *= 2  # the lags -j and j, j = 1..M-1
+    return 2 * T * np.maximum(_cosine_sums(Rd), 0.0), math.sqrt(R[0])
+
+
+def _linearised(plant: Plant, ve: VirtualEnvironment, latency: float, f: np.ndarray,
+                b_eq: float, S_drive: np.ndarray, Se: np.ndarray, coulomb_n: float,
+                Sd: np.ndarray | None = None) -> tuple:
+    """The loop with b + b_eq on the grid ``f``: (P, G, sigma_v, S_d), d's spectrum and the
+    velocity's rms settled together (module doc). ``S_drive``: the forces entering with the
+    command (excitation, amplifier), ``Se`` the quantisation error's spectrum; ``Sd`` a
+    first guess of d's (a neighbouring b_eq's)."""
+    p = Plant(plant.m, plant.b + b_eq)
+    w = 2 * math.pi * _off_zero(f)
+    P, G = linear.loop_parts(p, ve, w, latency)
+    VF2 = np.abs(linear.plant_velocity(p, ve.T, w, latency) / (1 + G * P)) ** 2
+    base = VF2 * (S_drive + np.abs(G) ** 2 * Se)
+    Sd, sigma = (np.zeros_like(f) if Sd is None else Sd), math.inf
+    for _ in range(50):  # d is a small share of the velocity: a few rounds settle it
+        Sd, new = sign_remnant(f, base + VF2 * Sd, coulomb_n, ve.T)
+        if abs(new - sigma) <= _REMNANT_TOL * new:
+            break
+        sigma = new
+    return P, G, new, Sd
+
+
+def _friction_loop(plant: Plant, ve: VirtualEnvironment, latency: float, sources: NoiseSources,
+                   S_drive_of, f_linear: np.ndarray) -> tuple:
+    """(b_eq, f, P, G, S_d, sigma_v) of the self-consistent linearisation (module doc). The
+    root lies at or above b_lo = Fc sqrt(2/pi) / sigma_v of the linear loop, so the loop
+    with b + b_lo, more damped than any tried, sets the (coarser) frequency grid of the rest.
+    ``S_drive_of(f)``: the spectrum of the forces entering with the command on a grid."""
+    T, fc = ve.T, sources.coulomb_n
+    target = fc * friction.SQRT_2_OVER_PI
+    white_e = lambda g: np.full_like(g, 2 * T * sources.quantum_m**2 / 12)  # noqa: E731
+    sigma0 = _linearised(plant, ve, latency, f_linear, 0.0, S_drive_of(f_linear),
+                         white_e(f_linear), fc)[2]
+    lo = target / sigma0
+    f = frequency_grid(Plant(plant.m, plant.b + lo), ve, latency)
+    S_drive, Se = S_drive_of(f), white_e(f)
+    solved = {}
+
+    def excess(b_eq: float) -> float:  # b_eq sigma_v(b + b_eq) rises with b_eq
+        if b_eq not in solved:
+            last = solved[next(reversed(solved))][3] if solved else None
+            solved[b_eq] = _linearised(plant, ve, latency, f, b_eq, S_drive, Se, fc, last)
+        return b_eq * solved[b_eq][2] - target
+
+    top = friction.B_EQ_MAX - plant.b
+    hi = 2.0 * lo
+    while excess(hi) < 0:
+        if hi >= top:
+            raise UserError(f"Coulomb friction {fc:g} N holds the handle under this excitation "
+                            "(no damper stands for it): its force noise is not predicted")
+        lo, hi = hi, min(4.0 * hi, top)
+    # (at lo the excess is <= 0 but for rounding: then lo is the root)
+    b_eq = lo if excess(lo) >= 0 else optimize.brentq(excess, lo, hi, xtol=1e-12, rtol=1e-5)
+    excess(b_eq)
+    P, G, sigma, Sd = solved[b_eq]
+    return b_eq, f, P, G, Sd, sigma
 
 
 def frequency_grid(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> np.ndarray:
@@ -222,42 +403,71 @@ def _error_psd(f: np.ndarray, quantum: float, T: float,
 
 def force_noise(plant: Plant, ve: VirtualEnvironment, sources: NoiseSources,
                 band_hz: tuple[float, float] = FELT_BAND_HZ, latency: float = 0.0,
-                increments: np.ndarray | None = None) -> ForceNoise:
+                increments: np.ndarray | None = None,
+                excitation: Excitation | None = None) -> ForceNoise:
     """The force noise of the loop (module doc), RMS in ``band_hz`` [Hz] and spectra.
 
-    ``increments``: the motion's D_j (``increments_from_excitation`` / ``_from_speed``); None
-    takes the quantisation error as white (the model for motion faster than ``white_speed``).
+    ``excitation``: the white force that moves the handle (``Excitation``); needed with
+    Coulomb friction (``sources.coulomb_n``), whose part depends on the motion. ``increments``:
+    the motion's D_j (``increments_from_excitation`` / ``_from_speed``) for the quantisation
+    error's colour; None takes them from ``excitation`` through the (linearised) loop, or,
+    without one, the error as white (the model for motion faster than ``white_speed``).
+    UserError where the loop is unstable, or where friction holds the handle.
     """
     lo, hi = (float(band_hz[0]), float(band_hz[1]))
     if not (0 <= lo < hi and math.isfinite(hi)):
         raise UserError(f"noise band must be 0 <= low < high (finite) Hz, got {band_hz!r}")
+    if sources.coulomb_n and excitation is None:
+        raise UserError("Coulomb friction's force noise depends on the motion: state the "
+                        "excitation that moves the handle")
     T = ve.T
     nyq = 0.5 / T
     f = frequency_grid(plant, ve, latency)
-    P, G = linear.loop_parts(plant, ve, 2 * math.pi * _off_zero(f), latency)
+    Sn_of = lambda g: np.full_like(g, 2 * T * sources.force_noise_n**2)  # noqa: E731
+    fr = None
+    if sources.coulomb_n:
+        b_eq, f, P, G, Sd, sigma_v = _friction_loop(
+            plant, ve, latency, sources, lambda g: excitation.psd(g, T) + Sn_of(g), f)
+    else:
+        b_eq, Sd = 0.0, np.zeros_like(f)
+        P, G = linear.loop_parts(plant, ve, 2 * math.pi * _off_zero(f), latency)
+    felt_plant = Plant(plant.m, plant.b + b_eq)
+    if increments is None and excitation is not None:
+        increments = increments_from_excitation(felt_plant, ve, excitation.std_n, latency,
+                                                band_hz=excitation.band_hz)
     one_plus_L = 1 + G * P
     Se, rho1 = _error_psd(f, sources.quantum_m, T, increments)
-    Sn = np.full_like(f, 2 * T * sources.force_noise_n**2)
-    He = np.abs(G / one_plus_L) ** 2
-    q_part = He * Se
-    psd_command = q_part + np.abs(G * P / one_plus_L) ** 2 * Sn
+    Sn = Sn_of(f)
+    q_part = np.abs(G / one_plus_L) ** 2 * Se
+    through = np.abs(G * P / one_plus_L) ** 2  # a force entering with the command, to it
     n_part = Sn / np.abs(one_plus_L) ** 2
-    psd_force = q_part + n_part
+    d_part = through * Sd
+    psd_command = q_part + through * Sn + d_part
+    psd_force = q_part + n_part + d_part
 
     rms_command = math.sqrt(_band_integral(f, psd_command, lo, min(hi, nyq)))
     parts = {"quantisation": math.sqrt(_held_band(f, q_part, lo, hi, T)),
-             "amplifier": math.sqrt(_held_band(f, n_part, lo, hi, T))}
-    rms_felt = math.hypot(parts["quantisation"], parts["amplifier"])
+             "amplifier": math.sqrt(_held_band(f, n_part, lo, hi, T)),
+             "friction": math.sqrt(_held_band(f, d_part, lo, hi, T))}
+    rms_felt = math.sqrt(sum(v**2 for v in parts.values()))
     white = increments is None or rho1 is None or rho1 < WHITE_RHO
+    model = ("exact sampled loop (labbench.model.linear) with "
+             + ("white quantisation error (Bennett 1948)" if increments is None else
+                "the quantisation error of the stated motion (Widrow & Kollar ch. 11)"))
+    if sources.coulomb_n:
+        applied = (excitation.psd(f, T) + Sn + np.abs(G) ** 2 * Se + np.abs(G * P) ** 2 * Sd) \
+            / np.abs(one_plus_L) ** 2
+        u_rms = math.sqrt(float(np.sum(_trapezoid_weights(f) * applied)))
+        fr = FrictionPart(sources.coulomb_n, b_eq, sigma_v, u_rms,
+                          -math.expm1(-sources.coulomb_n**2 / (2 * u_rms**2)), excitation.std_n)
+        model += (f"; Coulomb friction {sources.coulomb_n:.3g} N under {excitation.std_n:.3g} N "
+                  f"of white excitation: its equivalent damper {b_eq:.3g} N s/m (Booton 1954) "
+                  "and its remnant by the arcsine law (Van Vleck & Middleton 1966)")
     return ForceNoise(
         f_hz=f, psd_command=psd_command, psd_force=psd_force, band_hz=(lo, hi),
         rms_command=rms_command, rms_felt=rms_felt,
         rms_command_total=math.sqrt(float(np.sum(_trapezoid_weights(f) * psd_command))),
-        parts=parts,
-        white=white, rho1=rho1,
-        model=("exact sampled loop (labbench.model.linear) with "
-               + ("white quantisation error (Bennett 1948)" if increments is None else
-                  "the quantisation error of the stated motion (Widrow & Kollar ch. 11)")))
+        parts=parts, white=white, rho1=rho1, model=model, friction=fr)
 
 
 def _band_integral(f: np.ndarray, psd: np.ndarray, lo: float, hi: float) -> float:
