@@ -117,7 +117,7 @@ def _row(r: dict, source: str, fc, K, B, length, seed, seconds) -> dict:
     visc_ci = (fit.get("ci95") or {}).get("b_viscous")
     return {
         "fc": fc, "K": K, "B": B, "length": length, "seed": seed, "source": source,
-        "fc_used": fr.get("n"), "fc_origin": fr.get("origin"),
+        "fc_used": fr.get("n"), "fc_ci": fr.get("ci95"), "fc_origin": fr.get("origin"),
         "K_meas": rd["K"], "K_ci": rd["K_ci95"], "B_meas": rd["B"], "B_ci": rd["B_ci95"],
         "K_lin": rd["theory"]["K"], "B_lin": rd["theory"]["B"],
         "K_fric": fric.get("K"), "B_fric": fric.get("B"), "b_eq": fr.get("b_eq"),
@@ -254,11 +254,14 @@ def write_docs(rows: list[dict], seconds: float, grid: dict) -> None:
                          f"{' delay %g ms' % (1e3 * r['delay_s']) if r.get('delay_s') else ''} "
                          f"({r['source']}, {r['compared']}): {r['level']}: {said}")
         rec = [r for r in misses if r["source"] == "record"]
-        low = [r["fc_used"] / r["fc"] - 1 for r in ok if r["source"] == "record" and r["fc"] > 0]
+        est = [r for r in ok if r["source"] == "record" and r["fc"] > 0]
+        low = [r["fc_used"] / r["fc"] - 1 for r in est]
+        held = [r for r in est if r.get("fc_ci") and r["fc_ci"][0] <= r["fc"] <= r["fc_ci"][1]]
         lines += ["", f"With Fc estimated from the record: {len(rec)} misses, "
                   f"{sum(r['level'] != 'ok' for r in rec)} doubtful, the rest ok with a note saying "
                   "which number lies outside; the estimate reads Fc "
-                  f"{100 * np.median(low):+.0f} % (median; {100 * min(low):+.0f} to {100 * max(low):+.0f} %)."]
+                  f"{100 * np.median(low):+.1f} % (median; {100 * min(low):+.0f} to {100 * max(low):+.0f} %), "
+                  f"its 95 % interval holds the simulator's Fc in {_pct(len(held), len(est))}."]
     lines += ["", "![measured vs linear vs friction-aware damping](friction-bench.png)", ""]
     (ROOT / "docs" / "friction-bench.md").write_text("\n".join(lines))
     (ROOT / "docs" / "friction-bench.json").write_text(json.dumps(
@@ -273,13 +276,13 @@ def _median(xs) -> str:
 
 def chart(rows: list[dict], path: Path) -> None:
     """Measured rendered damping (points, 95 % intervals) against the linear and the
-    friction-aware theory over Fc, for K = 50, B = 1 (chirp-ID's friction), one panel per
-    record length."""
+    friction-aware theory over Fc, for K = 50, B = 1 (with the chirp-ID's friction and with
+    the record's own estimate), one panel per record length."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    sel = [r for r in rows if r["source"] == "chirp-ID" and (r["K"], r["B"]) == (50.0, 1.0)
-           and not r.get("delay_s")]
+    ref = [r for r in rows if (r["K"], r["B"]) == (50.0, 1.0) and not r.get("delay_s")]
+    sel = [r for r in ref if r["source"] == "chirp-ID"]
     lengths = sorted({r["length"] for r in sel})
     fig = Figure(figsize=(5.5 * len(lengths), 4.5), layout="constrained")
     FigureCanvasAgg(fig)
@@ -296,7 +299,11 @@ def chart(rows: list[dict], path: Path) -> None:
                 label="linear sampled theory")
         ax.plot(fcs, [np.median([r["B_fric"] if r["B_fric"] is not None else r["B_lin"]
                                  for r in rs if r["fc"] == f]) for f in fcs], "r-",
-                label="with Coulomb friction (statistical linearisation)")
+                label="with Coulomb friction (statistical linearisation), chirp-ID's Fc")
+        own = [r for r in ref if r["source"] == "record" and r["length"] == n]
+        ax.plot(fcs, [np.median([r["B_fric"] if r["B_fric"] is not None else r["B_lin"]
+                                 for r in own if r["fc"] == f]) for f in fcs], "C2:", lw=2,
+                label="the same, Fc estimated from the record itself")
         ax.set_xlabel("Coulomb friction Fc of the simulator (N)")
         ax.set_ylabel("rendered damping (N s/m)")
         ax.set_title(f"K = 50 N/m, B = 1 N s/m, {n:g} s, 0.5 N white noise")

@@ -387,7 +387,8 @@ def _level_text(row: dict) -> str:
 
 def _friction_row(fr: dict, start: dict) -> str:
     """The friction used and the damper it acts as: Fc [interval] (source); b_eq at the
-    predicted velocity rms; the record's own velocity and Booton's form on it."""
+    predicted velocity rms, with the model's range from Fc's interval (not a measurement's);
+    the record's own velocity and Booton's form on it."""
     lo, hi = _pair(fr.get("ci95"))
     text = f"Fc = {fmt_ci(fr['n'], lo, hi, 'N')} ({friction_source(fr, start)})"
     beq, v, vm, bm = (_num(fr.get(k)) for k in ("b_eq", "velocity_rms", "velocity_rms_measured",
@@ -395,7 +396,9 @@ def _friction_row(fr: dict, start: dict) -> str:
     if fr.get("linearisation_holds") is False:
         return text + ": no damper stands for it (friction holds the handle against this excitation)"
     if beq is not None and v is not None:
-        text += f": a damper of {fmt(beq, 3)} N s/m at {fmt(v, 3)} m/s rms (statistical linearisation)"
+        blo, bhi = _pair(fr.get("b_eq_ci95"))
+        span = f" ({fmt(blo, 3)} to {fmt(bhi, 3)} from Fc's interval)" if blo is not None and bhi is not None else ""
+        text += f": a damper of {fmt(beq, 3)} N s/m{span} at {fmt(v, 3)} m/s rms (statistical linearisation)"
     if vm is not None and bm is not None:
         text += f"; the record's velocity {fmt(vm, 3)} m/s rms, Fc E|v|/E[v^2] = {fmt(bm, 3)} N s/m"
     return text

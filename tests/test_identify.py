@@ -568,6 +568,44 @@ def test_friction_intervals_cover_the_fit_away_from_velocity_reversals():
         assert any(s.startswith("b not pinned") for s in r.verdict.notes), r.verdict
 
 
+def test_velocity_beyond_the_filter_is_what_the_filter_leaves_of_a_driven_mass():
+    # a mass-damper (corner b / m = 12 rad/s, far below the 50 Hz cut-off) under held white
+    # noise, exact at the samples: the rms of v - L v is the mass's velocity beyond the filter
+    from scipy import signal
+
+    from labbench.analysis.derivatives import lowpass, velocity_beyond
+
+    fs, m, b = 1000.0, PAPER_M, PAPER_B + 1.0
+    f = 0.5 * np.random.default_rng(5).standard_normal(60000)
+    a = np.exp(-b / m / fs)
+    v = signal.lfilter([0.0, (1 - a) / b], [1.0, -a], f)
+    assert velocity_beyond(f, fs, 50.0, m) == pytest.approx(np.std(v - lowpass(v, fs, 50.0)), rel=0.01)
+    chirp = chirp_recording(n=30000)  # a band-limited force: next to nothing beyond the filter
+    assert velocity_beyond(chirp.force, fs, 50.0, m) < 1e-3 * np.std(np.diff(chirp.position)) * fs
+
+
+@pytest.mark.parametrize("coulomb", [0.02, 0.05])
+def test_white_noise_coulomb_is_read_through_the_velocity_the_filter_leaves_out(coulomb):
+    # issue 41: under white noise the velocity crosses zero on a time scale the 50 Hz derivative
+    # filter does not resolve (5 mm/s of it lies beyond the cut-off), so the filtered velocity's
+    # sign over-states where friction switched: Fc read 0.0165 for 0.02 N and 0.037 for 0.05,
+    # b 1.19 / 1.52 for 1.1, outside their intervals. The sign's expectation given that velocity
+    # (regression calibration) reads Fc within 1 % and b within 2 % here, intervals holding both.
+    from truthdata import open_loop
+
+    from labbench.analysis.dataio import recording_from_arrays
+
+    n, b = 30000, PAPER_B + 1.0
+    f = 0.5 * np.random.default_rng(7).standard_normal(n)
+    x, _ = open_loop(f, PAPER_M, b, 1000.0, coulomb)
+    rec = with_noise(recording_from_arrays(np.arange(n) / 1000.0, f, x, {"fs": 1000.0}, "<white truth>"),
+                     np.random.default_rng(0), quantum=ENCODER_Q)
+    r = identify(rec, model="mbc")
+    assert r.params["coulomb"] == pytest.approx(coulomb, rel=0.03)
+    assert r.ci95["coulomb"][0] <= coulomb <= r.ci95["coulomb"][1]
+    assert r.ci95["b"][0] <= b <= r.ci95["b"][1]
+
+
 def test_intervals_cover_over_seeds_and_a_vouched_result_meets_its_target():
     # 20 records under 0.2 N of force noise: the sandwich intervals (influence function summed
     # over blocks, Satterthwaite's dof: a chirp's damping is told by its first seconds) cover,

@@ -94,7 +94,14 @@ def estimate(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
     """Fc from the record itself: the closed-loop identification (instrumental variables,
     ``labbench.analysis.compare.identify_closed_loop``) with the model chosen by
     cross-validation. Returns (DeviceFriction of origin ``record``, the identification);
-    Fc = 0 when the selection keeps no Coulomb term."""
+    Fc = 0 when the selection keeps no Coulomb term.
+
+    Fc is read from the part of the plant's force shaped as sign(x') in the time domain
+    (beside m and b), not from the damping the ETFE reads, so the comparison still tests the
+    linearisation: at 0.05 N the record's damping excess, read as a Gaussian b_eq, gives
+    Fc 0.045 where this reads 0.049 (rough simulator, 30 s). Under white noise the sign is
+    the expectation given the velocity the derivative filter leaves out
+    (``labbench.analysis.identify``): without it Fc read 17 % low."""
     from labbench.analysis.compare import identify_closed_loop
 
     ident = identify_closed_loop(rec, ve, latency=latency, model="auto")
@@ -219,9 +226,10 @@ def _cause(cmp: dict, pred: Prediction | None, quantum: float | None) -> str:
                     f"{lin.velocity_rms:.2g}: friction this strong against this excitation makes it "
                     "stick, which no damper does; raise the excitation")
         if pred.friction.origin == "record":
-            return (f"the Coulomb level was estimated from this record ({pred.friction.n:.2g} N; a "
-                    "closed-loop identification under white noise reads it low, e.g. 0.017 for "
-                    "0.02 N on the rough simulator): a chirp-ID measures it (plant_coulomb_n)")
+            lo, hi = pred.friction.interval
+            return (f"the Coulomb level was estimated from this record ({pred.friction.n:.2g} N, "
+                    f"[{lo:.2g}, {hi:.2g}]), which shares its noise: a chirp-ID measures it apart "
+                    "(plant_coulomb_n)")
         if found and pred.friction.ci95 is not None and not (
                 pred.friction.ci95[0] <= ev["coulomb_n"] <= pred.friction.ci95[1]):
             return (f"this record's own Coulomb estimate {ev['coulomb_n']:.2g} N differs from the "
