@@ -7,9 +7,11 @@ until the plots' viewport has painted (checked: a move that painted nothing rais
 K reuse the cached K_max; moves of B, w0 and T find a new one. The floor is the same page
 repainted through the same path with nothing new (``scene().update()``), measured in the
 same run; beside the wall time, the process's CPU time per move (what the move costs whatever
-else the machine runs). Offscreen, on this shared 2-core machine.
+else the machine runs). Offscreen, on this shared 2-core machine. ``--coulomb-n``: the page
+for the rough simulator's device with that Coulomb friction (its noise friction-aware: the
+linearisation solved at every move).
 
-    QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_design.py [--moves 40]
+    QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_design.py [--moves 40] [--coulomb-n 0.02]
 """
 from __future__ import annotations
 
@@ -24,7 +26,10 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 import numpy as np  # noqa: E402
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
+from labbench.design import Device  # noqa: E402
 from labbench.gui.design_view import SLIDERS, DesignView  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+from labbench.ve import DEFAULT_PLANT  # noqa: E402
 
 GOAL_S = 0.050
 
@@ -46,9 +51,12 @@ class PaintCounter(QtCore.QObject):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--moves", type=int, default=40, help="moves per slider")
+    ap.add_argument("--coulomb-n", type=float, default=None,
+                    help="the rough simulator's device with this Coulomb friction [N]")
     args = ap.parse_args()
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv)
-    view = DesignView()
+    view = DesignView(None if args.coulomb_n is None else Device(
+        DEFAULT_PLANT, 0.0, Rig().metres_per_count, 0.002, args.coulomb_n))
     view.resize(1400, 850)
     view.show()
     app.processEvents()
@@ -81,7 +89,8 @@ def main() -> int:
         move = {"K": 50.0, "B": 1.0, "w0": 125.0, "T": 1.0}[name]  # back to the paper's demo
         s.setValue(int(np.argmin(np.abs(SLIDERS[name][2] - move))))
     floor = [timed(lambda: view.plots.scene().update()) for _ in range(args.moves)]
-    print(f"Design page, slider move to painted page, {args.moves} moves per slider "
+    device = "no friction" if args.coulomb_n is None else f"Coulomb friction {args.coulomb_n:g} N"
+    print(f"Design page ({device}), slider move to painted page, {args.moves} moves per slider "
           f"(offscreen, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}):")
     print(f"{'slider':>8} {'median ms':>10} {'p90 ms':>8} {'max ms':>8} {'median/floor':>13} "
           f"{'within 50 ms':>13} {'CPU median ms':>14}")

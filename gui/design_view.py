@@ -4,7 +4,8 @@ the trade-off redrawn at every move (``labbench.design``, docs/design.md).
 Stability (K_max of the exact sampled loop, the margin, the passive bounds), accuracy (w_s*,
 w_b*, rendered B, ED error at 10 Hz; the ED curve of the exact sampled model and of the
 paper's eq. 2) and force noise (the command's and the felt force's spectra with the felt band,
-their RMS against the noise limit), each number with the model it comes from in its tooltip.
+their RMS against the noise limit; with the device's Coulomb friction, its part), each number
+with the model it comes from in its tooltip.
 The work is synchronous, in the window's thread: one setting costs a K_max search (cached per
 B, w0, T: moving K reuses it), one noise spectrum and two impedance curves
 (``bench/bench_design.py`` times a slider move to the painted page).
@@ -17,10 +18,11 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from labbench.design import MODELS, Designer, Device, Targets, device_for
+from labbench.design import EXCITATION_N, MODELS, Designer, Device, Targets, device_for
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import COLOURS, DecadeAxis
 from labbench.model import linear
+from labbench.model.noise import STICK_SHARE_MAX
 from labbench.numfmt import fmt
 from labbench.rig import Rig
 
@@ -180,7 +182,9 @@ class DesignView(QtWidgets.QWidget):
         self.device_line.setText(
             f"device: m = {fmt(d.plant.m)} kg, b = {fmt(d.plant.b)} N s/m, delay "
             f"{fmt(1e3 * d.latency)} ms, encoder step {fmt(1e6 * d.quantum_m)} um, amplifier "
-            f"noise {fmt(1e3 * d.force_noise_n)} mN")
+            f"noise {fmt(1e3 * d.force_noise_n)} mN"
+            + (f", Coulomb friction {fmt(d.coulomb_n)} N ({d.sources.get('coulomb', 'given')})"
+               if d.coulomb_n else ""))
         p, fn = self.designer.detail(K, B, w0, T)
         self.point = p
         self.numbers.show_point(p, self.designer.targets)
@@ -230,6 +234,7 @@ ROWS = (
     (None, "force noise, 10-500 Hz", ""),
     ("noise_command", "command", "labbench.model.noise"),
     ("noise_felt", "felt (held, + amplifier)", "labbench.model.noise"),
+    ("noise_friction", "of which friction", f"Booton + arcsine law, {EXCITATION_N:g} N white"),
 )
 
 
@@ -274,6 +279,11 @@ class Numbers(QtWidgets.QWidget):
             state, colour = f"stable; noise limit {limit}", "#1b5e20"
         if p.noise_white is False:
             state += "; the hand is too slow for white quantisation noise"
+        if p.stable and p.noise_command is None:
+            state += "; friction holds the handle: no noise predicted"
+        elif p.stick_share is not None and p.stick_share > STICK_SHARE_MAX:
+            state += (f"; friction sticks the handle at {100 * p.stick_share:.2g} % of "
+                      "reversals: its noise is a rough guess")
         self.state.setText(state)
         self.state.setStyleSheet(f"color: {colour}; font-weight: bold")
         for key, text in (
@@ -285,7 +295,8 @@ class Numbers(QtWidgets.QWidget):
                 ("rendered_B", f"{fmt(p.rendered_B)} N s/m"),
                 ("ed_error_sampled", _pct(p.ed_error_sampled)),
                 ("ed_error_paper", _pct(p.ed_error_paper)),
-                ("noise_command", _mn(p.noise_command)), ("noise_felt", _mn(p.noise_felt))):
+                ("noise_command", _mn(p.noise_command)), ("noise_felt", _mn(p.noise_felt)),
+                ("noise_friction", _mn(p.noise_friction))):
             self.cells[key].setText(text)
 
     def text(self) -> str:

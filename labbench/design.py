@@ -24,7 +24,12 @@ number here comes from one model, named in ``MODELS`` (and in every ``as_dict``)
   the paper's eq. 2 (what a hand at the handle feels, the hold as a delay of T/2).
 * **noise**: the force noise in the felt band, ``labbench.model.noise`` (the encoder step
   and the amplifier's noise through the exact sampled loop; the held force a hand feels,
-  ``noise_felt``, and the recorded command's, ``noise_command``).
+  ``noise_felt``, and the recorded command's, ``noise_command``). Where the device's Coulomb
+  friction is known it is in them too (``noise_friction`` its part): its equivalent damper
+  and the remnant stick-slip adds (Booton's linearisation, the arcsine law), under the
+  motion the targets state (``Targets.excitation_n``, or the white force that moves the
+  handle at ``Targets.motion_m_s``); ``stick_share`` says how often the handle sticks at a
+  reversal, the Gaussian velocity's condition.
 
 **The w0 to choose.** With a noise limit, the virtual damping a filter allows is bounded:
 the force noise grows with B and with w0. The Z-width a device offers under that limit is
@@ -48,6 +53,7 @@ from labbench.model import friction, linear, noise, passivity, stability_frictio
 from labbench.ve import Plant, VirtualEnvironment
 
 ACCURACY_W = 2 * math.pi * 10.0  # rad/s: the top of volitional motion (paper sec. 5)
+EXCITATION_N = 0.5  # N: the white-noise ETFE's std_n (protocols/white_noise.py), what a campaign runs
 OBJECTIVES = ("zwidth", "band")
 NOISE_OF = ("command", "felt")
 
@@ -68,8 +74,15 @@ MODELS = {
     "rendered_B": "ED(0) of the exact sampled model",
     "ed_error_sampled": "exact sampled model at the accuracy frequency (as an ETFE measures)",
     "ed_error_paper": "paper eq. 2 at the accuracy frequency (as a hand at the handle feels)",
-    "noise_felt": "labbench.model.noise: held force at the actuator in the felt band",
-    "noise_command": "labbench.model.noise: recorded command in the felt band",
+    "noise_felt": "labbench.model.noise: held force at the actuator in the felt band "
+                  "(with the device's Coulomb friction where known)",
+    "noise_command": "labbench.model.noise: recorded command in the felt band (with the "
+                     "device's Coulomb friction where known)",
+    "noise_friction": "Coulomb friction's part of noise_felt: its remnant Fc sign(v) - b_eq v "
+                      "after Booton's equivalent damper, spectrum by the arcsine law (Van Vleck "
+                      "& Middleton 1966), under the stated excitation (labbench.model.noise)",
+    "stick_share": "share of velocity reversals at which the handle sticks (Rice): above "
+                   "1 % the Gaussian velocity friction's noise assumes fails",
     "zwidth": "area under the exact sampled K_max(B) up to the noise-limited B",
 }
 
@@ -89,7 +102,7 @@ class Device:
     sources: dict = field(default_factory=dict)
 
     def noise_sources(self) -> noise.NoiseSources:
-        return noise.NoiseSources(self.quantum_m, self.force_noise_n)
+        return noise.NoiseSources(self.quantum_m, self.force_noise_n, self.coulomb_n or 0.0)
 
     def as_dict(self) -> dict:
         return {"m": self.plant.m, "b": self.plant.b, "latency_s": self.latency,
@@ -105,7 +118,9 @@ class Targets:
     band ``band_hz`` (None: no limit); the oscillation amplitude ``amplitude_m`` the
     friction-aware stability boundary is for (oscillations that large decay below it); the
     accuracy frequency ``at_w`` [rad/s]; the hand's rms speed ``motion_m_s`` (None: the
-    quantisation error taken as white, and friction's equivalent damping not given)."""
+    quantisation error taken as white, and friction's equivalent damping not given); the std
+    ``excitation_n`` [N] of the white force that moves the handle, for friction's noise
+    (default the ETFE's; with ``motion_m_s`` the white force that moves it at that speed)."""
 
     noise_limit_n: float | None = None
     noise_of: str = "command"
@@ -113,6 +128,7 @@ class Targets:
     band_hz: tuple[float, float] = noise.FELT_BAND_HZ
     at_w: float = ACCURACY_W
     motion_m_s: float | None = None
+    excitation_n: float = EXCITATION_N
 
     def __post_init__(self):
         if self.noise_of not in NOISE_OF:
@@ -130,13 +146,16 @@ class Targets:
         if self.motion_m_s is not None and not (math.isfinite(self.motion_m_s)
                                                 and self.motion_m_s > 0):
             raise UserError(f"hand speed must be a positive number of m/s, got {self.motion_m_s!r}")
+        if not (math.isfinite(self.excitation_n) and self.excitation_n > 0):
+            raise UserError(f"excitation must be a positive number of N, got {self.excitation_n!r}")
 
 
 @dataclass(frozen=True)
 class DesignPoint:
     """One setting (K, B, w0, T) and its numbers (module doc; ``MODELS`` names each one's
     model). ``stable``: K < k_max; ``within_limit``: stable, and the noise the targets limit
-    within it (True without a limit)."""
+    within it (True without a limit; False where no noise is predicted: friction holds the
+    handle under the stated motion)."""
 
     K: float
     B: float
@@ -159,6 +178,8 @@ class DesignPoint:
     noise_command: float | None
     noise_white: bool | None
     within_limit: bool
+    noise_friction: float | None = None
+    stick_share: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -222,10 +243,16 @@ class Designer:
         if stable:
             inc = (None if t.motion_m_s is None else
                    noise.increments_from_speed(t.motion_m_s, T))
-            fn = noise.force_noise(d.plant, ve, d.noise_sources(), t.band_hz, d.latency, inc)
-            felt, command, white = fn.rms_felt, fn.rms_command, fn.white
+            try:
+                fn = noise.force_noise(d.plant, ve, d.noise_sources(), t.band_hz, d.latency, inc,
+                                       self.excitation(ve))
+            except UserError:  # friction holds the handle: no noise to predict
+                fn = None
+            else:
+                felt, command, white = fn.rms_felt, fn.rms_command, fn.white
         held = felt if t.noise_of == "felt" else command
-        within = t.noise_limit_n is None or held is None or held <= t.noise_limit_n
+        # no noise predicted (unstable, or friction holding the handle): not within a limit
+        within = t.noise_limit_n is None or (held is not None and held <= t.noise_limit_n)
         return DesignPoint(
             K=K, B=B, w0=w0, T=T, stable=stable, k_max=k_max,
             margin=(k_max / K) if k_max is not None else None, k_passive=k_passive,
@@ -239,7 +266,22 @@ class Designer:
             ed_error_sampled=abs(ed_s - base) / base if base > 0 else None,
             ed_error_paper=abs(ed_p - base) / base if base > 0 else None,
             noise_felt=felt, noise_command=command, noise_white=white,
-            within_limit=bool(stable and within)), fn
+            within_limit=bool(stable and within),
+            noise_friction=fn.parts["friction"] if fn is not None and fn.friction else None,
+            stick_share=fn.friction.stick_share if fn is not None and fn.friction else None), fn
+
+    def excitation(self, ve: VirtualEnvironment) -> noise.Excitation | None:
+        """The motion friction's noise is predicted under (None without known friction): the
+        white force of ``Targets.excitation_n``, or with a hand speed the white force that
+        moves the linearised loop at it (``labbench.model.friction.excitation_for``)."""
+        d, t = self.device, self.targets
+        if not d.coulomb_n:
+            return None
+        if t.motion_m_s is None:
+            return noise.Excitation(t.excitation_n)
+        b_eq = friction.gaussian_equivalent_damping(d.coulomb_n, t.motion_m_s)
+        return noise.Excitation(friction.excitation_for(d.plant, ve, d.coulomb_n, b_eq,
+                                                        latency=d.latency))
 
     def sweep(self, Ks, Bs, w0s, Ts, progress=None) -> list[DesignPoint]:
         """Every combination, in the order K, B, w0, T vary slowest to fastest."""
@@ -313,7 +355,8 @@ def device_for(rig, simulated: bool, identified: dict | None = None,
                commission: dict | None = None) -> Device:
     """The device of ``rig`` as the rig and its sessions describe it: the chirp-ID's plant
     and Coulomb term (``labbench.session_catalogue.last_identified``'s dict; None: the rig's
-    nominal model), else the commissioning's Coulomb estimate (``commission_facts``), the
+    nominal model), else the commissioning's Coulomb estimate (``commission_facts``), else a
+    simulator's own ``[sim] coulomb_n`` (the truth, as ``labbench.device_friction``), the
     rig's delay (``labbench.device_delay``) and its noise sources (``rig_noise``); ``sources``
     says where each came from."""
     from labbench import device_delay
@@ -325,6 +368,9 @@ def device_for(rig, simulated: bool, identified: dict | None = None,
         coulomb, coulomb_src = found["coulomb_n"], f"chirp-ID {found['session']}"
     elif (commission or {}).get("coulomb_n") is not None:
         coulomb, coulomb_src = commission["coulomb_n"], f"commissioning {commission['session']}"
+    elif simulated and rig.section("sim").get("coulomb_n"):
+        coulomb = float(rig.section("sim")["coulomb_n"])
+        coulomb_src = f"the simulator's coulomb_n = {coulomb:g} N"
     delay = device_delay.resolve(rig)
     sources, where = rig_noise(rig, simulated)
     return Device(plant, delay.s, sources.quantum_m, sources.force_noise_n, coulomb,

@@ -66,15 +66,20 @@ def test_sliders_are_remembered(qtbot, tmp_path):
 
 
 def test_the_windows_page_follows_the_rig(qtbot, tmp_path):
-    """A rough simulated rig (its [sim] quantises and adds 2 mN): the page designs for that
-    encoder step and amplifier noise, at the rig's 2 ms."""
+    """A rough simulated rig (its [sim] quantises, adds 2 mN and rubs with 0.02 N): the page
+    designs for that encoder step, amplifier noise and friction (its part of the noise
+    shown), at the rig's 2 ms."""
     rig_file = tmp_path / "rough.toml"
     rig_file.write_text('[rig]\nname = "rough"\nsample_time_s = 0.002\n'
-                        '[sim]\nquantize = true\nforce_noise_n = 0.002\n')
+                        '[sim]\nquantize = true\nforce_noise_n = 0.002\ncoulomb_n = 0.02\n')
     win = MainWindow(load_rig(str(rig_file)), tmp_path / "sessions")
     qtbot.addWidget(win)
     titles = [win.tabs.tabText(i) for i in range(win.tabs.count())]
     assert "Design" in titles
     d = win.design.designer.device
     assert d.quantum_m == pytest.approx(Rig().metres_per_count) and d.force_noise_n == 0.002
+    assert d.coulomb_n == 0.02 and "Coulomb friction 0.02 N" in win.design.device_line.text()
     assert win.design.value("T") == pytest.approx(0.002)
+    friction_part = win.design.point.noise_friction
+    assert friction_part > 0
+    assert win.design.numbers.cells["noise_friction"].text() == f"{fmt(1e3 * friction_part, 3)} mN"

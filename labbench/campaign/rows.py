@@ -56,8 +56,11 @@ Predictions (``pred.*``), with the campaign's plant and the run's device delay:
   and delay the closed-loop fit found (``labbench.analysis.loopfit``), beside ``pred.k_max``;
   ``pred.noise_command``: the force noise the loop commands in the felt band, predicted by
   ``labbench.model.noise`` with the encoder step and amplifier noise the rig states
-  (``pred.noise_quantum_m``, ``pred.noise_amplifier_n``), beside the measured
-  ``res.force_noise.rms_n`` and its interval ``res.force_noise.ci95``.
+  (``pred.noise_quantum_m``, ``pred.noise_amplifier_n``) and the Coulomb friction known
+  before the run (``pred.noise_coulomb_n``: the run's given or simulated one, else the
+  commissioning's; its noise under the run's own excitation, ``pred.noise_stick_share`` the
+  share of reversals that stick), beside the measured ``res.force_noise.rms_n`` and its
+  interval ``res.force_noise.ci95``.
 """
 from __future__ import annotations
 
@@ -154,23 +157,37 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
     if isinstance(results.get("etfe"), dict):
         out.update(_accuracy(results, plant, ve, latency, out.get("pred.k_max")))
     if pp.protocol_name == "etfe" and ve.kind != "none":
-        out.update(_noise(pp, context, plant, ve, latency))
+        out.update(_noise(pp, context, results, plant, ve, latency))
     return out
 
 
-def _noise(pp, context, plant: Plant, ve, latency: float) -> dict:
+def _noise(pp, context, results: dict, plant: Plant, ve, latency: float) -> dict:
     """``pred.noise_command`` [N rms, felt band] of the noise model with the noise sources the
-    rig states (``labbench.design.rig_noise``), beside the run's ``res.force_noise.*``."""
+    rig states (``labbench.design.rig_noise``) and the friction known before the run (module
+    doc) under the run's excitation, beside the run's ``res.force_noise.*``."""
+    from dataclasses import replace
+
     from labbench.design import rig_noise
     from labbench.model import noise
 
     sources, _ = rig_noise(pp.rig, context.simulated, pp.device_options)
+    known = results.get("friction") if isinstance(results.get("friction"), dict) else {}
+    fc = known.get("n") if known.get("origin") in ("given", "device") else \
+        context.commission.get("coulomb_n")
+    c = pp.protocol.config
+    excitation = noise.Excitation(c.std_n, None if (c.band_lo_hz == 0 and c.band_hi_hz is None)
+                                  else (c.band_lo_hz, c.band_hi_hz or 0.5 / ve.T))
+    out = {"pred.noise_command": None, "pred.noise_quantum_m": sources.quantum_m,
+           "pred.noise_amplifier_n": sources.force_noise_n, "pred.noise_coulomb_n": fc or None,
+           "pred.noise_stick_share": None}
     try:
-        fn = noise.force_noise(plant, ve, sources, noise.FELT_BAND_HZ, latency)
-    except UserError:  # unstable on the campaign's plant: no stationary noise to predict
-        return {"pred.noise_command": None}
-    return {"pred.noise_command": fn.rms_command, "pred.noise_quantum_m": sources.quantum_m,
-            "pred.noise_amplifier_n": sources.force_noise_n}
+        fn = noise.force_noise(plant, ve, replace(sources, coulomb_n=fc or 0.0),
+                               noise.FELT_BAND_HZ, latency, excitation=excitation)
+    except UserError:  # unstable on the campaign's plant, or friction holds the handle
+        return out
+    out.update({"pred.noise_command": fn.rms_command,
+                "pred.noise_stick_share": fn.friction.stick_share if fn.friction else None})
+    return out
 
 
 BOUNDS = (("pred.k_passive", "passive (sampled-data)"),

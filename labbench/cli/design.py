@@ -68,6 +68,10 @@ def register(subparsers) -> None:
                    help="the hand's rms speed, for the quantisation error's colour and "
                         "friction's equivalent damping (default: white quantisation error, "
                         "as for any motion faster than ~half a step per sample; no b_eq)")
+    p.add_argument("--excitation-n", type=float, default=None, metavar="N",
+                   help="std of the white force that moves the handle, for Coulomb friction's "
+                        "noise (default 0.5, the white-noise ETFE's; with --motion-m-s the force "
+                        "that moves it at that speed)")
     p.add_argument("--amplitude-m", type=float, default=1e-3, metavar="M",
                    help="oscillation amplitude the friction-aware stability boundary is for: "
                         "oscillations that large decay below it (default 0.001)")
@@ -132,14 +136,15 @@ def _nonneg(v: float, what: str) -> float:
 
 
 def targets_of(args):
-    from labbench.design import ACCURACY_W, Targets
+    from labbench.design import ACCURACY_W, EXCITATION_N, Targets
 
     if len(args.band_hz) != 2:
         raise UserError(f"--band-hz takes two numbers LO,HI, got {len(args.band_hz)}")
     return Targets(noise_limit_n=args.noise_limit_n, noise_of=args.noise_of,
                    band_hz=(args.band_hz[0], args.band_hz[1]),
                    at_w=ACCURACY_W if args.at_w is None else args.at_w, motion_m_s=args.motion_m_s,
-                   amplitude_m=args.amplitude_m)
+                   amplitude_m=args.amplitude_m,
+                   excitation_n=EXCITATION_N if args.excitation_n is None else args.excitation_n)
 
 
 def run(args) -> int:
@@ -177,7 +182,8 @@ def run(args) -> int:
             "device": device.as_dict(), "targets": {
                 "noise_limit_n": targets.noise_limit_n, "noise_of": targets.noise_of,
                 "band_hz": list(targets.band_hz), "at_w": targets.at_w,
-                "motion_m_s": targets.motion_m_s, "amplitude_m": targets.amplitude_m},
+                "motion_m_s": targets.motion_m_s, "amplitude_m": targets.amplitude_m,
+                "excitation_n": targets.excitation_n},
             "models": MODELS, "points": [p.as_dict() for p in points],
             "pareto": [points.index(p) for p in front], "recommendation": rec,
             "check": check.as_dict() if check else None})))
@@ -251,7 +257,10 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         "oscillations with friction (describing function); w_s*, w_b*, rendered B, ED error "
         "(sampled: as an "
         "ETFE measures; paper: eq. 2, as felt) exact sampled unless said; noise "
-        "labbench.model.noise (command = recorded, felt = held force + amplifier)",
+        "labbench.model.noise (command = recorded, felt = held force + amplifier)"
+        + (f" with Coulomb friction {fmt(d.coulomb_n)} N under {_motion(targets)}: its "
+           "equivalent damper (Booton) and its remnant's noise (arcsine law)" if d.coulomb_n
+           else ""),
         "",
         f"{'K':>6} {'B':>5} {'w0':>6} {'T ms':>5} | {'K_max':>7} {'margin':>6} {'K_pass':>7} "
         f"{'K_q':>6} {'K_fric':>7} | {'w_s*':>6} {'w_b*':>6} {'B rend':>6} {'EDerr s':>7} "
@@ -268,6 +277,8 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
             f"{_mn(p.noise_command):>6} {_mn(p.noise_felt):>7} | {ok} {mark}")
     lines.append(f"P: on the Pareto front of margin, w_b* and felt noise ({len(front)} of "
                  f"{len(points)} settings)")
+    if d.coulomb_n:
+        lines.append("; ".join(_friction_notes(points)))
     if d.coulomb_n and targets.motion_m_s:
         lines.append(f"friction adds {fmt(points[0].b_friction)} N s/m of damping to what is "
                      f"rendered at a hand speed of {fmt(targets.motion_m_s)} m/s rms")
@@ -282,6 +293,33 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
         lines.append(f"recommended w0 = {fmt(rec['w0'])} rad/s" if rec["w0"] is not None
                      else "no w0 meets the noise limit")
     return lines
+
+
+def _friction_notes(points) -> list[str]:
+    """What friction does to the noise of these points, in a few words."""
+    from labbench.model.noise import STICK_SHARE_MAX
+    from labbench.numfmt import fmt
+
+    parts = [p.noise_friction for p in points if p.noise_friction is not None]
+    shares = [p.stick_share for p in points if p.stick_share is not None]
+    notes = []
+    if parts:
+        notes.append(f"friction's part of the felt noise {fmt(1e3 * min(parts), 3)}-"
+                     f"{fmt(1e3 * max(parts), 3)} mN")
+    if shares:
+        notes.append(f"it sticks the handle at up to {100 * max(shares):.2g} % of reversals"
+                     + (f" (above {100 * STICK_SHARE_MAX:g} %: the Gaussian velocity it assumes "
+                        "fails, its noise a rough guess)" if max(shares) > STICK_SHARE_MAX else ""))
+    if any(p.stable and p.noise_command is None for p in points):
+        notes.append("'-' noise: friction holds the handle under this motion")
+    return notes
+
+
+def _motion(targets) -> str:
+    from labbench.numfmt import fmt
+
+    return (f"the white force that moves the handle at {fmt(targets.motion_m_s)} m/s rms"
+            if targets.motion_m_s else f"{fmt(targets.excitation_n)} N of white excitation")
 
 
 def _limit_text(targets) -> str:

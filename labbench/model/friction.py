@@ -29,7 +29,7 @@ excitation's rms force (a heavy damper moves as F / b_eq), so it has one root wh
 linearisation then does not apply: ``Linearised.holds`` False).
 
 The velocity at the sample instants of the held plant per command, ``V / U``
-(``labbench.model.linear.plant_velocity``: a row of ``(zI - Ad)^-1 G(z)``, fractional
+(``labbench.model.linear.held_plant``: a row of ``(zI - Ad)^-1 G(z)``, fractional
 device delays included), through the loop: ``V / F_exo = (V / U) / (1 + G P)`` with
 ``G P`` the loop gain of ``labbench.model.linear.loop_parts``. Where td is not whole
 samples the paper's continuous model stands in: ``V / F_exo = 1 / Z``.
@@ -79,8 +79,8 @@ def velocity_response(plant: Plant, ve: VirtualEnvironment, w, latency: float = 
     w = np.asarray(w, float)
     if not linear.whole_samples(ve):
         return 1.0 / linear.z_paper(plant, ve, w, latency)
-    P, G = linear.loop_parts(plant, ve, w, latency)
-    return linear.plant_velocity(plant, ve.T, w, latency) / (1 + G * P)
+    P, V = linear.held_plant(plant, ve.T, w, latency)
+    return V / (1 + linear.loop_parts(plant, ve, w, latency)[1] * P)
 
 
 MAX_GROUPS = 1 << 14  # spectral groups a velocity sum evaluates the loop at (``_spectrum``)

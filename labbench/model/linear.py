@@ -135,6 +135,18 @@ def latency_inputs(plant: Plant, T: float, alpha: float) -> tuple[np.ndarray, np
 def _plant_response(plant: Plant, T: float, w: np.ndarray, latency: float = 0.0) -> np.ndarray:
     """P(e^{jwT}) = X/U of the ZOH-sampled plant, [1 0](zI - Ad)^{-1} G(z), with
     G = Bd without latency, else z^-d (G_late + G_early z^-1) (module doc)."""
+    return _held(plant, T, w, latency, False)[0]
+
+
+def held_plant(plant: Plant, T: float, w, latency: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(X/U, V/U) of the held plant at ``w`` [rad/s]: the position and the velocity at the
+    sample instants per held command, the rows of (zI - Ad)^{-1} G(z) (``_plant_response``).
+    Ad's velocity row does not see the position (a10 = 0), so V/U = g1(z) / (z - a11), g1 the
+    velocity's share of G(z)."""
+    return _held(plant, T, np.asarray(w, dtype=float), latency, True)
+
+
+def _held(plant: Plant, T: float, w: np.ndarray, latency: float, velocity: bool) -> tuple:
     Ad, _ = zoh_matrices(plant.m, plant.b, T)
     d, alpha = latency_split(latency, T)
     g_late, g_early = latency_inputs(plant, T, alpha)
@@ -143,27 +155,12 @@ def _plant_response(plant: Plant, T: float, w: np.ndarray, latency: float = 0.0)
     late = np.exp(-1j * w * (d * T)) if d else 1.0  # z^-d: a complex power costs 3x an exp
     g0 = (g_late[0] + g_early[0] * zinv) * late
     g1 = (g_late[1] + g_early[1] * zinv) * late
-    # z - Ad[0,0] as expm1 + (1 - Ad[0,0]): no cancellation near w = 0
-    z_minus_a00 = np.expm1(1j * w * T) + (1.0 - Ad[0, 0])
-    det = z_minus_a00 * (z - Ad[1, 1]) - Ad[0, 1] * Ad[1, 0]
-    return ((z - Ad[1, 1]) * g0 + Ad[0, 1] * g1) / det
-
-
-def plant_velocity(plant: Plant, T: float, w, latency: float = 0.0) -> np.ndarray:
-    """V/U of the held plant: the velocity at the sample instants per held command, the
-    second row of (zI - Ad)^{-1} G(z) (``_plant_response``'s first). Ad's velocity row does
-    not see the position (a10 = 0), so it is g1(z) / (z - a11), g1 the velocity's share of
-    G(z) = z^-d (G_late + G_early z^-1)."""
-    w = np.asarray(w, dtype=float)
-    Ad, _ = zoh_matrices(plant.m, plant.b, T)
-    d, alpha = latency_split(latency, T)
-    g_late, g_early = latency_inputs(plant, T, alpha)
-    zinv = np.exp(-1j * w * T)
-    g1 = g_late[1] + g_early[1] * zinv
-    if d:
-        g1 = g1 * np.exp(-1j * w * (d * T))
-    # z - a11 as expm1 + (1 - a11): no cancellation near w = 0 on a light damper
-    return g1 / (np.expm1(1j * w * T) + (1.0 - Ad[1, 1]))
+    # z - Ad[0,0] as expm1 + (1 - Ad[0,0]): no cancellation near w = 0 (and so z - Ad[1,1])
+    em1 = np.expm1(1j * w * T)
+    z_minus_a00 = em1 + (1.0 - Ad[0, 0])
+    z_minus_a11 = em1 + (1.0 - Ad[1, 1]) if velocity else z - Ad[1, 1]
+    P = (z_minus_a11 * g0 + Ad[0, 1] * g1) / (z_minus_a00 * z_minus_a11 - Ad[0, 1] * Ad[1, 0])
+    return P, (g1 / z_minus_a11 if velocity else None)
 
 
 def _ve_sampled(ve: VirtualEnvironment, w: np.ndarray) -> np.ndarray:

@@ -85,8 +85,10 @@ Measured on the rough simulator, p_stick follows the share of time the handle is
 (0.5 / 2.0 / 3.1 % predicted, 0.2-0.3 / 1.6-1.8 / 3.0-3.3 % measured) and the model holds
 the command noise within 10 % where p_stick <= ``STICK_SHARE_MAX`` (docs/design.md);
 beyond it ``FrictionPart.gaussian`` is False and the numbers are a rough guess.
-Where friction holds the handle (no b_eq exists: Fc sqrt(2/pi) at or above the force that
-drives it) there is no prediction (UserError).
+Where friction holds the handle (Fc sqrt(2/pi) at or above the rms of the forces that drive
+it, excitation and amplifier: no damper stands for it, as in ``labbench.model.friction``;
+d's own share does not count, or the remnant would drive the motion that makes it) there is
+no prediction (UserError).
 
 The handle is free (no hand in the loop); the felt force is the actuator's, friction's own
 force at the handle not counted.
@@ -110,7 +112,8 @@ _SERIES = np.arange(1, 4097, dtype=float)  # terms of rho_j's series: error < 6 
 _LAGS = 256  # lags of the coloured error spectrum (rho has decayed long before)
 _MAX_POINTS = 1 << 21
 STICK_SHARE_MAX = 0.01  # share of reversals that stick up to which friction's part holds (module doc)
-_REMNANT_TOL = 1e-5  # relative change of sigma_v at which d's share of the velocity has settled
+_SEARCH_POINTS = 1 << 9  # least grid of the b_eq search (its integrals need only the poles' 10 / delta)
+_REMNANT_TOL = 1e-4  # relative change of sigma_v at which d's share of the velocity has settled
 
 
 @dataclass(frozen=True)
@@ -295,16 +298,15 @@ def sign_remnant(f: np.ndarray, Sv: np.ndarray, coulomb_n: float, T: float
 
 
 def _linearised(plant: Plant, ve: VirtualEnvironment, latency: float, f: np.ndarray,
-                b_eq: float, S_drive: np.ndarray, Se: np.ndarray, coulomb_n: float,
-                Sd: np.ndarray | None = None) -> tuple:
-    """The loop with b + b_eq on the grid ``f``: (P, G, sigma_v, S_d), d's spectrum and the
-    velocity's rms settled together (module doc). ``S_drive``: the forces entering with the
-    command (excitation, amplifier), ``Se`` the quantisation error's spectrum; ``Sd`` a
-    first guess of d's (a neighbouring b_eq's)."""
-    p = Plant(plant.m, plant.b + b_eq)
-    w = 2 * math.pi * _off_zero(f)
-    P, G = linear.loop_parts(p, ve, w, latency)
-    VF2 = np.abs(linear.plant_velocity(p, ve.T, w, latency) / (1 + G * P)) ** 2
+                G: np.ndarray, b_eq: float, S_drive: np.ndarray, Se: np.ndarray,
+                coulomb_n: float, Sd: np.ndarray | None = None) -> tuple:
+    """The loop with b + b_eq on the grid ``f`` (``G`` the VE's path there, which b leaves
+    alone): (P, sigma_v, S_d), d's spectrum and the velocity's rms settled together (module
+    doc). ``S_drive``: the forces entering with the command (excitation, amplifier), ``Se``
+    the quantisation error's spectrum; ``Sd`` a first guess of d's (a neighbouring b_eq's)."""
+    P, V = linear.held_plant(Plant(plant.m, plant.b + b_eq), ve.T, 2 * math.pi * _off_zero(f),
+                             latency)
+    VF2 = np.abs(V / (1 + G * P)) ** 2
     base = VF2 * (S_drive + np.abs(G) ** 2 * Se)
     Sd, sigma = (np.zeros_like(f) if Sd is None else Sd), math.inf
     for _ in range(50):  # d is a small share of the velocity: a few rounds settle it
@@ -312,30 +314,38 @@ def _linearised(plant: Plant, ve: VirtualEnvironment, latency: float, f: np.ndar
         if abs(new - sigma) <= _REMNANT_TOL * new:
             break
         sigma = new
-    return P, G, new, Sd
+    return P, new, Sd
 
 
 def _friction_loop(plant: Plant, ve: VirtualEnvironment, latency: float, sources: NoiseSources,
                    S_drive_of, f_linear: np.ndarray) -> tuple:
     """(b_eq, f, P, G, S_d, sigma_v) of the self-consistent linearisation (module doc). The
     root lies at or above b_lo = Fc sqrt(2/pi) / sigma_v of the linear loop, so the loop
-    with b + b_lo, more damped than any tried, sets the (coarser) frequency grid of the rest.
-    ``S_drive_of(f)``: the spectrum of the forces entering with the command on a grid."""
+    with b + b_lo, more damped than any tried, sets the frequency grid of the search (only
+    as fine as its poles need: ``frequency_grid``'s ``least`` lowered), and the loop with
+    b + b_eq the grid of the spectra returned. ``S_drive_of(f)``: the spectrum of the forces
+    entering with the command on a grid."""
     T, fc = ve.T, sources.coulomb_n
     target = fc * friction.SQRT_2_OVER_PI
     white_e = lambda g: np.full_like(g, 2 * T * sources.quantum_m**2 / 12)  # noqa: E731
-    sigma0 = _linearised(plant, ve, latency, f_linear, 0.0, S_drive_of(f_linear),
-                         white_e(f_linear), fc)[2]
+    path = lambda g: linear.loop_parts(plant, ve, 2 * math.pi * _off_zero(g), latency)[1]  # noqa: E731
+    drive = S_drive_of(f_linear)
+    if target >= math.sqrt(float(np.sum(_trapezoid_weights(f_linear) * drive))):
+        raise UserError(f"Coulomb friction {fc:g} N holds the handle under this excitation "
+                        "(Fc sqrt(2/pi) at or above the force that drives it): its force noise "
+                        "is not predicted")
+    sigma0 = _linearised(plant, ve, latency, f_linear, path(f_linear), 0.0, drive,
+                         white_e(f_linear), fc)[1]
     lo = target / sigma0
-    f = frequency_grid(Plant(plant.m, plant.b + lo), ve, latency)
-    S_drive, Se = S_drive_of(f), white_e(f)
+    f = frequency_grid(Plant(plant.m, plant.b + lo), ve, latency, least=_SEARCH_POINTS)
+    G, S_drive, Se = path(f), S_drive_of(f), white_e(f)
     solved = {}
 
     def excess(b_eq: float) -> float:  # b_eq sigma_v(b + b_eq) rises with b_eq
         if b_eq not in solved:
-            last = solved[next(reversed(solved))][3] if solved else None
-            solved[b_eq] = _linearised(plant, ve, latency, f, b_eq, S_drive, Se, fc, last)
-        return b_eq * solved[b_eq][2] - target
+            last = solved[next(reversed(solved))][2] if solved else None
+            solved[b_eq] = _linearised(plant, ve, latency, f, G, b_eq, S_drive, Se, fc, last)
+        return b_eq * solved[b_eq][1] - target
 
     top = friction.B_EQ_MAX - plant.b
     hi = 2.0 * lo
@@ -345,15 +355,19 @@ def _friction_loop(plant: Plant, ve: VirtualEnvironment, latency: float, sources
                             "(no damper stands for it): its force noise is not predicted")
         lo, hi = hi, min(4.0 * hi, top)
     # (at lo the excess is <= 0 but for rounding: then lo is the root)
-    b_eq = lo if excess(lo) >= 0 else optimize.brentq(excess, lo, hi, xtol=1e-12, rtol=1e-5)
+    b_eq = lo if excess(lo) >= 0 else optimize.brentq(excess, lo, hi, xtol=1e-12, rtol=1e-4)
     excess(b_eq)
-    P, G, sigma, Sd = solved[b_eq]
-    return b_eq, f, P, G, Sd, sigma
+    out = frequency_grid(Plant(plant.m, plant.b + b_eq), ve, latency)
+    G = path(out)
+    P, sigma, Sd = _linearised(plant, ve, latency, out, G, b_eq, S_drive_of(out), white_e(out),
+                               fc, np.interp(out, f, solved[b_eq][2]))
+    return b_eq, out, P, G, Sd, sigma
 
 
-def frequency_grid(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> np.ndarray:
+def frequency_grid(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0,
+                   least: int = 1 << 12) -> np.ndarray:
     """M + 1 equally spaced frequencies [Hz] from 0 to 1/(2T), M a power of two of at least
-    10 / delta, delta = -ln|z| of the loop's least damped pole. A spectrum of the sampled loop
+    10 / delta and ``least``, delta = -ln|z| of the loop's least damped pole. A spectrum of the sampled loop
     is even and periodic in f T, so the trapezoid rule over this grid is exact to ~e^(-2 M
     delta) (Trefethen & Weideman, "The exponentially convergent trapezoidal rule", SIAM Rev.
     56(3), 2014): 1e-9 here, however sharp the resonance. UserError when the loop is unstable
@@ -365,7 +379,7 @@ def frequency_grid(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -
     if np.any(radius >= 1.0):
         raise UserError("the loop is unstable: it has no stationary force noise to predict")
     delta = float(np.min(-np.log(np.maximum(radius, 1e-300)))) if len(lam) else 1.0
-    M = 1 << max(12, math.ceil(math.log2(10.0 / max(delta, 1e-9))))
+    M = max(least, 1 << math.ceil(math.log2(10.0 / max(delta, 1e-9))))
     if M > _MAX_POINTS:
         raise UserError(f"the loop's least damped pole (|z| = 1 - {1 - math.exp(-delta):.2g}) "
                         "needs a finer frequency grid than this model takes")
