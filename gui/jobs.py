@@ -53,10 +53,12 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
         plant = recorded_plant(start, (stop or {}).get("results"))
         source = plant_source(start) if plant else "the window's rig nominal model"
         plant = plant or run_plant
+    again = analyze_etfe(path, estimator, meta, progress=steps.part(0.05, 0.45), cancel=cancel)
+    # its w_s*, w_b* are the ones `labbench analyze etfe` says (with the run's plant)
     est = estimate(data, meta, ve_from_meta(meta), plant, estimator=estimator, plant_source=source,
-                   progress=steps.part(0.05, 0.3), cancel=cancel)
-    ident = identify_all(data, meta, progress=steps.part(0.3, 0.6), cancel=cancel)
-    again = analyze_etfe(path, estimator, meta, progress=steps.part(0.6, 1.0), cancel=cancel)
+                   progress=steps.part(0.45, 0.7), cancel=cancel,
+                   recorded=again.get("bandwidths") if run_plant is not None else None)
+    ident = identify_all(data, meta, progress=steps.part(0.7, 1.0), cancel=cancel)
     steps.report(1.0, "done")
     return (est, ident, plant_data(data, meta), again,
             (start, desc, ch, stop))  # the record too: the Live page shows its traces
@@ -85,6 +87,7 @@ def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, ca
             return out
     d = fr.as_dict()
     out["fit"] = fit or d["fit"]
+    out["bandwidths"] = d.get("bandwidths")
     out["readout"] = readout.of_etfe_analysis(d, session.records.get("start"))
     return out
 

@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from labbench.analysis.etfe_live import NAME as LIVE, LiveEtfe
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
-from labbench.predictions import Bandwidths, bandwidths
+from labbench import predictions
+from labbench.effective import effective_impedances
+from labbench.predictions import Bandwidths
 from labbench.ve import Plant, VirtualEnvironment
 
 log = logging.getLogger(__name__)
@@ -75,13 +76,16 @@ class Estimate:
 def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | None,
              plant: Plant | None, window: int = 200, estimator: str | None = None,
              plant_source: str = "given", live: LiveEtfe | None = None, progress=None,
-             cancel=None) -> Estimate | None:
+             cancel=None, recorded: dict | None = None) -> Estimate | None:
     """ETFE of force (excitation) to position so far; None while too short to estimate.
 
     ``estimator`` LIVE: the samples of ``data`` beyond ``live.n`` are added to the
     incremental ``live`` and its estimate is used; else the batch ETFE of the whole
     record. Without ``plant``, m and b are identified by l2 on the newest ID_SAMPLES.
     ``progress``, ``cancel``: the batch ETFE's (``labbench.analysis.progress``).
+    ``recorded``: the analysis' ``bandwidths`` of this record (its results, the report's
+    numbers): the w_s*, w_b* shown, measured and predicted; else read here as the analysis
+    reads them (``labbench.predictions.read``).
     """
     from labbench.device_delay import from_meta
     from labbench.analysis.dataio import recording_from_arrays
@@ -123,10 +127,9 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         source = "identified (l2)" if plant is not None else "none"
         identified_now = plant is not None
 
-    wb = measured_wb_star(w, eff.ED, plant.b) if plant is not None else None
     out = Estimate(
         n_samples=n, w=w, Z=Z, Z_err=Z_err, ES=eff.ES, ED=eff.ED, EM=eff.EM,
-        ws_measured=measured_ws_star(w, eff.ES), wb_measured=wb,
+        ws_measured=None, wb_measured=None,
         plant=plant, plant_source=source, w_nyquist=np.pi * fs,
         identified_now=identified_now, estimator=res.estimator,
         excited=excited_bands(power, peak),
@@ -137,8 +140,14 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
         # a run without a VE (chirp-ID) is the plant's own Z: its theory is the plant's
         out.theory = _theory(plant, ve if ve is not None else VirtualEnvironment("none", T=1.0 / fs),
                              w, latency)
-        if out.renders_ve:
-            out.predicted = bandwidths(plant, ve, latency)
+        if out.renders_ve:  # the numbers of the run's results, read as its analysis reads them
+            if recorded is None:
+                from labbench.analysis.rendered import measured, reading_band
+
+                low = measured(res, reading_band(res, ve, plant, latency))
+                recorded = predictions.read(w, Z, plant, ve, latency, low and low.as_dict())
+            out.ws_measured, out.wb_measured, out.predicted = predictions.of_results(
+                recorded, ve, latency)
     return out
 
 
@@ -209,9 +218,9 @@ class LiveEstimator:
         return self._future is not None and not self._future.done()
 
     def submit(self, data, meta, ve, plant, window: int = 200, estimator: str | None = None,
-               plant_source: str = "given") -> bool:
+               plant_source: str = "given", recorded: dict | None = None) -> bool:
         """Start an estimate unless one is running; True if started. ``plant_source``: where
-        a given ``plant`` came from, in words (shown with it)."""
+        a given ``plant`` came from, in words (shown with it); ``recorded``: as ``estimate``'s."""
         if self.busy:
             return False
         source = plant_source
@@ -224,7 +233,7 @@ class LiveEstimator:
                 self._live = LiveEtfe(float(meta["fs"]))  # a new stream
             live = self._live
         self._future = self._pool.submit(estimate, data, meta, ve, plant, window, estimator,
-                                         source, live)
+                                         source, live, recorded=recorded)
         return True
 
     def poll(self) -> Estimate | None:

@@ -132,7 +132,8 @@ class LiveView(QtWidgets.QWidget):
             return
         ve, plant, meta, source = self._estimate_inputs(buf)
         data = buf.snapshot(("t", "excitation", "position", "command"))
-        if self.estimator.submit(data, meta, ve, plant, plant_source=source, **self._etfe_options(buf)):
+        if self.estimator.submit(data, meta, ve, plant, plant_source=source, **self._etfe_options(buf),
+                                 recorded=self._recorded_bandwidths(buf)):
             self._estimated_version = buf.version
 
     @staticmethod
@@ -148,6 +149,14 @@ class LiveView(QtWidgets.QWidget):
         elif proto.get("estimator"):
             opts["estimator"] = proto["estimator"]
         return opts
+
+    def _recorded_bandwidths(self, buf) -> dict | None:
+        """The ended stream's w_s*, w_b* as its analysis recorded them (the report's and the
+        CLI's numbers: the marks say the same), while the overlay is the run's plant."""
+        results = (buf.stop or {}).get("results")
+        if not (self.uses_run_plant() and isinstance(results, dict)):
+            return None
+        return results.get("bandwidths") if isinstance(results.get("bandwidths"), dict) else None
 
     def uses_run_plant(self) -> bool:
         return self.theory_plant.currentIndex() == RUN_PLANT

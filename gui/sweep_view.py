@@ -344,17 +344,17 @@ class SweepView(QtWidgets.QWidget):
 
     def _fill_in(self) -> None:
         """The map fills in as rows reach the table (the child writes them at least once a
-        second, ``sweep_runner.FILL_S``): read again at most every REREAD_S, when it has new
-        parts."""
+        second, ``sweep_runner.FILL_S``): read again once it has new parts, at most every
+        REREAD_S (a poll that found nothing new did not count: the rows of a sweep of five
+        0.4 s points, written at 1.2 s, waited for its end)."""
         from labbench.sweep.table import is_table, parts
 
         now = time.monotonic()
         if self.run is None or now - self._reread < REREAD_S:
             return
-        self._reread = now
         table = self.table_of(self.spec_path)
         if is_table(table) and len(parts(table)) != self._parts_read:
-            self._parts_read = len(parts(table))
+            self._reread, self._parts_read = now, len(parts(table))
             self.open_table(table)
 
     def _on_run_end(self, kind: str, value) -> None:

@@ -67,9 +67,11 @@ def measured_ws_star(w, ES) -> float | None:
     return float(w[i] + (w[i + 1] - w[i]) * ES[i] / (ES[i] - ES[i + 1]))
 
 
-def measured_wb_star(w, ED, b: float, n_low: int = 3) -> float | None:
+def measured_wb_star(w, ED, b: float, n_low: int = 3, reference: float | None = None) -> float | None:
     """Damping bandwidth read off a curve: first w where ED has fallen half-way
-    from its low-frequency value (median of the ``n_low`` lowest points) to ``b``.
+    from its low-frequency value to ``b``: ``reference`` (a measurement's rendered
+    ED(0), ``labbench.predictions.measured``), else the median of the ``n_low`` lowest points
+    (a curve without noise or leakage: the theory's).
 
     None when the low-frequency ED is not above b (no virtual damping to lose)
     or it never falls that far on the grid.
@@ -80,7 +82,7 @@ def measured_wb_star(w, ED, b: float, n_low: int = 3) -> float | None:
     w, ED = w[ok], ED[ok]
     if ED.size < n_low + 1:
         return None
-    ed_low = float(np.median(ED[:n_low]))
+    ed_low = float(np.median(ED[:n_low])) if reference is None else reference
     if ed_low <= b:
         return None
     half = b + 0.5 * (ed_low - b)

@@ -15,6 +15,9 @@ import functools
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
+from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.numfmt import fmt
 from labbench.units import SI
 from labbench.ve import Plant, VirtualEnvironment
@@ -71,6 +74,52 @@ def bandwidths(plant: Plant, ve: VirtualEnvironment, latency_s: float = 0.0) -> 
     read = linear.predicted_bandwidths(plant, ve, model, latency_s)
     return Bandwidths(read["ws_star"], read["wb_star"], linear.predicted_ws_star(plant, ve),
                       linear.predicted_wb_star(ve), model, float(latency_s))
+
+
+def measured(w, Z, b: float, low: dict | None) -> tuple[float | None, float | None]:
+    """The measured (w_s*, w_b*) [rad/s] of an estimate ``Z`` on ``w``, read as the rendered
+    stiffness and damping are (``low``: the rendered impedance of
+    ``labbench.analysis.rendered``, its ED(0) ``B`` and the ``band_rad_s`` it was read over):
+    from the low edge of that band up, w_s* where ES falls through zero and w_b* where ED has
+    fallen half-way from ``B`` to the device's ``b`` (Colonnese et al. sec. 3). The lowest
+    bins of a drifting record hold its edge leakage: read from there (ED's three lowest
+    bins as the reference), an h1-welch run's w_b* was 1.04 rad/s where the exact sampled
+    theory says 72.6 (now 66.6; lpm 72.57 both ways). None without ``low`` (no rendered
+    impedance: the record does not reach the VE's bandwidths)."""
+    if not isinstance(low, dict) or low.get("B") is None or not low.get("band_rad_s"):
+        return None, None
+    w, Z = np.asarray(w, float), np.asarray(Z, complex)
+    above = w >= float(low["band_rad_s"][0])
+    eff = effective_impedances(w[above], Z[above])
+    return (measured_ws_star(eff.w, eff.ES),
+            measured_wb_star(eff.w, eff.ED, b, reference=float(low["B"])))
+
+
+def read(w, Z, felt: Plant, ve: VirtualEnvironment, latency_s: float, low: dict | None) -> dict:
+    """A rendered VE's bandwidths as its results keep them (``bandwidths``: the report's
+    table, the CLI's rows, the window's marks): ``measured`` on the plant compared with
+    (``felt``: its b is where ED falls to) beside the prediction of ``bandwidths``."""
+    ws, wb = measured(w, Z, felt.b, low)
+    bw = bandwidths(felt, ve, latency_s)
+    return {"ws_star_measured": ws, "ws_star_predicted": bw.ws_star, "ws_star_eq5": bw.ws_star_eq5,
+            "wb_star_measured": wb, "wb_star_predicted": bw.wb_star, "wb_star_w0": bw.wb_star_w0}
+
+
+def of_results(d, ve: VirtualEnvironment, latency_s: float) -> tuple[float | None, float | None,
+                                                                   Bandwidths | None]:
+    """(w_s*, w_b* measured, the prediction) as ``read`` kept them in a result's
+    ``bandwidths`` ``d``; what the window marks on a finished record. Nones when ``d`` holds
+    none."""
+    from labbench.model import linear
+
+    if not isinstance(d, dict) or not any(k in d for k in ("ws_star_measured", "wb_star_measured")):
+        return None, None, None
+    num = {k: (float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
+           for k, v in d.items()}
+    pred = Bandwidths(num.get("ws_star_predicted"), num.get("wb_star_predicted"),
+                      num.get("ws_star_eq5"), num.get("wb_star_w0"),
+                      "sampled" if linear.whole_samples(ve) else "paper", float(latency_s))
+    return num.get("ws_star_measured"), num.get("wb_star_measured"), pred
 
 
 def predicted_text(which: str, bw: Bandwidths, unit=None, digits: int = 4) -> str:

@@ -237,7 +237,7 @@ def of_etfe_analysis(d: dict, start: dict | None = None) -> Readout:
     results = {"etfe": d, "loop_fit": d.get("fit"), "rendered": d.get("rendered"),
                "plant": theory.get("plant"), "friction": d.get("friction"),
                "deviation_vs_sampled": _deviation_of_analysis(d),
-               "deviation_vs_friction": theory.get("friction")}
+               "deviation_vs_friction": theory.get("friction"), "bandwidths": d.get("bandwidths")}
     source = (d.get("theory") or {}).get("plant_source")
     return _etfe("etfe", results, start or {}, source if isinstance(source, str) else None)
 
@@ -269,6 +269,12 @@ def session_label(path) -> str:
 # ----------------------------------------------------------------------------- per result
 def _num(x) -> float | None:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else None
+
+
+def _band(x) -> list[float] | None:
+    """A recorded band [low, high] rad/s; None unless it is two numbers."""
+    both = [_num(v) for v in x] if isinstance(x, list) and len(x) == 2 else [None]
+    return None if None in both else both
 
 
 def _ci(d: dict, key: str) -> tuple[float | None, float | None]:
@@ -303,8 +309,8 @@ def _etfe(protocol: str, results: dict, start: dict, source: str | None = None) 
     against = " (against the friction-aware theory)" if isinstance(dev, dict) else ""
     dev = dev if isinstance(dev, dict) else results.get("deviation_vs_sampled")
     dev = dev if isinstance(dev, dict) else {}
-    band = dev.get("band_rad_s")
-    if _num(dev.get("median_rel")) is not None and isinstance(band, list) and len(band) == 2:
+    band = _band(dev.get("band_rad_s"))
+    if _num(dev.get("median_rel")) is not None and band is not None:
         r.rows.append(("|Z - Z_theory| / |Z_theory|", f"median {_pct(dev['median_rel'])}, max "
                        f"{_pct(dev.get('max_rel'))}{_where_max(dev)} over {band_text(band)}{against}"))
     if _num(fr.get("n")) is not None:
@@ -338,10 +344,10 @@ def _rendered(d, trust: Verdict | None = None, friction: str = "") -> Rendered |
     th = d.get("theory") if isinstance(d.get("theory"), dict) else {}
     cmd = d.get("commanded") if isinstance(d.get("commanded"), dict) else {}
     K, B = _num(d.get("K")), _num(d.get("B"))
-    band = d.get("band_rad_s")
+    band = _band(d.get("band_rad_s"))
     nums = [_num(x) for x in (cmd.get("K"), cmd.get("B"), cmd.get("b"), th.get("K"), th.get("B"),
                               th.get("K_limit"), th.get("B_limit"))]
-    if K is None or B is None or None in nums or not (isinstance(band, list) and len(band) == 2):
+    if K is None or B is None or None in nums or band is None:
         return None
     (klo, khi), (blo, bhi) = _pair(d.get("K_ci95")), _pair(d.get("B_ci95"))
     fr = d.get("friction") if isinstance(d.get("friction"), dict) else {}

@@ -133,7 +133,6 @@ class FrequencyResponse:
     result: EtfeResult
     source: str
     fs: float
-    wb_star: float | None  # measured damping bandwidth [rad/s] (needs the device b)
     comparison: dict | None  # labbench.analysis.compare.compare(...) + plant_source, or None
     fit: object | None = None  # labbench.analysis.loopfit's fit of m, b, td (etfe(fit=True))
     # the stiffness and damping rendered, beside commanded and theory (analysis.rendered)
@@ -142,6 +141,9 @@ class FrequencyResponse:
     friction: dict | None = None
     # the fit as reported: friction's part of its b taken out or named (analysis.friction.separate)
     fit_summary: dict | None = None
+    # w_s*, w_b* measured and predicted as a run's results keep them (labbench.predictions.read);
+    # None without a VE
+    bandwidths: dict | None = None
 
     @property
     def w(self) -> np.ndarray:
@@ -178,7 +180,12 @@ class FrequencyResponse:
     @property
     def ws_star(self) -> float | None:
         """Measured stiffness bandwidth [rad/s]."""
-        return self.as_dict()["ws_star"]
+        return self._dict()["ws_star"]
+
+    @property
+    def wb_star(self) -> float | None:
+        """Measured damping bandwidth [rad/s] (a VE's: None without one)."""
+        return self._dict()["wb_star"]
 
     @property
     def Z_theory(self) -> np.ndarray | None:
@@ -208,7 +215,10 @@ class FrequencyResponse:
         if self.fit is not None:
             d["fit"] = self.fit_summary if self.fit_summary is not None else self.fit.as_dict()
         d["rendered"] = self.rendered
-        d["wb_star"] = self.wb_star
+        bw = self.bandwidths or {}
+        if self.bandwidths is not None:  # read as the rendered K, B are: labbench.predictions
+            d["ws_star"], d["bandwidths"] = bw["ws_star_measured"], bw
+        d["wb_star"] = bw.get("wb_star_measured")
         cmp = self.comparison
         if cmp is not None:
             d["theory"] = {k: v for k, v in cmp.items()
@@ -276,8 +286,8 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
     from labbench import device_friction
     from labbench.analysis import compare, friction
     from labbench.analysis.etfe import etfe
+    from labbench import predictions
     from labbench.analysis.rendered import rendered_impedance
-    from labbench.effective import measured_wb_star
     from labbench.ve import Plant
 
     steps = Steps(progress, cancel)
@@ -291,7 +301,7 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
         raise UserError("give both --m and --b (or neither, to identify them from the record)")
     if (fit or fit_ve) and ve is None:
         raise UserError(f"{rec.source}: --fit needs the VE in the metadata (ve=..., K, B, w0, td)")
-    cmp, wb_star, loop_fit, rendered, fr, fit_summary = None, None, None, None, None, None
+    cmp, bandwidths, loop_fit, rendered, fr, fit_summary = None, None, None, None, None, None
     known = device_friction.given(coulomb_n) if coulomb_n is not None else device_friction.from_meta(rec.meta)
     if ve is not None:
         source, latency = "given", device_delay.from_meta(rec.meta)
@@ -320,7 +330,6 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
         plant = Plant(float(m), float(b))
         cmp = compare.compare(res, plant, ve, latency, band_rad_s)
         cmp["plant_source"] = source
-        wb_star = cmp["wb_star"]
         pred, rendered = friction.analyse(res, rendered_impedance(res, ve, plant, latency, band_rad_s),
                                           plant, ve, known, rec, latency, evidence)
         fr = pred.as_dict()
@@ -329,12 +338,12 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
             cmp["friction"] = compare.deviation(res, z_f, band_rad_s or W_BAND)
         if loop_fit is not None:
             fit_summary = friction.separate(loop_fit.as_dict(), pred, ve, rec.force)
-        if friction.compared_model(rendered) == "friction":  # ED falls towards b + b_eq
-            wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, pred.plant.b)
-    elif m is not None:
-        wb_star = measured_wb_star(res.w, effective_impedances(res.w, res.Z).ED, float(b))
+        # as a run's results keep them: ED falls towards b + b_eq where friction is compared
+        felt = pred.plant if friction.compared_model(rendered) == "friction" else plant
+        bandwidths = predictions.read(res.w, res.Z, felt, ve, latency, rendered)
     steps.report(1.0, "done")
-    return FrequencyResponse(res, rec.source, rec.fs, wb_star, cmp, loop_fit, rendered, fr, fit_summary)
+    return FrequencyResponse(res, rec.source, rec.fs, cmp, loop_fit, rendered, fr, fit_summary,
+                             bandwidths)
 
 
 # ----------------------------------------------------------------------------- the session

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from labbench import device_delay
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 from labbench.protocols import excitation
@@ -221,7 +220,6 @@ class WhiteNoiseEtfe(ProtocolBase):
         latency = device_delay.from_meta(meta)
         curves = compare.theory_curves(plant, ve, w, latency)
         z_s, z_p = curves["sampled"], curves["paper"]
-        eff = effective_impedances(w, Z)
         try:
             # the protocol renders the VE itself, so its VE-path delay is known: only the
             # device's latency on the whole command is the record's to find
@@ -240,7 +238,6 @@ class WhiteNoiseEtfe(ProtocolBase):
             extra["deviation_vs_friction"] = compare.deviation(est, z_f, asked)
         # the bandwidths of the model compared with: ED falls towards b + b_eq, not b
         felt = fr.plant if friction.compared_model(rendered) == "friction" else plant
-        predicted = predictions.bandwidths(felt, ve, latency)
         try:  # the command's noise in the felt band (docs/design.md)
             noise = force_noise.measure(data["command"], data["excitation"], ve.T,
                                         FELT_BAND_HZ).as_dict()
@@ -262,16 +259,9 @@ class WhiteNoiseEtfe(ProtocolBase):
             "theory": theory,
             "deviation_vs_sampled": compare.deviation(est, z_s, asked),
             **extra,
-            # predicted = read off the exact sampled model's curves, which the data follow;
-            # the continuous model's closed forms (eq. 5, w0) are kept beside them
-            "bandwidths": {
-                "ws_star_measured": measured_ws_star(w, eff.ES),
-                "ws_star_predicted": predicted.ws_star,
-                "ws_star_eq5": predicted.ws_star_eq5,
-                "wb_star_measured": measured_wb_star(w, eff.ED, felt.b),
-                "wb_star_predicted": predicted.wb_star,
-                "wb_star_w0": predicted.wb_star_w0,
-            },
+            # measured as the rendered K, B are read; predicted off the exact sampled model's
+            # curves, which the data follow, the paper's closed forms (eq. 5, w0) beside them
+            "bandwidths": predictions.read(w, Z, felt, ve, latency, rendered),
         }
 
     def _level(self, data: dict, meta: dict, plant: Plant, ve, latency: float, asked) -> dict | None:

@@ -130,7 +130,8 @@ def test_frequency_response_csv(tmp_path, session, capsys):
     np.testing.assert_allclose(col["f_hz"], fr.w / (2 * np.pi), rtol=1e-15)
     np.testing.assert_array_equal(col["ES"], fr.ES)
     np.testing.assert_array_equal(col["Z_theory_im"], fr.Z_theory.imag)
-    assert meta["theory_model"] == "sampled" and float(meta["wb_star_rad_s"]) == fr.wb_star
+    wb = meta["wb_star_rad_s"]  # none on this 1.5 s record: too short for a rendered damping
+    assert meta["theory_model"] == "sampled" and (None if wb == "None" else float(wb)) == fr.wb_star
     assert main(["analyze", "etfe", str(path), "--csv", str(out)]) == 2  # exists: --force
     assert "--force" in capsys.readouterr().err
     assert fr.to_csv(out, force=True) == out

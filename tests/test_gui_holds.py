@@ -268,6 +268,54 @@ def test_notes_inside_the_band_show_without_scrolling_with_their_meaning_and_uni
     assert "record-edge leakage of the drift at 0.3" in text  # 2.3 rad/s = 0.366 Hz
 
 
+def test_the_marks_say_the_reports_bandwidths_whatever_the_estimator(qtbot, window):
+    """An h1-welch run on a drifting record: the Live page's w_b* mark read 53.2 rad/s (the
+    live estimate) where the analysis and the report said 1.04 (the exact sampled theory:
+    72.6), each read off its own lowest bins. Now the finished record's marks are its
+    results' numbers (the report's), both read as the rendered K, B are, and a re-analysis
+    with another estimator marks what `labbench analyze etfe` says."""
+    import labbench
+    from labbench.gui.live_estimate import LIVE
+    from labbench.numfmt import fmt
+    from labbench.report.content import build
+    from labbench.report.render_html import render_html
+    from labbench.ve import Plant, VirtualEnvironment
+    from truthdata import off_the_half_way_level
+
+    def marks() -> dict[str, str]:
+        return {k: m.label.format.replace("\n", " ") for k, m in win.live.impedance.marks.items()
+                if m.isVisible()}
+
+    def said(bw: dict) -> dict[str, str]:
+        return {sym: f"w_{sym[1]}* = {fmt(bw[f'{sym}_star_measured'])} rad/s (sampled theory "
+                f"{fmt(bw[f'{sym}_star_predicted'])} rad/s; paper {'eq. 5' if sym == 'ws' else 'w0'}: "
+                f"{fmt(bw[f'{sym}_star_eq5' if sym == 'ws' else 'wb_star_w0'])})" for sym in ("ws", "wb")}
+
+    win = window()
+    path = run_protocol(qtbot, win, "etfe", K=50.0, B=1.0, duration_s=20.0, seed=3, estimator="h1-welch")
+    qtbot.waitUntil(lambda: getattr(win.live.impedance.last, "estimator", "") == "h1-welch",
+                    timeout=30_000)
+    bw = win.last_run.results["bandwidths"]
+    assert marks() == said(bw)
+    report = build([path])
+    html = render_html(report.title, report.subtitle, report.blocks)
+    assert (f"measured = {fmt(bw['wb_star_measured'])} rad/s; sampled theory = "
+            f"{fmt(bw['wb_star_predicted'])} rad/s") in html
+    ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
+    assert off_the_half_way_level(bw["wb_star_measured"], Plant(0.094, 0.1), ve) < 0.25  # 1.04: 0.5
+
+    # re-analysed with lpm from the Sessions page: the marks are `analyze etfe --fit`'s
+    qtbot.waitUntil(lambda: path in win.sessions.paths, timeout=20_000)
+    win.sessions.select_path(path)
+    win.sessions.estimator.setCurrentText("lpm")
+    win.sessions.buttons["Re-analyse"].click()
+    qtbot.waitUntil(lambda: "done" in win.sessions.progress_line.text(), timeout=120_000)
+    assert win.live.impedance.last.estimator == "lpm" != LIVE
+    cli = labbench.load(path).etfe(estimator="lpm", fit=True).as_dict()["bandwidths"]
+    assert marks() == said(cli)
+    assert off_the_half_way_level(cli["wb_star_measured"], Plant(0.094, 0.1), ve) < 0.25
+
+
 def test_the_safety_line_says_the_space_exception_where_it_applies(qtbot, window):
     """The status bar said "Esc / Space = E-STOP everywhere (dialogs too)"; Space typed in the
     Sessions filter during a run typed a space and the run went on. The line now says the
@@ -367,7 +415,7 @@ name = "springs"
 protocol = "etfe"
 
 [fixed]
-duration_s = 20.0
+duration_s = 60.0  # about 1 s a point: 5 points outlast the child's first write (20 s ones did not always)
 
 [grid]
 K = [20.0, 50.0, 80.0, 110.0]

@@ -62,3 +62,36 @@ def test_label_names_each_theory_and_converts_units():
     assert f"{bw.ws_star / (2 * math.pi):.4g} Hz" in hz
     assert f"paper eq. 5: {bw.ws_star_eq5 / (2 * math.pi):.4g}" in hz
     assert predictions.label("ws", None, None) == "w_s* = - rad/s"
+
+
+
+@pytest.mark.parametrize("estimator", ["lpm", "h1-log", "h1-welch", "paper"])
+def test_measured_bandwidths_are_read_where_the_rendered_damping_is(tmp_path, estimator):
+    """Issue 43B: an h1-welch run's w_b* was 1.04 rad/s in its results, the report and the
+    window (the exact sampled theory: 72.6), while the window's live estimate said 53.2: ED's
+    three lowest bins, where a drift's edge leakage lives, set the level it falls from. Now
+    a run's analysis and `analyze etfe` read every estimate as its rendered K, B are
+    (``predictions.measured``), to the same numbers; where the ETFE vouches for its
+    estimate, ED at the w_b* read lies within a quarter of its fall from the half-way level
+    (at 1.04 rad/s it lay at the top, 0.5). The record: 20 s of the default ETFE, noise seed
+    3, on the simulator; the handle ends 4.9 mm from where it started."""
+    import labbench
+    from labbench.analysis.etfe import DOUBTFUL
+    from sim_sessions import TRUTH, record_session
+    from truthdata import off_the_half_way_level
+
+    path, run = record_session(tmp_path, "etfe", duration_s=20.0, seed=3, estimator=estimator)
+    bw = run.results["bandwidths"]
+    truth = Plant(TRUTH["m"], TRUTH["b"])  # the default simulated rig, the run's plant too
+    assert bw["wb_star_predicted"] == pytest.approx(72.57, abs=0.05)
+    if run.results["etfe"]["verdict"]["level"] != DOUBTFUL:
+        assert off_the_half_way_level(bw["wb_star_measured"], truth, DEMO) < 0.25
+        assert bw["ws_star_measured"] == pytest.approx(bw["ws_star_predicted"], rel=0.05)
+    # `labbench analyze etfe` on the same plant: the same reading, in its own readout too
+    analysed = labbench.load(path).etfe(estimator=estimator, m=truth.m, b=truth.b)
+    again = analysed.as_dict()["bandwidths"]
+    assert (analysed.ws_star, analysed.wb_star) == (again["ws_star_measured"], again["wb_star_measured"])
+    for key in ("ws_star_measured", "wb_star_measured", "wb_star_predicted"):
+        assert again[key] == pytest.approx(bw[key], rel=1e-9), key
+    rows = dict(analysed.readout.row_texts())
+    assert rows["w_b*"].startswith(f"measured = {bw['wb_star_measured']:.4g} rad/s")

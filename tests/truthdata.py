@@ -102,3 +102,14 @@ def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PA
         meta["force_hold"] = "zoh"
     recorded = f_exo + force_noise * rng.standard_normal(n)
     return recording_from_arrays(np.arange(n) * T, recorded, x, meta, "<delayed-loop truth>")
+
+
+def off_the_half_way_level(wb: float, plant, ve) -> float:
+    """How far the exact sampled ED at a measured w_b* ``wb`` [rad/s] lies from the half-way
+    level that defines w_b* (``labbench.effective.measured_wb_star``), as a share of ED's fall
+    from ED(0) to the device b: 0 at the truth's w_b*, 0.5 at the top or the foot of the fall."""
+    from labbench.model import linear
+
+    ed0 = float(np.median(linear.z_sampled(plant, ve, np.geomspace(1e-3, 2e-3, 3)).real))
+    ed = float(linear.z_sampled(plant, ve, [wb]).real[0])
+    return abs(ed - (plant.b + 0.5 * (ed0 - plant.b))) / (ed0 - plant.b)

@@ -20,7 +20,7 @@ from labbench.model import linear
 from labbench.analysis.dataio import Recording, recording_from_arrays
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult, identify
-from labbench.effective import effective_impedances, measured_wb_star
+from labbench.effective import effective_impedances
 from labbench.errors import UserError
 from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
 
@@ -162,8 +162,8 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
             band_rad_s: tuple[float, float] | None = None) -> dict:
     """Measured against predicted: the theory curve (``theory_curves``) at the measured w
     and the complex relative deviation |Z - Zt| / |Zt|, its median and max over ``band_rad_s``
-    (None: W_BAND),
-    bandwidths measured and predicted. ``Z_paper``: eq. 2 as well, for plots."""
+    (None: W_BAND), and the paper's closed-form bandwidths. ``Z_paper``: eq. 2 as well, for
+    plots."""
     curves = theory_curves(plant, ve, res.w, latency)
     model, Zt = curves["model"], curves["Z"]
     dev = deviation(res, Zt, W_BAND if band_rad_s is None else band_rad_s)
@@ -181,7 +181,6 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
         "deviation_max_rad_s": dev["max_rad_s"],
         "deviation_max_band_rel": dev["max_band_rel"],
         "band_rad_s": dev["band_rad_s"],
-        "wb_star": measured_wb_star(res.w, eff.ED, plant.b),
         "predicted_ws_star": linear.predicted_ws_star(plant, ve),
         "predicted_wb_star": linear.predicted_wb_star(ve),
     }

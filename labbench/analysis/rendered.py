@@ -142,20 +142,28 @@ def measured(res: EtfeResult, where: tuple[float, float]) -> LowFrequency | None
     return got if other is None else got.reaching(other)
 
 
+def reading_band(res: EtfeResult, ve, plant, latency: float = 0.0,
+                 asked: tuple[float, float] | None = None) -> tuple[float, float]:
+    """The band the rendered K, B of ``res`` are read from (``band``): the analysis band
+    (``asked``, within what the record resolves) below the VE's predicted bandwidths."""
+    from labbench import predictions
+    from labbench.analysis.etfe import analysis_band
+
+    bw = predictions.bandwidths(plant, ve, latency)
+    lo, top = analysis_band(asked, res.w)
+    return band(lo, bw.ws_star, bw.wb_star, ve.T, top)
+
+
 def rendered_impedance(res: EtfeResult, ve, plant, latency: float = 0.0,
                        asked: tuple[float, float] | None = None) -> dict | None:
     """What the display rendered (``measured``) beside what was commanded and what the exact
     sampled theory predicts for it (the same fit to its curve over the same frequencies, and
     its true limit), as recorded in a run's results under ``rendered``; None when the band
     holds too few frequencies (a record too short for the VE's bandwidths)."""
-    from labbench import predictions
     from labbench.model import linear
     from labbench.analysis.compare import theory_curves
-    from labbench.analysis.etfe import analysis_band
 
-    bw = predictions.bandwidths(plant, ve, latency)
-    lo, top = analysis_band(asked, res.w)
-    where = band(lo, bw.ws_star, bw.wb_star, ve.T, top)
+    where = reading_band(res, ve, plant, latency, asked)
     got = measured(res, where) if where[1] > where[0] else None
     if got is None:
         return None
