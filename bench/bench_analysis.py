@@ -36,12 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "docs" / "examples"
 
 from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS, etfe
-from labbench.effective import effective_impedances
+from labbench.model.effective import effective_impedances
 from labbench.sweep.engine import run_sweep
 from labbench.sweep.exact import closed_loop_recording
 from labbench.sweep.spec import load_spec, spec_from_dict
 from labbench.sweep.table import read_table
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 NOISES = ("clean", "quantised 3e-5 m", "position noise 1e-5 m", "force noise 5 %")
 SOLVERS = ("l2", "l1 fast", "l1 cvxpy")

@@ -123,8 +123,8 @@ def record(directory: Path, protocol: str, duration: float) -> Path:
         return path
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
     opts = {"duration_s": duration}

@@ -16,17 +16,17 @@ import time
 
 import numpy as np
 
-from labbench import records
+from labbench.sessions import records
 from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.drivers import framing
 from labbench.drivers import serial_stream as ss
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend import avr_build
 from labbench.sim_backend.avr_device import RENDER_DIV, connect_avr_sim
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 RIG = Rig()
 T = RIG.sample_time_s

@@ -30,8 +30,8 @@ from labbench.campaign.figures import write_figures
 from labbench.campaign.plan import Context, is_simulator, make_plan
 from labbench.campaign.settings import CampaignSettings
 from labbench.cli.campaign import point_runner
-from labbench.interrupts import StopRequest
-from labbench.numfmt import fmt
+from labbench.loop.interrupts import StopRequest
+from labbench.readout.numfmt import fmt
 from labbench.rig import load_rig, rig_from_dict
 from labbench.sweep import table as tables
 from labbench.sweep.spec import spec_from_dict

@@ -26,11 +26,11 @@ t0 = time.perf_counter()
 from labbench.campaign import engine
 from labbench.campaign.plan import Context, make_plan
 from labbench.campaign.settings import CampaignSettings
-from labbench.interrupts import StopRequest
+from labbench.loop.interrupts import StopRequest
 from labbench.rig import Rig
-from labbench.runner import RunResult
+from labbench.loop.runner import RunResult
 from labbench.sweep.spec import spec_from_dict
-from labbench.ve import Plant
+from labbench.model.ve import Plant
 
 n, table = int(sys.argv[1]), sys.argv[2]
 spec = spec_from_dict({"sweep": {"name": "start", "protocol": "etfe", "sample": "random",

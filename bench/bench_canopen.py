@@ -6,7 +6,7 @@
    (host + simulated drive thread). Floor, measured in the same run: the
    host's share of the frames alone (two sends, two receives of ready frames
    on a virtual bus, no drive behind).
-2. The same through ``labbench.loop.run_loop`` (VE, safety, pages): host CPU per sample.
+2. The same through ``labbench.loop.chain.run_loop`` (VE, safety, pages): host CPU per sample.
 3. Period jitter at 1 kHz: the paced driver (``realtime=True``), periods between
    returned samples: p50 / p99 / max and late ticks; once with the configured
    stale-TPDO limit (3 periods: on a loaded machine the simulated drive's thread
@@ -31,10 +31,10 @@ from pathlib import Path
 import can
 import numpy as np
 
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.device import DeviceFault
 from labbench.rig import Rig, rig_from_dict
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 
 GOAL_US = 60.0

@@ -3,7 +3,7 @@ and its silent failures on known-truth grids, for the identification (``analyze 
 ETFE's bands (``analyze etfe``) and the loop fit (``analyze etfe --fit``).
 
 A result is outside its target when a number misses both its accuracy target (issue 24's)
-and its own stated precision (``labbench.verdict.holds``: the 95 % interval stretched to
+and its own stated precision (``labbench.readout.verdict.holds``: the 95 % interval stretched to
 99.9 %): whoever read it was misled. Per part:
 
 * identification: m beyond 1 %, b beyond 2 % of the truth, and beyond its 99.9 % interval;
@@ -62,9 +62,9 @@ from labbench.analysis import compare  # noqa: E402
 from labbench.analysis.dataio import recording_from_arrays  # noqa: E402
 from labbench.analysis.etfe import W_BAND, etfe  # noqa: E402
 from labbench.analysis.loopfit import fit_loop  # noqa: E402
-from labbench.session_api import identify_recording  # noqa: E402
-from labbench.ve import Plant, VirtualEnvironment  # noqa: E402
-from labbench.verdict import holds  # noqa: E402
+from labbench.sessions.session_api import identify_recording  # noqa: E402
+from labbench.model.ve import Plant, VirtualEnvironment  # noqa: E402
+from labbench.readout.verdict import holds  # noqa: E402
 
 T = 1e-3
 START = Plant(0.08, 0.2)  # the loop fit's start, deliberately off
@@ -247,7 +247,7 @@ def loop_task(ve_name, place, noise, n, seed):
 
 
 def _holds(value, ci, truth, target) -> bool:
-    """``labbench.verdict.holds``; a number stated without an interval holds only its target."""
+    """``labbench.readout.verdict.holds``; a number stated without an interval holds only its target."""
     return holds(value, ci, truth, target) if ci is not None else abs(value - truth) <= target
 
 

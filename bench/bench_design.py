@@ -26,10 +26,10 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 import numpy as np  # noqa: E402
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
-from labbench.design import Device  # noqa: E402
+from labbench.design.tradeoffs import Device  # noqa: E402
 from labbench.gui.design_view import SLIDERS, DesignView  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.ve import DEFAULT_PLANT  # noqa: E402
+from labbench.model.ve import DEFAULT_PLANT  # noqa: E402
 
 GOAL_S = 0.050
 

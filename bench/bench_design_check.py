@@ -5,7 +5,7 @@ Runs docs/examples/design-noise.toml (white-noise ETFE, K = 50 N/m) and design-z
 38.3 um encoder, 2 mN amplifier noise) and, with ``--devices``, on the CANopenNode drive of
 the test suite (tests/canopennode: integer counts and per-mille torque set points, the plant
 behind it ideal otherwise; a smaller grid, it runs lock-step at the bus's pace), then sets
-``labbench design``'s predictions beside them (``labbench.design_check``). Writes
+``labbench design``'s predictions beside them (``labbench.design.checking``). Writes
 docs/design-check.md (the table) and docs/design-check.png (the figure, the simulator's).
 
     .venv/bin/python bench/bench_design_check.py [--devices sim,canopennode-event] [--limit-n 0.004]
@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_campaign import CALM, campaign, spec  # noqa: E402 - after the paths
 
-from labbench.design import Designer, Device, Targets, rig_noise  # noqa: E402
-from labbench.design_check import check, table_lines  # noqa: E402
-from labbench.design_figures import check_figure  # noqa: E402
+from labbench.design.tradeoffs import Designer, Device, Targets, rig_noise  # noqa: E402
+from labbench.design.checking import check, table_lines  # noqa: E402
+from labbench.design.charts import check_figure  # noqa: E402
 from labbench.rig import load_rig  # noqa: E402
 from labbench.safe_write import replacing  # noqa: E402
 

@@ -35,7 +35,7 @@ from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.analysis.etfe_live import LiveEtfe
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 BUDGET = 2**15  # labbench.gui.live_estimate.LIVE_BUDGET (no Qt imported here)
 GOAL_S = 2e-3

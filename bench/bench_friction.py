@@ -51,7 +51,7 @@ def chirp(fc: float, seed: int) -> dict:
     """A 60 s chirp-ID of the rough simulator: m, b, Fc and its interval."""
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
+    from labbench.loop.runner import run
     from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig()
@@ -64,11 +64,11 @@ def chirp(fc: float, seed: int) -> dict:
 def point(args) -> list[dict]:
     """One ETFE run (friction given from the chirp-ID) and its two re-analyses."""
     fc, K, B, length, seed, ident, delay = args
-    from labbench import device_friction
+    from labbench.model import device_friction
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run_recorded
-    from labbench.session_content import analysis_meta, load_session
+    from labbench.loop.runner import run_recorded
+    from labbench.sessions.session_content import analysis_meta, load_session
     from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig(measured_td_s=delay or None, measured_td_from="the simulator's delay" if delay else "")

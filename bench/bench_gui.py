@@ -7,14 +7,14 @@
    (traces only). Each against a floor measured in the same run (the same widgets
    repainted with no new data). Goal: <= 8 ms for the tick with an estimate.
 2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
-   real-time simulator, headless through ``labbench.runner.run`` recording a
+   real-time simulator, headless through ``labbench.loop.runner.run`` recording a
    session (as ``labbench run`` does), then from the window (the run in its
    acquisition process, ``labbench.gui.acquisition``; redraw timer and live ETFE in the
    window's process) under the Qt event loop. Goal: the GUI adds none.
    Runs alternate to spread the noise of this shared machine over both arms. With
    ``--hogs N``, N CPU-bound processes (``while True: pass``) compete for the cores
    during the loop runs (not the frame timing). Both arms ask for real-time
-   scheduling (``labbench.realtime``; in the window, its acquisition process does).
+   scheduling (``labbench.loop.realtime``; in the window, its acquisition process does).
 
 Run: ``QT_QPA_PLATFORM=offscreen .venv/bin/python bench/bench_gui.py [--seconds 20] [--repeats 2]
 [--hogs 2] [--skip-frames | --frames-only]``
@@ -43,11 +43,11 @@ from labbench.analysis.etfe_live import LiveEtfe  # noqa: E402
 from labbench.gui.live_estimate import LIVE, estimate  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.registry import open_device  # noqa: E402
-from labbench.records import CHANNELS, PAGE  # noqa: E402
+from labbench.sessions.records import CHANNELS, PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.runner import run  # noqa: E402
-from labbench.timing import summary as timing_summary  # noqa: E402
-from labbench.session_format import SessionWriter  # noqa: E402
+from labbench.loop.runner import run  # noqa: E402
+from labbench.loop.timing import summary as timing_summary  # noqa: E402
+from labbench.sessions.session_format import SessionWriter  # noqa: E402
 from labbench.registry import make_protocol  # noqa: E402
 
 
@@ -95,7 +95,7 @@ def frame_times(app, win: MainWindow, recs: list[dict], n_frames: int = 60, prel
     the floors (the same widgets repainted through the same path, ``scene().update()``,
     with no new data). Raises if a frame did not paint what it changed, so the times
     always include the paint. Returns the times and the live updates' times [s]."""
-    from labbench.session_content import analysis_meta
+    from labbench.sessions.session_content import analysis_meta
     from labbench.analysis.compare import ve_from_meta
 
     n_pages = round(preload_s / 0.1)

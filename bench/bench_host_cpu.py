@@ -4,7 +4,7 @@ In the same run, against the same simulated drive on the same interface, two hos
 exchange the same frames each period (SYNC, the host heartbeat every 20 ms, the TPDOs
 of the SYNC in, the RPDO out):
 
-* **labbench**: ``labbench.loop.run_loop`` over the CANopen driver (``read_raw``: SYNC,
+* **labbench**: ``labbench.loop.chain.run_loop`` over the CANopen driver (``read_raw``: SYNC,
   pump the bus until every TPDO is in, decode; the VE, safety checks and pages;
   ``command``: the RPDO);
 * **bare**: the least a Python host can do with python-can alone: send SYNC, ``recv``
@@ -13,7 +13,7 @@ of the SYNC in, the RPDO out):
   then the bare loop owns the bus.
 
 Lock-step (each period's work, no waiting for a clock) and paced at 1 kHz. Paced, both
-keep time as labbench does (``labbench.realtime.sleep_until``: sleep, then spin the last
+keep time as labbench does (``labbench.loop.realtime.sleep_until``: sleep, then spin the last
 150 us, so that a SYNC leaves on time to a few us); the bare loop is also run with a
 plain ``time.sleep`` to each deadline (cheaper, and its SYNCs leave as late as the
 sleep wakes: the p50/p99 lateness is printed), to show what the spin costs. Interfaces:
@@ -34,11 +34,11 @@ import time
 
 import numpy as np
 
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
-from labbench.realtime import sleep_until
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.realtime import sleep_until
 from labbench.registry import open_device
 from labbench.rig import rig_from_dict
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 GOAL = 1.5
 K_SPRING = 50.0

@@ -38,7 +38,7 @@ from labbench.analysis import compare  # noqa: E402
 from labbench.analysis.dataio import recording_from_arrays  # noqa: E402
 from labbench.analysis.etfe import etfe  # noqa: E402
 from labbench.analysis.loopfit import fit_loop  # noqa: E402
-from labbench.ve import Plant, VirtualEnvironment  # noqa: E402
+from labbench.model.ve import Plant, VirtualEnvironment  # noqa: E402
 
 T = 0.001
 VE = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, td=T)

@@ -2,7 +2,7 @@
 
 Each arm is a fresh process, started as a user would start it:
 
-* ``floor``: the pacing alone (``labbench.realtime.sleep_until`` at 1 kHz, under the
+* ``floor``: the pacing alone (``labbench.loop.realtime.sleep_until`` at 1 kHz, under the
   same real-time settings, no loop work): what this machine and its scheduler allow;
 * ``sim``: ``labbench run etfe --realtime`` (simulator, real-time scheduling asked for);
 * ``sim-nort``: the same with ``--no-rt`` (what the program did before);
@@ -39,8 +39,8 @@ from pathlib import Path
 PY = sys.executable
 FLOOR = """
 import json, sys, time
-from labbench.realtime import RealtimeConfig, acquire, sleep_until
-from labbench.timing import period_stats
+from labbench.loop.realtime import RealtimeConfig, acquire, sleep_until
+from labbench.loop.timing import period_stats
 n, T = int(float(sys.argv[1]) / 1e-3), 1e-3
 per = [0.0] * n
 with acquire(RealtimeConfig(cpu_latency_us=int(sys.argv[2]))) as g:

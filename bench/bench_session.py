@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench import records
-from labbench.session_format import SessionWriter, read_session
+from labbench.sessions import records
+from labbench.sessions.session_format import SessionWriter, read_session
 
 N_PAGES, PAGE = 1200, 100
 T = 0.001

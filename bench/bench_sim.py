@@ -2,14 +2,14 @@
 
 A 2-minute 1 kHz white-noise ETFE run (120 000 samples) on the simulated
 Phantom-like device with Coulomb friction and encoder quantisation, through
-``labbench.loop.run_loop`` with the real ``HapticLoop`` and the rig's safety
+``labbench.loop.chain.run_loop`` with the real ``HapticLoop`` and the rig's safety
 envelope, pages going to a list. Printed per sample, against a floor measured in
 the same process: an empty Python loop of the same length. Both wall time and
 this thread's CPU time are given (the machine is shared: CPU time is what the
 code costs, wall time what a user waits). Best of ``--repeat`` runs.
 
 Then a paced run (``realtime=True``, as the GUI and ``--realtime`` use it) of
-``--paced-s`` seconds under ``labbench.realtime.acquire`` (as ``labbench.runner``
+``--paced-s`` seconds under ``labbench.loop.realtime.acquire`` (as ``labbench.loop.runner``
 runs it): loop period p50/p99/max, overruns at 1 kHz and what was granted.
 ``bench/bench_realtime.py`` is the long version, against the machine's floor.
 
@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
-from labbench.realtime import acquire
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.realtime import acquire
 from labbench.rig import Rig
-from labbench.timing import summary as timing_summary
-from labbench.ve import VirtualEnvironment
+from labbench.loop.timing import summary as timing_summary
+from labbench.model.ve import VirtualEnvironment
 from labbench.sim_backend.sim_device import open_sim
 
 GOAL = 300.0

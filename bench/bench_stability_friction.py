@@ -35,9 +35,9 @@ from pathlib import Path
 from labbench.model import linear
 from labbench.registry import make_protocol
 from labbench.rig import load_rig, rig_from_dict
-from labbench.runner import run
+from labbench.loop.runner import run
 from labbench.sim_backend.sim_device import open_sim
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "stability-friction-bench.md"
@@ -70,7 +70,7 @@ def rough_campaign(work: Path) -> tuple[list[str], Path]:
     from labbench.campaign.settings import CampaignSettings
     from labbench.cli.campaign import point_runner
     from labbench.cli.run import _run_one
-    from labbench.interrupts import StopRequest
+    from labbench.loop.interrupts import StopRequest
     from labbench.sweep import table as tables
     from labbench.sweep.spec import spec_from_dict
 

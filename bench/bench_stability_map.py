@@ -34,7 +34,7 @@ from labbench.rig import Rig
 from labbench.sweep.engine import run_sweep
 from labbench.sweep.spec import load_spec, spec_from_dict
 from labbench.sweep.table import read_table
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 T = 0.001
 QUICK_TD_S = [0.0, 0.002, 0.005]

@@ -2,7 +2,7 @@
 silent failures, on known truth, with the definitions of ``bench/bench_coverage.py``
 (a result is within target when its numbers lie within their fixed accuracy targets, issue
 24's; it misleads when they lie beyond both the targets and their own 99.9 % intervals,
-``labbench.verdict.holds``; ETFE: a frequency in 2-100 rad/s beyond 1 % of |Z| and its band's
+``labbench.readout.verdict.holds``; ETFE: a frequency in 2-100 rad/s beyond 1 % of |Z| and its band's
 1 - 1e-6 tail misleads, none within; a sweep or run row: its worst error against the exact
 sampled theory over 2-100 rad/s within 5 %, the spec's own failure line, or not). A false
 alarm is a result within target whose verdict is not ``ok``; a silent failure, a misleading

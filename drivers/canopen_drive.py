@@ -67,7 +67,7 @@ from labbench.drivers.canopen_pdo import SYNC_ID
 from labbench.drivers.canopen_sdo import MatchingSdoClient, NoAnswer, Sdo, hexval, where
 from labbench.drivers.cia402 import Command, State
 from labbench.errors import DeviceConnectionError, DeviceError, UserError
-from labbench.realtime import sleep_until
+from labbench.loop.realtime import sleep_until
 
 # canopen logs SDO timeouts as errors; the driver turns them into one-line
 # messages, so without logging configured they must not also reach stderr.
@@ -603,7 +603,7 @@ class CanopenDrive:
         return min(limits, key=lambda x: x[1]) if limits else None
 
     def _own_delay(self) -> tuple[float, str]:
-        """The delay the drive adds to every command (``labbench.device_delay``): one
+        """The delay the drive adds to every command (``labbench.model.device_delay``): one
         period when the torque RPDO is synchronous, none known otherwise."""
         p = self.assessment.plan.torque_at_sync() if self.assessment is not None else None
         if p is None:

@@ -308,7 +308,7 @@ def plan_pdos(d: Dictionary, node_id: int, rpdo_timeout_ms: int,
             continue
         what = "torque" if "torque" in q.roles() else "controlword"
         later = (": the device's own delay is one sample period, which the driver declares "
-                 "(labbench.device_delay: every analysis uses it; a measured [rig] "
+                 "(labbench.model.device_delay: every analysis uses it; a measured [rig] "
                  "measured_td_s takes precedence)" if what == "torque" else "")
         plan.warnings.append(f"{q.name} transmission type is fixed at {q.trans_type}: the drive "
                              f"takes the {what} at the next SYNC, one period later{later}")

@@ -302,7 +302,7 @@ class SerialStream:
     and ``stale_s``, which overrides ``stale_periods * T``; ``kind`` names it
     in ``describe()``, ``simulated`` says what stands in for the board ("" for a
     real one) and ``device_delay_s`` (with ``device_delay_why``) the delay the
-    board is known to add to every command (``labbench.device_delay``); ``warnings``
+    board is known to add to every command (``labbench.model.device_delay``); ``warnings``
     go into the session. ``clock`` is injectable for tests.
 
     Before ``enable()`` a read returns the newest sample waiting (older ones are

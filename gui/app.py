@@ -9,7 +9,7 @@ from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.gc_policy import GuiThreadCollection
 from labbench.gui.main_window import MainWindow
-from labbench.interrupts import handle_signals
+from labbench.loop.interrupts import handle_signals
 from labbench.gui.screenshot import ShotWhen
 
 log = logging.getLogger(__name__)

@@ -20,7 +20,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.gui.campaign_chart import CampaignChart
 from labbench.gui.tables import row_list
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 
 COLUMNS = ("#", "point", "status", "result", "predicted", "error", "session")
 

@@ -2,7 +2,7 @@
 connected device (docs/commissioning.md) and writes what it measured into the rig file.
 
 Each check (direction, delay, scale, friction, K_max) is a row: its verdict, its numbers
-(``labbench.readout``, as the report's summary and the CLI) and what to do
+(``labbench.readout.wording``, as the report's summary and the CLI) and what to do
 (the verdict's reasons, which name the ``[rig]`` field and its value). **Write to rig file**
 is ``--write-rig``: the fields of ``labbench.commissioning.changes_to_write`` put into the
 file with tomlkit (comments kept, ``FILE.bak`` first). The window runs the protocol through
@@ -163,7 +163,7 @@ class CommissionView(QtWidgets.QWidget):
     def show_result(self, results: dict, session: str, fields: dict) -> None:
         """A commissioning run's ``results`` (or {"error": ...}), recorded in ``session``;
         ``fields``: what writing the rig file would set (``changes_to_write``)."""
-        from labbench import readout
+        from labbench.readout import wording
         from labbench.analysis.commission import CHECKS
 
         self.results, self.fields = results, dict(fields)
@@ -182,7 +182,7 @@ class CommissionView(QtWidgets.QWidget):
         self.overall.setText(f'<b style="color:{COLOURS.get(level, "#000")}">commissioning: {level}</b>'
                              + (f" ({escape(', '.join(bad))}: see what to do below)" if bad else
                                 ": every check passed"))
-        numbers = dict(readout.of_results("commission", results).row_texts())
+        numbers = dict(wording.of_results("commission", results).row_texts())
         self.table.setRowCount(len(CHECKS))
         for r, check in enumerate(CHECKS):
             verdict = (results.get(check) or {}).get("verdict") or {}

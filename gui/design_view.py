@@ -1,5 +1,5 @@
 """The Design page: sliders for K, B, w0 and T over the rig's device, and the three corners of
-the trade-off redrawn at every move (``labbench.design``, docs/design.md).
+the trade-off redrawn at every move (``labbench.design.tradeoffs``, docs/design.md).
 
 Stability (K_max of the exact sampled loop, the margin, the passive bounds), accuracy (w_s*,
 w_b*, rendered B, ED error at 10 Hz; the ED curve of the exact sampled model and of the
@@ -18,12 +18,12 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from labbench.design import EXCITATION_N, MODELS, Designer, Device, Targets, device_for
+from labbench.design.tradeoffs import EXCITATION_N, MODELS, Designer, Device, Targets, device_for
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import COLOURS, DecadeAxis
 from labbench.model import linear
 from labbench.model.noise import STICK_SHARE_MAX
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 from labbench.rig import Rig
 
 # slider name -> (label, unit, values, default)

@@ -285,7 +285,7 @@ class DevicePanel(QtWidgets.QGroupBox):
         self._follow()
 
     def show_timing(self, result: dict | None, lines: list[str] = ()) -> None:
-        """The preflight's verdict in one line (``labbench.preflight.judge``: level and what to
+        """The preflight's verdict in one line (``labbench.loop.preflight.judge``: level and what to
         change), every figure in the tooltip; None: not checked."""
         if result is None:
             set_text(self.timing_label, "not checked")

@@ -8,7 +8,7 @@ from PySide6 import QtCore, QtWidgets
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import COLOURS, DecadeAxis, no_si_prefix
 from labbench.gui.verdict_view import VerdictLabel, judged
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 
 
 def model_force(t, force, position, fit: dict, hold: str = "zoh"):
@@ -42,7 +42,7 @@ def model_force(t, force, position, fit: dict, hold: str = "zoh"):
 
 
 # table rows: result key -> (label, unit)
-# (m, b, Fc and f0 as labbench.readout writes them: value, unit, 95 % interval)
+# (m, b, Fc and f0 as labbench.readout.wording writes them: value, unit, 95 % interval)
 ROWS = (("m", "mass m", ""), ("b", "damping b", ""),
         ("coulomb", "Coulomb friction Fc", ""), ("offset", "force offset f0", ""),
         ("rms_residual", "rms force residual", "N"), ("explained", "force variance explained", "%"),
@@ -62,7 +62,7 @@ def open_loop_impedance(t, force, position, fits: dict):
     from labbench.analysis.compare import theory_curves
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
-    from labbench.ve import Plant, VirtualEnvironment
+    from labbench.model.ve import Plant, VirtualEnvironment
 
     t = np.asarray(t, float)
     fs = (len(t) - 1) / (t[-1] - t[0])
@@ -83,14 +83,14 @@ FIT_ROWS = (("m", "mass m", "kg", 1.0, "m"), ("b", "damping b", "N s/m", 1.0, "b
 
 def loop_fit_rows(fit: dict, units=None) -> list[tuple[str, str]]:
     """(label, value with its 95 % interval) of a loop fit (``LoopFit.as_dict()``): m, b and
-    the delays as ``labbench.readout`` writes them (the CLI's, the report's numbers), then
+    the delays as ``labbench.readout.wording`` writes them (the CLI's, the report's numbers), then
     the model, the band (in the display unit of frequency) and the fit's quality."""
-    from labbench import readout
-    from labbench.numfmt import fmt_ci
-    from labbench.units import SI
+    from labbench.readout import wording
+    from labbench.readout.numfmt import fmt_ci
+    from labbench.readout.units import SI
 
     units = units or SI
-    read = readout.of_results("etfe", {"etfe": {}, "loop_fit": fit})
+    read = wording.of_results("etfe", {"etfe": {}, "loop_fit": fit})
     parts = dict(next((v for label, v in read.rows if label == "closed-loop fit"), ()))
     ci = fit.get("ci95") or {}
     rows = []
@@ -170,7 +170,7 @@ class IdView(QtWidgets.QWidget):
 
     def __init__(self, parent=None):
         super().__init__(parent)
-        from labbench.units import SI
+        from labbench.readout.units import SI
 
         plots = pg.GraphicsLayoutWidget()
         self.impedance = plots.addPlot(row=0, col=0, axisItems={"bottom": DecadeAxis("bottom")})
@@ -269,12 +269,12 @@ class IdView(QtWidgets.QWidget):
         ``data``: the record they were fitted on (t, command force, position); ``source``:
         where they come from (a session, this run); ``used``: the method whose m, b the
         theory overlay takes, if any."""
-        from labbench import readout
+        from labbench.readout import wording
 
         self.results = results
         cells_ = {}
         for method, res in results.items():
-            read = readout.of_identification(res, method)
+            read = wording.of_identification(res, method)
             for label, value in read.rows:
                 if label in READOUT_ROWS and hasattr(value, "text"):
                     cells_.setdefault(READOUT_ROWS[label], {})[method] = value.text(self.units)

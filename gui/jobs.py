@@ -11,18 +11,18 @@ from pathlib import Path
 from labbench.analysis.compare import ve_from_meta
 from labbench.errors import UserError
 from labbench.gui.live_estimate import estimate
-from labbench.numfmt import fmt
-from labbench.predictions import recorded_plant
-from labbench.readout import plant_source
-from labbench.ve import Plant
+from labbench.readout.numfmt import fmt
+from labbench.model.predictions import recorded_plant
+from labbench.readout.wording import plant_source
+from labbench.model.ve import Plant
 
 
 def plant_data(data: dict, meta: dict) -> dict:
     """The record as the plant felt it: the command force after the device's own delay
-    (``labbench.device_delay``; ``compare.plant_force``, as chirp-ID's analysis fits it)."""
+    (``labbench.model.device_delay``; ``compare.plant_force``, as chirp-ID's analysis fits it)."""
     from labbench.analysis.compare import plant_force
     from labbench.analysis.dataio import recording_from_arrays
-    from labbench.device_delay import from_meta
+    from labbench.model.device_delay import from_meta
 
     latency = from_meta(meta)
     if not latency:
@@ -39,7 +39,7 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
     ``progress(fraction, phrase)``, ``cancel`` (a threading.Event: ``Cancelled`` at the
     analyses' next check): as ``labbench.analysis.progress``."""
     from labbench.analysis.progress import Steps
-    from labbench.session_content import load_analysis_arrays, load_session
+    from labbench.sessions.session_content import load_analysis_arrays, load_session
 
     steps = Steps(progress, cancel)
     steps.report(0.0, "reading the session")
@@ -66,10 +66,10 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
 
 def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, cancel=None) -> dict:
     """What ``labbench analyze etfe --fit [--estimator X]`` says of a session with a VE
-    (``Session.etfe(fit=True)``): its readout (``labbench.readout``: verdicts, the rendered
+    (``Session.etfe(fit=True)``): its readout (``labbench.readout.wording``: verdicts, the rendered
     impedance) and the closed-loop fit (or why none); for a session without a VE only its path."""
-    from labbench import readout
-    from labbench.session_api import load
+    from labbench.readout import wording
+    from labbench.sessions.session_api import load
 
     out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "readout": None}
     if ve_from_meta(meta) is None:
@@ -88,14 +88,14 @@ def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, ca
     d = fr.as_dict()
     out["fit"] = fit or d["fit"]
     out["bandwidths"] = d.get("bandwidths")
-    out["readout"] = readout.of_etfe_analysis(d, session.records.get("start"))
+    out["readout"] = wording.of_etfe_analysis(d, session.records.get("start"))
     return out
 
 
 def catalogue(folder, session_dir, rig_name: str):
     """(the sessions in ``folder``, the newest chirp-ID of ``rig_name`` in ``session_dir``):
     the Sessions tab's rows and the plant the next runs take (``last_identified``)."""
-    from labbench.session_catalogue import last_identified, list_sessions
+    from labbench.sessions.session_catalogue import last_identified, list_sessions
 
     summaries = list_sessions(folder) if Path(folder).is_dir() else []
     return summaries, last_identified(session_dir, rig_name, on_skip=lambda *_: None)
@@ -104,7 +104,7 @@ def catalogue(folder, session_dir, rig_name: str):
 def load_identification(path: str):
     """(the identification a chirp-ID session recorded, its data as the plant felt them,
     ``path``)."""
-    from labbench.session_content import analysis_meta, load_session
+    from labbench.sessions.session_content import analysis_meta, load_session
 
     start, desc, ch, _ev, stop, _problem = load_session(path)
     ident = ((stop or {}).get("results") or {}).get("identification")
@@ -139,7 +139,7 @@ def identify_all(data: dict, meta: dict, progress=None, cancel=None) -> dict:
 
 
 def timing_preflight(rig, backend: str) -> dict:
-    """The timing preflight (``labbench devices --timing``, ``labbench.preflight``) on
+    """The timing preflight (``labbench devices --timing``, ``labbench.loop.preflight``) on
     ``backend`` for the rig's ``[preflight] seconds``, in a process of its own as the
     acquisition process runs the loop (away from the window's GIL, whose drawing would be
     measured as the host's stalls). Its JSON; one ``UserError`` (exit 2) or
@@ -149,7 +149,7 @@ def timing_preflight(rig, backend: str) -> dict:
     import sys
 
     from labbench.errors import DeviceError
-    from labbench.preflight import PreflightConfig
+    from labbench.loop.preflight import PreflightConfig
 
     seconds = PreflightConfig.from_rig(rig).seconds
     argv = [sys.executable, "-m", "labbench", "devices", "--timing", repr(seconds), "--device",

@@ -5,7 +5,7 @@ While a run streams in, the estimate is the incremental Welch H1 of
 new since the last one, so it costs the same at any record length. Once the
 stream has ended it is the run's own ETFE of ``labbench.analysis.etfe`` (paper
 sec. 4.2) on the whole record, as the analysis computes it. Either is decomposed
-by ``labbench.effective`` (paper Figure 2), with the theory of
+by ``labbench.model.effective`` (paper Figure 2), with the theory of
 ``labbench.model.linear`` for the configured VE and the plant (given, or identified
 by l2 on the newest data, paper sec. 4.1).
 No Qt here: ``LiveEstimator`` runs ``estimate`` on one worker thread and the
@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from labbench.analysis.etfe_live import NAME as LIVE, LiveEtfe
-from labbench import predictions
-from labbench.effective import effective_impedances
-from labbench.predictions import Bandwidths
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model import predictions
+from labbench.model.effective import effective_impedances
+from labbench.model.predictions import Bandwidths
+from labbench.model.ve import Plant, VirtualEnvironment
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ class Estimate:
     plant: Plant | None
     plant_source: str  # "given", "identified (l2)" or "none"
     theory: dict = field(default_factory=dict)  # w, Z, ES, ED, EM; empty when unavailable
-    predicted: Bandwidths | None = None  # labbench.predictions: the one theory of the numbers shown
+    predicted: Bandwidths | None = None  # labbench.model.predictions: the one theory of the numbers shown
     w_nyquist: float = np.inf  # pi / T [rad/s]
     identified_now: bool = False  # this estimate ran the identification
     estimator: str = ""  # the ETFE estimator used
@@ -85,9 +85,9 @@ def estimate(data: dict[str, np.ndarray], meta: dict, ve: VirtualEnvironment | N
     ``progress``, ``cancel``: the batch ETFE's (``labbench.analysis.progress``).
     ``recorded``: the analysis' ``bandwidths`` of this record (its results, the report's
     numbers): the w_s*, w_b* shown, measured and predicted; else read here as the analysis
-    reads them (``labbench.predictions.read``).
+    reads them (``labbench.model.predictions.read``).
     """
-    from labbench.device_delay import from_meta
+    from labbench.model.device_delay import from_meta
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
 

@@ -10,13 +10,13 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from labbench import predictions
+from labbench.model import predictions
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_estimate import Estimate
 from labbench.gui.path_curve import PathCurve, column_spans
-from labbench.numfmt import fmt
-from labbench.units import SI
+from labbench.readout.numfmt import fmt
+from labbench.readout.units import SI
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
@@ -127,7 +127,7 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         self.set_units(SI)
 
     def set_units(self, units) -> None:
-        """Length unit of the position and velocity axes (``labbench.units.DisplayUnits``):
+        """Length unit of the position and velocity axes (``labbench.readout.units.DisplayUnits``):
         the axes scale their ticks, the data stay SI."""
         self.units = units
         for key, title, per in (("position", "position", ""), ("velocity", "velocity estimate", "/s")):
@@ -353,7 +353,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         trusted = (np.abs(est.Z_err) <= TRUSTED_REL_ERR * np.abs(est.Z))[ok]
         # ED ranged below w_b*, where the VE's damping holds: a damping of 1.1 N s/m must not
         # share its axis with the roll-off to -50 near Nyquist (issue 30; the report's figure
-        # does the same, labbench.effective.focus_limits); the roll-off leaves the axes
+        # does the same, labbench.model.effective.focus_limits); the roll-off leaves the axes
         wb = est.wb_measured if est.renders_ve and est.wb_measured else None
         focus = {"ED": np.log10(wb * fx)} if wb and _excited_at(est, wb) else {}
         self._fit_ranges(lw, shown, bands, trusted, focus)
@@ -364,7 +364,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 line.setVisible(True)  # first: a hidden label ignores new text
                 if line.value() != np.log10(value * fx):  # moving it re-lays out its label
                     line.setValue(np.log10(value * fx))  # view coordinates are log10 on a log axis
-                # measured, then the one prediction (labbench.predictions: exact sampled
+                # measured, then the one prediction (labbench.model.predictions: exact sampled
                 # model with the device delay, the paper's closed form labelled beside it)
                 # two lines: the prediction under the measurement (one line ran off the plot)
                 # three: the prediction's two parts under the measurement (two ran off the plot)
@@ -389,7 +389,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self._draw_bode()
 
     def set_units(self, units) -> None:
-        """Display units (``labbench.units.DisplayUnits``) of the frequency axes, the marks'
+        """Display units (``labbench.readout.units.DisplayUnits``) of the frequency axes, the marks'
         labels and the phase; redrawn at once."""
         self.units = units
         freq = "f" if units.frequency == "Hz" else "w"

@@ -13,11 +13,11 @@ from PySide6 import QtCore, QtWidgets
 
 from labbench.analysis.compare import ve_from_meta
 from labbench.gui.buffers import StreamBuffer
-from labbench.readout import plant_source
+from labbench.readout.wording import plant_source
 from labbench.gui.live_estimate import LIVE, MIN_SAMPLES, LiveEstimator
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.verdict_view import VerdictLabel
-from labbench.predictions import recorded_plant
+from labbench.model.predictions import recorded_plant
 
 # the theory overlay's plant: the session's (as its analysis and report), or identified live
 PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
@@ -92,7 +92,7 @@ class LiveView(QtWidgets.QWidget):
         """A recorded session whole (a re-analysis shows its traces, its estimate comes
         with it: the page does not estimate it again by itself)."""
         import numpy as np
-        from labbench.records import CHANNELS
+        from labbench.sessions.records import CHANNELS
 
         self.reset()
         n = len(channels.get("t", ()))
@@ -163,7 +163,7 @@ class LiveView(QtWidgets.QWidget):
 
     def _estimate_inputs(self, buf):
         """(VE, plant or None to identify it, analysis metadata, where the plant came from)."""
-        from labbench.session_content import analysis_meta
+        from labbench.sessions.session_content import analysis_meta
 
         meta = analysis_meta(buf.start, buf.descriptor or {})
         ve = ve_from_meta(meta)

@@ -1,5 +1,5 @@
 """The loop's health in the status bar: mode, pacing and rate, period p99, overruns, worst
-stall and bus load, all from one timing summary (``labbench.timing.status_figures``): live
+stall and bus load, all from one timing summary (``labbench.loop.timing.status_figures``): live
 during a run (the snapshots the acquisition process sends 4 times a second) and the run's
 totals at its end. A lock-step simulator says so ("lock-step (unpaced): 2.3x real time")
 instead of a loop rate it does not have, and has no overruns to count."""
@@ -35,7 +35,7 @@ class LoopStatus:
     def show_timing(self, timing: dict, live: bool = False, recorded: bool = False) -> None:
         """``live``: a run's figures so far; ``recorded``: a replayed session's, as its run
         ended (the stop record's timing: what the live window showed then)."""
-        from labbench.timing import status_figures
+        from labbench.loop.timing import status_figures
 
         fig = status_figures(timing)
 

@@ -50,14 +50,14 @@ from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
 from labbench.gui.verdict_view import judged, rendered_line
 from labbench.gui.wheel_guard import WheelGuard
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
-from labbench.design import device_for
+from labbench.design.tradeoffs import device_for
 from labbench.errors import UserError
-from labbench.numfmt import fmt
-from labbench.readout import plant_source, session_label
-from labbench.records import EVENT, STOP
-from labbench.safety import OVERRUN, SEQ_GAP
-from labbench.session_catalogue import OWN_PLANT, plant_options
-from labbench.ve import Plant
+from labbench.readout.numfmt import fmt
+from labbench.readout.wording import plant_source, session_label
+from labbench.sessions.records import EVENT, STOP
+from labbench.loop.safety import OVERRUN, SEQ_GAP
+from labbench.sessions.session_catalogue import OWN_PLANT, plant_options
+from labbench.model.ve import Plant
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ class MainWindow(QtWidgets.QMainWindow):
                  units=None, skip_commissioning: bool = False):
         """``settings``: a QSettings (``labbench.gui.settings.open_settings``) the window
         restores its state from and saves it to on close; None: it remembers nothing.
-        ``units``: display units (``labbench.units.DisplayUnits``) instead of the remembered
+        ``units``: display units (``labbench.readout.units.DisplayUnits``) instead of the remembered
         ones; ``skip_commissioning``: render springs on real hardware before the rig passed
         its direction check (``labbench.commissioning.gate``), as the CLI's option."""
         super().__init__()
@@ -471,7 +471,7 @@ class MainWindow(QtWidgets.QMainWindow):
         run_in_background(self.mailbox, "timing", timing_preflight, self.rig, backend)
 
     def _on_timing_done(self, result: dict):
-        from labbench.preflight import lines
+        from labbench.loop.preflight import lines
 
         text = lines(result["preflight"], result)
         self.device_panel.set_checking(False)
@@ -549,11 +549,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def checked_protocol(self, name: str | None = None):
         """The configured protocol and its pre-check report, as the runner will check them
-        (``labbench.runner.checks``: the same plant, gate and device delay, the connected
+        (``labbench.loop.runner.checks``: the same plant, gate and device delay, the connected
         device's own included); UserError when refused: bad settings, an unstable VE, or a
         spring or damper on real hardware before the rig passed its direction check
         (``labbench.commissioning.gate``: the CLI's one line)."""
-        from labbench.runner import checks
+        from labbench.loop.runner import checks
 
         protocol = self.make_protocol(name)
         _plant, _delay, rep = checks(
@@ -694,7 +694,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.refresh_sessions()  # this rig's newest chirp-ID, its ETFE runs
 
     def set_units(self, units) -> None:
-        """Display units (``labbench.units.DisplayUnits``) of every plot and label at once."""
+        """Display units (``labbench.readout.units.DisplayUnits``) of every plot and label at once."""
         self.live.set_units(units)
         self.id_view.set_units(units)
 
@@ -746,7 +746,7 @@ class MainWindow(QtWidgets.QMainWindow):
         real hardware the plan is asked about once first)."""
         from labbench.campaign.engine import run_campaign
         from labbench.campaign.plan import describe
-        from labbench.interrupts import StopRequest
+        from labbench.loop.interrupts import StopRequest
 
         self._new_action()
         if self.campaign_plan is None:
@@ -806,7 +806,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
             self.campaign_stop.set(limit_reached(self.campaign.limit.value()))
         if self.campaign_stop is None or self.campaign_stop.is_set():
-            from labbench.runner import RunResult
+            from labbench.loop.runner import RunResult
 
             self._finish_point(result=RunResult("aborted", getattr(self.campaign_stop, "reason", "")
                                                 or "campaign stopped"), session=None)
@@ -1063,7 +1063,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._finish_point(result=result, session=self.session_path)
 
     def _on_replay_done(self, status):
-        from labbench.records import protocol_name
+        from labbench.sessions.records import protocol_name
 
         self.log.add("info", f"replay {status}")
         buf = self.live.buffer
@@ -1106,12 +1106,12 @@ class MainWindow(QtWidgets.QMainWindow):
         their verdicts on the Live page, an identification and a closed-loop fit on the
         Identification page, a commissioning on its page (``ran_here``: a run of this window
         on this rig, whose measured values may be written into the rig file)."""
-        from labbench import readout
+        from labbench.readout import wording
 
         if results.get("error"):
             self.show_error(str(results["error"]))
         buf = self.live.buffer
-        read = readout.of_results(protocol or "", results, buf.start or {})  # as the CLI, the report
+        read = wording.of_results(protocol or "", results, buf.start or {})  # as the CLI, the report
         if read.rows:
             self.log.add("info", "results:", rows=read.row_texts(self.units_choice.units()))
         name = Path(session).name if session else "this run (not recorded)"
@@ -1119,7 +1119,7 @@ class MainWindow(QtWidgets.QMainWindow):
                                        lines=rendered_line(read))
         ident = results.get("identification")
         if isinstance(ident, dict) and ident:
-            from labbench.session_content import analysis_meta
+            from labbench.sessions.session_content import analysis_meta
 
             meta = analysis_meta(buf.start or {}, buf.descriptor or {})
             ahead = ((ran_here and protocol == "chirp-id")  # this rig's newest: the next runs'
@@ -1160,7 +1160,7 @@ class MainWindow(QtWidgets.QMainWindow):
     @guarded
     def replay(self, path: str, speed):
         self._new_action()
-        from labbench.session_format import looks_like_session
+        from labbench.sessions.session_format import looks_like_session
 
         if not looks_like_session(path):
             raise UserError(f"not a labbench session file: {path}")
@@ -1346,6 +1346,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
 
 def _count_flag(buf, bit: int) -> int:
-    """Samples of the stream whose loop flags carry ``bit`` (labbench.safety)."""
+    """Samples of the stream whose loop flags carry ``bit`` (labbench.loop.safety)."""
     return int(np.count_nonzero(buf.channel("flags").astype(np.int64) & bit))
 

@@ -15,8 +15,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.errors import UserError
 from labbench.gui.labels import fixed_lines, set_text
-from labbench.numfmt import fmt
-from labbench.ve import VE_KINDS
+from labbench.readout.numfmt import fmt
+from labbench.model.ve import VE_KINDS
 
 # name or suffix -> (unit, lower limit); the protocol itself enforces the real bounds
 UNITS = {

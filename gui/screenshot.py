@@ -103,7 +103,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     from labbench.gui.app import demo_finished, start_demo, tune_interpreter
     from labbench.gui.main_window import MainWindow
     from labbench.rig import Rig, load_rig
-    from labbench.units import SI, DisplayUnits
+    from labbench.readout.units import SI, DisplayUnits
 
     tune_interpreter()
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication([])

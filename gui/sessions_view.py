@@ -11,7 +11,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from labbench.gui.tables import row_list
 from labbench.gui.verdict_view import COLOURS
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 
 COLUMNS = ("date", "protocol", "device", "VE", "K [N/m]", "B [N s/m]", "duration [s]",
            "status", "verdict", "samples", "rig", "file")

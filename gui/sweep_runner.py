@@ -30,7 +30,7 @@ def limit_reached(limit: int) -> str:
 def _child(spec_path: str, table: str, workers: int | None, messages, cancel,
            limit: int = 0) -> None:
     from labbench.gui.worker import describe_error
-    from labbench.interrupts import StopRequest
+    from labbench.loop.interrupts import StopRequest
     from labbench.sweep.engine import run_sweep
     from labbench.sweep.spec import load_spec
 

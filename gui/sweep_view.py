@@ -33,7 +33,7 @@ from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import no_si_prefix
 from labbench.gui.sweep_runner import SweepRun
 from labbench.gui.worker import Mailbox, describe_error, run_in_background
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 
 NONE = "(none)"
 NOT_OK_BRUSH = "#d62728"

@@ -1,4 +1,4 @@
-"""The display units of the window, as the CLI's ``--units`` (``labbench.units``): lengths in
+"""The display units of the window, as the CLI's ``--units`` (``labbench.readout.units``): lengths in
 m or mm, angles in rad or deg, frequencies in rad/s or Hz. Display only: settings, sessions
 and exports stay SI."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 from PySide6 import QtCore, QtWidgets
 
 from labbench.errors import UserError
-from labbench.units import UNITS, DisplayUnits
+from labbench.readout.units import UNITS, DisplayUnits
 
 KINDS = ("length", "angle", "frequency")
 

@@ -1,5 +1,5 @@
 """Verdicts in the window: ok / doubtful / failed with the band they speak of, their reasons
-and notes, wherever a result shows. The words are ``labbench.readout``'s (the one source of
+and notes, wherever a result shows. The words are ``labbench.readout.wording``'s (the one source of
 what the CLI, the report and the window say of a result) and follow the display units."""
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from html import escape
 
 from PySide6 import QtCore, QtWidgets
 
-from labbench.numfmt import frequencies_in
-from labbench.readout import Judged
-from labbench.verdict import DOUBTFUL, FAILED, OK, from_dict
+from labbench.readout.numfmt import frequencies_in
+from labbench.readout.wording import Judged
+from labbench.readout.verdict import DOUBTFUL, FAILED, OK, from_dict
 
 COLOURS = {OK: "#206020", DOUBTFUL: "#a86b00", FAILED: "#b00020"}
 
@@ -21,7 +21,7 @@ def judged(what: str, verdict) -> list[Judged]:
 
 
 OUTSIDE = "outside the band"  # how a note of what lies beyond the verdict's band starts
-# what a note means for the numbers (labbench.verdict: a limit that does not raise the level)
+# what a note means for the numbers (labbench.readout.verdict: a limit that does not raise the level)
 NOTES_MEAN = ("the notes do not change the level: inside the band they widen the 95 % intervals "
               "there and of what is read from there (K, B), which still hold the truth; outside "
               "it they do not touch what is read in it")

@@ -69,12 +69,12 @@ def run_in_background(mailbox: Mailbox, tag: str, fn: Callable, *args, **kwargs)
 
 def start_replay(mailbox: Mailbox, path, speed: float | None, stop: threading.Event) -> threading.Thread:
     """Read a session back into the mailbox as the same record stream
-    (``labbench.replay.replay``: ``speed`` 1.0 = real time, None = as fast as it reads),
+    (``labbench.sessions.replay.replay``: ``speed`` 1.0 = real time, None = as fast as it reads),
     after ("replay length", its number of samples)."""
 
     def job():
-        from labbench.replay import replay
-        from labbench.session_catalogue import summarize
+        from labbench.sessions.replay import replay
+        from labbench.sessions.session_catalogue import summarize
 
         mailbox.put("replay length", summarize(path).n_samples)  # for the progress bar
         reader = replay(path, [lambda rec: mailbox.put("record", rec)], speed=speed, stop=stop)

@@ -1,7 +1,7 @@
 """The one interface every rig offers: the simulator, the CANopen drive, the serial stream.
 
 A device delivers timestamped, sequence-numbered position samples and takes a
-force command. The haptic loop (``labbench.loop``) is the only caller in a run.
+force command. The haptic loop (``labbench.loop.chain``) is the only caller in a run.
 All methods with a wait take a timeout. ``close()`` is safe to call twice.
 """
 from __future__ import annotations
@@ -52,7 +52,7 @@ class DeviceDescription:
     force_hold: str = "zoh"
     # The device's own delay on the whole command [s] when the backend knows it (e.g. a
     # drive that applies a synchronous RPDO's torque at the next SYNC) and why:
-    # labbench.device_delay (a rig file's measured value takes precedence).
+    # labbench.model.device_delay (a rig file's measured value takes precedence).
     device_delay_s: float = 0.0
     device_delay_why: str = ""
     simulated: str = ""
@@ -132,7 +132,7 @@ class StatusReporting(Protocol):
 
 @runtime_checkable
 class TimingProbe(Protocol):
-    """What a sample's wait is made of, for the timing preflight (``labbench.preflight``).
+    """What a sample's wait is made of, for the timing preflight (``labbench.loop.preflight``).
 
     ``timing_log``: None (off: nothing recorded, no cost), or a list that gets one
     ``(due_s, start_s, answer_s, wire_s)`` per sample: when it was due by the device's

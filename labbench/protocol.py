@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from labbench.errors import UnstableVEError, UserError
-from labbench.ve import DEFAULT_PLANT, VE_KINDS, Plant, VirtualEnvironment
+from labbench.model.ve import DEFAULT_PLANT, VE_KINDS, Plant, VirtualEnvironment
 
 # Longest single recording [s]: the loop keeps a run's channels in memory (8 x 8 bytes a sample).
 MAX_DURATION_S = 1800.0
@@ -80,7 +80,7 @@ def field_choices(config_cls) -> dict[str, tuple]:
 def field_help(config_cls) -> dict[str, str]:
     """Field name -> one line for a person: meaning [unit]; its choices; its default
     (the CLI's --help, the GUI's tooltips). An undescribed field reads as ""."""
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     out = {}
     for f in fields(config_cls):
@@ -191,8 +191,8 @@ def make_ve(kind: str, K: float, B: float, w0_rad_s: float | None, T: float, td_
 def check_plant_fields(cfg) -> None:
     cfg._set("plant_m_kg", number("plant_m_kg", cfg.plant_m_kg, "kg", lo=0, lo_open=True, none_ok=True))
     cfg._set("plant_b", number("plant_b", cfg.plant_b, "N s/m", lo=0, none_ok=True))
-    if hasattr(cfg, "plant_coulomb_n"):  # labbench.device_friction reads them
-        from labbench import device_friction
+    if hasattr(cfg, "plant_coulomb_n"):  # labbench.model.device_friction reads them
+        from labbench.model import device_friction
 
         fc = cfg.plant_coulomb_n
         cfg._set("plant_coulomb_n", None if fc is None else device_friction.checked(fc, "plant_coulomb_n"))
@@ -247,12 +247,12 @@ class ProtocolBase:
 
     name: str = ""
     Config: type = None  # the frozen config dataclass (a ``Config`` subclass)
-    # The device's own delay [s] on this run (``labbench.device_delay``), set by ``precheck``
+    # The device's own delay [s] on this run (``labbench.model.device_delay``), set by ``precheck``
     # before ``check_plan`` and ``segments``: what a protocol that plans from the exact
     # boundary (the stability probe) must know of the rig.
     device_delay_s: float = 0.0
-    # The device's Coulomb friction on this run (``labbench.device_friction``), set by the
-    # run's checks (``labbench.runner.checks``) before ``check_plan``; None: not resolved yet.
+    # The device's Coulomb friction on this run (``labbench.model.device_friction``), set by the
+    # run's checks (``labbench.loop.runner.checks``) before ``check_plan``; None: not resolved yet.
     device_friction = None
 
     def __init__(self, config):
@@ -315,7 +315,7 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
 
     Uses ``labbench.model.linear.stability`` (spectral radius of the exact sampled loop)
     and ``k_max`` / ``k_max_approx`` for the numbers shown, with the device's own
-    delay (``delay``, a ``labbench.device_delay.DeviceDelay``; None: the rig's, by
+    delay (``delay``, a ``labbench.model.device_delay.DeviceDelay``; None: the rig's, by
     ``device_delay.resolve(rig)``) as the loop's actuator latency, so K_max is the
     one the rig has. Raises UnstableVEError (a UserError) for an unstable VE unless the protocol's
     ``allow_unstable`` is set (the runner allows that on a simulator only). Returns
@@ -325,7 +325,7 @@ def precheck(protocol: ProtocolBase, plant: Plant, rig=None, delay=None) -> dict
     K_max (``k_passive_quantised``), and a refusal says how small an oscillation friction
     still stops (``labbench.model.stability_friction.limit_cycle_amplitude``).
     """
-    from labbench import device_delay
+    from labbench.model import device_delay
     from labbench.model import linear, passivity
     from labbench.model.stability_friction import limit_cycle_amplitude
 

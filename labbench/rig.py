@@ -23,9 +23,9 @@ from labbench import scales
 from labbench.errors import UserError, unknown_name
 from labbench.input_files import read_text
 from labbench.campaign.settings import CampaignSettings
-from labbench.realtime import RealtimeConfig
-from labbench.safety import SafetyConfig
-from labbench.ve import DEFAULT_PLANT, Plant
+from labbench.loop.realtime import RealtimeConfig
+from labbench.loop.safety import SafetyConfig
+from labbench.model.ve import DEFAULT_PLANT, Plant
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,7 @@ class Rig:
 
     @property
     def nominal_plant(self):
-        """The nominal model as a ``labbench.ve.Plant``."""
+        """The nominal model as a ``labbench.model.ve.Plant``."""
         return Plant(self.nominal_mass_kg, self.nominal_damping_ns_m)
 
     def section(self, name: str) -> dict:
@@ -111,7 +111,7 @@ MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a ri
 
 def _tables() -> tuple[str, ...]:
     """Tables a rig file may hold: [rig], [safety], [realtime], [preflight] (the timing
-    preflight, ``labbench.preflight``), [campaign] (``labbench.campaign.settings``), and one
+    preflight, ``labbench.loop.preflight``), [campaign] (``labbench.campaign.settings``), and one
     per device backend (its name)."""
     from labbench.registry import device_names  # names only: no backend is imported
 
@@ -123,7 +123,7 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
 
     Unknown tables and fields are errors naming the nearest valid one; numbers
     must lie within ``_BOUNDS``; [safety] and [realtime] are validated here too
-    (``labbench.safety.SafetyConfig``, ``labbench.realtime.RealtimeConfig``), so a
+    (``labbench.loop.safety.SafetyConfig``, ``labbench.loop.realtime.RealtimeConfig``), so a
     bad limit stops before any device is opened.
     """
     tables = _tables()
@@ -170,7 +170,7 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     rig = Rig(**common, sections=sections, source=source)
     SafetyConfig.from_rig(rig)  # raises for a bad [safety] table
     RealtimeConfig.from_rig(rig)  # and for a bad [realtime] one
-    from labbench.preflight import PreflightConfig
+    from labbench.loop.preflight import PreflightConfig
 
     PreflightConfig.from_rig(rig)  # and for a bad [preflight] one
     CampaignSettings.from_rig(rig)  # and for a bad [campaign] one

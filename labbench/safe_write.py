@@ -1,5 +1,5 @@
 """Every file labbench writes goes through here: exports, reports, figures, sweep tables and
-charts, sessions (``labbench.session_format``) and rig edits (``edit_text``).
+charts, sessions (``labbench.sessions.session_format``) and rig edits (``edit_text``).
 
 Rules, checked before any work and again at the moment of writing:
 

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.signal import lfilter, ss2tf
 
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
     MAX_DURATION_S,
@@ -157,8 +157,8 @@ class ChirpId(ProtocolBase):
         """l2 and l1 fits of f = m x'' + b x' (labbench.analysis.identify) on the force
         actually applied (the ``command`` channel: the VE is off, so it is the chirp
         after the safety envelope), as the plant felt it after the device's own delay
-        (``labbench.device_delay``: ``compare.plant_force`` shifts the held command)."""
-        from labbench import device_delay
+        (``labbench.model.device_delay``: ``compare.plant_force`` shifts the held command)."""
+        from labbench.model import device_delay
         from labbench.analysis.compare import plant_force
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.identify import identify
@@ -224,7 +224,7 @@ def _open_loop_figure(protocol: ChirpId, session, ident: dict):
     from labbench.analysis.compare import theory_curves
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
-    from labbench.figures import Curve, paper_figure
+    from labbench.readout.figures import Curve, paper_figure
 
     c = protocol.config
     rec = recording_from_arrays(session.ch["t"], session.ch["command"], session.ch["position"],

@@ -23,7 +23,7 @@ from labbench.protocol import (
     setting,
 )
 from labbench.protocols import excitation
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 
 # backends that drive the serial stream (labbench.drivers.serial_stream: [serial]
@@ -133,7 +133,7 @@ class Commission(ProtocolBase):
 
     def report_sections(self, session):
         """Page 1 is the readout's (each check's verdict with its numbers, the rig changes:
-        ``labbench.readout``); nothing more to add."""
+        ``labbench.readout.wording``); nothing more to add."""
         from labbench.report.blocks import ReportSections
 
         return ReportSections()
@@ -141,10 +141,10 @@ class Commission(ProtocolBase):
 
 def applied_doublets(marks: list, data: dict) -> list:
     """The doublets the loop applied: the enable gate holds the force at zero until the
-    excitation is near zero (``labbench.loop``), so the first doublet, which starts at full
+    excitation is near zero (``labbench.loop.chain``), so the first doublet, which starts at full
     force, never reaches the handle and says nothing of the direction (a true rig read
     "3 of 4 pulses moved with the force")."""
-    from labbench.safety import GATED
+    from labbench.loop.safety import GATED
 
     flags = data.get("flags")
     if flags is None:

@@ -22,9 +22,9 @@ where the quantisation of position and force biased sigma by up to 2 % of K.
 
 Everything is compared with the exact sampled boundary ``labbench.model.linear.k_max``
 of the plant *with the device's own delay* (``device_delay_s``: the run's
-``labbench.device_delay``) and the paper's ``k_max_approx`` (b = K (T/2 + td)
+``labbench.model.device_delay``) and the paper's ``k_max_approx`` (b = K (T/2 + td)
 for the spring). Each step also keeps the peak energy the loop's passivity
-observer saw (``labbench.loop``: the energy the VE generated beyond what its
+observer saw (``labbench.loop.chain``: the energy the VE generated beyond what its
 spring stores and the rig's nominal damping dissipates).
 
 Steps beyond the exact boundary are the point of this protocol: the starting
@@ -64,8 +64,8 @@ import numpy as np
 from labbench.errors import UserError
 from labbench.model.pulse import PulsePlan
 from labbench.rig import Rig
-from labbench.safety import CLAMP, FADE, GATED, RATE, TRIPPED
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.loop.safety import CLAMP, FADE, GATED, RATE, TRIPPED
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
     Config,
@@ -568,7 +568,7 @@ class StabilityProbe(ProtocolBase):
         ``plant_coulomb_n`` the friction-aware one at the swing measured (``friction``), and where
         the probe stopped and why (``stopped``). A step the enable gate kept shut
         (``rendered`` false) is neither stable nor unstable."""
-        from labbench import device_delay
+        from labbench.model import device_delay
         from labbench.model import linear
 
         plant = Plant(**meta["plant"]) if "plant" in meta else self.plant()
@@ -878,7 +878,7 @@ def _report_sections(protocol: StabilityProbe, session):
     res = session.results
     var = res.get("variable", protocol.config.variable)
     steps = res.get("steps") or []
-    details = []  # where the probe stopped is the readout's row (labbench.readout)
+    details = []  # where the probe stopped is the readout's row (labbench.readout.wording)
     if steps:
         details.append(Table("Probe steps", ["K (N/m)", "td (ms)", "status", "growth rate (1/s)",
                                              "unstable"],

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labbench import device_delay
+from labbench.model import device_delay
 from labbench.errors import UserError
-from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
+from labbench.model.ve import VE_KINDS, Plant, VirtualEnvironment
 from labbench.protocols import excitation
 from labbench.protocol import (
     MAX_DURATION_S,
@@ -181,7 +181,7 @@ class WhiteNoiseEtfe(ProtocolBase):
         """With the device's Coulomb friction known (``device_friction``, set by the run's
         checks; else the config's): what it will act as at this excitation, and the white
         noise that keeps it below ``labbench.analysis.friction.SHARE`` of B + b."""
-        from labbench import device_friction
+        from labbench.model import device_friction
         from labbench.analysis import friction
 
         fr = getattr(self, "device_friction", None) or device_friction.resolve(self)
@@ -193,12 +193,13 @@ class WhiteNoiseEtfe(ProtocolBase):
 
     def analyze(self, data: dict, meta: dict) -> dict:
         """ETFE of the exogenous force over the velocity (labbench.analysis.etfe), its effective
-        impedances (labbench.effective), the deviation from the exact sampled theory and from
+        impedances (labbench.model.effective), the deviation from the exact sampled theory and from
         the friction-aware one (labbench.analysis.friction, with the run's friction:
-        labbench.device_friction), the closed-loop fit of m, b and the rig's extra delay
+        labbench.model.device_friction), the closed-loop fit of m, b and the rig's extra delay
         (labbench.analysis.loopfit), and the force noise the loop commanded
         (labbench.analysis.force_noise)."""
-        from labbench import device_friction, predictions
+        from labbench.model import device_friction
+        from labbench.model import predictions
         from labbench.analysis import compare, force_noise, friction
         from labbench.model.noise import FELT_BAND_HZ
         from labbench.analysis.dataio import recording_from_arrays
@@ -267,7 +268,7 @@ class WhiteNoiseEtfe(ProtocolBase):
     def _level(self, data: dict, meta: dict, plant: Plant, ve, latency: float, asked) -> dict | None:
         """The rendered K, B of one further excitation level against the theories (None: too
         short a record for the VE's bandwidths)."""
-        from labbench import device_friction
+        from labbench.model import device_friction
         from labbench.analysis import friction
         from labbench.analysis.dataio import recording_from_arrays
         from labbench.analysis.etfe import etfe
@@ -290,11 +291,11 @@ class WhiteNoiseEtfe(ProtocolBase):
 def _report_sections(protocol: WhiteNoiseEtfe, session):
     import math
 
-    from labbench.figures import Curve, paper_figure
+    from labbench.readout.figures import Curve, paper_figure
     from labbench.report.blocks import Figure, Markup, ReportSections, Table, fmt, fmt_ci, percent
     from labbench.report.content import nyquist_band, overlay_color
 
-    from labbench.session_content import analysis_meta
+    from labbench.sessions.session_content import analysis_meta
 
     plant = session.plant or protocol.plant()
     # the session's own metadata: its device delay is the run's theory too (the run's

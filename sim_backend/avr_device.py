@@ -43,7 +43,7 @@ PWM_PER_NEWTON = 40.0  # the sketch's default: duty counts (of 255) per newton
 VECTOR_TIMER2_COMPA = 7  # ATmega328P interrupt vector of the sketch's tick
 RENDER_DIV = 5  # the sketch's default: render ticks per sample (5 kHz at T = 1 ms)
 LOCKSTEP_TIMEOUT_S = 3.0  # wall time; generous: this machine is shared and loaded
-# The board's own delay, declared to the analyses (labbench.device_delay; a rig's
+# The board's own delay, declared to the analyses (labbench.model.device_delay; a rig's
 # measured_td_s takes precedence): docs/serial-protocol.md, "Emulated board".
 BOARD_DELAY_WHY = ("the reference sketch latches each command at its next tick: one sample "
                    "on everything the host commands")

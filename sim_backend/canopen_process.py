@@ -14,7 +14,7 @@ Both ends drop their own frames, which the group hands back (``EchoFreeBus``).
 
 A paced run's drive stands in for hardware, which has a CPU of its own: the child
 asks SCHED_FIFO one level below the rig's loop priority (``[realtime] priority``)
-on the first CPU this process may use (the loop takes the last: ``labbench.realtime``),
+on the first CPU this process may use (the loop takes the last: ``labbench.loop.realtime``),
 so the machine's other load does not make it answer late. Its thread blocks on the
 bus between frames, so it never spins. Refused (no CAP_SYS_NICE, not Linux): one line
 on its stderr, and it runs as an ordinary process.
@@ -91,7 +91,7 @@ def start_process_drive(rig, config: CanopenConfig, seed=None, paced: bool = Fal
                         **options) -> tuple[ProcessDrive, EchoFreeBus]:
     """A drive process for ``rig``/``config`` that answers, and the host's bus to it;
     ``paced``: a real-time run's drive, scheduled as hardware (module doc)."""
-    from labbench.realtime import RealtimeConfig
+    from labbench.loop.realtime import RealtimeConfig
 
     port = _free_port()
     rt = RealtimeConfig.from_rig(rig)

@@ -5,7 +5,7 @@ number k returns x[k], the position at the start of step k; the force given to
 ``command()`` after it is held over step k; the next ``read()`` advances the
 plant by exactly one T (``labbench.model.linear.zoh_matrices``) and returns x[k+1].
 With no friction, noise, quantisation or extra delay a run through
-``labbench.loop`` therefore equals the sampled model to rounding.
+``labbench.loop.chain`` therefore equals the sampled model to rounding.
 
 Options (rig table ``[sim]``, overridden by keyword options of ``open_sim``):
 ``m`` [kg], ``b`` [N s/m], ``coulomb_n`` [N] Coulomb friction (stick/slip solved
@@ -50,8 +50,8 @@ from labbench.device import (ESTOP_STATE, DeviceDescription, DeviceFault, Device
                              Sample)
 from labbench import scales
 from labbench.errors import UserError, nearest_hint
-from labbench.realtime import sleep_until
-from labbench.ve import DEFAULT_PLANT, Plant
+from labbench.loop.realtime import sleep_until
+from labbench.model.ve import DEFAULT_PLANT, Plant
 from labbench.sim_backend.friction import Cogging, cogged_step, held_step, reversing_step
 from labbench.model.linear import latency_inputs, zoh_matrices
 
@@ -153,7 +153,7 @@ class SimDevice:
     """Simulated 1-DOF handle; see the module docstring for timing and options.
 
     ``read_raw(timeout)`` is the allocation-free form of ``read``: it returns the
-    tuple ``(seq, t_s, position_m, flags)``; ``labbench.loop.run_loop`` uses it
+    tuple ``(seq, t_s, position_m, flags)``; ``labbench.loop.chain.run_loop`` uses it
     when a device offers it. ``emergency_stop()`` may be called from any thread:
     the force applied from the step under way on is zero, and stays zero.
     """
@@ -322,7 +322,7 @@ class SimDevice:
         return x, v
 
     def _pace(self, k: int, timeout: float) -> None:
-        """Wait until sample k is due at ``t0 + k T`` (``labbench.realtime.sleep_until``:
+        """Wait until sample k is due at ``t0 + k T`` (``labbench.loop.realtime.sleep_until``:
         sleep, then spin the last 150 us, so the sample is on time to a few us).
 
         The schedule starts at the first read, and starts again at any read more than

@@ -33,7 +33,7 @@ from pathlib import Path
 import pytest
 
 from labbench.cli import main
-from labbench.session_format import MAGIC
+from labbench.sessions.session_format import MAGIC
 
 TIME_LIMIT_S = 30.0  # per case: hang detector, generous for a loaded shared machine
 MEMORY_LIMIT = 1 << 30  # address space a case may add
@@ -179,7 +179,7 @@ def write_chunks(path: Path, items) -> Path:
 
 def items_of(stream) -> list[list]:
     """``[json value, data bytes]`` per record of a stream, as the writer encodes them."""
-    from labbench.session_format import encode_record
+    from labbench.sessions.session_format import encode_record
 
     out = []
     for rec in stream:

@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from labbench import records
-from labbench.ve import VirtualEnvironment
+from labbench.sessions import records
+from labbench.model.ve import VirtualEnvironment
 from labbench.sim_backend.plant import MassDamperPlant
 
 M, B_PLANT = 0.094, 0.10
@@ -68,7 +68,7 @@ def synthetic_stream(n_samples: int = 2000, page_size: int = 100, seed: int = 1,
 
 
 def main() -> int:
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     ap = argparse.ArgumentParser()
     ap.add_argument("directory")

@@ -1,8 +1,8 @@
 """Sessions recorded on the default simulated rig, for the tests of what reads them."""
 from labbench.registry import make_protocol
 from labbench.rig import Rig
-from labbench.runner import run
-from labbench.session_format import SessionWriter
+from labbench.loop.runner import run
+from labbench.sessions.session_format import SessionWriter
 from labbench.sim_backend.sim_device import open_sim
 
 TRUTH = {"m": 0.094, "b": 0.10}  # the default simulated rig

@@ -13,15 +13,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labbench import records
+from labbench.sessions import records
 from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.analysis.identify import identify
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.registry import make_protocol
 from labbench.rig import Rig
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 pytestmark = pytest.mark.usefixtures("avr_toolchain")  # tests/conftest.py
 

@@ -187,7 +187,7 @@ def test_samples_the_board_cannot_send_are_flagged_not_hidden():
 
 
 def test_the_board_renders_a_spring_damper_itself_at_5_khz_and_keeps_it_when_the_host_stalls():
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, T=RIG.sample_time_s)
     drv, board = connect_avr_sim(RIG, trace=True)

@@ -14,7 +14,7 @@ from labbench.campaign import engine
 from labbench.campaign.plan import Context, make_plan
 from labbench.campaign.settings import CampaignSettings
 from labbench.cli.campaign import point_runner
-from labbench.interrupts import StopRequest
+from labbench.loop.interrupts import StopRequest
 from labbench.sweep import table as tables
 from labbench.sweep.spec import spec_from_dict
 from test_campaign import args_for, sessions_by_status

@@ -26,12 +26,12 @@ from labbench.campaign import engine
 from labbench.campaign.plan import Context, describe, make_plan
 from labbench.campaign.settings import CampaignSettings
 from labbench.errors import UserError
-from labbench.interrupts import StopRequest
+from labbench.loop.interrupts import StopRequest
 from labbench.rig import Rig
-from labbench.runner import RunResult
+from labbench.loop.runner import RunResult
 from labbench.sweep import table as tables
 from labbench.sweep.spec import Spec, spec_from_dict
-from labbench.ve import Plant
+from labbench.model.ve import Plant
 
 LABBENCH = [sys.executable, "-m", "labbench"]
 SPEC = """[sweep]

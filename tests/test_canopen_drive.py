@@ -288,8 +288,8 @@ def test_bus_load_of_the_mapping():
 # ------------------------------------------- the same protocol, two devices
 def run_protocol(device, rig, **options):
     from labbench.registry import open_device
-    from labbench.records import concat_pages
-    from labbench.runner import run
+    from labbench.sessions.records import concat_pages
+    from labbench.loop.runner import run
     from labbench.registry import make_protocol
 
     records = []
@@ -310,11 +310,11 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
     moves the handle by micrometres, so positions may differ by one count where the true
     position sits next to a count boundary, never more.
     """
-    from labbench.loop import HapticLoop, SafetyConfig, run_loop
+    from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
     from labbench.protocols.white_noise import WhiteNoiseEtfe
-    from labbench.records import concat_pages
+    from labbench.sessions.records import concat_pages
     from labbench.registry import make_protocol, open_device
-    from labbench.safety import GATED
+    from labbench.loop.safety import GATED
 
     monkeypatch.setattr(WhiteNoiseEtfe, "analyze", lambda self, data, meta: {})
     rig = make_rig(sim={"quantize": True})
@@ -385,7 +385,7 @@ def cli_etfe(tmp_path, device, duration_s):
     import json
 
     from labbench.cli import main
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     rig_file = tmp_path / "rig.toml"
     # Lock-step runs on a shared machine: a generous loop watchdog (the loop does
@@ -409,7 +409,7 @@ def compare_etfe_runs(tmp_path, duration_s):
                                    for d in ("sim", "sim-canopen"))
     n = round(duration_s / 0.001)
     assert len(b["t"]) == n and np.all(np.diff(b["seq"]) == 1)
-    from labbench.timing import EVENTS as TIMING  # a loaded host's overruns are recorded too
+    from labbench.loop.timing import EVENTS as TIMING  # a loaded host's overruns are recorded too
 
     assert [e["name"] for e in events if e["name"] not in ("segment", *TIMING)] == ["enabled"]
     q = Rig().metres_per_count
@@ -473,9 +473,9 @@ def drive_on_named_channel(tmp_path):
 
 
 def test_canopen_factory_opens_a_python_can_bus_and_runs(drive_on_named_channel):
-    from labbench.loop import HapticLoop, SafetyConfig, run_loop
+    from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
     from labbench.rig import load_rig
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     peer, rig_file = drive_on_named_channel
     rig = load_rig(rig_file)
@@ -549,7 +549,7 @@ def test_cli_run_notes_the_can_log_in_the_session(tmp_path):
     import can
 
     from labbench.cli import main
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     out, log = tmp_path / "s", tmp_path / "run.asc"
     argv = ["run", "etfe", "--device", "sim-canopen", "--duration-s", "1", "--out", str(out),

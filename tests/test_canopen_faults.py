@@ -9,8 +9,8 @@ import pytest
 from labbench.drivers.cia402 import State
 from labbench.device import DeviceFault
 from labbench.errors import DeviceError, LabbenchError, UserError
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
-from labbench.ve import VirtualEnvironment
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
+from labbench.model.ve import VirtualEnvironment
 from can_fixtures import FAST, connect, drive, no_bus_left_open, sim_parts  # noqa: F401
 
 N = 1500
@@ -62,7 +62,7 @@ def assert_fault_event(outcome, events, *words):
 def test_clean_run_has_no_fault(drive):
     outcome, events = run_with_fault(drive, lambda peer: None)
     assert outcome.status == "completed" and outcome.n_done == N
-    from labbench.timing import EVENTS as TIMING  # a loaded host's overruns are recorded too
+    from labbench.loop.timing import EVENTS as TIMING  # a loaded host's overruns are recorded too
 
     assert [e["name"] for e in events if e["name"] not in TIMING] == ["enabled"]
     assert drive.peer.state is State.SWITCH_ON_DISABLED  # disabled on the way out

@@ -6,7 +6,7 @@ import pytest
 from truthdata import PAPER_B, PAPER_M, chirp_recording, closed_loop_recording, write_csv, z_truth
 
 from labbench.cli import main
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 ID_KEYS = {"model", "method", "m", "b", "coulomb", "offset", "ci95", "rms_residual", "n_used"}
 ETFE_KEYS = {"estimator", "w", "Z_re", "Z_im", "ES", "ED", "EM", "coherence", "ws_star", "wb_star"}
@@ -54,7 +54,7 @@ def test_id_human_output(chirp_csv, capsys):
     assert main(["analyze", "id", str(chirp_csv), "--model", "mbco"]) == 0
     out = capsys.readouterr().out
     assert "model mbco" in out and "Coulomb friction Fc:" in out and "force offset f0:" in out
-    assert "mass m: " in out and " to " in out  # the value with its interval (labbench.readout)
+    assert "mass m: " in out and " to " in out  # the value with its interval (labbench.readout.wording)
     assert "force_hold: zoh (cross-validation, CV loss ratio" in out
 
 
@@ -86,7 +86,7 @@ def test_etfe_paper_estimator_and_plot(loop_csv, tmp_path, capsys):
 def test_etfe_of_a_recorded_session(tmp_path, capsys):
     from session_recorder import synthetic_stream
 
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=30000):
@@ -159,7 +159,7 @@ def test_id_of_a_session_from_a_one_period_late_device(tmp_path, capsys):
     # start record carries it, and analyze id on the session regresses on the delayed command
     from labbench.registry import make_protocol
     from labbench.rig import rig_from_dict
-    from labbench.runner import run_recorded
+    from labbench.loop.runner import run_recorded
     from labbench.sim_backend.sim_device import open_sim
 
     rig = rig_from_dict({"rig": {"measured_td_s": 0.001}, "sim": {"extra_delay_samples": 1}})
@@ -182,7 +182,7 @@ def test_a_td_line_of_fractional_samples_uses_the_paper_model(tmp_path, capsys):
 
 
 def test_verdict_in_json_text_and_strict_exit(tmp_path, chirp_csv, capsys):
-    from labbench.verdict import STRICT_EXIT
+    from labbench.readout.verdict import STRICT_EXIT
 
     d = run_json(capsys, "analyze", "id", chirp_csv, "--json", "--strict")
     assert d["verdict"] == {"level": "ok", "reasons": []}

@@ -13,8 +13,8 @@ import pytest
 from labbench.model import linear
 from labbench.cli import main
 from labbench.cli.progress import ProgressBar
-from labbench.session_format import read_session
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.sessions.session_format import read_session
+from labbench.model.ve import Plant, VirtualEnvironment
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from labbench import predictions
+from labbench.model import predictions
 from labbench.model import linear
 from labbench.cli import main
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 SD = ["theory", "--ve", "spring-damper", "--m", "0.1", "--b", "0.1", "--K", "50", "--B", "1",
       "--w0", "125"]
@@ -54,7 +54,7 @@ def test_json_keys_and_values(model, capsys):
     assert d["spectral_radius"] == pytest.approx(st.spectral_radius, rel=1e-12)
     assert d["K_max"] == pytest.approx(linear.k_max(plant, ve), rel=1e-12)
     assert d["K_max_approx"] == pytest.approx(1.1 / 0.0025)
-    # one truth (labbench.predictions): read off the exact sampled model, closed forms beside
+    # one truth (labbench.model.predictions): read off the exact sampled model, closed forms beside
     bw = predictions.bandwidths(plant, ve)
     assert (d["ws_star"], d["wb_star"], d["bandwidths_model"]) == (bw.ws_star, bw.wb_star, "sampled")
     assert d["ws_star_eq5"] == pytest.approx(math.sqrt(500)) and d["wb_star_w0"] == 125

@@ -8,10 +8,10 @@ import pytest
 from labbench.cli import main
 from labbench.jsonutil import json_safe
 from labbench.registry import open_device
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.model.effective import effective_impedances, measured_wb_star, measured_ws_star
 from labbench.errors import UserError
 from labbench.rig import load_rig, rig_from_dict
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 
 def test_ve_zeroes_unused_gains_and_checks_delay():

@@ -61,7 +61,7 @@ def test_unreadable_and_missing_files(tmp_path):
 def test_session_file_loads_through_the_same_entry_point(tmp_path):
     from session_recorder import synthetic_stream
 
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     writer = SessionWriter(tmp_path)
     for record in synthetic_stream(n_samples=3000):
@@ -80,8 +80,8 @@ def test_session_records_how_the_force_reached_the_plant(tmp_path, hold):
 
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import SimDevice
 
     class Device(SimDevice):

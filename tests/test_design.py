@@ -1,4 +1,4 @@
-"""The design tool (labbench.design, labbench.design_check, ``labbench design``): each number
+"""The design tool (labbench.design.tradeoffs, labbench.design.checking, ``labbench design``): each number
 equals its model, the Z-width rule and the Pareto front against exact truth, the recommended w0
 against a campaign measured on the rough simulator, and bad input in one line."""
 import json
@@ -7,24 +7,25 @@ import math
 import numpy as np
 import pytest
 
-from labbench import design, predictions
+from labbench.design import tradeoffs
+from labbench.model import predictions
 from labbench.cli.main import main
-from labbench.design_check import check, table_lines
+from labbench.design.checking import check, table_lines
 from labbench.errors import UserError
 from labbench.model import linear, noise, passivity, stability_friction
 from labbench.rig import Rig, rig_from_dict
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 PLANT = Plant(0.094, 0.10)
 DELTA = Rig().metres_per_count
-ROUGH = design.Device(PLANT, 0.0, DELTA, 0.002, 0.02)  # issue 41's rough simulator
-QUANTISED = design.Device(PLANT, 0.0, DELTA, 0.002)  # the same without friction
+ROUGH = tradeoffs.Device(PLANT, 0.0, DELTA, 0.002, 0.02)  # issue 41's rough simulator
+QUANTISED = tradeoffs.Device(PLANT, 0.0, DELTA, 0.002)  # the same without friction
 ROUGH_SOURCES = noise.NoiseSources(DELTA, 0.002)
 
 
 def test_every_number_is_its_models():
     """One model per number, as MODELS names it: the design calls them, nothing else."""
-    d = design.Designer(ROUGH, design.Targets(noise_limit_n=0.004))
+    d = tradeoffs.Designer(ROUGH, tradeoffs.Targets(noise_limit_n=0.004))
     p = d.evaluate(50.0, 1.0, 125.0, 0.001)
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
     assert p.k_max == linear.k_max(PLANT, ve)
@@ -33,16 +34,16 @@ def test_every_number_is_its_models():
     assert p.k_quantised == pytest.approx(2 * 0.02 / DELTA)
     assert p.k_friction == stability_friction.friction_boundary(PLANT, ve, 0.02, 1e-3)
     assert p.k_friction > p.k_max and p.b_friction is None  # no hand speed stated
-    moving = design.Designer(ROUGH, design.Targets(motion_m_s=0.05)).evaluate(50, 1, 125, 1e-3)
+    moving = tradeoffs.Designer(ROUGH, tradeoffs.Targets(motion_m_s=0.05)).evaluate(50, 1, 125, 1e-3)
     assert moving.b_friction == pytest.approx(0.02 * math.sqrt(2 / math.pi) / 0.05)
     bw = predictions.bandwidths(PLANT, ve)
     assert (p.ws_star, p.wb_star) == (bw.ws_star, bw.wb_star)
     assert p.rendered_B == linear.low_frequency(PLANT, ve, "sampled")[0]
     fn = noise.force_noise(PLANT, ve, noise.NoiseSources(DELTA, 0.002, 0.02),
-                           excitation=noise.Excitation(design.EXCITATION_N))
+                           excitation=noise.Excitation(tradeoffs.EXCITATION_N))
     assert (p.noise_command, p.noise_felt) == (fn.rms_command, fn.rms_felt)
     assert (p.noise_friction, p.stick_share) == (fn.parts["friction"], fn.friction.stick_share)
-    w = design.ACCURACY_W
+    w = tradeoffs.ACCURACY_W
     assert p.ed_error_sampled == pytest.approx(
         abs(linear.z_sampled(PLANT, ve, [w]).real[0] - 1.1) / 1.1)
     assert p.ed_error_paper == pytest.approx(
@@ -57,22 +58,22 @@ def test_friction_noise_follows_the_stated_motion():
     Fc unknown, the linear model (no friction part)."""
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
     src = noise.NoiseSources(DELTA, 0.002, 0.02)
-    for targets, std in ((design.Targets(), 0.5), (design.Targets(excitation_n=0.2), 0.2)):
-        p = design.Designer(ROUGH, targets).evaluate(50.0, 1.0, 125.0, 1e-3)
+    for targets, std in ((tradeoffs.Targets(), 0.5), (tradeoffs.Targets(excitation_n=0.2), 0.2)):
+        p = tradeoffs.Designer(ROUGH, targets).evaluate(50.0, 1.0, 125.0, 1e-3)
         fn = noise.force_noise(PLANT, ve, src, excitation=noise.Excitation(std))
         assert p.noise_command == fn.rms_command and p.noise_friction > 0
-    d = design.Designer(ROUGH, design.Targets(motion_m_s=0.01))
+    d = tradeoffs.Designer(ROUGH, tradeoffs.Targets(motion_m_s=0.01))
     _, fn = d.detail(50.0, 1.0, 125.0, 1e-3)
     assert fn.friction.velocity_rms == pytest.approx(0.01, rel=0.02)
-    plain = design.Designer(QUANTISED).evaluate(50.0, 1.0, 125.0, 1e-3)
+    plain = tradeoffs.Designer(QUANTISED).evaluate(50.0, 1.0, 125.0, 1e-3)
     assert plain.noise_friction is None and plain.stick_share is None
     assert plain.noise_command == noise.force_noise(PLANT, ve, ROUGH_SOURCES).rms_command
-    held = design.Designer(ROUGH, design.Targets(excitation_n=0.01)).evaluate(50, 1, 125, 1e-3)
+    held = tradeoffs.Designer(ROUGH, tradeoffs.Targets(excitation_n=0.01)).evaluate(50, 1, 125, 1e-3)
     assert held.stable and held.noise_command is None  # friction holds the handle: no number
 
 
 def test_an_unstable_setting_says_so_and_has_no_noise():
-    d = design.Designer(ROUGH)
+    d = tradeoffs.Designer(ROUGH)
     p = d.evaluate(2000.0, 1.0, 125.0, 0.001)  # K_max 1212 N/m
     assert not p.stable and not p.within_limit
     assert p.noise_felt is None and p.rendered_B is None
@@ -83,9 +84,9 @@ def test_the_noise_limit_holds_the_noise_it_names():
     sinc^2 lowers the quantisation's share more than the amplifier's 2 mN adds): a 4.3 mN
     limit on the command refuses it, the same limit on the felt force takes it."""
     limit = 0.0043
-    on_command = design.Designer(QUANTISED, design.Targets(noise_limit_n=limit)).evaluate(
+    on_command = tradeoffs.Designer(QUANTISED, tradeoffs.Targets(noise_limit_n=limit)).evaluate(
         50, 2, 180, 1e-3)
-    on_felt = design.Designer(QUANTISED, design.Targets(noise_limit_n=limit, noise_of="felt")
+    on_felt = tradeoffs.Designer(QUANTISED, tradeoffs.Targets(noise_limit_n=limit, noise_of="felt")
                               ).evaluate(50, 2, 180, 1e-3)
     assert on_command.noise_command > limit > on_command.noise_felt
     assert not on_command.within_limit and on_felt.within_limit
@@ -94,18 +95,18 @@ def test_the_noise_limit_holds_the_noise_it_names():
 def test_zwidth_rule_against_exact_areas():
     Bs = [0.0, 1.0, 2.0]
     # no limit: the trapezoid of a line is exact
-    assert design.zwidth(Bs, [100.0, 300.0, 500.0], [1, 2, 3], None) == (600.0, 2.0)
+    assert tradeoffs.zwidth(Bs, [100.0, 300.0, 500.0], [1, 2, 3], None) == (600.0, 2.0)
     # the limit crossed half-way between B = 1 and 2: K_max there 400, area 200 + 175
-    area, b_lim = design.zwidth(Bs, [100.0, 300.0, 500.0], [1.0, 2.0, 4.0], 3.0)
+    area, b_lim = tradeoffs.zwidth(Bs, [100.0, 300.0, 500.0], [1.0, 2.0, 4.0], 3.0)
     assert b_lim == pytest.approx(1.5) and area == pytest.approx(200 + 0.5 * (300 + 400) * 0.5)
-    assert design.zwidth(Bs, [100.0, 300.0, 500.0], [5.0, 6.0, 7.0], 3.0) == (0.0, None)
-    assert design.zwidth(Bs, [100.0, 300.0, 500.0], [1.0, 2.0, math.inf], 3.0) == (200.0, 1.0)
+    assert tradeoffs.zwidth(Bs, [100.0, 300.0, 500.0], [5.0, 6.0, 7.0], 3.0) == (0.0, None)
+    assert tradeoffs.zwidth(Bs, [100.0, 300.0, 500.0], [1.0, 2.0, math.inf], 3.0) == (200.0, 1.0)
 
 
 def test_pareto_front_is_exactly_the_undominated_set():
-    d = design.Designer(ROUGH)
+    d = tradeoffs.Designer(ROUGH)
     pts = d.sweep([50.0, 150.0], [0.0, 0.5, 1.0, 2.0], [60.0, 125.0, 250.0, 500.0], [0.001])
-    front = design.pareto(pts)
+    front = tradeoffs.pareto(pts)
     stable = [p for p in pts if p.stable]
 
     def key(p):
@@ -124,7 +125,7 @@ def test_recommend_is_the_argmax_of_the_measured_rule_on_the_models():
     the command noise (noise.force_noise) and the Z-width rule; the design's choice is its
     argmax, interior (a faster filter raises K_max but the noise limit lowers B)."""
     Bs, w0s = [0.0, 0.5, 1.0, 1.5, 2.0], [60.0, 125.0, 180.0, 250.0, 360.0]
-    d = design.Designer(QUANTISED, design.Targets(noise_limit_n=0.004))
+    d = tradeoffs.Designer(QUANTISED, tradeoffs.Targets(noise_limit_n=0.004))
     rec = d.recommend(50.0, Bs, w0s, 0.001)
     areas = {}
     for w0 in w0s:
@@ -132,26 +133,26 @@ def test_recommend_is_the_argmax_of_the_measured_rule_on_the_models():
         k = [linear.k_max(PLANT, ve) for ve in ves]
         n = [noise.force_noise(PLANT, ve, noise.NoiseSources(DELTA, 0.002)).rms_command
              for ve in ves]
-        areas[w0] = design.zwidth(Bs, k, n, 0.004)[0]
+        areas[w0] = tradeoffs.zwidth(Bs, k, n, 0.004)[0]
     assert rec["w0"] == max(areas, key=areas.get) == 180.0
     assert [r["value"] for r in rec["by_w0"]] == pytest.approx([areas[w] for w in w0s])
-    no_limit = design.Designer(QUANTISED).recommend(50.0, Bs, w0s, 0.001)
+    no_limit = tradeoffs.Designer(QUANTISED).recommend(50.0, Bs, w0s, 0.001)
     assert no_limit["w0"] == 360.0  # without a limit the fastest filter is stiffest
 
 
 def test_band_objective_takes_the_fastest_filter_within_the_limit():
-    d = design.Designer(QUANTISED, design.Targets(noise_limit_n=0.004))
+    d = tradeoffs.Designer(QUANTISED, tradeoffs.Targets(noise_limit_n=0.004))
     rec = d.recommend(50.0, [1.0], [60.0, 125.0, 250.0, 360.0], 0.001, "band", B=1.0)
     assert rec["w0"] == 250.0  # 360 rad/s: 4.16 mN at B = 1
     assert rec["by_w0"][-1]["value"] is None
 
 
 def test_rig_noise_sources():
-    hw, where = design.rig_noise(Rig(), simulated=False)
+    hw, where = tradeoffs.rig_noise(Rig(), simulated=False)
     assert hw == noise.NoiseSources(DELTA, 0.0) and where["force_noise"] == "none stated"
     rough = rig_from_dict({"sim": {"quantize": True, "force_noise_n": 0.002}})
-    assert design.rig_noise(rough, True)[0] == noise.NoiseSources(DELTA, 0.002)
-    assert design.rig_noise(Rig(), True)[0] == noise.NoiseSources(0.0, 0.0)  # ideal simulator
+    assert tradeoffs.rig_noise(rough, True)[0] == noise.NoiseSources(DELTA, 0.002)
+    assert tradeoffs.rig_noise(Rig(), True)[0] == noise.NoiseSources(0.0, 0.0)  # ideal simulator
 
 
 @pytest.mark.parametrize("kw,match", [({"noise_limit_n": -1.0}, "noise limit"),
@@ -163,7 +164,7 @@ def test_rig_noise_sources():
                                       ({"excitation_n": 0.0}, "excitation")])
 def test_targets_refuse_bad_values(kw, match):
     with pytest.raises(UserError, match=match):
-        design.Targets(**kw)
+        tradeoffs.Targets(**kw)
 
 
 # ----------------------------------------------------------------- predict, then measure
@@ -200,7 +201,7 @@ def test_predictions_beside_the_campaigns_measurements(campaigns):
     d, _ = campaigns
     rows = tables.read_table(d / "noise.sweep").to_pylist() + \
         tables.read_table(d / "zw.sweep").to_pylist()
-    designer = design.Designer(QUANTISED, design.Targets(noise_limit_n=0.004))  # as simulated
+    designer = tradeoffs.Designer(QUANTISED, tradeoffs.Targets(noise_limit_n=0.004))  # as simulated
     c = check(designer, rows)
     assert len(c.rows) == 9
     for r in c.rows:
@@ -270,7 +271,7 @@ def test_cli_design_with_friction_names_its_noise_model(capsys, tmp_path):
                  "--out", str(tmp_path), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["device"]["coulomb_n"] == 0.02 and "simulator" in out["device"]["sources"]["coulomb"]
-    assert out["targets"]["excitation_n"] == design.EXCITATION_N
+    assert out["targets"]["excitation_n"] == tradeoffs.EXCITATION_N
     assert out["points"][0]["noise_friction"] > 0 and "arcsine" in out["models"]["noise_friction"]
     assert main(["design", "--B", "1", "--w0", "125", "--out", str(tmp_path), "--coulomb-n",
                  "0.05", "--excitation-n", "0.1"]) == 0

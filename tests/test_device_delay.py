@@ -1,4 +1,4 @@
-"""The device's own delay (labbench.device_delay): where it comes from, what the start
+"""The device's own delay (labbench.model.device_delay): where it comes from, what the start
 record and the analysis metadata say, and the theory that carries it."""
 import json
 import math
@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from labbench import device_delay
+from labbench.model import device_delay
 from labbench.model import linear
 from labbench.device import DeviceDescription
 from labbench.errors import UserError
 from labbench.rig import Rig
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 PLANT = Plant(0.094, 0.10)
 T = 0.001
@@ -64,10 +64,10 @@ def test_a_run_records_the_declared_delay_and_its_analysis_uses_it(tmp_path):
     # precheck and the analysis metadata all carry it, and the identification shifts the force
     from dataclasses import replace
 
-    from labbench import session_content
+    from labbench.sessions import session_content
     from labbench.registry import make_protocol
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
     dev = open_sim(Rig(), seed=1, extra_delay_samples=1)

@@ -9,7 +9,7 @@ from labbench.analysis import compare
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import DEFAULT_ESTIMATOR, ESTIMATORS, etfe
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 SPRING_DAMPER = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
 DAMPER = VirtualEnvironment("damper", B=1.0, w0=125.0)

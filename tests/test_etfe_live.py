@@ -10,7 +10,7 @@ from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe
 from labbench.analysis.etfe_live import LEVELS, LiveEtfe
 from labbench.errors import UserError
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 from truthdata import closed_loop_recording, z_truth
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from session_recorder import VE, synthetic_stream
 
-from labbench import records
+from labbench.sessions import records
 from labbench.cli import main
 from labbench.analysis import dataio
-from labbench.export import CSV_COLUMNS
-from labbench.session_format import SessionWriter
+from labbench.sessions.export import CSV_COLUMNS
+from labbench.sessions.session_format import SessionWriter
 
 
 @pytest.fixture
@@ -139,7 +139,7 @@ def test_frequency_response_csv(tmp_path, session, capsys):
 
 def test_display_units_change_only_what_is_printed(tmp_path, session, capsys):
     from labbench.errors import UserError
-    from labbench.units import DisplayUnits
+    from labbench.readout.units import DisplayUnits
 
     u = DisplayUnits.parse("mm,Hz,deg")
     assert (u.length_of(0.0123), u.frequency_of(2 * np.pi), u.angle_of(np.pi)) == \

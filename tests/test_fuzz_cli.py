@@ -19,8 +19,8 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.registry import protocol_class
-from labbench import records
-from labbench.session_format import SessionWriter
+from labbench.sessions import records
+from labbench.sessions.session_format import SessionWriter
 
 CI_CASES = 12  # per entry point
 SLOW_CASES = 150

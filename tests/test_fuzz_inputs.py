@@ -22,9 +22,9 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.analysis import dataio
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import UserError
-from labbench.session_format import SessionWriter
+from labbench.sessions.session_format import SessionWriter
 
 RIG = """[rig]
 name = "bench"

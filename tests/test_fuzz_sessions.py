@@ -355,7 +355,7 @@ def key_removals(items):
 def real_items(tmp_path_factory):
     """A chirp-ID and an ETFE session of the simulator: the records every analysis writes."""
     from labbench.report import session as report_session
-    from labbench.session_format import read_session
+    from labbench.sessions.session_format import read_session
 
     out = tmp_path_factory.mktemp("real")
     for argv in (["run", "chirp-id", "--duration-s", "4", "--f0-hz", "0.5"],

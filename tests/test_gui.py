@@ -23,9 +23,9 @@ from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
 from labbench.gui.live_view import IDENTIFIED  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.session_catalogue import list_sessions  # noqa: E402
-from labbench.session_content import analysis_meta, load_session  # noqa: E402
-from labbench.ve import Plant  # noqa: E402
+from labbench.sessions.session_catalogue import list_sessions  # noqa: E402
+from labbench.sessions.session_content import analysis_meta, load_session  # noqa: E402
+from labbench.model.ve import Plant  # noqa: E402
 
 TRUTH = Plant(0.094, 0.10)  # the simulator's default plant (labbench.sim_backend.sim_device)
 RUN_TIMEOUT_MS = 60_000
@@ -113,7 +113,7 @@ def test_etfe_run_on_simulator_fills_plots_with_the_recorded_data(qtbot, make_wi
     Zb = theory_curve(TRUTH, ve_from_meta(meta), est.w[band], "sampled")
     assert np.median(np.abs(est.Z[band] - Zb) / np.abs(Zb)) < 0.01
     # w_s* is marked where the measured ES crosses zero, as it does on the exact theory curve
-    from labbench.effective import effective_impedances, measured_ws_star
+    from labbench.model.effective import effective_impedances, measured_ws_star
 
     wg = np.geomspace(1, 300, 3000)
     ws_true = measured_ws_star(wg, effective_impedances(wg, theory_curve(
@@ -171,7 +171,7 @@ def test_chirp_id_fills_identification_view(qtbot, make_window):
     assert np.median(np.abs(z_meas - z_model) / z_model) < 0.01  # exact plant: ETFE bias only
     # the true plant's exact sampled Z (the continuous b + j w m is 3.7 % under it at 0.3 fs)
     from labbench.analysis.compare import theory_curves
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     exact = np.abs(theory_curves(TRUTH, VirtualEnvironment("none", T=1e-3), w)["Z"])
     np.testing.assert_allclose(z_model, exact, rtol=0.02)
@@ -578,10 +578,10 @@ def test_live_axes_follow_the_trusted_estimate(qtbot):
     """Points whose 95 % radius exceeds a quarter of |Z| are drawn but do not set the range
     (early in a white-noise run they spanned +-400 000 N/m and flattened the curve)."""
     from labbench.model import linear
-    from labbench.effective import effective_impedances
+    from labbench.model.effective import effective_impedances
     from labbench.gui.live_estimate import Estimate
     from labbench.gui.live_plots import ImpedancePlots
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     plots = ImpedancePlots()
     qtbot.addWidget(plots)

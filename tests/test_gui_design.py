@@ -8,11 +8,11 @@ os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from labbench.design import Designer, Targets, device_for  # noqa: E402
+from labbench.design.tradeoffs import Designer, Targets, device_for  # noqa: E402
 from labbench.gui.design_view import SLIDERS, DesignView  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.gui.settings import open_settings  # noqa: E402
-from labbench.numfmt import fmt  # noqa: E402
+from labbench.readout.numfmt import fmt  # noqa: E402
 from labbench.rig import Rig, load_rig  # noqa: E402
 
 

@@ -13,13 +13,13 @@ import pytest  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.id_view import cells  # noqa: E402
-from labbench.readout import session_label  # noqa: E402
+from labbench.readout.wording import session_label  # noqa: E402
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
-from labbench.numfmt import fmt  # noqa: E402
+from labbench.readout.numfmt import fmt  # noqa: E402
 from labbench.gui.settings import open_settings  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.session_content import load_session  # noqa: E402
+from labbench.sessions.session_content import load_session  # noqa: E402
 
 RUN_MS = 60_000
 
@@ -226,17 +226,17 @@ def _final_estimate(qtbot, win):
 
 
 def _read_id(fit: dict, method: str) -> dict[str, str]:
-    """An identification's rows as labbench.readout writes them."""
-    from labbench import readout
+    """An identification's rows as labbench.readout.wording writes them."""
+    from labbench.readout import wording
 
-    return dict(readout.of_identification(fit, method).row_texts())
+    return dict(wording.of_identification(fit, method).row_texts())
 
 
 def _read_fit(fit: dict) -> dict[str, str]:
-    """A loop fit's m, b, td, tv as labbench.readout writes them."""
-    from labbench import readout
+    """A loop fit's m, b, td, tv as labbench.readout.wording writes them."""
+    from labbench.readout import wording
 
-    rows = dict(readout.of_results("etfe", {"etfe": {}, "loop_fit": fit}).rows)
+    rows = dict(wording.of_results("etfe", {"etfe": {}, "loop_fit": fit}).rows)
     return {name: value.text() for name, value in rows["closed-loop fit"]}
 
 
@@ -254,7 +254,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert Path(chirp_path).name in view.source.text()
     fits = chirp.results["identification"]
     table = cells(view.table)
-    # the numbers as labbench.readout writes them (the CLI's and the report's)
+    # the numbers as labbench.readout.wording writes them (the CLI's and the report's)
     assert table["mass m"] == [_read_id(fits[m], m)["mass m"] for m in ("l2", "l1")]
     assert table["verdict"] == [fits["l2"]["verdict"]["level"], fits["l1"]["verdict"]["level"]]
     assert view.verdicts.levels() == {f"{m} fit": fits[m]["verdict"]["level"] for m in ("l2", "l1")}
@@ -295,7 +295,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert f"identified in {label}" in again.id_view.overlay.text()
 
     # Re-analyse the ETFE session: labbench analyze etfe --fit's numbers (CV-chosen delays)
-    from labbench.session_api import load
+    from labbench.sessions.session_api import load
 
     again.sessions.select_path(etfe_path)
     again.sessions.estimator.setCurrentText("h1-welch")
@@ -313,8 +313,8 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
 
 
 def test_display_units_follow_the_choice_and_are_remembered(qtbot, tmp_path):
-    from labbench import predictions
-    from labbench.units import SI, DisplayUnits
+    from labbench.model import predictions
+    from labbench.readout.units import SI, DisplayUnits
 
     ini, folder = tmp_path / "settings.ini", tmp_path / "sessions"
     win = _window(qtbot, folder, open_settings(ini), realtime=False)

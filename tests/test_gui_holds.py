@@ -104,7 +104,7 @@ def test_the_precheck_is_the_check_the_run_makes_on_every_backend(qtbot, window,
     'stable ... K_max = 1212 N/m' while Start was refused with K_max = 514.9 N/m: the
     pre-check left out the connected device's delay. Now the line, once the device is
     connected, is the check the runner records in the session, on every backend."""
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     if backend == "avr-sim":
         request.getfixturevalue("avr_toolchain")
@@ -199,7 +199,7 @@ def test_what_the_status_bar_showed_of_a_run_is_in_its_session(qtbot, window, tm
     from gui_faulty_device import open_stalling
     from labbench.report.content import build
     from labbench.report.render_html import render_html
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     win = window(realtime=True)
     win.connect_device("sim", opener=functools.partial(open_stalling, at=1500, stall_s=0.008))
@@ -276,10 +276,10 @@ def test_the_marks_say_the_reports_bandwidths_whatever_the_estimator(qtbot, wind
     with another estimator marks what `labbench analyze etfe` says."""
     import labbench
     from labbench.gui.live_estimate import LIVE
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
     from labbench.report.content import build
     from labbench.report.render_html import render_html
-    from labbench.ve import Plant, VirtualEnvironment
+    from labbench.model.ve import Plant, VirtualEnvironment
     from truthdata import off_the_half_way_level
 
     def marks() -> dict[str, str]:
@@ -349,7 +349,7 @@ def test_the_noise_seed_is_new_each_run_unless_one_is_typed(qtbot, window, tmp_p
     import numpy as np
 
     from labbench.gui.settings import open_settings
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     ini = tmp_path / "settings.ini"
     win = window(settings=open_settings(ini))
@@ -387,8 +387,8 @@ def test_right_after_a_chirp_id_the_identification_header_names_both_plants(qtbo
     above a column "l2 fit (overlay)": the header spoke of the record's theory, the column of
     the next run's, and neither said so. Now the header names both, and the column says
     which runs take it."""
-    from labbench.numfmt import fmt
-    from labbench.readout import session_label
+    from labbench.readout.numfmt import fmt
+    from labbench.readout.wording import session_label
 
     win = window()
     path = run_protocol(qtbot, win, "chirp-id", duration_s=20.0)
@@ -551,7 +551,7 @@ def test_the_sessions_table_names_the_backend_and_a_probes_start():
     from pathlib import Path
 
     from labbench.gui.sessions_view import COLUMNS, cells
-    from labbench.session_catalogue import SessionSummary, _device
+    from labbench.sessions.session_catalogue import SessionSummary, _device
 
     probe = SessionSummary(Path("p.lbsession"), "u", 0.0, "rig", "stability", "success", 100,
                            ve="spring-damper", K=60.0, B=1.0, device=_device({"kind": "avr-sim"}))

@@ -11,10 +11,10 @@ from PySide6 import QtCore  # noqa: E402
 
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.gui.sweep_view import SweepView  # noqa: E402
-from labbench.numfmt import fmt  # noqa: E402
+from labbench.readout.numfmt import fmt  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.session_content import load_session  # noqa: E402
-from labbench.session_format import looks_like_session  # noqa: E402
+from labbench.sessions.session_content import load_session  # noqa: E402
+from labbench.sessions.session_format import looks_like_session  # noqa: E402
 from labbench.sweep import table as tables  # noqa: E402
 from labbench.sweep.engine import run_sweep  # noqa: E402
 from labbench.sweep.spec import spec_from_dict  # noqa: E402

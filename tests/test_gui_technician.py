@@ -663,7 +663,7 @@ def test_the_write_hint_matches_the_write_button_without_a_rig_file(qtbot, windo
 def test_display_units_apply_to_verdict_texts_too(qtbot, window):
     import re
 
-    from labbench.units import DisplayUnits
+    from labbench.readout.units import DisplayUnits
 
     win = window()
     _run(qtbot, win, "etfe", duration_s=4.0)

@@ -12,7 +12,7 @@ from labbench.gui.id_view import cells  # noqa: E402
 from labbench.gui.live_estimate import LIVE as LIVE_ESTIMATOR  # noqa: E402
 from labbench.gui.live_view import RUN_PLANT  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
-from labbench.numfmt import fmt  # noqa: E402
+from labbench.readout.numfmt import fmt  # noqa: E402
 from labbench.report.blocks import Table  # noqa: E402
 from labbench.report.content import build  # noqa: E402
 from labbench.report.render_html import render_html  # noqa: E402
@@ -51,7 +51,7 @@ def _same_number(shown: str, reported: str) -> bool:
 
 def _report_loop_fit(path) -> dict[str, str]:
     """name -> value of the report's closed-loop fit table (its "value (lo to hi)" cells:
-    ``labbench.numfmt.fmt_ci``)."""
+    ``labbench.readout.numfmt.fmt_ci``)."""
     table = next(b for b in build([path]).blocks
                  if isinstance(b, Table) and b.title.startswith("Closed-loop fit"))
     return {row[0]: row[1].split(" (")[0] for row in table.rows}
@@ -81,7 +81,7 @@ def test_bandwidths_and_plant_in_the_window_equal_the_reports(qtbot, tmp_path, r
                   f"{numbers['wb_star_predicted']} rad/s; paper w0: {numbers['wb_star_w0']})")
     for sym in ("ws", "wb"):
         measured, predicted = numbers[f"{sym}_star_measured"], numbers[f"{sym}_star_predicted"]
-        # page 1, as labbench.readout writes it
+        # page 1, as labbench.readout.wording writes it
         assert f"measured = {measured} rad/s; sampled theory = {predicted} rad/s" in html
     # the wb* the sampled model predicts is far from w0: the window must not call w0 "theory"
     assert bw["wb_star_predicted"] < 0.7 * bw["wb_star_w0"]
@@ -106,11 +106,11 @@ def test_the_window_says_what_the_cli_and_the_report_say(qtbot, tmp_path):
     # issue 30's third surface: an ETFE run from the window shows the verdict lines and the
     # rendered sentence of the session's readout, which the CLI and the report write
     # (tests/test_readout.py: the CLI's JSON and text, replay and the report agree)
-    from labbench import readout
+    from labbench.readout import wording
 
     win = _etfe_in_window(qtbot, Rig(), tmp_path)
     qtbot.waitUntil(lambda: bool(win.live.verdicts.shown), timeout=RUN_TIMEOUT_MS)
-    back = readout.of_session(win.session_path)
+    back = wording.of_session(win.session_path)
     shown = win.live.verdicts
     assert [j.line() for j in shown.shown] == [j.line() for j in back.verdicts]
     text = shown.text()

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from truthdata import PAPER_B, PAPER_M, chirp_recording, sensor_chirp_recording, with_noise
 
-from labbench.verdict import holds
+from labbench.readout.verdict import holds
 from labbench.analysis import l1
 from labbench.analysis.identify import identify
 from labbench.errors import UserError
@@ -452,7 +452,7 @@ def test_stick_slip_on_the_simulated_chirp_id(coulomb_n):
     # the bench's own path (protocol chirp-id on the quantised simulator): with 0.1 N of
     # friction b comes out ~4-5x too high, and the flag says why; without it, no flag
     from labbench.rig import rig_from_dict
-    from labbench.runner import run
+    from labbench.loop.runner import run
     from labbench.registry import make_protocol
     from labbench.sim_backend.sim_device import open_sim
 
@@ -631,7 +631,7 @@ def test_closed_loop_identification_uses_instruments_against_process_noise():
     from truthdata import closed_loop_recording
 
     from labbench.analysis import compare
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     ve = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0, td=0.001)
     rec = closed_loop_recording(ve, n=30000, seed=1, process_noise=0.3)

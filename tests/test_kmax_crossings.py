@@ -7,7 +7,7 @@ import random
 import pytest
 
 from labbench.model import linear
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 
 def loops(n, seed):

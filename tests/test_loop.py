@@ -1,4 +1,4 @@
-"""The loop chain on the simulator against the exact sampled model (labbench.theory)."""
+"""The loop chain on the simulator against the exact sampled model (labbench.model.linear)."""
 import threading
 import time
 
@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import UserError
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
 from labbench.model.linear import closed_loop, z_sampled
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.sim_backend.sim_device import open_sim
 
 PLANT = Plant(0.094, 0.10)

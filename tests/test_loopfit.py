@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 from truthdata import PAPER_B, PAPER_M, closed_loop_recording, delayed_loop_recording, write_csv
 
-from labbench.verdict import holds
+from labbench.readout.verdict import holds
 from labbench.model import linear
 from labbench.analysis import compare
 from labbench.analysis.etfe import etfe
 from labbench.analysis.loopfit import fit_loop
 from labbench.cli import main
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 T = 0.001
 SD = VirtualEnvironment("spring-damper", K=50.0, B=1.0, w0=125.0)
@@ -92,8 +92,8 @@ def test_fit_measures_the_simulator_latency_from_a_session(tmp_path, whole, frac
     from labbench.analysis.dataio import load_recording
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
     writer = SessionWriter(tmp_path)
@@ -150,8 +150,8 @@ def test_session_overlay_uses_the_rigs_measured_delay(tmp_path, capsys):
     # rig file; the next run's theory overlay (protocol results and analyze etfe) then matches
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
     def session(rig):
@@ -249,7 +249,7 @@ def test_noisy_records_meet_the_targets_or_say_why(seed):
 
 
 def test_session_etfe_fits_on_request(tmp_path):
-    from labbench.session_api import Session
+    from labbench.sessions.session_api import Session
 
     rec = delayed_loop_recording(SD, n=20000, ve_delay=2 * T, seed=3)
     p = tmp_path / "loop.csv"
@@ -264,7 +264,7 @@ def test_session_etfe_fits_on_request(tmp_path):
 def test_strict_exits_on_a_failed_loop_fit(tmp_path, capsys):
     # process noise the record's own Z_err cannot see is fine; a VE the metadata misstate is not:
     # the record says K = 50 where the loop rendered 80, so no plant and delay can fit it
-    from labbench.verdict import STRICT_EXIT
+    from labbench.readout.verdict import STRICT_EXIT
 
     rec = delayed_loop_recording(SD.with_(K=80.0), n=20000, seed=6)
     p = tmp_path / "loop.csv"
@@ -352,8 +352,8 @@ def sim_etfe_2min(tmp_path_factory):
     from labbench.analysis.dataio import load_recording
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.runner import run
-    from labbench.session_format import SessionWriter
+    from labbench.loop.runner import run
+    from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
     writer = SessionWriter(tmp_path_factory.mktemp("etfe2min"))

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from labbench import records
+from labbench.sessions import records
 from labbench.analysis import force_noise
 from labbench.errors import UserError
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.model import linear, noise
 from labbench.rig import Rig
 from labbench.sim_backend.sim_device import open_sim
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 PLANT = Plant(0.094, 0.10)
 RIG = Rig()

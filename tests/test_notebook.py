@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from labbench.cli.main import main
-from labbench.ve import DEFAULT_PLANT
+from labbench.model.ve import DEFAULT_PLANT
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "notebook.md"
 FENCE = re.compile(r"^```(\w+)\n(.*?)^```", re.S | re.M)

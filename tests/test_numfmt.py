@@ -1,12 +1,12 @@
-"""The one number formatter (labbench.numfmt): values to the digits their interval supports."""
+"""The one number formatter (labbench.readout.numfmt): values to the digits their interval supports."""
 import math
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from labbench.numfmt import EXACT, band_text, fmt, fmt_ci, plain
-from labbench.units import DisplayUnits
+from labbench.readout.numfmt import EXACT, band_text, fmt, fmt_ci, plain
+from labbench.readout.units import DisplayUnits
 
 
 def test_value_to_the_digits_its_interval_supports():
@@ -63,8 +63,8 @@ def test_the_written_interval_holds_the_value_and_reads_back_close(v, below, abo
 
 def test_frequencies_in_words_follow_the_display_units():
     # issue 43: a verdict's notes stayed in rad/s after the window switched to Hz
-    from labbench.numfmt import frequencies_in
-    from labbench.units import DisplayUnits
+    from labbench.readout.numfmt import frequencies_in
+    from labbench.readout.units import DisplayUnits
 
     hz = DisplayUnits(frequency="Hz")
     assert frequencies_in("drift at 2.3-17.6, 20.3-21.5 and 2 more rad/s; 2 rad/s needs 22 s", hz) \

@@ -37,7 +37,7 @@ y = "truth.max_rel"
 
 
 def _session(folder: Path, name: str = "run") -> Path:
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     with SessionWriter(folder, name=name) as w:
         for rec in synthetic_stream(1500, status="success"):

@@ -12,7 +12,7 @@ import serial
 from labbench import platform
 from labbench.platform import latency, scheduling, signals
 from labbench.platform.serial_peer import SocketTransport
-from labbench.realtime import RealtimeConfig, acquire
+from labbench.loop.realtime import RealtimeConfig, acquire
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from labbench.session_content import load_session
+from labbench.sessions.session_content import load_session
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSING = re.compile(r"labbench: (.+?) not available on this platform \(")

@@ -1,15 +1,15 @@
-"""labbench.predictions: the one set of theory numbers every surface shows."""
+"""labbench.model.predictions: the one set of theory numbers every surface shows."""
 import math
 
 import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from labbench import predictions
+from labbench.model import predictions
 from labbench.model import linear
-from labbench.effective import effective_impedances
-from labbench.units import DisplayUnits
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.effective import effective_impedances
+from labbench.readout.units import DisplayUnits
+from labbench.model.ve import Plant, VirtualEnvironment
 
 PAPER_PLANT = Plant(0.094, 0.10)
 DEMO = VirtualEnvironment("spring-damper", K=50, B=1, w0=125)

@@ -16,10 +16,10 @@ import pytest
 
 from labbench.cli import main
 from labbench.errors import UserError
-from labbench.preflight import PreflightConfig, judge, lines, measure
+from labbench.loop.preflight import PreflightConfig, judge, lines, measure
 from labbench.registry import make_protocol, open_device
 from labbench.rig import load_rig, rig_from_dict
-from labbench.runner import run
+from labbench.loop.runner import run
 from can_fixtures import no_bus_left_open  # noqa: F401
 
 SECONDS = 2.0
@@ -381,7 +381,7 @@ def test_the_stale_limit_is_judged_on_the_bus_where_frames_carry_timestamps():
 
 
 def test_write_rig_never_rewrites_a_period_the_board_fixes():
-    from labbench.preflight import rig_changes
+    from labbench.loop.preflight import rig_changes
 
     judged = {"suggest": {"sample_time_s": 0.0279, "stale_periods": 3}}
     host_paced = rig_changes({"period_fixed_by": ""}, judged, "canopen")

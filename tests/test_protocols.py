@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from labbench import readout
+from labbench.readout import wording
 from labbench.model import linear
 from labbench.errors import UserError
-from labbench.numfmt import frequency_text
+from labbench.readout.numfmt import frequency_text
 from labbench.rig import Rig, rig_from_dict
-from labbench.runner import run
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.loop.runner import run
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.protocol import precheck
 from labbench.protocols import excitation
 from labbench.registry import make_protocol, protocol_class, protocol_names
@@ -216,7 +216,7 @@ def test_etfe_on_sim_matches_exact_sampled_theory_within_5_percent():
     assert dev["max_rad_s"] == pytest.approx(w[band][i])
     band_rel = np.asarray(r["etfe"]["Z_err"])[band][i] / abs(z_true[i])
     assert dev["max_band_rel"] == pytest.approx(band_rel)
-    row = dict(readout.of_results("etfe", r, {}).rows)["|Z - Z_theory| / |Z_theory|"]
+    row = dict(wording.of_results("etfe", r, {}).rows)["|Z - Z_theory| / |Z_theory|"]
     assert f"at {frequency_text(w[band][i])} (95 % band there {100 * band_rel:.2g} %)" in row, row
 
 

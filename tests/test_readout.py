@@ -1,4 +1,4 @@
-"""What a person reads (labbench.readout): the rendered stiffness and damping against the exact
+"""What a person reads (labbench.readout.wording): the rendered stiffness and damping against the exact
 sampled theory, one truth on every surface, and results read from a file not trusted."""
 import json
 import math
@@ -8,13 +8,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labbench import readout
+from labbench.readout import wording
 from labbench.model import linear
 from labbench.cli import main
-from labbench.numfmt import fmt_ci
+from labbench.readout.numfmt import fmt_ci
 from labbench.report.content import build, page_one_rows
 from labbench.report.render_html import render_html
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 NOMINAL = Plant(0.094, 0.1)  # the default rig's (the simulator's truth)
 
@@ -92,7 +92,7 @@ def test_one_session_reads_the_same_on_every_surface(tmp_path, capsys):
     out = _run(capsys, tmp_path, "etfe", "--K", "200", "--B", "1", "--duration-s", "30", "--seed", "3")
     path = out["session"]
     cli = out["readout"]
-    back = readout.of_session(path)
+    back = wording.of_session(path)
     assert back.as_dict() == json.loads(json.dumps(cli)) or _same(back.as_dict(), cli)
     assert main(["run", "etfe", "--K", "200", "--B", "1", "--duration-s", "30", "--seed", "3",
                  "--device", "sim", "--out", str(tmp_path / "again")]) == 0
@@ -121,7 +121,7 @@ def test_every_protocol_has_a_readout(tmp_path, capsys):
     rows = {r["label"]: r["text"] for r in ident["rows"]}
     assert rows["mass m"].startswith("0.094 kg") and "cross-check: l1 fit" in rows
     comm = _run(capsys, tmp_path, "commission")["readout"]
-    assert [v["what"] for v in comm["verdicts"]] == list(readout.CHECKS)
+    assert [v["what"] for v in comm["verdicts"]] == list(wording.CHECKS)
     assert " samples (" in {r["label"]: r["text"] for r in comm["rows"]}["delay"]
 
 
@@ -140,20 +140,20 @@ JUNK = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_
 def test_hostile_results_read_without_a_traceback(protocol, results, start):
     # a session file's content is not trusted: whatever its results and start record hold,
     # the readout leaves out what is malformed and every surface can still write it
-    r = readout.of_results(protocol, results, start)
+    r = wording.of_results(protocol, results, start)
     json.dumps(r.as_dict(), default=str)
     r.text_lines()
     page_one_rows(r)
 
 
 def test_values_convert_for_display_and_say_exact():
-    from labbench.units import DisplayUnits
+    from labbench.readout.units import DisplayUnits
 
-    v = readout.Value(2 * math.pi * 10, 2 * math.pi * 9, 2 * math.pi * 11, "rad/s", "frequency")
+    v = wording.Value(2 * math.pi * 10, 2 * math.pi * 9, 2 * math.pi * 11, "rad/s", "frequency")
     assert v.text(DisplayUnits(frequency="Hz")) == "10.0 Hz (9.0 to 11.0)"
-    assert readout.Value(0.094, 0.094 - 1e-12, 0.094 + 1e-12, "kg").text() == \
+    assert wording.Value(0.094, 0.094 - 1e-12, 0.094 + 1e-12, "kg").text() == \
         "0.094 kg (exact to the model's precision)"
-    assert np.isfinite(readout.Value(1.0).as_dict()["value"])
+    assert np.isfinite(wording.Value(1.0).as_dict()["value"])
 
 
 
@@ -166,12 +166,12 @@ def test_a_headline_the_etfe_does_not_vouch_for_says_so_first_on_every_surface(t
     cli = out["readout"]
     first = "doubtful (the paper's estimator; see the ETFE's verdict): renders K = "
     assert cli["rendered"]["sentence"].startswith(first) and cli["rendered"]["level"] == "doubtful"
-    back = readout.of_session(out["session"])
+    back = wording.of_session(out["session"])
     assert back.text_lines()[0].startswith(first)  # the CLI's summary, first line
     rows = dict(page_one_rows(back))
     assert rows["rendered"].startswith(first)  # the report's page 1
     # the trusted estimate keeps its plain headline (no false alarm)
-    ok = readout.of_session(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
+    ok = wording.of_session(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
                                  "--duration-s", "30", "--seed", "3")["session"])
     assert ok.verdicts[0].verdict.level == "ok" and ok.text_lines()[0].startswith("renders K = ")
 
@@ -189,7 +189,7 @@ def test_a_stability_probe_on_a_rubbing_device_says_why_on_every_surface(tmp_pat
                  "--plant-coulomb-n", "0.02", "--out", str(tmp_path / "s")]) == 0
     text = capsys.readouterr().out
     path = next(word for word in text.split() if word.endswith(".lbsession"))
-    back = readout.of_session(path)
+    back = wording.of_session(path)
     res = back_results(path)
     f = res["friction"]
     rows = dict(back.row_texts())
@@ -220,8 +220,8 @@ def test_a_stability_probe_on_a_rubbing_device_says_why_on_every_surface(tmp_pat
 
 
 def back_results(path) -> dict:
-    from labbench import records
-    from labbench.session_format import SessionReader
+    from labbench.sessions import records
+    from labbench.sessions.session_format import SessionReader
 
     got = records.StreamCollector()
     with SessionReader(path, decode_pages=False) as reader:
@@ -233,13 +233,13 @@ def test_a_stability_readout_without_friction_says_where_it_stopped():
     # no friction known: no friction-aware rows, the reason stays (and a disagreement says so)
     res = {"variable": "K", "steps": [], "measured_boundary": None, "exact_boundary": 200.0,
            "stopped": "no sustained oscillation up to K = 294 N/m: friction?"}
-    r = readout.of_results("stability", res)
+    r = wording.of_results("stability", res)
     rows = dict(r.row_texts())
     assert rows["stopped"] == res["stopped"] == dict(page_one_rows(r))["stopped"]
     assert not any("friction" in label for label in rows)
     off = {**res, "measured_boundary": 200.0, "friction": {
         "coulomb_n": 0.02, "k_max": 321.0, "k_range": [310.0, 330.0], "swing_m": 0.005,
         "rel_error": -0.377, "agrees": False}}
-    rows = dict(readout.of_results("stability", off).row_texts())
+    rows = dict(wording.of_results("stability", off).row_texts())
     assert rows["measured against friction-aware"] == \
         "-38 %: disagrees (the prediction's range misses the measured interval)"

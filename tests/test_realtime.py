@@ -16,7 +16,7 @@ import time
 import pytest
 
 from labbench.errors import UserError
-from labbench.realtime import CPU_LATENCY_FILE, RealtimeConfig, acquire, sleep_until
+from labbench.loop.realtime import CPU_LATENCY_FILE, RealtimeConfig, acquire, sleep_until
 from labbench.rig import Rig, load_rig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -50,7 +50,7 @@ def test_what_is_granted_is_recorded_and_undone_on_the_way_out():
 def test_a_blas_call_under_realtime_scheduling_returns():
     """BLAS worker threads are not moved below the loop (that livelocked scipy's expm)."""
     code = ("import numpy as np, scipy.linalg as la\n"
-            "from labbench.realtime import acquire, RealtimeConfig\n"
+            "from labbench.loop.realtime import acquire, RealtimeConfig\n"
             "a = np.random.default_rng(0).normal(size=(400, 400))\n"
             "with acquire(RealtimeConfig(priority=10), warn=print) as g:\n"
             "    la.expm(a / 400); (a @ a).sum()\n"
@@ -145,7 +145,7 @@ def test_threads_of_a_recorded_run_sit_just_below_the_loop(tmp_path):
     priority - 1 on its CPU: a thread started inside the grant would inherit the loop's
     own priority, and one left at normal priority could hold the GIL while preempted."""
     from labbench.registry import make_protocol, open_device
-    from labbench.runner import run_recorded
+    from labbench.loop.runner import run_recorded
 
     seen: dict[str, tuple[int, int]] = {}
 

@@ -13,16 +13,16 @@ from matplotlib import image
 from pypdf import PdfReader
 from session_recorder import synthetic_stream
 
-from labbench import records
+from labbench.sessions import records
 from labbench.model import linear
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.report import write_report
-from labbench.numfmt import fmt_ci
+from labbench.readout.numfmt import fmt_ci
 from labbench.report.blocks import Figure, PageBreak, Table
 from labbench.report.content import build
-from labbench.session_format import SessionWriter
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.sessions.session_format import SessionWriter
+from labbench.model.ve import Plant, VirtualEnvironment
 from sim_sessions import TRUTH, record_session
 
 

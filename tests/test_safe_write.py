@@ -16,7 +16,7 @@ from session_recorder import synthetic_stream
 from labbench.cli import main
 from labbench.errors import UserError
 from labbench.safe_write import free_name, replacing
-from labbench.session_format import SessionWriter, read_session
+from labbench.sessions.session_format import SessionWriter, read_session
 
 THEORY = ["theory", "--ve", "spring", "--m", "0.1", "--b", "0.1", "--K", "50"]
 
@@ -67,7 +67,7 @@ def test_existing_output_needs_force(session, tmp_path, capsys):
 
 def test_interrupted_export_leaves_no_partial_file(session, tmp_path, monkeypatch):
     """The writer dies half-way: the old file stays as it was, no temporary is left."""
-    from labbench import export
+    from labbench.sessions import export
 
     out = tmp_path / "run.csv"
     out.write_text("old\n")

@@ -4,14 +4,14 @@ import time
 import numpy as np
 import pytest
 
-from labbench import records
+from labbench.sessions import records
 from labbench.device import DeviceDescription, DeviceFault, Sample
 from labbench.errors import UserError
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig, rig_from_dict
-from labbench.safety import CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED, flag_names
+from labbench.loop.safety import CLAMP, DEVICE, FADE, GATED, OVERRUN, RATE, SEQ_GAP, TRIPPED, flag_names
 from labbench.model.linear import k_max, stability
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.sim_backend.sim_device import open_sim
 
 PLANT = Plant(0.094, 0.10)

@@ -349,8 +349,8 @@ def test_period_mismatch_is_a_user_error(fmt):
 # -- the same protocol on the plain simulator and through the serial driver ------------------
 def run_protocol(device, rig, **options):
     from labbench.registry import open_device
-    from labbench.records import concat_pages
-    from labbench.runner import run
+    from labbench.sessions.records import concat_pages
+    from labbench.loop.runner import run
     from labbench.registry import make_protocol
 
     stream = []
@@ -408,7 +408,7 @@ def cli_etfe(tmp_path, device, duration_s):
     import json
 
     from labbench.cli import main
-    from labbench.session_content import load_session
+    from labbench.sessions.session_content import load_session
 
     rig_file = tmp_path / "rig.toml"
     rig_file.write_text("[sim]\nquantize = true\n[safety]\nwatchdog_s = 2.0\n")

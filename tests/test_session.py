@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from session_recorder import VE, synthetic_stream
 
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import RecordingError, UserError
-from labbench.session_catalogue import list_sessions
-from labbench.session_content import load_analysis_arrays
-from labbench.session_format import MAGIC, SessionWriter, encode_record, looks_like_session, read_session
+from labbench.sessions.session_catalogue import list_sessions
+from labbench.sessions.session_content import load_analysis_arrays
+from labbench.sessions.session_format import MAGIC, SessionWriter, encode_record, looks_like_session, read_session
 
 
 def _write(directory, stream, **kw):
@@ -203,7 +203,7 @@ def test_writer_fsyncs_while_idle(tmp_path, monkeypatch):
 
 
 def test_replay_feeds_the_same_stream(tmp_path):
-    from labbench.replay import StreamSummary, replay
+    from labbench.sessions.replay import StreamSummary, replay
 
     stream = synthetic_stream(1000)
     path = _write(tmp_path, stream)
@@ -221,7 +221,7 @@ def test_replay_feeds_the_same_stream(tmp_path):
 
 
 def test_summary_counts_dropped_samples():
-    from labbench.replay import StreamSummary
+    from labbench.sessions.replay import StreamSummary
 
     stream = synthetic_stream(300)
     for page in stream[3:5]:  # 7 samples missing inside page 1
@@ -233,7 +233,7 @@ def test_summary_counts_dropped_samples():
 
 
 def test_replay_paces_by_sample_time(tmp_path):
-    from labbench.replay import replay
+    from labbench.sessions.replay import replay
 
     path = _write(tmp_path, synthetic_stream(1000, events=False))
     now = [0.0]
@@ -256,7 +256,7 @@ def test_replay_paces_by_sample_time(tmp_path):
 def test_replay_stops_on_request(tmp_path):
     import threading
 
-    from labbench.replay import replay
+    from labbench.sessions.replay import replay
 
     path = _write(tmp_path, synthetic_stream(1000))
     stop = threading.Event()

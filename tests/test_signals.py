@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from labbench.platform.signals import ending_signals
-from labbench.session_content import load_session
+from labbench.sessions.session_content import load_session
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGNALS = ending_signals()

@@ -13,7 +13,7 @@ from labbench.model.linear import latency_inputs, zoh_matrices
 from labbench.protocols.excitation import white_noise
 from labbench.rig import Rig, rig_from_dict
 from labbench.sim_backend.sim_device import ESTOP_LATCHED, open_sim
-from labbench.ve import Plant
+from labbench.model.ve import Plant
 
 M, B, T = 0.094, 0.10, 0.001
 

@@ -7,8 +7,8 @@ from labbench.device import ESTOP_STATE
 from labbench.errors import DeviceFault
 from labbench.registry import make_protocol, open_device
 from labbench.rig import Rig, rig_from_dict
-from labbench.runner import run
-from labbench.timing import status_figures
+from labbench.loop.runner import run
+from labbench.loop.timing import status_figures
 from can_fixtures import no_bus_left_open  # noqa: F401
 
 BACKENDS = ["sim", "sim-canopen", "sim-serial", "avr-sim"]
@@ -140,7 +140,7 @@ def test_live_snapshots_carry_what_the_status_figures_need():
 def test_avr_sim_declares_its_own_sample_of_delay():
     """The reference sketch latches each command at its next tick: the default rig's theory
     matches with no rig file; a rig that says otherwise is told which file fits."""
-    from labbench import device_delay
+    from labbench.model import device_delay
 
     with open_device("avr-sim", Rig()) as d:
         desc = d.describe()

@@ -10,9 +10,9 @@ from labbench.model import stability_friction as sf
 from labbench.protocol import precheck
 from labbench.registry import make_protocol
 from labbench.rig import Rig, rig_from_dict
-from labbench.runner import run
+from labbench.loop.runner import run
 from labbench.sim_backend.sim_device import open_sim
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 T = 0.001
 PLANT = Plant(0.094, 0.10)
@@ -187,7 +187,7 @@ def test_zwidth_campaign_on_the_rough_rig_gives_a_boundary_or_the_reason_it_has_
     from labbench.campaign.report import build
     from labbench.campaign.settings import CampaignSettings
     from labbench.cli.campaign import point_runner
-    from labbench.interrupts import StopRequest
+    from labbench.loop.interrupts import StopRequest
     from labbench.report.blocks import Table
     from labbench.sweep import table as tables
     from labbench.sweep.spec import spec_from_dict

@@ -340,7 +340,7 @@ def test_rerun_skips_points_and_a_grown_grid_computes_only_the_new(tmp_path, sma
 
 
 def test_kept_sessions_are_named_wherever_the_table_is_read(tmp_path, monkeypatch):
-    from labbench.session_format import looks_like_session
+    from labbench.sessions.session_format import looks_like_session
 
     monkeypatch.chdir(tmp_path)
     d = json.loads(json.dumps(SMALL))

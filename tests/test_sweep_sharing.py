@@ -241,7 +241,7 @@ def test_a_spec_or_a_chart_the_disk_refuses_is_one_line(tmp_path, capsys, monkey
 def test_a_million_point_spec_starts_at_once_in_bounded_memory(tmp_path, monkeypatch):
     """Before, the list of 10^6 points (806 MB, 22 s) was made before the first one ran. The
     points are now made as asked for: a few dozen before the first is computed."""
-    from labbench.interrupts import StopRequest
+    from labbench.loop.interrupts import StopRequest
     from labbench.sweep.spec import Spec, point_key
 
     spec = spec_from_dict({"sweep": {"kind": "analysis", "analysis": "etfe", "sample": "random",

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from labbench.model import linear
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.model.ve import Plant, VirtualEnvironment
 
 W = np.logspace(-1, 4, 400)
 PAPER = Plant(0.1, 0.1)  # device of the paper's Figures 4-8
@@ -168,7 +168,7 @@ def test_paper_figure_draws_measured_points_with_bands(tmp_path, monkeypatch):
     from matplotlib.figure import Figure
 
     from labbench.errors import UserError
-    from labbench.figures import Curve, paper_figure
+    from labbench.readout.figures import Curve, paper_figure
 
     drawn = []
     save = Figure.savefig

@@ -1,4 +1,4 @@
-"""`labbench.theory`'s stability and K_max at the edges (issue 30), against a reference
+"""`labbench.model.linear`'s stability and K_max at the edges (issue 30), against a reference
 built here independently: the exact sampled loop's characteristic polynomial in z, from
 the plant's closed-form hold-equivalent and the VE's difference equation, in 40-digit
 arithmetic (mpmath), its roots by mpmath's polyroots.
@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from labbench.model import linear
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 DIGITS = 40
 

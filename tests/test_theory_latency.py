@@ -6,7 +6,7 @@ import pytest
 from scipy import signal
 
 from labbench.model import linear
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 PLANT = Plant(0.094, 0.10)
 T = 0.001

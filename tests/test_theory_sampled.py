@@ -1,7 +1,7 @@
 """The exact sampled-data model against a brute-force per-sample simulation of the loop.
 
 The simulator below is the oracle: a plain loop written straight from the
-definition in labbench.theory (ZOH plant, backward-difference velocity through a
+definition in labbench.model.linear (ZOH plant, backward-difference velocity through a
 first-order low-pass, VE force applied n samples later, exogenous force in
 its own step). It shares only the ZOH matrices with the code under test.
 """
@@ -19,7 +19,7 @@ from scipy.signal import dlsim
 
 from labbench.model import linear
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.model.linear import zoh_matrices
 
 

@@ -6,13 +6,14 @@ import time
 import numpy as np
 import pytest
 
-from labbench import records, timing
-from labbench.loop import HapticLoop, SafetyConfig, run_loop
+from labbench.sessions import records
+from labbench.loop import timing
+from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
-from labbench.runner import run
+from labbench.loop.runner import run
 from labbench.registry import make_protocol
 from labbench.sim_backend.sim_device import open_sim
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 T = 1e-3
 

@@ -1,8 +1,8 @@
-"""Verdicts (labbench.verdict): the worst finding wins, reasons kept, hostile dicts refused."""
+"""Verdicts (labbench.readout.verdict): the worst finding wins, reasons kept, hostile dicts refused."""
 import pytest
 
-from labbench import verdict
-from labbench.verdict import DOUBTFUL, FAILED, OK, Verdict
+from labbench.readout import verdict
+from labbench.readout.verdict import DOUBTFUL, FAILED, OK, Verdict
 
 
 def test_the_worst_finding_sets_the_level_and_only_bad_findings_give_reasons():

@@ -1,4 +1,4 @@
-"""The watchdog policy (labbench.safety.WatchdogPolicy): a host stall on a simulator is
+"""The watchdog policy (labbench.loop.safety.WatchdogPolicy): a host stall on a simulator is
 recorded and the run goes on; on hardware the same stall trips."""
 import sys
 from pathlib import Path
@@ -11,8 +11,8 @@ from gui_faulty_device import StallingDevice  # noqa: E402
 
 from labbench.registry import make_protocol  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.runner import run  # noqa: E402
-from labbench.safety import OVERRUN, SafetyConfig, WatchdogPolicy  # noqa: E402
+from labbench.loop.runner import run  # noqa: E402
+from labbench.loop.safety import OVERRUN, SafetyConfig, WatchdogPolicy  # noqa: E402
 
 STALL_S = 0.2  # four times the default watchdog (50 ms)
 

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labbench import records
+from labbench.sessions import records
 from labbench.cli import main
-from labbench.session_format import read_session
+from labbench.sessions.session_format import read_session
 
 RUN = ["run", "etfe", "--device", "sim", "--duration-s", "3", "--json"]
 T = 0.001
@@ -67,12 +67,13 @@ WORDS = {errno.ENOSPC: "the disk filling", errno.EFBIG: "the file size limit",
 @pytest.mark.parametrize("code", list(WORDS), ids=[errno.errorcode[c] for c in WORDS])
 def test_a_write_refused_mid_run_is_one_line_json_and_a_readable_session(tmp_path, capsys,
                                                                         monkeypatch, code):
-    from labbench import loop, session_format
+    from labbench.loop import chain
+    from labbench.sessions import session_format
 
     faulty = FaultyOS(200_000, code)  # about 1.5 s of pages, then refused mid-record
     monkeypatch.setattr(session_format, "os", faulty)
     forces = []  # every command the device got, and when the writer first refused
-    real_loop = loop.run_loop
+    real_loop = chain.run_loop
 
     def watched_loop(device, *a, **kw):
         command = device.command
@@ -103,7 +104,7 @@ def test_a_write_refused_mid_run_is_one_line_json_and_a_readable_session(tmp_pat
 
 def test_a_session_file_that_cannot_be_created_is_one_line_and_json(tmp_path, capsys,
                                                                    monkeypatch):
-    from labbench import session_format
+    from labbench.sessions import session_format
 
     class NoNewSession(FaultyOS):
         def open(self, path, *a, **kw):
@@ -141,7 +142,7 @@ def test_a_sessions_folder_that_takes_no_file_is_refused_before_the_device_opens
 
 def test_a_flush_refused_at_the_end_fails_the_run(tmp_path, capsys, monkeypatch):
     """fsync is where a network file system says the disk is full."""
-    from labbench import session_format
+    from labbench.sessions import session_format
 
     class NoSync(FaultyOS):
         def fsync(self, fd):
@@ -156,7 +157,7 @@ def test_a_flush_refused_at_the_end_fails_the_run(tmp_path, capsys, monkeypatch)
 def test_a_report_on_a_full_disk_leaves_no_folder(tmp_path, capsys, monkeypatch):
     from session_recorder import synthetic_stream
 
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     with SessionWriter(tmp_path / "s") as w:
         for rec in synthetic_stream(1500, status="success"):
@@ -181,8 +182,8 @@ def test_a_report_on_a_full_disk_leaves_no_folder(tmp_path, capsys, monkeypatch)
 def test_an_export_on_a_full_disk_keeps_the_old_file(tmp_path, capsys, monkeypatch):
     from session_recorder import synthetic_stream
 
-    from labbench import export
-    from labbench.session_format import SessionWriter
+    from labbench.sessions import export
+    from labbench.sessions.session_format import SessionWriter
 
     with SessionWriter(tmp_path / "s") as w:
         for rec in synthetic_stream(1500, status="success"):

@@ -106,7 +106,7 @@ def delayed_loop_recording(ve, n: int = 30000, m: float = PAPER_M, b: float = PA
 
 def off_the_half_way_level(wb: float, plant, ve) -> float:
     """How far the exact sampled ED at a measured w_b* ``wb`` [rad/s] lies from the half-way
-    level that defines w_b* (``labbench.effective.measured_wb_star``), as a share of ED's fall
+    level that defines w_b* (``labbench.model.effective.measured_wb_star``), as a share of ED's fall
     from ED(0) to the device b: 0 at the truth's w_b*, 0.5 at the top or the foot of the fall."""
     from labbench.model import linear
 

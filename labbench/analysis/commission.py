@@ -30,8 +30,8 @@ from labbench.model import linear
 from labbench.analysis.compare import plant_force
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.identify import identify
-from labbench.verdict import DOUBTFUL, FAILED, OK, from_dict, judge, worst
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.readout.verdict import DOUBTFUL, FAILED, OK, from_dict, judge, worst
+from labbench.model.ve import Plant, VirtualEnvironment
 
 SCALE_TOL = 0.05  # |m / m_nominal - 1| above this: the rig's scale (or its nominal model) is off
 DELAY_TOL_SAMPLES = 0.2  # measured delay this far from the stated one: the rig file is wrong

@@ -4,7 +4,7 @@ measured frequencies, and the deviation from it.
 
 Identification from a closed-loop record: the plant sees f_exo[k] - f_ve[k - n]
 (docs/conventions.md signs), and f_ve is computed from the sampled position with the
-loop's own law (labbench.theory module doc: backward difference, first-order
+loop's own law (labbench.model.linear module doc: backward difference, first-order
 low-pass at w0, f = K x + B v, n = td / T samples of delay). So m and b come
 from the same record, with the same identification as open-loop data.
 """
@@ -15,14 +15,14 @@ import math
 import numpy as np
 from scipy import signal
 
-from labbench import device_delay
+from labbench.model import device_delay
 from labbench.model import linear
 from labbench.analysis.dataio import Recording, recording_from_arrays
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult, identify
-from labbench.effective import effective_impedances
+from labbench.model.effective import effective_impedances
 from labbench.errors import UserError
-from labbench.ve import VE_KINDS, Plant, VirtualEnvironment
+from labbench.model.ve import VE_KINDS, Plant, VirtualEnvironment
 
 
 def ve_from_meta(meta: dict, fs: float | None = None) -> VirtualEnvironment | None:
@@ -85,7 +85,7 @@ def _delayed(u: np.ndarray, delay: float, T: float) -> np.ndarray:
 
 def plant_recording(rec: Recording) -> tuple[Recording, VirtualEnvironment | None]:
     """The record with the force the plant felt (``plant_force``, with the metadata's VE and
-    device delay, ``labbench.device_delay``): unchanged in open loop without a device delay.
+    device delay, ``labbench.model.device_delay``): unchanged in open loop without a device delay.
     Returns (recording, ve or None)."""
     ve = ve_from_meta(rec.meta, rec.fs)
     if ve is not None and ve.kind == "none":
@@ -132,7 +132,7 @@ def loop_response(rec: Recording, ve: VirtualEnvironment, latency: float = 0.0):
 def theory_curves(plant: Plant, ve: VirtualEnvironment, w, latency: float = 0.0) -> dict:
     """The theory overlay at w: ``sampled``, the exact sampled model (None when td is not
     whole samples), and ``paper``, eq. 2, both with the device's own delay ``latency``
-    [s] (``labbench.device_delay``, ``labbench.model.linear.z_paper``); ``model`` and
+    [s] (``labbench.model.device_delay``, ``labbench.model.linear.z_paper``); ``model`` and
     ``Z``: the one to compare with, the sampled model when it exists."""
     w = np.asarray(w, float)
     sampled = linear.z_sampled(plant, ve, w, latency) if linear.whole_samples(ve) else None

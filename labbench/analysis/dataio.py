@@ -115,8 +115,8 @@ def load_recording(path, warn=None) -> Recording:
         raise UserError(f"{path}: no such file")
     if path.suffix.lower() != ".csv":
         # lazy: sessions are another module's business
-        from labbench.session_content import load_analysis_arrays
-        from labbench.session_format import looks_like_session
+        from labbench.sessions.session_content import load_analysis_arrays
+        from labbench.sessions.session_format import looks_like_session
 
         if looks_like_session(path):
             return recording_from_arrays(**load_analysis_arrays(path, warn), source=str(path))

@@ -34,9 +34,9 @@ from scipy import fft, signal, special
 
 from labbench.analysis.dataio import Recording, position_quantum
 from labbench.analysis.progress import Progress, Steps
-from labbench.effective import effective_impedances, measured_ws_star
+from labbench.model.effective import effective_impedances, measured_ws_star
 from labbench.errors import UserError
-from labbench.verdict import BIAS_SE, DOUBTFUL, Verdict, judge
+from labbench.readout.verdict import BIAS_SE, DOUBTFUL, Verdict, judge
 
 ESTIMATORS = ("lpm", "h1-log", "h1-welch", "paper")
 DEFAULT_ESTIMATOR = "lpm"

@@ -2,7 +2,7 @@
 rendered K and B at the run's own excitation, the rule that picks the model the readout
 compares against, and the verdict on that comparison.
 
-**Prediction.** The device's Coulomb friction Fc (``labbench.device_friction``: given, a
+**Prediction.** The device's Coulomb friction Fc (``labbench.model.device_friction``: given, a
 chirp-ID's, the simulator's own; otherwise ``estimate``d from this record) acts as the
 damper b_eq of ``labbench.model.friction.linearise`` under the recorded excitation; the
 rendered K and B of the loop with b + b_eq are read off its exact sampled Z over the
@@ -14,15 +14,15 @@ and Booton's form on it, Fc E|v| / E[v^2], which needs no Gaussian velocity.
 **Which model the readout compares against** (``RULE``): the simplest the measurement
 cannot tell from the richer one. The linear theory, unless the friction-aware prediction
 differs from it by more than half a standard error of the measured K or B (the 95 %
-half-width / 1.96; ``labbench.verdict.BIAS_SE``: a shift that small leaves a 95 % interval
+half-width / 1.96; ``labbench.readout.verdict.BIAS_SE``: a shift that small leaves a 95 % interval
 covering at least 91 %, so the linear theory is as good a reading); then the friction-aware
 one. Decided from the predictions and the interval's width, never from where the measured
 value fell. (A first rule, the whole half-width, compared the linear theory where friction
 shifted B by up to a half-width: the K = 200 runs of the grid missed it at Fc 0.02 N.)
 
-**Verdict** (``judge``; what an ``ok`` promises, ``labbench.verdict.holds``): the
+**Verdict** (``judge``; what an ``ok`` promises, ``labbench.readout.verdict.holds``): the
 compared model's K and B inside the measured 95 % intervals: ok; outside 95 % but inside
-99.9 % (``labbench.verdict.VOUCH_STRETCH``): ok with a note saying so (never a bare
+99.9 % (``labbench.readout.verdict.VOUCH_STRETCH``): ok with a note saying so (never a bare
 ``ok`` beside a miss); beyond: doubtful, naming the likely cause with the number that
 shows it: Coulomb friction the record's own closed-loop identification finds (its
 cross-validated model selection, ``labbench.analysis.identify``), a velocity far from the
@@ -35,13 +35,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labbench import verdict
+from labbench.readout import verdict
 from labbench.analysis.dataio import Recording, position_quantum
 from labbench.analysis.derivatives import default_cutoff, differentiate, force_band
 from labbench.analysis.rendered import Z95
-from labbench.device_friction import DeviceFriction
+from labbench.model.device_friction import DeviceFriction
 from labbench.model import friction as model
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 RULE = ("the simplest model the measurement cannot tell from the richer one: the linear "
         "theory unless the friction-aware one differs from it by more than half a standard error "

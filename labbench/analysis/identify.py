@@ -89,7 +89,7 @@ from labbench.analysis.derivatives import (
 )
 from labbench.analysis.progress import Progress, Steps
 from labbench.errors import UserError
-from labbench.verdict import BIAS_SE, DOUBTFUL, FAILED, Verdict, judge, precision
+from labbench.readout.verdict import BIAS_SE, DOUBTFUL, FAILED, Verdict, judge, precision
 
 MODELS = ("mb", "mbc", "mbco")
 MODEL_CHOICES = MODELS + ("auto",)
@@ -354,7 +354,7 @@ def _other_model(chosen: str, term: str) -> str | None:
     return next((m for m in MODELS if set(TERMS[m]) == terms), None)
 
 
-# What each flag says of the numbers (labbench.verdict): a bias their intervals may not hold
+# What each flag says of the numbers (labbench.readout.verdict): a bias their intervals may not hold
 # (a doubt), or only how precise they are (a note: the intervals say it)
 PRECISION_FLAGS = ("short-record", "wide-interval")
 # a bias below this share of a number's accuracy target is within it (a note, not a doubt)
@@ -370,7 +370,7 @@ def _verdict(res: IdResult, data: _Data) -> Verdict:
     force outliers pulling l2, unmodelled friction, an encoder step whose effect on m may
     exceed ``BIAS_OF_TARGET`` of M_TARGET), or a residual that follows the third derivative
     (an unmodelled delay, see DELAY_SAMPLES). How precise m and b are (b not resolved from 0,
-    an interval wider than the targets M_TARGET, B_TARGET: ``labbench.verdict.precision``)
+    an interval wider than the targets M_TARGET, B_TARGET: ``labbench.readout.verdict.precision``)
     is a note."""
     findings, notes = [], []
     (m_lo, m_hi), (b_lo, b_hi) = res.ci95["m"], res.ci95["b"]

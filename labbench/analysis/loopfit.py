@@ -43,7 +43,7 @@ estimated Z up by 1 + S_nn/S_ff, at most the ETFE's ``eiv_bound`` (from the cohe
 (``_rejected``), the two-delay model always (it holds the others):
 ``selection["intervals_cover"]``.
 
-Verdict (``labbench.verdict``): failed when chi^2/dof > CHI2_FAILED against the noise
+Verdict (``labbench.readout.verdict``): failed when chi^2/dof > CHI2_FAILED against the noise
 the record shows (the model cannot describe the record: a delay or VE the metadata do
 not state, a nonlinearity); doubtful at a bound (b = 0, a delay at the grid's end) or
 with residuals structured beyond the ETFE's own correlation. How precise the numbers are
@@ -60,12 +60,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, signal, stats
 
-from labbench import verdict
+from labbench.readout import verdict
 from labbench.model import linear
 from labbench.analysis.etfe import EtfeResult, FitPoints
 from labbench.analysis.progress import Progress, Steps
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 FIT_W_MAX = 0.5  # fraction of the Nyquist frequency: above it the sampled loop's Z
 # swings by orders of magnitude and a few near-Nyquist bins would set the fit
@@ -440,7 +440,7 @@ def _judge(fit: LoopFit, structure: float, ve: VirtualEnvironment, shift: dict) 
                          "and the split may be wrong; record longer or with more force"))
     targets = {"m": M_TOLERANCE * fit.m, "b": B_TOLERANCE * fit.b, "td_s": TD_TOLERANCE_S,
                "tv_s": TD_TOLERANCE_S}
-    # how precise each number is, is its interval's to say: notes, not doubts (labbench.verdict)
+    # how precise each number is, is its interval's to say: notes, not doubts (labbench.readout.verdict)
     notes = []
     eiv = {k: abs(d) > targets[k] / verdict.VOUCH_STRETCH for k, d in shift.items() if k in targets}
     if any(eiv.values()):

@@ -146,7 +146,7 @@ def reading_band(res: EtfeResult, ve, plant, latency: float = 0.0,
                  asked: tuple[float, float] | None = None) -> tuple[float, float]:
     """The band the rendered K, B of ``res`` are read from (``band``): the analysis band
     (``asked``, within what the record resolves) below the VE's predicted bandwidths."""
-    from labbench import predictions
+    from labbench.model import predictions
     from labbench.analysis.etfe import analysis_band
 
     bw = predictions.bandwidths(plant, ve, latency)

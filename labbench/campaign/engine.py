@@ -46,11 +46,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench import records
+from labbench.sessions import records
 from labbench.campaign import plan as plans
 from labbench.campaign import rows
 from labbench.errors import UnstableVEError, UserError
-from labbench.escape import one_line
+from labbench.readout.escape import one_line
 from labbench.safe_write import replacing, usable_folder
 from labbench.sweep import sharing, table as tables
 from labbench.sweep.point import typed_row
@@ -212,7 +212,7 @@ class CampaignTable:
             confirm: Callable[[object], bool] | None = None,
             sleep: Callable[[float], None] = time.sleep) -> Summary:
         """Run the points not yet in the table (module doc); ``stop`` is a
-        ``labbench.interrupts.StopRequest`` (or ``threading.Event``) the caller sets on a
+        ``labbench.loop.interrupts.StopRequest`` (or ``threading.Event``) the caller sets on a
         signal or a stop button."""
         run = _Campaign(self.plan, self.directory, self.share, self.index, run_point, stop,
                         progress, confirm, sleep, self.t0)
@@ -465,7 +465,7 @@ def _first_runnable(plan):
 def dry_row(pp, context) -> dict:
     """The row ``pp`` would have, from a run on the plain simulator (its columns)."""
     from labbench.registry import open_device
-    from labbench.runner import run
+    from labbench.loop.runner import run
 
     device = open_device("sim", pp.rig, **pp.device_options)
     peak = CommandPeak()
@@ -490,7 +490,7 @@ def _reason(stop, fallback: str) -> str:
 
 def _start_record(session) -> dict | None:
     """The start record of a session (what delay and plant its run used)."""
-    from labbench.session_format import SessionReader
+    from labbench.sessions.session_format import SessionReader
 
     if not session:
         return None

@@ -19,9 +19,9 @@ from matplotlib.figure import Figure
 
 from labbench.model import linear
 from labbench.model import passivity
-from labbench.escape import literal_mpl
-from labbench.numfmt import fmt
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.readout.escape import literal_mpl
+from labbench.readout.numfmt import fmt
+from labbench.model.ve import Plant, VirtualEnvironment
 
 N_CURVE = 41  # B values of each theory curve
 N_FRICTION = 21  # of the friction-aware curve (each point a search over K: ~20 ms)

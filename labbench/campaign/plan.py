@@ -32,15 +32,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labbench import commissioning, device_delay
+from labbench import commissioning
+from labbench.model import device_delay
 from labbench.campaign.settings import CampaignSettings
 from labbench.errors import UnstableVEError, UserError
-from labbench.escape import one_line
-from labbench.numfmt import fmt
+from labbench.readout.escape import one_line
+from labbench.readout.numfmt import fmt
 from labbench.rig import Rig, rig_from_dict
 from labbench.sweep.point import DEVICE_DELAY, K_FRACTION, route
 from labbench.sweep.spec import Point, Spec, point_key
-from labbench.ve import Plant
+from labbench.model.ve import Plant
 
 def is_simulator(device: str) -> bool:
     """A simulated backend (what a sweep accepts too): ``sim*`` or ``*-sim``."""
@@ -223,7 +224,7 @@ def describe(plan: Plan, done, where, progress=None) -> list[str]:
 def commission_facts(directory, rig_name: str, on_skip=None) -> dict:
     """What the rig's newest successful commissioning in ``directory`` found (``{}``: none):
     its session, Coulomb estimate, counts/rev (if the encoder is wrong) and delay."""
-    from labbench.session_catalogue import last_results
+    from labbench.sessions.session_catalogue import last_results
 
     got = last_results(directory, rig_name, "commission", on_skip=on_skip)
     if got is None:

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from labbench.campaign import figures
-from labbench.numfmt import fmt_ci
+from labbench.readout.numfmt import fmt_ci
 from labbench.report.blocks import Figure, Heading, PageBreak, Paragraph, Table, fmt, percent
 
 HTML, PDF = "campaign.html", "campaign.pdf"

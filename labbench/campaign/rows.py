@@ -69,12 +69,12 @@ import math
 
 import numpy as np
 
-from labbench import device_delay
+from labbench.model import device_delay
 from labbench.model import linear
 from labbench.model import passivity
 from labbench.errors import UserError
 from labbench.sweep.point import flatten, typed_row, verdict_columns
-from labbench.ve import Plant
+from labbench.model.ve import Plant
 
 
 def base_row(pp, context) -> dict:
@@ -163,11 +163,11 @@ def predictions(pp, context, results: dict, latency: float) -> dict:
 
 def _noise(pp, context, results: dict, plant: Plant, ve, latency: float) -> dict:
     """``pred.noise_command`` [N rms, felt band] of the noise model with the noise sources the
-    rig states (``labbench.design.rig_noise``) and the friction known before the run (module
+    rig states (``labbench.design.tradeoffs.rig_noise``) and the friction known before the run (module
     doc) under the run's excitation, beside the run's ``res.force_noise.*``."""
     from dataclasses import replace
 
-    from labbench.design import rig_noise
+    from labbench.design.tradeoffs import rig_noise
     from labbench.model import noise
 
     sources, _ = rig_noise(pp.rig, context.simulated, pp.device_options)
@@ -227,7 +227,7 @@ def _friction(res: dict) -> dict:
 
 def _accuracy(res: dict, plant: Plant, ve, latency: float, k_pred) -> dict:
     from labbench.analysis.etfe import W_BAND
-    from labbench.effective import effective_impedances
+    from labbench.model.effective import effective_impedances
 
     e = res["etfe"]
     if not all(k in e for k in ("w", "Z_re", "Z_im", "Z_err")):

@@ -72,7 +72,7 @@ def register(subparsers) -> None:
 
 
 def _strict_option(p) -> None:
-    from labbench.verdict import STRICT_EXIT
+    from labbench.readout.verdict import STRICT_EXIT
 
     p.add_argument("--strict", action="store_true",
                    help=f"exit {STRICT_EXIT} when a result's verdict is failed (for scripts)")
@@ -80,20 +80,20 @@ def _strict_option(p) -> None:
 
 def _verdicts(d: dict) -> list:
     """The verdicts of a result dict: its own and a nested loop fit's (by path)."""
-    from labbench.verdict import from_dict
+    from labbench.readout.verdict import from_dict
 
     return [from_dict(d.get("verdict")), from_dict((d.get("fit") or {}).get("verdict"))]
 
 
 def _exit(d: dict, args) -> int:
-    from labbench.verdict import strict_exit
+    from labbench.readout.verdict import strict_exit
 
     return strict_exit(_verdicts(d), args.strict)
 
 
 def run_id(args) -> int:
     from labbench.analysis.dataio import load_recording
-    from labbench.session_api import identify_recording
+    from labbench.sessions.session_api import identify_recording
 
 
     ident = identify_recording(load_recording(args.file, warner("analyze")), model=args.model,
@@ -120,7 +120,7 @@ def run_id(args) -> int:
 def run_etfe(args) -> int:
     from labbench.analysis.dataio import load_recording
     from labbench.safe_write import output_path
-    from labbench.session_api import etfe_recording
+    from labbench.sessions.session_api import etfe_recording
 
     for out in (args.plot, args.csv):
         if out:
@@ -147,7 +147,7 @@ def run_etfe(args) -> int:
 
 
 def _print_table(path, d, cmp, units, read) -> None:
-    """What was found, in the words of ``labbench.readout`` (as ``labbench run`` and the
+    """What was found, in the words of ``labbench.readout.wording`` (as ``labbench run`` and the
     report say it), then the table in SI, frequencies in the display unit (``--units Hz``)."""
     f, fu = units.frequency_of, units.frequency
     w = f(np.asarray(d["w"]))
@@ -171,7 +171,7 @@ def _print_table(path, d, cmp, units, read) -> None:
 
 def _print_fit(fit: dict) -> None:
     """What the readout's closed-loop fit row leaves out: where it was fitted, its delays."""
-    from labbench.numfmt import fmt_ci
+    from labbench.readout.numfmt import fmt_ci
 
     print(f"closed-loop fit: {fit['n_freq']} frequencies {fit['band_rad_s'][0]:.3g}-"
           f"{fit['band_rad_s'][1]:.4g} rad/s, residual rms {100 * fit['residual_rms']:.2f} % of |Z|, "

@@ -19,9 +19,9 @@ from pathlib import Path
 
 from labbench.cli.progress import ProgressBar, clock_text, warner
 from labbench.errors import UserError
-from labbench.escape import one_line
-from labbench.numfmt import fmt
-from labbench.interrupts import StopRequest, stopping
+from labbench.readout.escape import one_line
+from labbench.readout.numfmt import fmt
+from labbench.loop.interrupts import StopRequest, stopping
 
 EXIT_STRICT = 3
 _warn = warner("campaign")
@@ -128,8 +128,8 @@ def make_context(args):
     from labbench.campaign.plan import Context, commission_facts, is_simulator
     from labbench.campaign.settings import CampaignSettings
     from labbench.rig import load_rig
-    from labbench.session_catalogue import last_identified
-    from labbench.ve import Plant
+    from labbench.sessions.session_catalogue import last_identified
+    from labbench.model.ve import Plant
 
     rig = load_rig(args.rig)
     simulated = is_simulator(args.device)

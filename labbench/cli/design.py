@@ -14,7 +14,7 @@ NOISE_BAND_DEFAULT = "10,500"
 
 
 def register(subparsers) -> None:
-    from labbench.design import NOISE_OF, OBJECTIVES
+    from labbench.design.tradeoffs import NOISE_OF, OBJECTIVES
 
     p = subparsers.add_parser(
         "design", help="the three-way trade-off (stability, accuracy, force noise) of a "
@@ -88,16 +88,16 @@ def register(subparsers) -> None:
 
 
 def device_of(args):
-    """The rig and the ``labbench.design.Device`` the arguments and the rig's sessions
-    describe (``labbench.design.device_for``, the given values over it)."""
+    """The rig and the ``labbench.design.tradeoffs.Device`` the arguments and the rig's sessions
+    describe (``labbench.design.tradeoffs.device_for``, the given values over it)."""
     from dataclasses import replace
 
-    from labbench import device_delay
+    from labbench.model import device_delay
     from labbench.campaign.plan import commission_facts
-    from labbench.design import device_for
+    from labbench.design.tradeoffs import device_for
     from labbench.rig import load_rig
-    from labbench.session_catalogue import last_identified
-    from labbench.ve import Plant
+    from labbench.sessions.session_catalogue import last_identified
+    from labbench.model.ve import Plant
 
     rig = load_rig(args.rig)
 
@@ -136,7 +136,7 @@ def _nonneg(v: float, what: str) -> float:
 
 
 def targets_of(args):
-    from labbench.design import ACCURACY_W, EXCITATION_N, Targets
+    from labbench.design.tradeoffs import ACCURACY_W, EXCITATION_N, Targets
 
     if len(args.band_hz) != 2:
         raise UserError(f"--band-hz takes two numbers LO,HI, got {len(args.band_hz)}")
@@ -148,7 +148,7 @@ def targets_of(args):
 
 
 def run(args) -> int:
-    from labbench.design import MODELS, Designer, pareto
+    from labbench.design.tradeoffs import MODELS, Designer, pareto
     from labbench.jsonutil import json_safe
     from labbench.safe_write import output_path
 
@@ -190,7 +190,7 @@ def run(args) -> int:
     else:
         print("\n".join(_text(device, targets, points, front, rec, args.K[0], Ts[0])))
         if check:
-            from labbench.design_check import table_lines
+            from labbench.design.checking import table_lines
 
             print()
             print("\n".join(table_lines(check)))
@@ -210,7 +210,7 @@ def _progress(n: int):
 
 
 def _compare(designer, tables):
-    from labbench.design_check import check
+    from labbench.design.checking import check
     from labbench.sweep import table as sweep_tables
 
     from pathlib import Path
@@ -225,7 +225,7 @@ def _compare(designer, tables):
 
 
 def _plot(args, points, rec, targets, check) -> None:
-    from labbench.design_figures import check_figure, tradeoff_figure
+    from labbench.design.charts import check_figure, tradeoff_figure
     from labbench.safe_write import replacing
 
     fig = check_figure(check) if check else tradeoff_figure(points, rec, targets.noise_limit_n,
@@ -239,7 +239,7 @@ def _suffix(path: str) -> str:
 
 
 def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     d = device
     s = d.sources
@@ -298,7 +298,7 @@ def _text(device, targets, points, front, rec, K0, T0) -> list[str]:
 def _friction_notes(points) -> list[str]:
     """What friction does to the noise of these points, in a few words."""
     from labbench.model.noise import STICK_SHARE_MAX
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     parts = [p.noise_friction for p in points if p.noise_friction is not None]
     shares = [p.stick_share for p in points if p.stick_share is not None]
@@ -316,14 +316,14 @@ def _friction_notes(points) -> list[str]:
 
 
 def _motion(targets) -> str:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     return (f"the white force that moves the handle at {fmt(targets.motion_m_s)} m/s rms"
             if targets.motion_m_s else f"{fmt(targets.excitation_n)} N of white excitation")
 
 
 def _limit_text(targets) -> str:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     if targets.noise_limit_n is None:
         return "no noise limit"
@@ -335,6 +335,6 @@ def _pct(v) -> str:
 
 
 def _mn(v) -> str:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     return "-" if v is None else fmt(1e3 * v, 3)

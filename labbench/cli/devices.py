@@ -22,7 +22,7 @@ FAULT -> SWITCH ON DISABLED, never further.
 ``serial.tools.list_ports``) with what the operating system says about them,
 to find the port for ``labbench run ... --device serial --port PORT``.
 
-``--timing [SECONDS]`` is the timing preflight (``labbench.preflight``): the device
+``--timing [SECONDS]`` is the timing preflight (``labbench.loop.preflight``): the device
 (``--device``, default the rig's CANopen drive, else its serial board) opened paced,
 enabled at zero force (unless ``[preflight] enable = false``), the loop's own calls for
 SECONDS (default ``[preflight] seconds``, 10) under the rig's real-time settings; then
@@ -121,9 +121,9 @@ def _timing(args, rig) -> int:
     from labbench.commissioning import write_tables
     from labbench.errors import UserError
     from labbench.jsonutil import json_safe
-    from labbench.preflight import PreflightConfig, checked_seconds, judge, lines, measure, \
+    from labbench.loop.preflight import PreflightConfig, checked_seconds, judge, lines, measure, \
         rig_changes
-    from labbench.realtime import RealtimeConfig
+    from labbench.loop.realtime import RealtimeConfig
     from labbench.registry import open_device
 
     config = PreflightConfig.from_rig(rig)
@@ -224,7 +224,7 @@ def _list_serial(as_json: bool) -> int:
 
 def _describe_serial(a: dict) -> list[str]:
     """A serial board's answer (``labbench.drivers.serial_probe``) for people."""
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     s = a["stream"]
     out = [f"port {a['port']} at {a['baudrate']} baud: {a['bytes']} bytes in "

@@ -17,7 +17,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from labbench.cli.progress import warner
-    from labbench.export import export_csv, export_hdf5
+    from labbench.sessions.export import export_csv, export_hdf5
 
     export = export_hdf5 if args.hdf5 else export_csv
     path = export(args.session, args.hdf5 or args.csv, force=args.force, warn=warner("export"))

@@ -65,7 +65,7 @@ def run(args) -> int:
 
     from labbench.gui.app import run_app
 
-    from labbench.units import SI
+    from labbench.readout.units import SI
 
     # --units given: the window starts with them (else with the ones it remembers)
     units = None if getattr(args, "units", SI) is SI else args.units

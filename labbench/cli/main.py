@@ -22,9 +22,9 @@ import threading
 
 from labbench import __version__
 from labbench.errors import Cancelled, DeviceError, LabbenchError, UserError, missing_extra
-from labbench.escape import one_line
-from labbench.interrupts import raising
-from labbench.units import SI, DisplayUnits
+from labbench.readout.escape import one_line
+from labbench.loop.interrupts import raising
+from labbench.readout.units import SI, DisplayUnits
 
 # Order is the order shown in --help.
 COMMANDS = ("theory", "design", "analyze", "run", "sweep", "campaign", "replay", "export", "report", "devices", "gui")
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args.verbose - args.quiet)
-    # SIGINT/SIGTERM/SIGHUP raise Interrupted whatever was inherited (labbench.interrupts);
+    # SIGINT/SIGTERM/SIGHUP raise Interrupted whatever was inherited (labbench.loop.interrupts);
     # `run` narrows that to stopping the run. The GUI's Qt loop keeps its own.
     own = getattr(args, "own_signals", False) or threading.current_thread() is not threading.main_thread()
     with contextlib.nullcontext() if own else raising():
@@ -119,7 +119,7 @@ class _StderrHandler(logging.StreamHandler):
 
 
 class _OneLine(logging.Formatter):
-    """A log line on one line, its controls escaped (``labbench.escape.one_line``); a
+    """A log line on one line, its controls escaped (``labbench.readout.escape.one_line``); a
     traceback, when one is logged, follows as it is."""
 
     def formatMessage(self, record) -> str:

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 def warner(command: str) -> Callable[[str], None]:
     """``warn(line)`` printing ``labbench <command>: warning: <line>`` on one line."""
-    from labbench.escape import one_line
+    from labbench.readout.escape import one_line
 
     def warn(line: str) -> None:
         print(f"labbench {command}: warning: {one_line(line)}", file=sys.stderr, flush=True)
@@ -26,7 +26,7 @@ def clock_text(seconds: float) -> str:
 
 
 class ProgressBar:
-    """Callable ``(fraction, message)``, as ``labbench.runner.run`` expects.
+    """Callable ``(fraction, message)``, as ``labbench.loop.runner.run`` expects.
 
     Shows the time since the first call and an estimate of the time left
     (elapsed x (1 - f) / f: a run's samples come at a steady rate).

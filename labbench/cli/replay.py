@@ -19,9 +19,9 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from labbench import readout
+    from labbench.readout import wording
     from labbench.jsonutil import json_safe
-    from labbench.replay import StreamSummary, replay
+    from labbench.sessions.replay import StreamSummary, replay
 
     summary = StreamSummary()
     reader = replay(args.session, [summary], speed=args.speed)
@@ -29,7 +29,7 @@ def run(args) -> int:
     out["session"] = str(reader.path)
     out["damaged_tail"] = reader.problem
     # what the run found, in the words of `labbench run`, the report and the window
-    read = readout.of_results(str(out.get("protocol") or ""), (summary.stop or {}).get("results"),
+    read = wording.of_results(str(out.get("protocol") or ""), (summary.stop or {}).get("results"),
                               summary.start)
     out["readout"] = read.as_dict()
     if args.json:
@@ -40,7 +40,7 @@ def run(args) -> int:
             print(f"result    {line}")
     if reader.problem:
         from labbench.cli.progress import warner
-        from labbench.session_content import ends_early
+        from labbench.sessions.session_content import ends_early
 
         warner("replay")(ends_early(reader.path, reader.problem))
     return 0

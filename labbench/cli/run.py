@@ -24,7 +24,7 @@ from labbench.jsonutil import json_safe
 from labbench.registry import device_names, open_device
 from labbench.errors import UserError
 from labbench.cli.progress import ProgressBar
-from labbench.interrupts import StopRequest, stopping
+from labbench.loop.interrupts import StopRequest, stopping
 from labbench.rig import load_rig
 from labbench.safe_write import editable, output_path
 
@@ -156,7 +156,7 @@ def _options(args) -> dict:
 
 def last_identified(directory, rig) -> dict | None:
     """m, b of the newest successful chirp-ID session of this rig in ``directory`` (or None)."""
-    from labbench.session_catalogue import last_identified as newest
+    from labbench.sessions.session_catalogue import last_identified as newest
 
     def skipped(path, reason):
         print(f"labbench run: warning: skipped {path}: {reason}", file=sys.stderr)
@@ -173,11 +173,11 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=No
     the device (a simulator's); ``plant_from``: where the plant in ``options`` came from, for
     the start record (``{"m", "b", "session"}`` or ``{"m", "b", "nominal": True}``).
     ``labbench campaign`` runs each point through here."""
-    from labbench.realtime import RealtimeConfig
-    from labbench.runner import run_recorded
+    from labbench.loop.realtime import RealtimeConfig
+    from labbench.loop.runner import run_recorded
     from labbench.registry import make_protocol, protocol_class
-    from labbench.session_catalogue import OWN_PLANT, plant_options
-    from labbench.session_format import session_folder
+    from labbench.sessions.session_catalogue import OWN_PLANT, plant_options
+    from labbench.sessions.session_format import session_folder
 
     # commissioning checks the rig's nominal model itself: never an identified one
     if (getattr(args, "plant_from", "nominal") == "last-id" and name not in OWN_PLANT
@@ -341,11 +341,11 @@ def cmd_demo(args) -> int:
 
 
 def _print(args, out: dict, runs) -> None:
-    """The run's summary: every surface's words from ``labbench.readout`` (of the session as
+    """The run's summary: every surface's words from ``labbench.readout.wording`` (of the session as
     recorded, when there is one); ``--json``: the same under ``readout`` (one per run)."""
-    from labbench import readout
+    from labbench.readout import wording
 
-    reads = {name: readout.of_session(path) if path else readout.of_results(name, result.results)
+    reads = {name: wording.of_session(path) if path else wording.of_results(name, result.results)
              for name, result, path in runs}
     if args.json:
         key = "readout" if len(reads) == 1 else "readouts"

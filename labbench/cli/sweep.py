@@ -14,8 +14,8 @@ from pathlib import Path
 
 from labbench.cli.progress import ProgressBar, clock_text
 from labbench.errors import UserError
-from labbench.escape import one_line
-from labbench.interrupts import StopRequest, stopping
+from labbench.readout.escape import one_line
+from labbench.loop.interrupts import StopRequest, stopping
 
 EXIT_STRICT = 3
 

@@ -6,14 +6,14 @@ import math
 
 import numpy as np
 
-from labbench import predictions
+from labbench.model import predictions
 from labbench.model import linear
 from labbench.cli.main import float_list
-from labbench.numfmt import fmt
+from labbench.readout.numfmt import fmt
 from labbench.jsonutil import json_safe
-from labbench.effective import effective_impedances
+from labbench.model.effective import effective_impedances
 from labbench.errors import UserError
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 KINDS = ("spring", "damper", "spring-damper")
 # which of --K, --B, --w0 each VE uses
@@ -56,7 +56,7 @@ def run(args) -> int:
 
     if args.plot:
         output_path(args.plot, force=args.force)  # before the work
-    from labbench import device_delay
+    from labbench.model import device_delay
 
     plant = Plant(args.m, args.b)
     latency = device_delay.checked(args.device_delay_s, "--device-delay-s")
@@ -123,7 +123,7 @@ def default_grid(plant: Plant, ve: VirtualEnvironment, n: int) -> np.ndarray:
 def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
             latency: float = 0.0) -> dict:
     """Everything the CLI reports for one VE: the contract keys plus context. ``latency``:
-    the device's own delay [s] on the whole command (``labbench.device_delay``)."""
+    the device's own delay [s] on the whole command (``labbench.model.device_delay``)."""
     Z = linear.theory_curve(plant, ve, w, model, latency)
     eff = effective_impedances(w, Z)
     whole = linear.whole_samples(ve)
@@ -156,7 +156,7 @@ def summary(plant: Plant, ve: VirtualEnvironment, w: np.ndarray, model: str,
         "K_max": kmax,
         "K_max_approx": kapp,
         "K_max_margin": (kmax / kapp - 1) if kmax is not None and kapp else None,
-        # read off the exact sampled model with the device delay (labbench.predictions),
+        # read off the exact sampled model with the device delay (labbench.model.predictions),
         # the paper's closed forms beside them
         "ws_star": bw.ws_star,
         "wb_star": bw.wb_star,
@@ -221,7 +221,7 @@ def table(s: dict) -> str:
 
 def _plot(args, plant: Plant, ves: list[VirtualEnvironment], w: np.ndarray,
           latency: float = 0.0) -> None:
-    from labbench.figures import Curve, paper_figure
+    from labbench.readout.figures import Curve, paper_figure
 
     dev = f" + device {1e3 * latency:g} ms" if latency else ""
     curves = [Curve(label=f"td = {1e3 * ve.td:g} ms (T/2 + td{dev} = {1e3 * (ve.delay + latency):g} ms)",

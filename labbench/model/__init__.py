@@ -10,4 +10,10 @@
   Abbott & Okamura's quantisation and Coulomb bound).
 - ``friction``: Coulomb friction as the damper it acts as under the run's own excitation
   (statistical linearisation, Booton; Gelb & Vander Velde), for the friction-aware theory.
+- ``pulse``: the stability probe's half-sine pulse and the swing it starts.
+- ``ve``: the plant and virtual-environment types every model takes.
+- ``device_delay``, ``device_friction``: the device's delay and friction as resolved for a
+  run, and where each came from.
+- ``effective``, ``predictions``: effective impedances, and the theory's w_s*, w_b*, K, B
+  read the way a measurement is.
 """

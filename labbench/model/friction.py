@@ -48,10 +48,10 @@ from scipy import optimize
 
 from labbench.errors import UserError
 from labbench.model import linear
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)  # E|v| / sigma_v of a zero-mean Gaussian
-B_EQ_MAX = 1e4  # N s/m, the largest damping a Plant takes (labbench.ve.RANGES)
+B_EQ_MAX = 1e4  # N s/m, the largest damping a Plant takes (labbench.model.ve.RANGES)
 
 
 def equivalent_damping(coulomb_n: float, v) -> float:

@@ -25,7 +25,7 @@ Two models of the same loop (signs and units: docs/conventions.md):
   modified z-transform of the held input (Franklin, Powell & Workman sec. 4.3.4
   on fractional delays). ``labbench.analysis.loopfit`` fits it to a measured Z.
 
-Bandwidths read off measured curves live in ``labbench.effective``; this
+Bandwidths read off measured curves live in ``labbench.model.effective``; this
 module holds the formulas.
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 from scipy.linalg import null_space
 
 from labbench.errors import UserError
-from labbench.ve import RANGES, Plant, VirtualEnvironment
+from labbench.model.ve import RANGES, Plant, VirtualEnvironment
 
 MODELS = ("paper", "sampled")
 
@@ -416,7 +416,7 @@ def k_max(plant: Plant, ve: VirtualEnvironment, rel_tol: float = 1e-4, latency: 
     loop is unstable and that bracket bisected. Either way every K checked below the result
     is stable. ~8 stability checks instead of ~70 (the design page redraws at a slider
     move). 0.0 when even a tiny K is unstable; ``math.inf`` when no K up to the
-    stiffest VE there is (``labbench.ve.RANGES``, 1e7 N/m) is unstable; None for kinds
+    stiffest VE there is (``labbench.model.ve.RANGES``, 1e7 N/m) is unstable; None for kinds
     without a spring.
     """
     if ve.kind not in ("spring", "spring-damper"):
@@ -525,7 +525,7 @@ def predicted_wb_star(ve: VirtualEnvironment) -> float | None:
 def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sampled",
                          latency: float = 0.0, n: int = 4000) -> dict:
     """``{"ws_star", "wb_star"}`` [rad/s] read off the model's own ES and ED curves with the
-    rules used on measurements (``labbench.effective.measured_ws_star`` /
+    rules used on measurements (``labbench.model.effective.measured_ws_star`` /
     ``measured_wb_star``), on a log grid of ``n`` points from 1e-3 of the slowest rate
     of the loop to 0.999 of Nyquist (None where the curve never crosses).
 
@@ -535,7 +535,7 @@ def predicted_bandwidths(plant: Plant, ve: VirtualEnvironment, model: str = "sam
     ``predicted_ws_star`` (eq. 5) are the continuous model's closed forms.
     ``latency``: the device's own delay [s] on the whole command (``theory_curve``).
     """
-    from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
+    from labbench.model.effective import effective_impedances, measured_wb_star, measured_ws_star
 
     rates = [r for r in (predicted_ws_star(plant, ve), ve.w0 if math.isfinite(ve.w0) else None,
                          (plant.b + ve.B) / plant.m) if r]

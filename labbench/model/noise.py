@@ -104,7 +104,7 @@ from scipy import optimize
 
 from labbench.errors import UserError
 from labbench.model import friction, linear
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 FELT_BAND_HZ = (10.0, 500.0)  # Colonnese et al. sec. 5 (module doc)
 WHITE_RHO = 0.01  # lag-1 correlation of the quantisation error below which it counts as white

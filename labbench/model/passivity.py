@@ -28,7 +28,7 @@ line, ``colgate_line``. A damper helps stability (the paper's b + B) and hurts
 passivity (b - |B|): the gap between the two envelopes of a Z-width.
 
 ``passive_k_max`` evaluates the condition itself for the VE the loop renders: the
-velocity low-pass of ``labbench.ve`` (``H = K + B (1 - a)(1 - z^-1) / (T (1 - a z^-1))``),
+velocity low-pass of ``labbench.model.ve`` (``H = K + B (1 - a)(1 - z^-1) / (T (1 - a z^-1))``),
 the VE's td as z^-n, and the device's delay ``latency`` as z^-d ((1 - alpha) + alpha z^-1)
 for latency = (d + alpha) T: the force over the step averaged, exact for the work when
 the velocity is constant over the step (the fractional part is an approximation; whole
@@ -53,7 +53,7 @@ import math
 import numpy as np
 
 from labbench.model.linear import latency_split
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 N_GRID = 20000  # frequencies from pi / (T N_GRID) to pi / T
 

@@ -50,7 +50,7 @@ import math
 import numpy as np
 
 from labbench.model import linear
-from labbench.ve import RANGES, Plant, VirtualEnvironment
+from labbench.model.ve import RANGES, Plant, VirtualEnvironment
 
 B_TOL = 1e-4  # relative tolerance of damping_needed
 K_TOL = 1e-3  # relative tolerance of friction_boundary
@@ -69,7 +69,7 @@ def equivalent_damping(coulomb_n: float, w_rad_s: float, amplitude_m: float) -> 
 def damping_needed(plant: Plant, ve: VirtualEnvironment, latency: float = 0.0) -> float | None:
     """Smallest device damping b* [N s/m] with which the exact sampled loop of this VE is
     stable (the plant's mass kept); ``plant.b`` or less when it already is (then the
-    plant's b is returned). None when no damping up to ``labbench.ve.RANGES``'s largest
+    plant's b is returned). None when no damping up to ``labbench.model.ve.RANGES``'s largest
     stabilises it."""
     def stable(b: float) -> bool:
         return linear.stability(Plant(plant.m, b), ve, latency).stable
@@ -127,7 +127,7 @@ def friction_boundary(plant: Plant, ve: VirtualEnvironment, coulomb_n: float, am
     function of K giving them (a probe's pulse swings less on a stiffer spring).
 
     The linear ``k_max`` without friction; ``math.inf`` when the friction still covers the
-    deficit at ``k_cap`` (default the largest K of ``labbench.ve.RANGES``): the boundary
+    deficit at ``k_cap`` (default the largest K of ``labbench.model.ve.RANGES``): the boundary
     lies beyond it. None for a VE without a spring.
     """
     k_lin = linear.k_max(plant, ve, latency=latency)

@@ -1,6 +1,6 @@
 """The loop thread's priority: Linux SCHED_FIFO and CPU affinity, Windows priority classes.
 
-``labbench.realtime`` decides what to ask for and why; this module holds the calls.
+``labbench.loop.realtime`` decides what to ask for and why; this module holds the calls.
 Every function that changes something appends its undo to ``undo`` and the reason of a
 refusal to ``refused``.
 """

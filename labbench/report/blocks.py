@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
-from labbench.escape import one_line
-from labbench.numfmt import fmt, fmt_ci  # noqa: F401 - the one number formatter, for sections too
+from labbench.readout.escape import one_line
+from labbench.readout.numfmt import fmt, fmt_ci  # noqa: F401 - the one number formatter, for sections too
 
 
 class Markup(str):
@@ -24,7 +24,7 @@ class Markup(str):
 
 def as_markup(text) -> str:
     """``text`` as markup: Markup as it is, anything else escaped (and on one line, control
-    characters shown as escapes: ``labbench.escape.one_line``)."""
+    characters shown as escapes: ``labbench.readout.escape.one_line``)."""
     return str(text) if isinstance(text, Markup) else html.escape(one_line(text), quote=False)
 
 
@@ -88,8 +88,8 @@ class ReportSections:
     """A protocol's part of a report (``labbench.protocol.ProtocolBase.report_sections``).
 
     Page 1's numbers and verdicts are not the protocol's to write: the report reads them
-    from ``labbench.readout`` as the CLI and the window do. ``curves``:
-    frequency responses for the summary's overlay figure (``labbench.figures.Curve``,
+    from ``labbench.readout.wording`` as the CLI and the window do. ``curves``:
+    frequency responses for the summary's overlay figure (``labbench.readout.figures.Curve``,
     measured as points, theory as lines). ``flags``: problems with what to do.
     ``details``: blocks for the session's part of the details. ``margin``: whether the
     summary adds the run's stability margin and loop delay to its numbers (a protocol

@@ -21,7 +21,7 @@ import numpy as np
 
 from labbench.analysis.etfe import W_BAND
 from labbench.errors import UserError
-from labbench.numfmt import band_text
+from labbench.readout.numfmt import band_text
 from labbench.report.blocks import (
     Figure,
     Flag,
@@ -102,12 +102,12 @@ def _sections(s: ReportSession) -> ReportSections:
 
 # ----------------------------------------------------------------------------- summary
 def _summary(sessions: list[ReportSession], parts: list[ReportSections]) -> list:
-    from labbench import readout
+    from labbench.readout import wording
 
     blocks = [_what_ran(sessions)]
-    # what each run found, in the words the CLI and the window use (labbench.readout), then
+    # what each run found, in the words the CLI and the window use (labbench.readout.wording), then
     # the run's stability margin and loop delay (when it had a VE)
-    reads = [readout.of_results(s.protocol, s.results, s.start) for s in sessions]
+    reads = [wording.of_results(s.protocol, s.results, s.start) for s in sessions]
     verdicts = [(s, r.title, page_one_rows(r) + (_loop_rows(s, p.delay) if p.margin else []))
                 for s, p, r in zip(sessions, parts, reads) if r.rows or r.verdicts]
     for title in dict.fromkeys(t for _, t, _ in verdicts):
@@ -181,7 +181,7 @@ def _loop_rows(s: ReportSession, measured_delay: str | None) -> list:
 
 
 def _overlay(curves, focus) -> object:
-    from labbench.figures import effective_figure
+    from labbench.readout.figures import effective_figure
 
     return effective_figure(curves, focus=focus)
 
@@ -240,9 +240,9 @@ def verdict_flags(tag: str, r) -> list[Flag]:
 
 # ----------------------------------------------------------------------------- details
 def _details(s: ReportSession, part: ReportSections) -> list:
-    from labbench import readout
+    from labbench.readout import wording
 
-    r = readout.of_results(s.protocol, s.results, s.start)
+    r = wording.of_results(s.protocol, s.results, s.start)
     blocks = [Heading(f"{s.tag} {s.protocol}: {s.path.name}", 2),
               *([readout_table(r)] if r.rows else []), *part.details]
     stop = s.stop or {}
@@ -298,7 +298,7 @@ def _channels_figure(s: ReportSession) -> Figure | None:
 
 
 def _timing_table(s: ReportSession) -> Table:
-    from labbench.timing import report_rows
+    from labbench.loop.timing import report_rows
 
     return key_values("Loop timing", report_rows((s.stop or {}).get("timing") or {}))
 
@@ -327,7 +327,7 @@ def _configuration(s: ReportSession) -> list:
 
 
 def _precheck_table(s: ReportSession) -> Table | None:
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     checks = (s.start.get("precheck") or {}).get("checks")
     if not checks:

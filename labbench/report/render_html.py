@@ -4,7 +4,7 @@ from __future__ import annotations
 import base64
 import html
 
-from labbench.escape import one_line
+from labbench.readout.escape import one_line
 from labbench.report.blocks import Figure, Heading, PageBreak, Paragraph, Table, as_markup
 
 _CSS = """

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench.predictions import recorded_plant
-from labbench.records import iso_time, protocol_name
+from labbench.model.predictions import recorded_plant
+from labbench.sessions.records import iso_time, protocol_name
 from labbench.report import shapes
-from labbench.session_content import load_session, session_ve
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.sessions.session_content import load_session, session_ve
+from labbench.model.ve import Plant, VirtualEnvironment
 
 
 @dataclass
@@ -89,7 +89,7 @@ class ReportSession:
     @property
     def trips(self) -> list[dict]:
         """Safety events (not the bookkeeping ones, nor the loop's timing: ``timing_flag``)."""
-        from labbench.timing import EVENTS
+        from labbench.loop.timing import EVENTS
 
         return [e for e in self.events if e.get("name") not in ("segment", "enabled", *EVENTS)]
 
@@ -97,7 +97,7 @@ class ReportSession:
     def timing_problem(self) -> str | None:
         """What the live status bar showed of a paced loop that did not keep time: its
         overruns and worst stall (the stop record's timing); None when it kept time."""
-        from labbench.timing import summary
+        from labbench.loop.timing import summary
 
         timing = (self.stop or {}).get("timing") or {}
         if not (timing.get("paced") and timing.get("overruns")):

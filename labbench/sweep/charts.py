@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from labbench.errors import UserError, unknown_name
-from labbench.escape import literal_mpl
+from labbench.readout.escape import literal_mpl
 
 KINDS = ("map", "lines", "failure")
 KEYS = ("kind", "x", "y", "color", "series", "metric", "threshold", "warnings", "facet", "where",
@@ -104,7 +104,7 @@ def write(cols: dict[str, list], chart: dict, path, force: bool = False):
     """Draw ``chart`` into ``path`` (.png, .svg or .pdf), atomically."""
     from pathlib import Path
 
-    from labbench.figures import FORMATS
+    from labbench.readout.figures import FORMATS
     from labbench.safe_write import output_path, replacing
 
     path = Path(path)

@@ -21,7 +21,7 @@ Sharing: the points are claimed in the table a few at a time
 point once; a sweep that runs out of points waits for those the others claimed and
 computes what they leave.
 
-Stopping: ``stop`` (a ``labbench.interrupts.StopRequest``: the CLI sets it on
+Stopping: ``stop`` (a ``labbench.loop.interrupts.StopRequest``: the CLI sets it on
 SIGINT, SIGTERM or SIGHUP) is looked at twice a second; the tasks still out are
 cancelled, the rows finished so far written, and the workers shut down. A rerun
 skips the points already in the table (by key, ``labbench.sweep.spec``). The

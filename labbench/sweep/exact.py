@@ -107,7 +107,7 @@ def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PA
     from scipy import signal
 
     from labbench.model import linear
-    from labbench.ve import Plant
+    from labbench.model.ve import Plant
 
     rng = np.random.default_rng(seed)
     f = force_std * rng.standard_normal(n)
@@ -121,6 +121,6 @@ def closed_loop_recording(ve, n: int = 120000, m: float = PAPER_M, b: float = PA
 def z_truth(ve, w, m: float = PAPER_M, b: float = PAPER_B, latency: float = 0.0) -> np.ndarray:
     """Exact sampled impedance at w: what an ETFE of closed_loop_recording converges to."""
     from labbench.model import linear
-    from labbench.ve import Plant
+    from labbench.model.ve import Plant
 
     return linear.z_sampled(Plant(m, b), ve, w, latency)

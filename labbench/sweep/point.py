@@ -2,7 +2,7 @@
 
 Kind "run": the point's parameters are routed by name (``route``) to the
 protocol's config, the rig and the simulated device, and the protocol runs on
-the simulator through ``labbench.runner.run``, unpaced, exactly as
+the simulator through ``labbench.loop.runner.run``, unpaced, exactly as
 ``labbench run ... --device sim`` runs it, analysis included. Kind
 "analysis": an exact record (``labbench.sweep.exact``) with the point's
 measurement errors goes through one analysis (ETFE or identification).
@@ -99,7 +99,7 @@ def build_run(spec, params: dict):
     from labbench.model import linear
     from labbench.registry import make_protocol
     from labbench.rig import rig_from_dict
-    from labbench.ve import DEFAULT_PLANT, Plant
+    from labbench.model.ve import DEFAULT_PLANT, Plant
 
     r = route(spec.protocol, params)
     if "K" in params and K_FRACTION in params:
@@ -151,7 +151,7 @@ def build_run(spec, params: dict):
 
 def _run_point(spec, params: dict, keep_dir) -> dict:
     from labbench.registry import open_device
-    from labbench.runner import run, run_recorded
+    from labbench.loop.runner import run, run_recorded
 
     rig, protocol, dev_opts, truth = build_run(spec, params)
     out = {"K": protocol.config.K} if K_FRACTION in params else {}
@@ -266,7 +266,7 @@ def analysis_params(analysis: str, params: dict) -> dict:
 @functools.lru_cache(maxsize=4)
 def _closed_loop(kind, K, B, w0, T, td, m, b, n, seed, force_std, latency, process_noise):
     from labbench.sweep.exact import closed_loop_recording
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     ve = VirtualEnvironment(kind, K, B, w0, T, td)
     return closed_loop_recording(ve, n=n, m=m, b=b, seed=seed, force_std=force_std,
@@ -298,7 +298,7 @@ def _etfe_point(p: dict, repeat: int) -> dict:
     from labbench.analysis.dataio import recording_from_arrays
     from labbench.analysis.etfe import etfe
     from labbench.sweep.exact import measured, z_truth
-    from labbench.ve import VirtualEnvironment
+    from labbench.model.ve import VirtualEnvironment
 
     w0 = math.inf if p["w0_rad_s"] is None else float(p["w0_rad_s"])
     ve = VirtualEnvironment(p["ve"], float(p["K"]), float(p["B"]), w0, float(p["sample_time_s"]),

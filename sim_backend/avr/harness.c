@@ -12,7 +12,7 @@
  *     instruction that changes it.
  *   plant: mass-damper m x'' = F - b x' - Fc sign(x') (--coulomb-n Fc, default 0:
  *     sticking while |F| <= Fc), integrated exactly between force changes and
- *     velocity reversals (zero-order hold, the model of labbench.theory and of
+ *     velocity reversals (zero-order hold, the model of labbench.model.linear and of
  *     sim_backend/friction.py); or, with --drive-cps, a prescribed motion (encoder
  *     tests): a constant count rate between --drive-start-ms and --drive-stop-ms, plus
  *     --drive-sine-counts A sin(2 pi --drive-sine-hz f t) counts over the same

@@ -1,22 +1,22 @@
 """Run one protocol on one device: precheck, records, the loop, analysis, safe shutdown.
 
-The whole run is one record stream (labbench.records): ``start`` -> ``descriptor``
--> pages and events from ``labbench.loop.run_loop`` (one call per protocol
+The whole run is one record stream (labbench.sessions.records): ``start`` -> ``descriptor``
+-> pages and events from ``labbench.loop.chain.run_loop`` (one call per protocol
 segment, each announced by a ``segment`` event) -> ``stop``. Every consumer
 sees every record in order. Whatever happens (a refused VE, Ctrl-C, the stop
 event, a device fault, a bug) the force is set to zero, the device disabled
 and closed, and - once a start record went out - a stop record follows.
 
-On a paced device the segments run under ``labbench.realtime.acquire``
+On a paced device the segments run under ``labbench.loop.realtime.acquire``
 (SCHED_FIFO, CPU affinity, locked memory, GC frozen; the analysis after them
 does not); the start record's ``realtime`` and the stop record's
-``timing.realtime`` say what the OS granted, ``timing`` (``labbench.timing``)
+``timing.realtime`` say what the OS granted, ``timing`` (``labbench.loop.timing``)
 how well the loop kept time. A device that reports its link counters
 (``StatusReporting``: stray frames, EMCYs, late SYNCs, CRC errors, ...) has them
 as they stand at each segment's start (its ``segment`` event), at its end (its
 row in the segment table) and after the run (the stop record), as
 ``device_counters``. Each row of the segment table also keeps the peak energy the loop's
-passivity observer saw in it (``energy_max_j``, ``labbench.loop``).
+passivity observer saw in it (``energy_max_j``, ``labbench.loop.chain``).
 """
 from __future__ import annotations
 
@@ -27,11 +27,15 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from labbench import commissioning, device_delay, device_friction, records, timing as loop_timing
+from labbench import commissioning
+from labbench.model import device_delay
+from labbench.model import device_friction
+from labbench.sessions import records
+from labbench.loop import timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.device import StatusReporting
 from labbench.errors import DeviceError, RecordingError, UserError
-from labbench.realtime import RealtimeConfig, acquire
+from labbench.loop.realtime import RealtimeConfig, acquire
 from labbench.rig import Rig
 from labbench.protocol import ProtocolBase, SegmentOutcome, precheck
 
@@ -62,7 +66,7 @@ def run_recorded(device, protocol: ProtocolBase, session_dir, consumers=(),
     written; ``on_session(path)`` hears where the session went, even if the run raised.
     ``options`` are ``run``'s. Returns (RunResult, session path or None when the run
     was refused before its start record)."""
-    from labbench.session_format import SessionWriter
+    from labbench.sessions.session_format import SessionWriter
 
     sinks = list(consumers)
     try:  # the folder is checked for writing here, before the device is enabled
@@ -98,7 +102,7 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
         skip_commissioning: bool = False) -> RunResult:
     """Run ``protocol`` on an open ``device`` and feed the record stream to ``consumers``.
 
-    ``stop`` (a ``threading.Event`` or ``labbench.interrupts.StopRequest``, set from
+    ``stop`` (a ``threading.Event`` or ``labbench.loop.interrupts.StopRequest``, set from
     another thread, e.g. a GUI's stop button, or by a signal handler) or Ctrl-C ends
     the run with status "aborted" and zero force; the stop record's reason is the
     request's ``reason`` when it has one. ``progress(fraction, message)``
@@ -108,19 +112,19 @@ def run(device, protocol: ProtocolBase, consumers: Iterable[records.Consumer],
     anything is enabled or recorded) when the protocol's VE is unstable or its
     plan does not fit the rig. ``simulated`` says whether the device is a
     simulator (the only place ``allow_unstable`` is accepted, and its watchdog records a
-    host stall instead of tripping: ``labbench.safety.WatchdogPolicy``); None: its
+    host stall instead of tripping: ``labbench.loop.safety.WatchdogPolicy``); None: its
     description says so (``DeviceDescription.simulated``, or a kind starting with "sim").
     ``realtime``: what the loop's thread asks the OS for on a paced device
     (default ``RealtimeConfig()``: on); ``warn(line)`` gets the one line saying
     how to grant what was refused (default: a logging warning).
     ``live_timing(snapshot)``: the run's timing so far after each page (overruns,
     max_s, worst_t_s, n, wall_s, T_s, paced), e.g. for a status bar
-    (``labbench.timing.status_figures``). ``skip_commissioning``: render a spring
+    (``labbench.loop.timing.status_figures``). ``skip_commissioning``: render a spring
     or damper on real hardware before the rig passed its direction check
     (``labbench.commissioning.gate``).
     """
-    from labbench.loop import SafetyConfig
-    from labbench.safety import WatchdogPolicy
+    from labbench.loop.chain import SafetyConfig
+    from labbench.loop.safety import WatchdogPolicy
 
     rig = rig or Rig()
     stop = stop or threading.Event()
@@ -210,7 +214,7 @@ def _segments(device, protocol, rig, plant, check, delay, friction, safety, watc
     analysis metadata. A segment that aborts or fails finishes the run (``run_state.finished``).
     Each ``run_loop`` runs under ``realtime()`` (the protocol's work between segments does
     not); the start record says what the first was granted."""
-    from labbench.loop import HapticLoop, run_loop
+    from labbench.loop.chain import HapticLoop, run_loop
 
     T = float(desc.sample_time_s)
     grant = realtime().__enter__()  # the first segment's, now: the start record says what it got
@@ -309,7 +313,7 @@ class _Run(records.RecordRouter):
         self.finished: RunResult | None = None
         self.n_samples = 0
         self.last_t = 0.0
-        self.realtime: dict | None = None  # labbench.realtime.Grant.record of the segments
+        self.realtime: dict | None = None  # labbench.loop.realtime.Grant.record of the segments
         self.counters: Callable[[], dict | None] = lambda: None  # the device's, now
 
     def emit(self, rec: dict) -> None:
@@ -336,7 +340,7 @@ class _Run(records.RecordRouter):
         return {k: v[first:] for k, v in joined.items()}
 
     def timing(self) -> dict:
-        """Loop timing over all segments (``labbench.timing.merge``), the real-time factor
+        """Loop timing over all segments (``labbench.loop.timing.merge``), the real-time factor
         (simulated seconds per wall second) and what the OS granted (``realtime``)."""
         out = loop_timing.merge([s["timing"] for s in self.segments],
                                 [s["start"] for s in self.segments])
@@ -389,7 +393,7 @@ def _is_seq(v) -> bool:
 
 
 def _stop_reason(stop, fallback: str) -> str:
-    """Why the run was stopped: a ``labbench.interrupts.StopRequest`` says (e.g. the signal)."""
+    """Why the run was stopped: a ``labbench.loop.interrupts.StopRequest`` says (e.g. the signal)."""
     return getattr(stop, "reason", "") or fallback or "stopped"
 
 

@@ -30,12 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench import records
+from labbench.sessions import records
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
-from labbench.escape import one_line
+from labbench.readout.escape import one_line
 from labbench.safe_write import output_path, replacing
-from labbench.session_content import analysis_meta, load_session
+from labbench.sessions.session_content import analysis_meta, load_session
 
 FORMAT = "labbench-session-export 2"
 COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
@@ -131,7 +131,7 @@ FR_COLUMNS = (("w_rad_s", "rad/s", "angular frequency"), ("f_hz", "Hz", "frequen
 
 
 def export_frequency_response(fr, out_path, inputs=(), force: bool = False) -> Path:
-    """Write a ``labbench.session_api.FrequencyResponse`` as CSV (module doc); returns the path."""
+    """Write a ``labbench.sessions.session_api.FrequencyResponse`` as CSV (module doc); returns the path."""
     out = output_path(out_path, inputs, force)
     d = fr.as_dict()
     w = np.asarray(d["w"], float)

@@ -2,7 +2,7 @@
 Identification tab, the report and the CLI.
 
 The prediction is the exact sampled model (``labbench.model.linear.z_sampled``) with the
-rig's device delay (``labbench.device_delay``), its bandwidths read off its own ES and
+rig's device delay (``labbench.model.device_delay``), its bandwidths read off its own ES and
 ED curves with the rules applied to measurements (``labbench.model.linear.predicted_bandwidths``).
 The paper's continuous closed forms, sqrt(K/m) (eq. 5) and w0 (sec. 3.2), are kept
 beside it and always labelled as such: on the paper's demo (K = 50 N/m, B = 1 N s/m,
@@ -17,10 +17,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from labbench.effective import effective_impedances, measured_wb_star, measured_ws_star
-from labbench.numfmt import fmt
-from labbench.units import SI
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.effective import effective_impedances, measured_wb_star, measured_ws_star
+from labbench.readout.numfmt import fmt
+from labbench.readout.units import SI
+from labbench.model.ve import Plant, VirtualEnvironment
 
 SYMBOLS = {"ws": "w_s*", "wb": "w_b*"}
 CLOSED_FORM = {"ws": "paper eq. 5", "wb": "paper w0"}
@@ -124,7 +124,7 @@ def of_results(d, ve: VirtualEnvironment, latency_s: float) -> tuple[float | Non
 
 def predicted_text(which: str, bw: Bandwidths, unit=None, digits: int = 4) -> str:
     """``sampled theory 72.57 rad/s; paper w0: 125``: the prediction, the closed form
-    labelled beside it. ``unit``: ``labbench.units.DisplayUnits`` (None: SI, rad/s)."""
+    labelled beside it. ``unit``: ``labbench.readout.units.DisplayUnits`` (None: SI, rad/s)."""
     unit = unit if unit is not None else SI
     text = f"{bw.model} theory {_shown(bw.predicted(which), unit, digits)} {unit.frequency}"
     closed = bw.closed_form(which)

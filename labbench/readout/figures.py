@@ -12,9 +12,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from labbench.effective import effective_impedances, focus_limits
+from labbench.model.effective import effective_impedances, focus_limits
 from labbench.errors import UserError
-from labbench.escape import literal_mpl
+from labbench.readout.escape import literal_mpl
 from labbench.safe_write import output_path, replacing
 
 FORMATS = (".png", ".svg", ".pdf")
@@ -121,7 +121,7 @@ def effective_figure(curves: list[Curve], size=(7.2, 2.15),
     summary page: lines for theory, points for measurements, ES where Im Z < 0 and EM
     where Im Z > 0 as in ``paper_figure``. Overlay several runs by giving their curves
     one ``color`` each. ``focus`` [rad/s]: the band whose ED the damping axis shows
-    readably (``labbench.effective.focus_limits``; the roll-off beyond leaves the axes).
+    readably (``labbench.model.effective.focus_limits``; the roll-off beyond leaves the axes).
     Returns the figure."""
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)

@@ -32,7 +32,7 @@ Flooring at zero stops a long passive stretch from banking credit against a
 later instability. E grows steadily exactly when the rendered spring's delay
 loss K (T/2 + td) outweighs the damping b_nom (the paper's stability condition).
 
-Flags: ``labbench.safety`` documents the bits of the "flags" channel.
+Flags: ``labbench.loop.safety`` documents the bits of the "flags" channel.
 """
 from __future__ import annotations
 
@@ -44,10 +44,11 @@ from itertools import chain
 
 import numpy as np
 
-from labbench import records, timing as loop_timing
+from labbench.sessions import records
+from labbench.loop import timing as loop_timing
 from labbench.device import DeviceFault, Enabling, RawReading
 from labbench.errors import UserError
-from labbench.safety import (
+from labbench.loop.safety import (
     CLAMP,
     DEVICE,
     FADE,
@@ -59,7 +60,7 @@ from labbench.safety import (
     SafetyConfig,
     WatchdogPolicy,
 )
-from labbench.ve import VirtualEnvironment
+from labbench.model.ve import VirtualEnvironment
 
 __all__ = ["HapticLoop", "LoopOutcome", "SafetyConfig", "run_loop"]
 
@@ -67,7 +68,7 @@ __all__ = ["HapticLoop", "LoopOutcome", "SafetyConfig", "run_loop"]
 # Order of the values in a row returned by ``HapticLoop.advance`` = the page channels.
 ROW = ("t", "seq", "position", "velocity", "ve_force", "excitation", "command", "flags")
 if tuple(records.CHANNELS) != ROW:
-    raise ImportError("labbench.records.CHANNELS changed: update labbench.loop.ROW")
+    raise ImportError("labbench.sessions.records.CHANNELS changed: update labbench.loop.chain.ROW")
 
 
 class HapticLoop:
@@ -220,7 +221,7 @@ class LoopOutcome:
 
     ``status``: "completed", "tripped" (a safety trip or the watchdog zeroed the
     force), "aborted" (stop requested) or "fault" (the device failed).
-    ``timing``: ``labbench.timing.period_stats`` (period p50_s, p99_s, max_s,
+    ``timing``: ``labbench.loop.timing.period_stats`` (period p50_s, p99_s, max_s,
     overruns = periods > 1.5 T on paced devices, histogram, the worst stall and
     when) plus wall_s and realtime_factor. ``stats``: counts of samples
     clamped / rate-limited / with sequence gaps, peak observer energy.
@@ -254,7 +255,7 @@ def run_loop(device, loop: HapticLoop, excitation: np.ndarray, emit: records.Con
     ``read_raw(timeout) -> (seq, t_s, position_m, flags)`` as a fast form of
     ``read``. ``live(snapshot)``, if given, is called after each page with the
     timing so far: ``n`` samples, ``overruns``, ``max_s`` and ``worst_t_s``.
-    ``watchdog``: ``labbench.safety.WatchdogPolicy`` (default: the hardware's, from
+    ``watchdog``: ``labbench.loop.safety.WatchdogPolicy`` (default: the hardware's, from
     ``loop.safety.watchdog_s``; a simulator's records a late period and goes on).
 
     Steady state allocates nothing that outlives a page: the periods go to a

@@ -65,17 +65,17 @@ class Verdict:
         return d
 
     def head(self, units=None) -> str:
-        """``ok`` or ``ok over 2-340 rad/s`` (``units``: ``labbench.units.DisplayUnits``)."""
+        """``ok`` or ``ok over 2-340 rad/s`` (``units``: ``labbench.readout.units.DisplayUnits``)."""
         if self.band is None:
             return self.level
-        from labbench.numfmt import band_text
+        from labbench.readout.numfmt import band_text
 
         return f"{self.level} over {band_text(self.band, units)}"
 
     def line(self, units=None) -> str:
         """``ok``, ``ok over 2-340 rad/s (note)`` or ``doubtful: reason; reason (note)``; the
         frequencies of reasons and notes in the display ``units`` too."""
-        from labbench.numfmt import frequencies_in
+        from labbench.readout.numfmt import frequencies_in
 
         text = self.head(units)
         if self.reasons:

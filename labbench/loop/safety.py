@@ -1,6 +1,6 @@
 """Safety envelope of the haptic loop: its settings, flag bits and trip reasons.
 
-The arithmetic of the envelope runs inline in ``labbench.loop.HapticLoop.step``
+The arithmetic of the envelope runs inline in ``labbench.loop.chain.HapticLoop.step``
 (one call per sample must stay cheap); this module holds what is configured and
 what is reported. Settings come from the rig: ``force_limit_n``,
 ``position_limits_m`` and ``velocity_limit_m_s`` from ``[rig]``, the rest from an
@@ -42,7 +42,7 @@ class SafetyConfig:
     change of command per second. ``velocity_limit_m_s``: trip when the velocity
     estimate exceeds it. ``position_limits_m``: (low, high) window; outside it trips.
     ``energy_limit_j``: trip (fade to zero over ``energy_fade_s``) when the energy
-    the VE has generated exceeds it (passivity observer, see ``labbench.loop``).
+    the VE has generated exceeds it (passivity observer, see ``labbench.loop.chain``).
     ``nominal_damping_ns_m``: device damping credited as dissipation by that
     observer (0 = strict). ``watchdog_s``: zero force when no sample arrives within
     it, or (paced devices) when one loop period exceeds it.

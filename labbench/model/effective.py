@@ -70,7 +70,7 @@ def measured_ws_star(w, ES) -> float | None:
 def measured_wb_star(w, ED, b: float, n_low: int = 3, reference: float | None = None) -> float | None:
     """Damping bandwidth read off a curve: first w where ED has fallen half-way
     from its low-frequency value to ``b``: ``reference`` (a measurement's rendered
-    ED(0), ``labbench.predictions.measured``), else the median of the ``n_low`` lowest points
+    ED(0), ``labbench.model.predictions.measured``), else the median of the ``n_low`` lowest points
     (a curve without noise or leakage: the theory's).
 
     None when the low-frequency ED is not above b (no virtual damping to lose)

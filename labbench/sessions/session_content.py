@@ -5,10 +5,12 @@ import math
 
 import numpy as np
 
-from labbench import device_delay, device_friction, records
+from labbench.model import device_delay
+from labbench.model import device_friction
+from labbench.sessions import records
 from labbench.errors import UserError
-from labbench.session_format import read_session
-from labbench.ve import VirtualEnvironment
+from labbench.sessions.session_format import read_session
+from labbench.model.ve import VirtualEnvironment
 
 
 def session_ve(start: dict) -> VirtualEnvironment | None:
@@ -73,8 +75,8 @@ def load_session(path, warn=None, need_start: bool = False) -> tuple[
 def analysis_meta(start: dict, desc: dict) -> dict:
     """Metadata keys of the analysis format (docs/analysis.md): fs, ve, K, B, w0, td,
     force_hold (the device's, when the session records it), device_delay_s (the device's
-    own delay the run used, ``labbench.device_delay``, when not 0), coulomb_n with its interval,
-    source and origin (the friction the run used, ``labbench.device_friction``, when it knew
+    own delay the run used, ``labbench.model.device_delay``, when not 0), coulomb_n with its interval,
+    source and origin (the friction the run used, ``labbench.model.device_friction``, when it knew
     one), protocol."""
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     device = start.get("device") if isinstance(start.get("device"), dict) else {}

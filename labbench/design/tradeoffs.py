@@ -17,7 +17,7 @@ number here comes from one model, named in ``MODELS`` (and in every ``as_dict``)
   for motions small enough. With a stated hand speed, ``b_friction`` is the damping friction
   adds to what is rendered (Booton's statistical linearisation, ``labbench.model.friction``).
 * **accuracy**: ``ws_star`` and ``wb_star`` read off the exact sampled model's ES and ED as
-  a measurement is read (``labbench.predictions``); the rendered stiffness and damping, the
+  a measurement is read (``labbench.model.predictions``); the rendered stiffness and damping, the
   model's low-frequency limits ES(0) = K and ED(0) (``labbench.model.linear.low_frequency``);
   the ED error at a frequency the user names, |ED(w) - (b + B)| / (b + B), in the exact sampled
   model (what an ETFE on the rig measures: the hold's half-sample advance included) and in
@@ -47,10 +47,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from labbench import predictions
+from labbench.model import predictions
 from labbench.errors import UserError
 from labbench.model import friction, linear, noise, passivity, stability_friction
-from labbench.ve import Plant, VirtualEnvironment
+from labbench.model.ve import Plant, VirtualEnvironment
 
 ACCURACY_W = 2 * math.pi * 10.0  # rad/s: the top of volitional motion (paper sec. 5)
 EXCITATION_N = 0.5  # N: the white-noise ETFE's std_n (protocols/white_noise.py), what a campaign runs
@@ -68,8 +68,8 @@ MODELS = {
                   "deficit (labbench.model.stability_friction)",
     "b_friction": "Coulomb friction's equivalent damping at the stated hand speed, "
                   "f_c sqrt(2/pi) / sigma_v (Booton; labbench.model.friction)",
-    "ws_star": "read off the exact sampled model's ES (labbench.predictions)",
-    "wb_star": "read off the exact sampled model's ED (labbench.predictions)",
+    "ws_star": "read off the exact sampled model's ES (labbench.model.predictions)",
+    "wb_star": "read off the exact sampled model's ED (labbench.model.predictions)",
     "rendered_K": "ES(0) of the exact sampled model",
     "rendered_B": "ED(0) of the exact sampled model",
     "ed_error_sampled": "exact sampled model at the accuracy frequency (as an ETFE measures)",
@@ -354,12 +354,12 @@ def rig_noise(rig, simulated: bool, sim_options: dict | None = None
 def device_for(rig, simulated: bool, identified: dict | None = None,
                commission: dict | None = None) -> Device:
     """The device of ``rig`` as the rig and its sessions describe it: the chirp-ID's plant
-    and Coulomb term (``labbench.session_catalogue.last_identified``'s dict; None: the rig's
+    and Coulomb term (``labbench.sessions.session_catalogue.last_identified``'s dict; None: the rig's
     nominal model), else the commissioning's Coulomb estimate (``commission_facts``), else a
-    simulator's own ``[sim] coulomb_n`` (the truth, as ``labbench.device_friction``), the
-    rig's delay (``labbench.device_delay``) and its noise sources (``rig_noise``); ``sources``
+    simulator's own ``[sim] coulomb_n`` (the truth, as ``labbench.model.device_friction``), the
+    rig's delay (``labbench.model.device_delay``) and its noise sources (``rig_noise``); ``sources``
     says where each came from."""
-    from labbench import device_delay
+    from labbench.model import device_delay
 
     found = identified or {}
     plant = Plant(found["m"], found["b"]) if found else rig.nominal_plant

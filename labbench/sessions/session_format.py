@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import RecordingError, UserError
 from labbench.input_files import open_regular
 
@@ -188,7 +188,7 @@ def _start_content(head: dict) -> None:
     from dataclasses import fields
 
     from labbench.rig import check_recorded
-    from labbench.safety import SafetyConfig
+    from labbench.loop.safety import SafetyConfig
 
     if isinstance(head.get("rig"), dict):
         check_recorded(head["rig"], "rig")
@@ -432,7 +432,7 @@ class SessionWriter:
         self._interval = fsync_interval_s
         self._stop_flush = threading.Event()
         # started now, not with the file: a thread started inside the loop's real-time
-        # grant would inherit the loop's own priority (labbench.realtime raises the
+        # grant would inherit the loop's own priority (labbench.loop.realtime raises the
         # threads that exist when it is entered just below it)
         self._flusher = threading.Thread(target=self._flush_loop, name="session-fsync",
                                          daemon=True)

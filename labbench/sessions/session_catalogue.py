@@ -5,9 +5,9 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import LabbenchError, UserError
-from labbench.session_format import SessionReader, looks_like_session
+from labbench.sessions.session_format import SessionReader, looks_like_session
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ def summarize(path) -> SessionSummary:
     start, stop, n = got.start, got.stop, got.n_samples
     rig = start.get("rig") if isinstance(start.get("rig"), dict) else {}
     try:
-        from labbench.session_content import session_ve
+        from labbench.sessions.session_content import session_ve
 
         ve = session_ve(start) if start else None
     except (LabbenchError, TypeError, ValueError):
@@ -102,7 +102,7 @@ def worst_level(results) -> str | None:
     """The worst level of the verdicts a run's results carry: its own, each analysis's
     (``etfe``, ``loop_fit``, each check), each identification fit's; None when there are
     none (what is not a verdict is left out: recorded results are not trusted)."""
-    from labbench.verdict import from_dict, worst
+    from labbench.readout.verdict import from_dict, worst
 
     if not isinstance(results, dict):
         return None
@@ -177,8 +177,8 @@ def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
     its interval; None when the model had none), or None (no folder, no such session). The
     plant a run uses when none is given (``labbench run --plant-from last-id``, the window):
     what it was identified as, and where."""
-    from labbench import device_friction
-    from labbench.ve import Plant
+    from labbench.model import device_friction
+    from labbench.model.ve import Plant
 
     for res, path in _newest_results(directory, rig_name, "chirp-id", on_skip):
         try:
@@ -200,7 +200,7 @@ def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
 def plant_options(found: dict, fields) -> dict:
     """The protocol options a plant identified in a chirp-ID (``last_identified``) sets: m
     and b, and its Coulomb friction with its interval where the protocol has
-    ``plant_coulomb_n`` among its ``fields`` (``labbench.device_friction``)."""
+    ``plant_coulomb_n`` among its ``fields`` (``labbench.model.device_friction``)."""
     out = {"plant_m_kg": found["m"], "plant_b": found["b"]}
     if "plant_coulomb_n" in fields and found.get("coulomb_n") is not None:
         out.update(plant_coulomb_n=found["coulomb_n"], plant_coulomb_ci95=found.get("coulomb_ci95"))

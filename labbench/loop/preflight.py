@@ -2,7 +2,7 @@
 
 ``measure`` opens nothing: it takes a device opened paced, as a run would open it, and
 runs the loop's own calls (``read_raw`` then ``command(0.0)``, at the device's pace)
-for the given time under the rig's real-time settings (``labbench.realtime``), the
+for the given time under the rig's real-time settings (``labbench.loop.realtime``), the
 device enabled at zero force (or not, ``[preflight] enable = false``). What each sample
 cost comes from the device itself when it offers ``labbench.device.TimingProbe``
 (``timing_log``: per sample ``(due_s, start_s, answer_s, wire_s)``):
@@ -27,11 +27,11 @@ cost comes from the device itself when it offers ``labbench.device.TimingProbe``
 
 During the measurement the device's stale limit is relaxed (the loop is to be
 measured through a stall, not stopped by it) and judged afterwards against the limit
-the run will use. Beside them: the loop's periods (``labbench.timing.period_stats``),
+the run will use. Beside them: the loop's periods (``labbench.loop.timing.period_stats``),
 the host's CPU per period (the loop thread's and the whole process's), the planned bus
 load, and what the OS granted.
 
-``judge`` turns that into one verdict (``labbench.verdict``) with what to change:
+``judge`` turns that into one verdict (``labbench.readout.verdict``) with what to change:
 
 * the stale limit holds when the longest wait is below two thirds of it (a run as long
   sees stalls as long, give or take: the third is the margin); it is too tight when
@@ -65,11 +65,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labbench import timing as loop_timing
+from labbench.loop import timing as loop_timing
 from labbench.device import TimingProbe
 from labbench.errors import DeviceFault, UserError
-from labbench.realtime import RealtimeConfig, acquire, hint
-from labbench.verdict import DOUBTFUL, FAILED, OK, judge as judge_findings
+from labbench.loop.realtime import RealtimeConfig, acquire, hint
+from labbench.readout.verdict import DOUBTFUL, FAILED, OK, judge as judge_findings
 
 STALE_MARGIN = 1.5  # suggested stale limit = this x the longest wait measured
 CYCLE_SHARE = 0.8  # a cycle's p99.9 must leave this share of the period unused, or less
@@ -232,9 +232,9 @@ def measure(device, rig, seconds: float, realtime: RealtimeConfig | None = None,
 
 def _silence_limits(desc, rig) -> dict:
     """What a host stall (no request, no command for that long) trips, by name: the loop's
-    own watchdog on hardware (``labbench.safety``; a simulator's records and goes on) and
+    own watchdog on hardware (``labbench.loop.safety``; a simulator's records and goes on) and
     the device's watch on the host (``details["host_silence_limit"]``: name, seconds)."""
-    from labbench.safety import SafetyConfig
+    from labbench.loop.safety import SafetyConfig
 
     out = {}
     if not desc.simulated:
@@ -347,7 +347,7 @@ def judge(m: dict) -> dict:
 
 
 def _ms(s) -> str:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     return "-" if s is None else f"{fmt(s * 1e3, 3)} ms"
 

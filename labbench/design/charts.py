@@ -1,7 +1,7 @@
 """The design's figures (``labbench design --plot``): the trade-off over B and w0 from the
-models, and a design's predictions beside a campaign's measurements (``labbench.design_check``).
+models, and a design's predictions beside a campaign's measurements (``labbench.design.checking``).
 
-Matplotlib's object API on the Agg canvas (no pyplot state, no Qt), as ``labbench.figures``.
+Matplotlib's object API on the Agg canvas (no pyplot state, no Qt), as ``labbench.readout.figures``.
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from labbench.design import DesignPoint
+from labbench.design.tradeoffs import DesignPoint
 
 
 def _canvas(size) -> Figure:
@@ -81,7 +81,7 @@ def tradeoff_figure(points: list[DesignPoint], recommendation: dict | None,
 
 
 def check_figure(c) -> Figure:
-    """A ``labbench.design_check.Check`` in one figure: K_max, force noise and rendered B
+    """A ``labbench.design.checking.Check`` in one figure: K_max, force noise and rendered B
     against B (one colour per w0: lines predicted, points measured with their 95 % intervals),
     and the Z-width against w0."""
     fig = _canvas((10.0, 7.2))

@@ -3,10 +3,10 @@ report's page 1 and the window (issue 30: the three said different things of one
 
 ``of_results(protocol, results, start)`` turns a run's results (the stop record's, or a
 protocol's analysis of a session) into a ``Readout``: the verdicts, each with the band it
-speaks of (``labbench.verdict``); the stiffness and damping the display rendered beside the
+speaks of (``labbench.readout.verdict``); the stiffness and damping the display rendered beside the
 commanded ones and the exact sampled theory's (``labbench.analysis.rendered``); the device
 model the theory used and where it came from, in one phrase; and the summary numbers in
-order, each a ``Value`` written by the one formatter (``labbench.numfmt``). Every surface
+order, each a ``Value`` written by the one formatter (``labbench.readout.numfmt``). Every surface
 writes these texts; none composes its own.
 """
 from __future__ import annotations
@@ -15,8 +15,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench.numfmt import band_text, fmt, fmt_ci, frequencies_in, frequency_text
-from labbench.verdict import FAILED, OK, Verdict, from_dict, worst
+from labbench.readout.numfmt import band_text, fmt, fmt_ci, frequencies_in, frequency_text
+from labbench.readout.verdict import FAILED, OK, Verdict, from_dict, worst
 
 NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory",
          "levels": "amplitude"}
@@ -221,8 +221,8 @@ def of_results(protocol: str, results: dict | None, start: dict | None = None) -
 def of_session(path) -> Readout:
     """The readout of a recorded session: its stop record's results with its start record
     (headers only; the sample pages are not decoded)."""
-    from labbench import records
-    from labbench.session_format import SessionReader
+    from labbench.sessions import records
+    from labbench.sessions.session_format import SessionReader
 
     got = records.StreamCollector()
     with SessionReader(path, decode_pages=False) as reader:

@@ -27,7 +27,7 @@ CHANNELS = {
     "ve_force": "N",  # VE force computed at step k (before delay)
     "excitation": "N",  # exogenous force applied during step k
     "command": "N",  # force commanded for step k (after safety and delay)
-    "flags": "1",  # safety / device bits (labbench.loop documents them)
+    "flags": "1",  # safety / device bits (labbench.loop.chain documents them)
 }
 
 # What each channel is, in words (exports carry it beside the unit).
@@ -39,7 +39,7 @@ DESCRIPTIONS = {
     "ve_force": "virtual-environment force computed at step k, before the delay",
     "excitation": "exogenous force applied during step k",
     "command": "force commanded for step k, after the safety envelope and the delay",
-    "flags": "safety and device bits (labbench.loop)",
+    "flags": "safety and device bits (labbench.loop.chain)",
 }
 
 Consumer = Callable[[dict], None]

@@ -7,9 +7,9 @@ import time
 
 import numpy as np
 
-from labbench import records
+from labbench.sessions import records
 from labbench.errors import UserError
-from labbench.session_format import SessionReader, read_session
+from labbench.sessions.session_format import SessionReader, read_session
 
 
 # A recorded pause longer than this (or a wild time stamp) is replayed as this long.

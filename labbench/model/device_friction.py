@@ -10,7 +10,7 @@ Where it comes from, first found wins (``resolve``):
 1. ``given``: the protocol's ``plant_coulomb_n`` (with ``plant_coulomb_ci95``): typed
    in, or the chirp-ID's, which ``labbench run --plant-from last-id``, the demo and the
    window pass with its m and b (the start record's ``plant_from`` then names that
-   session: ``labbench.readout`` says "chirp-ID ...");
+   session: ``labbench.readout.wording`` says "chirp-ID ...");
 2. ``device``: a simulated device's own friction (its description's
    ``details["coulomb_n"]``, the simulator's ``[sim] coulomb_n``): the truth;
 3. ``none``: not known; the analysis estimates it from the record itself

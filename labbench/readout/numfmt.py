@@ -122,5 +122,5 @@ def frequencies_in(text: str, units=None) -> str:
 
 def _units(units):
     if units is None:
-        from labbench.units import SI as units
+        from labbench.readout.units import SI as units
     return units

@@ -26,12 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench import device_delay, records
+from labbench.model import device_delay
+from labbench.sessions import records
 from labbench.analysis.dataio import Recording, load_recording
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult
 from labbench.analysis.progress import Progress, Steps
-from labbench.effective import effective_impedances
+from labbench.model.effective import effective_impedances
 from labbench.errors import UserError, missing_extra
 
 # Units of the analysis CSV's columns (the session's channels carry their own).
@@ -86,10 +87,10 @@ class Identification:
 
     @property
     def readout(self):
-        """What a person reads of it (``labbench.readout``: the words of the CLI, report, window)."""
-        from labbench import readout
+        """What a person reads of it (``labbench.readout.wording``: the words of the CLI, report, window)."""
+        from labbench.readout import wording
 
-        return readout.of_identification({**self.result.as_dict(), "force_source": self.force_source})
+        return wording.of_identification({**self.result.as_dict(), "force_source": self.force_source})
 
     def as_dict(self) -> dict:
         """What ``labbench analyze id --json`` prints (before JSON encoding)."""
@@ -141,7 +142,7 @@ class FrequencyResponse:
     friction: dict | None = None
     # the fit as reported: friction's part of its b taken out or named (analysis.friction.separate)
     fit_summary: dict | None = None
-    # w_s*, w_b* measured and predicted as a run's results keep them (labbench.predictions.read);
+    # w_s*, w_b* measured and predicted as a run's results keep them (labbench.model.predictions.read);
     # None without a VE
     bandwidths: dict | None = None
 
@@ -198,17 +199,17 @@ class FrequencyResponse:
 
     @property
     def readout(self):
-        """What a person reads of it (``labbench.readout``: the words of the CLI, report, window)."""
-        from labbench import readout
+        """What a person reads of it (``labbench.readout.wording``: the words of the CLI, report, window)."""
+        from labbench.readout import wording
 
-        return readout.of_etfe_analysis(self._dict())
+        return wording.of_etfe_analysis(self._dict())
 
     def as_dict(self, units=None) -> dict:
         """What ``labbench analyze etfe --json`` prints (before JSON encoding)."""
-        from labbench import readout
+        from labbench.readout import wording
 
         d = self._dict()
-        return {**d, "readout": readout.of_etfe_analysis(d).as_dict(units)}
+        return {**d, "readout": wording.of_etfe_analysis(d).as_dict(units)}
 
     def _dict(self) -> dict:
         d = self.result.as_dict()
@@ -216,7 +217,7 @@ class FrequencyResponse:
             d["fit"] = self.fit_summary if self.fit_summary is not None else self.fit.as_dict()
         d["rendered"] = self.rendered
         bw = self.bandwidths or {}
-        if self.bandwidths is not None:  # read as the rendered K, B are: labbench.predictions
+        if self.bandwidths is not None:  # read as the rendered K, B are: labbench.model.predictions
             d["ws_star"], d["bandwidths"] = bw["ws_star_measured"], bw
         d["wb_star"] = bw.get("wb_star_measured")
         cmp = self.comparison
@@ -230,12 +231,12 @@ class FrequencyResponse:
         return d
 
     def plot(self, path=None, inputs=(), force: bool = False):
-        """Paper-style figure (Bode, ES, ED, EM; ``labbench.figures.paper_figure``) of the
+        """Paper-style figure (Bode, ES, ED, EM; ``labbench.readout.figures.paper_figure``) of the
         measurement and its theory, up to 0.3 x Nyquist (beyond, the sampled loop's own
         near-Nyquist growth would set the scale of every panel). Returns the Figure; with
         ``path`` (.png, .svg, .pdf) also writes it (never onto ``inputs``; an existing
         file only with ``force``)."""
-        from labbench.figures import Curve, paper_figure
+        from labbench.readout.figures import Curve, paper_figure
 
         res, cmp = self.result, self.comparison
         keep = res.w <= 0.3 * math.pi * self.fs
@@ -254,9 +255,9 @@ class FrequencyResponse:
 
     def to_csv(self, path, force: bool = False):
         """Write the response as CSV (w in rad/s and Hz, Z, its 95 % radius, coherence, ES,
-        ED, EM, the theory's Z; ``labbench.export.export_frequency_response``); returns the
+        ED, EM, the theory's Z; ``labbench.sessions.export.export_frequency_response``); returns the
         path. An existing file is replaced only with ``force``; never the record itself."""
-        from labbench.export import export_frequency_response
+        from labbench.sessions.export import export_frequency_response
 
         return export_frequency_response(self, path, [self.source], force)
 
@@ -275,7 +276,7 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
     it, on the device ``m``, ``b`` given (here or in the metadata) or identified from the
     closed-loop record itself (``labbench.analysis.compare``, friction included), and the
     friction-aware theory with the device's Coulomb friction ``coulomb_n`` [N] (None: the
-    metadata's, ``labbench.device_friction``, else estimated from the record;
+    metadata's, ``labbench.model.device_friction``, else estimated from the record;
     ``labbench.analysis.friction``). ``fit``: fit m, b and the
     extra loop delay to Z with the exact sampled model (``labbench.analysis.loopfit``; with
     ``fit_ve`` the rendered K, B too); the theory then uses the fitted plant and delay.
@@ -283,12 +284,12 @@ def etfe_recording(rec: Recording, estimator: str | None = None, window: int = 2
     ``labbench.errors.Cancelled`` within about 0.5 s (``labbench.analysis.progress``).
     ``band_rad_s``: the band the verdict, the deviation and the rendered K, B speak of
     (``labbench.analysis.etfe.analysis_band``; None: 2-100 rad/s)."""
-    from labbench import device_friction
+    from labbench.model import device_friction
     from labbench.analysis import compare, friction
     from labbench.analysis.etfe import etfe
-    from labbench import predictions
+    from labbench.model import predictions
     from labbench.analysis.rendered import rendered_impedance
-    from labbench.ve import Plant
+    from labbench.model.ve import Plant
 
     steps = Steps(progress, cancel)
     ve = compare.ve_from_meta(rec.meta, rec.fs)
@@ -401,7 +402,7 @@ class Session:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
-        from labbench.escape import literal_mpl
+        from labbench.readout.escape import literal_mpl
         from labbench.safe_write import replacing
 
         t = self.data["t"]
@@ -444,7 +445,7 @@ class Session:
 
 def load(path) -> Session:
     """A session file or an analysis CSV (docs/analysis.md) as a ``Session``."""
-    from labbench.session_format import looks_like_session
+    from labbench.sessions.session_format import looks_like_session
 
     p = Path(path)
     if not p.is_file():
@@ -462,7 +463,7 @@ def _warn(line: str) -> None:
 
 
 def _from_session(p: Path) -> Session:
-    from labbench.session_content import analysis_meta, load_session
+    from labbench.sessions.session_content import analysis_meta, load_session
 
     start, desc, ch, events, stop, problem = load_session(p, warn=_warn)
     meta = analysis_meta(start, desc)

@@ -4,9 +4,9 @@ table and one figure (``labbench design --compare``, docs/design.md).
 The campaigns of docs/examples/design-noise.toml (white-noise ETFE at one K over a grid of B
 and w0: the rendered K and B, the force noise the loop commands) and design-zwidth.toml (the
 stability probe over the same grid: K_max) run on the device; this module joins their rows by
-(B, w0) and sets the design's numbers (``labbench.design``, one model each) beside them: K_max,
+(B, w0) and sets the design's numbers (``labbench.design.tradeoffs``, one model each) beside them: K_max,
 rendered K and B, the command's force noise, and per w0 the Z-width under the noise limit,
-measured (``labbench.design.zwidth`` of the measured K_max and noise) and predicted (the same
+measured (``labbench.design.tradeoffs.zwidth`` of the measured K_max and noise) and predicted (the same
 rule on the predicted ones), with the w0 each finds best.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labbench.design import MODELS, Designer, zwidth
+from labbench.design.tradeoffs import MODELS, Designer, zwidth
 from labbench.errors import UserError
 
 COLUMNS = (  # (key, heading, unit scale, unit)
@@ -156,7 +156,7 @@ def _zwidths(rows: list[Row], limit):
 
 def table_lines(c: Check) -> list[str]:
     """The comparison as text: one line per (B, w0), then the Z-width per w0."""
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     head = f"{'w0 rad/s':>9} {'B N s/m':>8}"
     for _, name, _, unit in COLUMNS:
@@ -189,6 +189,6 @@ def table_lines(c: Check) -> list[str]:
 
 
 def _s(v, scale) -> str:
-    from labbench.numfmt import fmt
+    from labbench.readout.numfmt import fmt
 
     return "-" if v is None else fmt(v * scale, 4)
