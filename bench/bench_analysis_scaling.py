@@ -123,7 +123,7 @@ def record(directory: Path, protocol: str, duration: float) -> Path:
         return path
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe

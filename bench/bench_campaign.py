@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # the CANopenNode drive lives with the 
 from labbench.campaign.engine import run_campaign
 from labbench.campaign.figures import write_figures
 from labbench.campaign.plan import Context, is_simulator, make_plan
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.cli.campaign import point_runner
 from labbench.loop.interrupts import StopRequest
 from labbench.readout.numfmt import fmt

@@ -25,10 +25,10 @@ import json, sys, time
 t0 = time.perf_counter()
 from labbench.campaign import engine
 from labbench.campaign.plan import Context, make_plan
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.loop.interrupts import StopRequest
 from labbench.rig import Rig
-from labbench.loop.runner import RunResult
+from labbench.runner import RunResult
 from labbench.sweep.spec import spec_from_dict
 from labbench.model.ve import Plant
 

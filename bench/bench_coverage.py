@@ -62,7 +62,7 @@ from labbench.analysis import compare  # noqa: E402
 from labbench.analysis.dataio import recording_from_arrays  # noqa: E402
 from labbench.analysis.etfe import W_BAND, etfe  # noqa: E402
 from labbench.analysis.loopfit import fit_loop  # noqa: E402
-from labbench.sessions.session_api import identify_recording  # noqa: E402
+from labbench.session_api import identify_recording  # noqa: E402
 from labbench.model.ve import Plant, VirtualEnvironment  # noqa: E402
 from labbench.readout.verdict import holds  # noqa: E402
 

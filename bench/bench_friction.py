@@ -51,7 +51,7 @@ def chirp(fc: float, seed: int) -> dict:
     """A 60 s chirp-ID of the rough simulator: m, b, Fc and its interval."""
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig()
@@ -67,7 +67,7 @@ def point(args) -> list[dict]:
     from labbench.model import device_friction
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
     from labbench.sessions.session_content import analysis_meta, load_session
     from labbench.sim_backend.sim_device import open_sim
 

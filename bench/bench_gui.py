@@ -7,7 +7,7 @@
    (traces only). Each against a floor measured in the same run (the same widgets
    repainted with no new data). Goal: <= 8 ms for the tick with an estimate.
 2. Loop overruns (periods > 1.5 T): the same short white-noise ETFE on the
-   real-time simulator, headless through ``labbench.loop.runner.run`` recording a
+   real-time simulator, headless through ``labbench.runner.run`` recording a
    session (as ``labbench run`` does), then from the window (the run in its
    acquisition process, ``labbench.gui.acquisition``; redraw timer and live ETFE in the
    window's process) under the Qt event loop. Goal: the GUI adds none.
@@ -43,9 +43,9 @@ from labbench.analysis.etfe_live import LiveEtfe  # noqa: E402
 from labbench.gui.live_estimate import LIVE, estimate  # noqa: E402
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.registry import open_device  # noqa: E402
-from labbench.sessions.records import CHANNELS, PAGE  # noqa: E402
+from labbench.records import CHANNELS, PAGE  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.loop.runner import run  # noqa: E402
+from labbench.runner import run  # noqa: E402
 from labbench.loop.timing import summary as timing_summary  # noqa: E402
 from labbench.sessions.session_format import SessionWriter  # noqa: E402
 from labbench.registry import make_protocol  # noqa: E402

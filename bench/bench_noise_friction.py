@@ -36,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
-from labbench.sessions import records  # noqa: E402
+from labbench import records  # noqa: E402
 from labbench.analysis import force_noise  # noqa: E402
 from labbench.errors import UserError  # noqa: E402
 from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop  # noqa: E402

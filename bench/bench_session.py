@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.sessions.session_format import SessionWriter, read_session
 
 N_PAGES, PAGE = 1200, 100

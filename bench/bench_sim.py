@@ -9,7 +9,7 @@ this thread's CPU time are given (the machine is shared: CPU time is what the
 code costs, wall time what a user waits). Best of ``--repeat`` runs.
 
 Then a paced run (``realtime=True``, as the GUI and ``--realtime`` use it) of
-``--paced-s`` seconds under ``labbench.loop.realtime.acquire`` (as ``labbench.loop.runner``
+``--paced-s`` seconds under ``labbench.loop.realtime.acquire`` (as ``labbench.runner``
 runs it): loop period p50/p99/max, overruns at 1 kHz and what was granted.
 ``bench/bench_realtime.py`` is the long version, against the machine's floor.
 

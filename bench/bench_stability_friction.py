@@ -35,7 +35,7 @@ from pathlib import Path
 from labbench.model import linear
 from labbench.registry import make_protocol
 from labbench.rig import load_rig, rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.sim_backend.sim_device import open_sim
 from labbench.model.ve import Plant, VirtualEnvironment
 
@@ -67,7 +67,7 @@ def rough_campaign(work: Path) -> tuple[list[str], Path]:
     from labbench.campaign.engine import run_campaign
     from labbench.campaign.figures import write_figures
     from labbench.campaign.plan import Context, commission_facts, make_plan
-    from labbench.campaign.settings import CampaignSettings
+    from labbench.rig import CampaignSettings
     from labbench.cli.campaign import point_runner
     from labbench.cli.run import _run_one
     from labbench.loop.interrupts import StopRequest

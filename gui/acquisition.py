@@ -4,7 +4,7 @@ In one process, the GUI thread holds the GIL inside Qt/pyqtgraph drawing calls
 for milliseconds at a time, and a 1 kHz loop on another thread of that process
 misses its periods. So the device lives in a child process (``spawn``: nothing
 of the GUI's state or Qt is inherited; this module imports no Qt) that opens
-it, enables it, and runs protocols through ``labbench.loop.runner.run_recorded`` (as
+it, enables it, and runs protocols through ``labbench.runner.run_recorded`` (as
 ``labbench run`` does: real-time scheduling of the loop's thread, the session
 recorded with ``labbench.sessions.session_format.SessionWriter``).
 
@@ -43,7 +43,7 @@ from multiprocessing.connection import wait as wait_handles
 
 from labbench.device import StatusReporting
 from labbench.loop.interrupts import StopRequest, handle_signals, interrupt_reason
-from labbench.sessions.records import START
+from labbench.records import START
 
 log = logging.getLogger(__name__)
 
@@ -240,7 +240,7 @@ class _Child:
                skip_commissioning=False):
         from labbench.loop.realtime import RealtimeConfig
         from labbench.registry import make_protocol
-        from labbench.loop.runner import run_recorded
+        from labbench.runner import run_recorded
 
         device = self._dev()
         self.idle.clear()
@@ -360,7 +360,7 @@ class Acquisition:
 
     def run(self, protocol_name: str, settings: dict, rig, session_dir, start_extra: dict | None,
             simulated: bool, skip_commissioning: bool = False):
-        """``simulated``: the device is a simulator (``labbench.loop.runner.run``: its watchdog
+        """``simulated``: the device is a simulator (``labbench.runner.run``: its watchdog
         records a host stall and the run goes on); ``skip_commissioning``: as the CLI's option
         (``labbench.commissioning.gate``)."""
         self.stop.clear()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from labbench.sessions.records import CHANNELS, RecordRouter
+from labbench.records import CHANNELS, RecordRouter
 
 
 class StreamBuffer(RecordRouter):

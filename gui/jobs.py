@@ -11,7 +11,6 @@ from pathlib import Path
 from labbench.analysis.compare import ve_from_meta
 from labbench.errors import UserError
 from labbench.gui.live_estimate import estimate
-from labbench.readout.numfmt import fmt
 from labbench.model.predictions import recorded_plant
 from labbench.readout.wording import plant_source
 from labbench.model.ve import Plant
@@ -69,7 +68,7 @@ def analyze_etfe(path: str, estimator: str | None, meta: dict, progress=None, ca
     (``Session.etfe(fit=True)``): its readout (``labbench.readout.wording``: verdicts, the rendered
     impedance) and the closed-loop fit (or why none); for a session without a VE only its path."""
     from labbench.readout import wording
-    from labbench.sessions.session_api import load
+    from labbench.session_api import load
 
     out = {"path": path, "options": f"--estimator {estimator} " if estimator else "", "readout": None}
     if ve_from_meta(meta) is None:

@@ -10,7 +10,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from labbench.model import predictions
+from labbench.readout import bandwidth_text
 from labbench.gui.buffers import StreamBuffer
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_estimate import Estimate
@@ -368,7 +368,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                 # model with the device delay, the paper's closed form labelled beside it)
                 # two lines: the prediction under the measurement (one line ran off the plot)
                 # three: the prediction's two parts under the measurement (two ran off the plot)
-                text = predictions.label(key, value, est.predicted, self.units).replace(
+                text = bandwidth_text.label(key, value, est.predicted, self.units).replace(
                     " (", "\n(", 1).replace("; ", ";\n", 1)
                 if text != line.label.format:  # new text: a re-layout of the label on the next paint
                     line.label.setFormat(text)

@@ -92,7 +92,7 @@ class LiveView(QtWidgets.QWidget):
         """A recorded session whole (a re-analysis shows its traces, its estimate comes
         with it: the page does not estimate it again by itself)."""
         import numpy as np
-        from labbench.sessions.records import CHANNELS
+        from labbench.records import CHANNELS
 
         self.reset()
         n = len(channels.get("t", ()))

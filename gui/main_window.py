@@ -54,7 +54,7 @@ from labbench.design.tradeoffs import device_for
 from labbench.errors import UserError
 from labbench.readout.numfmt import fmt
 from labbench.readout.wording import plant_source, session_label
-from labbench.sessions.records import EVENT, STOP
+from labbench.records import EVENT, STOP
 from labbench.loop.safety import OVERRUN, SEQ_GAP
 from labbench.sessions.session_catalogue import OWN_PLANT, plant_options
 from labbench.model.ve import Plant
@@ -549,11 +549,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def checked_protocol(self, name: str | None = None):
         """The configured protocol and its pre-check report, as the runner will check them
-        (``labbench.loop.runner.checks``: the same plant, gate and device delay, the connected
+        (``labbench.runner.checks``: the same plant, gate and device delay, the connected
         device's own included); UserError when refused: bad settings, an unstable VE, or a
         spring or damper on real hardware before the rig passed its direction check
         (``labbench.commissioning.gate``: the CLI's one line)."""
-        from labbench.loop.runner import checks
+        from labbench.runner import checks
 
         protocol = self.make_protocol(name)
         _plant, _delay, rep = checks(
@@ -714,7 +714,7 @@ class MainWindow(QtWidgets.QMainWindow):
         its runs use (the rig's newest chirp-ID, else its nominal) and the rig's last
         commissioning; the Campaign page shows the plan, or why there is none."""
         from labbench.campaign.plan import Context, commission_facts, describe, make_plan
-        from labbench.campaign.settings import CampaignSettings
+        from labbench.rig import CampaignSettings
         from labbench.sweep import table as tables
         from labbench.sweep.spec import load_spec
 
@@ -806,7 +806,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
             self.campaign_stop.set(limit_reached(self.campaign.limit.value()))
         if self.campaign_stop is None or self.campaign_stop.is_set():
-            from labbench.loop.runner import RunResult
+            from labbench.runner import RunResult
 
             self._finish_point(result=RunResult("aborted", getattr(self.campaign_stop, "reason", "")
                                                 or "campaign stopped"), session=None)
@@ -1063,7 +1063,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._finish_point(result=result, session=self.session_path)
 
     def _on_replay_done(self, status):
-        from labbench.sessions.records import protocol_name
+        from labbench.records import protocol_name
 
         self.log.add("info", f"replay {status}")
         buf = self.live.buffer

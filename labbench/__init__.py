@@ -1,6 +1,6 @@
 """labbench: a lab bench for impedance-type haptic displays.
 
-``labbench.load(path)`` opens a session or CSV for analysis (``labbench.sessions.session_api``);
+``labbench.load(path)`` opens a session or CSV for analysis (``labbench.session_api``);
 it is imported on first use so that ``import labbench`` stays light.
 """
 import os as _os
@@ -21,7 +21,7 @@ del _root
 
 def __getattr__(name):
     if name == "load":
-        from labbench.sessions.session_api import load
+        from labbench.session_api import load
 
         return load
     raise AttributeError(f"module 'labbench' has no attribute {name!r}")

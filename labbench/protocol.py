@@ -14,7 +14,6 @@ import difflib
 import math
 from collections.abc import Generator
 from dataclasses import MISSING, asdict, dataclass, field, fields
-from typing import Any
 
 import numpy as np
 
@@ -252,7 +251,7 @@ class ProtocolBase:
     # boundary (the stability probe) must know of the rig.
     device_delay_s: float = 0.0
     # The device's Coulomb friction on this run (``labbench.model.device_friction``), set by the
-    # run's checks (``labbench.loop.runner.checks``) before ``check_plan``; None: not resolved yet.
+    # run's checks (``labbench.runner.checks``) before ``check_plan``; None: not resolved yet.
     device_friction = None
 
     def __init__(self, config):

@@ -22,7 +22,6 @@ from pathlib import Path
 from labbench import scales
 from labbench.errors import UserError, unknown_name
 from labbench.input_files import read_text
-from labbench.campaign.settings import CampaignSettings
 from labbench.loop.realtime import RealtimeConfig
 from labbench.loop.safety import SafetyConfig
 from labbench.model.ve import DEFAULT_PLANT, Plant
@@ -111,7 +110,7 @@ MAX_RIG_FILE_BYTES = 1 << 20  # a rig file is a page of TOML; larger is not a ri
 
 def _tables() -> tuple[str, ...]:
     """Tables a rig file may hold: [rig], [safety], [realtime], [preflight] (the timing
-    preflight, ``labbench.loop.preflight``), [campaign] (``labbench.campaign.settings``), and one
+    preflight, ``labbench.loop.preflight``), [campaign] (``labbench.rig``), and one
     per device backend (its name)."""
     from labbench.registry import device_names  # names only: no backend is imported
 
@@ -205,3 +204,41 @@ def load_rig(path: str | Path | None) -> Rig:
     except RecursionError:
         raise UserError(f"{p}: not valid TOML: nested too deeply") from None
     return rig_from_dict(data, source=str(p))
+
+
+CAMPAIGN_TABLE = "campaign"
+MAX_PAUSE_S = 600.0
+HARDWARE_PAUSE_S = 2.0
+
+
+@dataclass(frozen=True)
+class CampaignSettings:
+    """The rig's ``[campaign]`` table: what a campaign does between its points on this bench.
+
+    ```toml
+    [campaign]
+    pause_s = 2.0      # force zero, device closed, this long before the next point opens it
+    ```
+
+    ``pause_s`` [s] (0-600; default 2 s on real hardware, 0 on a simulator): after a point
+    the runner has commanded zero force, disabled and closed the device; the campaign waits
+    this long (a handle still swinging settles, a drive cools, the operator sees the pause)
+    before it opens the device for the next point. A stop request ends the wait at once.
+    """
+
+    pause_s: float
+
+    @classmethod
+    def from_rig(cls, rig, simulated: bool = False) -> CampaignSettings:
+        """The rig's ``[campaign]`` table over the defaults (class doc); one UserError naming
+        the file and the field."""
+        table = rig.section(CAMPAIGN_TABLE)
+        for name in table:
+            if name != "pause_s":
+                raise UserError(f"{rig.source}: [{CAMPAIGN_TABLE}] {unknown_name('field', name, ('pause_s',))}")
+        pause = table.get("pause_s", 0.0 if simulated else HARDWARE_PAUSE_S)
+        ok = isinstance(pause, (int, float)) and not isinstance(pause, bool) and math.isfinite(pause)
+        if not ok or not 0 <= pause <= MAX_PAUSE_S:
+            raise UserError(f"{rig.source}: [{CAMPAIGN_TABLE}] pause_s must be a number of seconds in "
+                            f"[0, {MAX_PAUSE_S:g}], got {pause!r}")
+        return cls(float(pause))

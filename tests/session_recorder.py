@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.model.ve import VirtualEnvironment
 from labbench.sim_backend.plant import MassDamperPlant
 

@@ -1,7 +1,7 @@
 """Sessions recorded on the default simulated rig, for the tests of what reads them."""
 from labbench.registry import make_protocol
 from labbench.rig import Rig
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.sessions.session_format import SessionWriter
 from labbench.sim_backend.sim_device import open_sim
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labbench.sessions import records
+from labbench import records
 from labbench.model import linear
 from labbench.analysis.dataio import recording_from_arrays
 from labbench.analysis.etfe import etfe

@@ -17,7 +17,7 @@ import pytest
 from labbench.campaign import engine
 from labbench.model.passivity import colgate_line, passive_k_max, quantisation_bound
 from labbench.campaign.plan import Context, make_plan
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.cli.campaign import point_runner
 from labbench.errors import UserError
 from labbench.loop.interrupts import StopRequest
@@ -201,7 +201,7 @@ def test_rate_vs_accuracy_agrees_with_the_sampled_theory_within_its_band(tmp_pat
 def test_each_point_says_where_its_plant_came_from_as_a_run_does(tmp_path):
     """A point's session names its theory's plant as ``labbench run`` would: the chirp-ID the
     campaign found, the rig's nominal model, or the point's own settings."""
-    from labbench.readout import wording
+    from labbench.sessions import session_content
 
     chirp = str(tmp_path / "20261205-093452_chirp-id_9c72e04a.lbsession")
     d = etfe_spec(1)
@@ -211,12 +211,12 @@ def test_each_point_says_where_its_plant_came_from_as_a_run_does(tmp_path):
              "identified in 20261205-093452_chirp-id"))):
         (tmp_path / str(i)).mkdir()
         _summary, rows = run(d, tmp_path / str(i), ctx)
-        assert wording.of_session(rows[0]["session"]).plant.source == words
+        assert session_content.readout_of(rows[0]["session"]).plant.source == words
         assert rows[0]["plant.from"] == ("nominal" if i == 0 else f"chirp-ID {chirp}")
     d["fixed"].update(plant_m_kg=0.1, plant_b=0.2)
     (tmp_path / "given").mkdir()
     _summary, rows = run(d, tmp_path / "given")
-    assert wording.of_session(rows[0]["session"]).plant.source == "given in the run's settings"
+    assert session_content.readout_of(rows[0]["session"]).plant.source == "given in the run's settings"
     assert rows[0]["plant.m"] == 0.1
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from labbench.campaign import engine
 from labbench.campaign.plan import Context, make_plan
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.cli.campaign import point_runner
 from labbench.loop.interrupts import StopRequest
 from labbench.sweep import table as tables

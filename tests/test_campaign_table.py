@@ -24,11 +24,11 @@ import pytest
 
 from labbench.campaign import engine
 from labbench.campaign.plan import Context, describe, make_plan
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.errors import UserError
 from labbench.loop.interrupts import StopRequest
 from labbench.rig import Rig
-from labbench.loop.runner import RunResult
+from labbench.runner import RunResult
 from labbench.sweep import table as tables
 from labbench.sweep.spec import Spec, spec_from_dict
 from labbench.model.ve import Plant

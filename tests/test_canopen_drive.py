@@ -288,8 +288,8 @@ def test_bus_load_of_the_mapping():
 # ------------------------------------------- the same protocol, two devices
 def run_protocol(device, rig, **options):
     from labbench.registry import open_device
-    from labbench.sessions.records import concat_pages
-    from labbench.loop.runner import run
+    from labbench.records import concat_pages
+    from labbench.runner import run
     from labbench.registry import make_protocol
 
     records = []
@@ -312,7 +312,7 @@ def test_short_etfe_record_matches_the_plain_simulator_count_for_count(monkeypat
     """
     from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
     from labbench.protocols.white_noise import WhiteNoiseEtfe
-    from labbench.sessions.records import concat_pages
+    from labbench.records import concat_pages
     from labbench.registry import make_protocol, open_device
     from labbench.loop.safety import GATED
 

@@ -7,7 +7,7 @@ from can_fixtures import FAST, no_bus_left_open  # noqa: F401
 from labbench.errors import DeviceFault
 from labbench.registry import make_protocol, open_device
 from labbench.rig import rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from test_canopen_vendor import FORCES, oracle_counts, run_forces
 
 

@@ -14,7 +14,7 @@ from labbench.drivers.canopen_config import CanopenConfig
 from labbench.errors import UserError
 from labbench.registry import make_protocol, open_device
 from labbench.rig import rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.sim_backend.canopen_peer import connect_driver, sim_config, start_sim_drive
 from can_fixtures import FAST, no_bus_left_open  # noqa: F401
 from test_canopen_vendor import FORCES, opened, oracle_counts, run_forces  # noqa: F401

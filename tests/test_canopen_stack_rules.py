@@ -149,7 +149,7 @@ def test_a_drive_refusing_to_read_its_mode_object_is_write_only_to_the_driver(tm
 
 # ------------------------------------------------- leave the drive as it was found
 def _run(drive, protocol, rig):
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     records = []
     result = run(drive, protocol, [records.append], rig=rig, simulated=True, close=False)
@@ -362,7 +362,7 @@ def test_device_counters_through_the_run_and_in_the_stop_record():
     import can
 
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     rig = rig_for()
     d = opened(rig)

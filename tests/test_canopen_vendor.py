@@ -87,9 +87,9 @@ FORCES = 0.8 * np.random.default_rng(5).standard_normal(300)
 def test_optional_objects_missing_open_enable_run_disable_with_warnings(tmp_path):
     """Done-when: opens, enables, runs a protocol and disables as it is; the session says
     what is missing and what replaces it."""
-    from labbench.sessions.records import concat_pages
+    from labbench.records import concat_pages
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     path = F.write(tmp_path / "optional.eds", **F.OPTIONAL_MISSING)
     # A generous loop watchdog: lock-step runs on a shared machine (see test_canopen_drive).

@@ -4,7 +4,7 @@ A CiA 402 torque drive is built from ``../shared/third_party/CANopenNode`` with 
 dictionary, transport and application (``tests/canopennode``) and runs as a process of its
 own on python-can's ``udp_multicast``; the driver reaches it through the public surface
 only: a rig with ``[canopen] interface = "udp_multicast"``, ``labbench.registry.open_device``
-+ ``labbench.loop.runner.run`` (lock-step, so that results do not depend on this machine's
++ ``labbench.runner.run`` (lock-step, so that results do not depend on this machine's
 speed) and the ``labbench`` command line.
 
 Truth is the exact plant: the drive steps the simulated drive's mass-damper once per SYNC
@@ -25,9 +25,9 @@ import pytest
 import canopennode
 from canopennode import build, dictionary
 from labbench.errors import DeviceFault
-from labbench.sessions.records import concat_pages
+from labbench.records import concat_pages
 from labbench.registry import device_names, make_protocol, open_device
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.loop.safety import GATED
 from test_canopen_process import _children
 from test_canopen_vendor import FORCES, oracle_counts, run_forces

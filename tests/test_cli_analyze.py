@@ -159,7 +159,7 @@ def test_id_of_a_session_from_a_one_period_late_device(tmp_path, capsys):
     # start record carries it, and analyze id on the session regresses on the delayed command
     from labbench.registry import make_protocol
     from labbench.rig import rig_from_dict
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
     from labbench.sim_backend.sim_device import open_sim
 
     rig = rig_from_dict({"rig": {"measured_td_s": 0.001}, "sim": {"extra_delay_samples": 1}})

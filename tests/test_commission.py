@@ -78,7 +78,7 @@ CASES = {
 
 def commission(backend: str, sim: dict, rig: Rig = R):
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     rig = replace(rig, sections={**rig.sections, "sim": sim})
     proto = make_protocol("commission", sample_time_s=rig.sample_time_s)
@@ -135,7 +135,7 @@ def assert_named(case: str, res: dict, declared_s: float, T: float) -> None:
 
 def test_gate_refuses_a_spring_on_an_unchecked_real_rig():
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sim_backend.sim_device import open_sim
 
     spring = make_protocol("etfe", ve="spring", K=20.0, duration_s=1.0, seed=1)
@@ -213,7 +213,7 @@ def test_a_flipped_rig_never_renders_a_spring(tmp_path, capsys):
 def test_report_of_a_commissioning_session(tmp_path):
     from labbench.registry import make_protocol
     from labbench.report import write_report
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
     from labbench.sim_backend.sim_device import open_sim
 
     rig = replace(R, sections={"sim": {"extra_delay_samples": 1}})

@@ -80,7 +80,7 @@ def test_session_records_how_the_force_reached_the_plant(tmp_path, hold):
 
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import SimDevice
 

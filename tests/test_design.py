@@ -4,7 +4,6 @@ against a campaign measured on the rough simulator, and bad input in one line.""
 import json
 import math
 
-import numpy as np
 import pytest
 
 from labbench.design import tradeoffs

@@ -23,7 +23,7 @@ RIG = {"canopen": {"sim_drive": "process"}}
 
 def test_a_killed_drive_ends_the_run_with_one_wait_at_most_and_the_device_as_cause():
     from labbench.drivers.canopen_drive import AFTER_FAULT_SDO_S
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     d = open_device("sim-canopen", rig_from_dict(RIG, source="test-rig"), realtime=True)
     client = d._sdo.client

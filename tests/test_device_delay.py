@@ -66,7 +66,7 @@ def test_a_run_records_the_declared_delay_and_its_analysis_uses_it(tmp_path):
 
     from labbench.sessions import session_content
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 

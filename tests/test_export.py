@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from session_recorder import VE, synthetic_stream
 
-from labbench.sessions import records
+from labbench import records
 from labbench.cli import main
 from labbench.analysis import dataio
 from labbench.sessions.export import CSV_COLUMNS

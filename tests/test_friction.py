@@ -112,7 +112,7 @@ def test_friction_source_order_and_bad_values():
 def _run(tmp_path, coulomb_n, seed=1, duration_s=60.0, **protocol):
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
     from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig()
@@ -158,10 +158,10 @@ def test_frictionless_run_compares_with_the_linear_theory_and_stays_ok(rough):
 
 
 def test_readout_names_the_model_it_compares_with(rough):
-    from labbench.readout import wording
+    from labbench.sessions import session_content
 
     _, path = rough[0.02]
-    r = wording.of_session(path)
+    r = session_content.readout_of(path)
     text = "\n".join(r.text_lines())
     assert "compared with the sampled theory with Coulomb friction 0.02 N (the simulator's [sim] " \
            "coulomb_n, sim) at this run's 0.029 m/s rms" in text
@@ -175,7 +175,7 @@ def test_analyze_told_no_friction_says_the_response_depends_on_amplitude(rough):
     # the same record read with the nominal plant and Fc = 0: the linear theory misses by far,
     # and the verdict names friction with the record's own estimate (never a bare ok)
     from labbench.analysis.dataio import load_recording
-    from labbench.sessions.session_api import etfe_recording
+    from labbench.session_api import etfe_recording
 
     _, path = rough[0.02]
     fr = etfe_recording(load_recording(path), m=PLANT.m, b=PLANT.b, coulomb_n=0.0)
@@ -199,7 +199,7 @@ def test_friction_estimated_from_the_record_reads_the_device_and_holds_the_dampi
     # filter leaves out it reads within 5 % (the grid's record estimates: see
     # docs/friction-bench.md) and its interval holds the simulator's 0.02
     from labbench.analysis.dataio import load_recording, recording_from_arrays
-    from labbench.sessions.session_api import etfe_recording
+    from labbench.session_api import etfe_recording
 
     _, path = rough[0.02]
     rec = load_recording(path)
@@ -226,7 +226,7 @@ def test_precheck_says_how_strong_an_excitation_keeps_friction_small():
     from labbench.analysis.friction import SHARE
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import checks
+    from labbench.runner import checks
 
     proto = make_protocol("etfe", duration_s=30.0, seed=1, plant_coulomb_n=0.02)
     _, _, rep = checks(proto, Rig())
@@ -266,9 +266,9 @@ def test_levels_show_the_amplitude_dependence_friction_predicts(levels_run):
     assert B[0] > B[1] > B[2] > 1.1  # friction's damper shrinks as the excitation grows
     assert lv["verdict"]["level"] == "ok"
     assert "depends on amplitude" in lv["verdict"]["notes"][0] and "as Coulomb friction predicts" in lv["verdict"]["notes"][0]
-    from labbench.readout import wording
+    from labbench.sessions import session_content
 
-    r = wording.of_session(path)
+    r = session_content.readout_of(path)
     rows = dict(r.row_texts())
     assert "at 2 N" in rows and "excitation" in rows
     assert any(j.what == "amplitude" for j in r.verdicts)
@@ -296,7 +296,7 @@ def test_chirp_id_friction_separates_the_loop_fits_viscous_b(tmp_path):
     # the ETFE as --plant-from last-id gives them; the viscous b's interval holds the truth.
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_catalogue import plant_options
     from labbench.sim_backend.sim_device import open_sim
 
@@ -331,7 +331,7 @@ def test_friction_aware_theory_with_a_fractional_device_delay(tmp_path):
     # measured_td_s): the friction-aware theory carries the delay through the exact sampled loop
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sim_backend.sim_device import open_sim
 
     rig = Rig(measured_td_s=0.0015, measured_td_from="the simulator's delay")

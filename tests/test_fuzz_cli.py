@@ -19,7 +19,7 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.registry import protocol_class
-from labbench.sessions import records
+from labbench import records
 from labbench.sessions.session_format import SessionWriter
 
 CI_CASES = 12  # per entry point

@@ -22,7 +22,7 @@ from fuzzing import scratch_cwd  # noqa: F401 - autouse fixture
 from session_recorder import synthetic_stream
 
 from labbench.analysis import dataio
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import UserError
 from labbench.sessions.session_format import SessionWriter
 

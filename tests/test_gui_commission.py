@@ -164,7 +164,7 @@ def _cli_refusal(rig) -> str:
     """The line ``labbench run etfe`` refuses the same spring with on real hardware (the
     runner's gate, as the CLI runs it)."""
     from labbench.registry import make_protocol
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     with pytest.raises(UserError) as refused:
         run(open_device("sim", rig), make_protocol("etfe", duration_s=2.0), [], rig=rig,

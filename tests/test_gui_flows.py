@@ -295,7 +295,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
     assert f"identified in {label}" in again.id_view.overlay.text()
 
     # Re-analyse the ETFE session: labbench analyze etfe --fit's numbers (CV-chosen delays)
-    from labbench.sessions.session_api import load
+    from labbench.session_api import load
 
     again.sessions.select_path(etfe_path)
     again.sessions.estimator.setCurrentText("h1-welch")
@@ -313,7 +313,7 @@ def test_identification_shows_what_the_overlay_uses_and_the_loop_fit(qtbot, tmp_
 
 
 def test_display_units_follow_the_choice_and_are_remembered(qtbot, tmp_path):
-    from labbench.model import predictions
+    from labbench.readout import bandwidth_text
     from labbench.readout.units import SI, DisplayUnits
 
     ini, folder = tmp_path / "settings.ini", tmp_path / "sessions"
@@ -328,7 +328,7 @@ def test_display_units_follow_the_choice_and_are_remembered(qtbot, tmp_path):
     chosen = DisplayUnits("mm", "deg", "Hz")
     assert win.units_choice.units() == chosen
     label = win.live.impedance.marks["ws"].label.format
-    assert label.replace("\n", " ") == predictions.label("ws", est.ws_measured, est.predicted, chosen)
+    assert label.replace("\n", " ") == bandwidth_text.label("ws", est.ws_measured, est.predicted, chosen)
     assert label != ws_si and " Hz" in label
     assert 10 ** win.live.impedance.marks["ws"].value() == pytest.approx(est.ws_measured / (2 * np.pi))
     x, _ = win.live.impedance.curves["ED"].getOriginalDataset()

@@ -107,10 +107,11 @@ def test_the_window_says_what_the_cli_and_the_report_say(qtbot, tmp_path):
     # rendered sentence of the session's readout, which the CLI and the report write
     # (tests/test_readout.py: the CLI's JSON and text, replay and the report agree)
     from labbench.readout import wording
+    from labbench.sessions import session_content
 
     win = _etfe_in_window(qtbot, Rig(), tmp_path)
     qtbot.waitUntil(lambda: bool(win.live.verdicts.shown), timeout=RUN_TIMEOUT_MS)
-    back = wording.of_session(win.session_path)
+    back = session_content.readout_of(win.session_path)
     shown = win.live.verdicts
     assert [j.line() for j in shown.shown] == [j.line() for j in back.verdicts]
     text = shown.text()

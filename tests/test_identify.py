@@ -452,7 +452,7 @@ def test_stick_slip_on_the_simulated_chirp_id(coulomb_n):
     # the bench's own path (protocol chirp-id on the quantised simulator): with 0.1 N of
     # friction b comes out ~4-5x too high, and the flag says why; without it, no flag
     from labbench.rig import rig_from_dict
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.registry import make_protocol
     from labbench.sim_backend.sim_device import open_sim
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import UserError
 from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig

@@ -92,7 +92,7 @@ def test_fit_measures_the_simulator_latency_from_a_session(tmp_path, whole, frac
     from labbench.analysis.dataio import load_recording
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
@@ -150,7 +150,7 @@ def test_session_overlay_uses_the_rigs_measured_delay(tmp_path, capsys):
     # rig file; the next run's theory overlay (protocol results and analyze etfe) then matches
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 
@@ -249,7 +249,7 @@ def test_noisy_records_meet_the_targets_or_say_why(seed):
 
 
 def test_session_etfe_fits_on_request(tmp_path):
-    from labbench.sessions.session_api import Session
+    from labbench.session_api import Session
 
     rec = delayed_loop_recording(SD, n=20000, ve_delay=2 * T, seed=3)
     p = tmp_path / "loop.csv"
@@ -352,7 +352,7 @@ def sim_etfe_2min(tmp_path_factory):
     from labbench.analysis.dataio import load_recording
     from labbench.registry import make_protocol
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.sessions.session_format import SessionWriter
     from labbench.sim_backend.sim_device import open_sim
 

@@ -1,7 +1,6 @@
 """The one number formatter (labbench.readout.numfmt): values to the digits their interval supports."""
 import math
 
-import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 

@@ -125,7 +125,7 @@ def test_time_traces_redraw_their_columns_when_resized(qtbot):
     """The traces are reduced to the plot's pixel columns: a wider window, more spans."""
     from labbench.gui.buffers import StreamBuffer
     from labbench.gui.live_plots import TimeTraces
-    from labbench.sessions.records import CHANNELS, DESCRIPTOR, PAGE
+    from labbench.records import CHANNELS, DESCRIPTOR, PAGE
 
     rng = np.random.default_rng(4)
     buf = StreamBuffer()

@@ -6,6 +6,7 @@ import pytest
 from scipy.optimize import brentq
 
 from labbench.model import predictions
+from labbench.readout import bandwidth_text
 from labbench.model import linear
 from labbench.model.effective import effective_impedances
 from labbench.readout.units import DisplayUnits
@@ -55,13 +56,13 @@ def test_td_off_the_sample_grid_falls_back_to_the_paper_model_labelled():
 
 def test_label_names_each_theory_and_converts_units():
     bw = predictions.bandwidths(PAPER_PLANT, DEMO)
-    text = predictions.label("wb", 72.0, bw)
+    text = bandwidth_text.label("wb", 72.0, bw)
     assert text == (f"w_b* = 72 rad/s (sampled theory {bw.wb_star:.4g} rad/s; paper w0: 125)")
-    hz = predictions.label("ws", 2 * math.pi * 3.5, bw, DisplayUnits(frequency="Hz"))
+    hz = bandwidth_text.label("ws", 2 * math.pi * 3.5, bw, DisplayUnits(frequency="Hz"))
     assert hz.startswith("w_s* = 3.5 Hz (sampled theory ")
     assert f"{bw.ws_star / (2 * math.pi):.4g} Hz" in hz
     assert f"paper eq. 5: {bw.ws_star_eq5 / (2 * math.pi):.4g}" in hz
-    assert predictions.label("ws", None, None) == "w_s* = - rad/s"
+    assert bandwidth_text.label("ws", None, None) == "w_s* = - rad/s"
 
 
 

@@ -19,7 +19,7 @@ from labbench.errors import UserError
 from labbench.loop.preflight import PreflightConfig, judge, lines, measure
 from labbench.registry import make_protocol, open_device
 from labbench.rig import load_rig, rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from can_fixtures import no_bus_left_open  # noqa: F401
 
 SECONDS = 2.0

@@ -12,7 +12,7 @@ from labbench.model import linear
 from labbench.errors import UserError
 from labbench.readout.numfmt import frequency_text
 from labbench.rig import Rig, rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.protocol import precheck
 from labbench.protocols import excitation

@@ -9,6 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from labbench.readout import wording
+
+from labbench.sessions import session_content
 from labbench.model import linear
 from labbench.cli import main
 from labbench.readout.numfmt import fmt_ci
@@ -92,7 +94,7 @@ def test_one_session_reads_the_same_on_every_surface(tmp_path, capsys):
     out = _run(capsys, tmp_path, "etfe", "--K", "200", "--B", "1", "--duration-s", "30", "--seed", "3")
     path = out["session"]
     cli = out["readout"]
-    back = wording.of_session(path)
+    back = session_content.readout_of(path)
     assert back.as_dict() == json.loads(json.dumps(cli)) or _same(back.as_dict(), cli)
     assert main(["run", "etfe", "--K", "200", "--B", "1", "--duration-s", "30", "--seed", "3",
                  "--device", "sim", "--out", str(tmp_path / "again")]) == 0
@@ -166,12 +168,12 @@ def test_a_headline_the_etfe_does_not_vouch_for_says_so_first_on_every_surface(t
     cli = out["readout"]
     first = "doubtful (the paper's estimator; see the ETFE's verdict): renders K = "
     assert cli["rendered"]["sentence"].startswith(first) and cli["rendered"]["level"] == "doubtful"
-    back = wording.of_session(out["session"])
+    back = session_content.readout_of(out["session"])
     assert back.text_lines()[0].startswith(first)  # the CLI's summary, first line
     rows = dict(page_one_rows(back))
     assert rows["rendered"].startswith(first)  # the report's page 1
     # the trusted estimate keeps its plain headline (no false alarm)
-    ok = wording.of_session(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
+    ok = session_content.readout_of(_run(capsys, tmp_path / "lpm", "etfe", "--K", "200", "--B", "1",
                                  "--duration-s", "30", "--seed", "3")["session"])
     assert ok.verdicts[0].verdict.level == "ok" and ok.text_lines()[0].startswith("renders K = ")
 
@@ -189,7 +191,7 @@ def test_a_stability_probe_on_a_rubbing_device_says_why_on_every_surface(tmp_pat
                  "--plant-coulomb-n", "0.02", "--out", str(tmp_path / "s")]) == 0
     text = capsys.readouterr().out
     path = next(word for word in text.split() if word.endswith(".lbsession"))
-    back = wording.of_session(path)
+    back = session_content.readout_of(path)
     res = back_results(path)
     f = res["friction"]
     rows = dict(back.row_texts())
@@ -220,7 +222,7 @@ def test_a_stability_probe_on_a_rubbing_device_says_why_on_every_surface(tmp_pat
 
 
 def back_results(path) -> dict:
-    from labbench.sessions import records
+    from labbench import records
     from labbench.sessions.session_format import SessionReader
 
     got = records.StreamCollector()

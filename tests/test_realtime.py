@@ -145,7 +145,7 @@ def test_threads_of_a_recorded_run_sit_just_below_the_loop(tmp_path):
     priority - 1 on its CPU: a thread started inside the grant would inherit the loop's
     own priority, and one left at normal priority could hold the GIL while preempted."""
     from labbench.registry import make_protocol, open_device
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
 
     seen: dict[str, tuple[int, int]] = {}
 

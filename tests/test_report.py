@@ -13,7 +13,7 @@ from matplotlib import image
 from pypdf import PdfReader
 from session_recorder import synthetic_stream
 
-from labbench.sessions import records
+from labbench import records
 from labbench.model import linear
 from labbench.cli import main
 from labbench.errors import UserError

@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from labbench.sessions import records
+from labbench import records
 from labbench.device import DeviceDescription, DeviceFault
 from labbench.errors import UserError
 from labbench.rig import Rig
-from labbench.loop.runner import run, summarize
+from labbench.runner import run, summarize
 from labbench.registry import make_protocol
 from labbench.sim_backend.sim_device import open_sim
 

@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from labbench.sessions import records
+from labbench import records
 from labbench.device import DeviceDescription, DeviceFault, Sample
 from labbench.errors import UserError
 from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop

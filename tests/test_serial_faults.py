@@ -2,7 +2,7 @@
 
 Faults are scheduled on the simulated board by sample index (boot = 0; the
 driver's sync at open takes the first samples), so every run is repeatable.
-The whole chain runs: real driver on a pty, labbench.loop.runner, labbench.loop.chain.
+The whole chain runs: real driver on a pty, labbench.runner, labbench.loop.chain.
 """
 
 import math
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from labbench.drivers.serial_stream import FLAG_LINK_ERRORS, FLAG_LOST, SerialConfig, SerialStream
-from labbench.sessions import records
+from labbench import records
 from labbench.device import DeviceFault
 from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.loop.safety import DEVICE
 from labbench.model.ve import VirtualEnvironment
 from labbench.registry import make_protocol

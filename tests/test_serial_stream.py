@@ -349,8 +349,8 @@ def test_period_mismatch_is_a_user_error(fmt):
 # -- the same protocol on the plain simulator and through the serial driver ------------------
 def run_protocol(device, rig, **options):
     from labbench.registry import open_device
-    from labbench.sessions.records import concat_pages
-    from labbench.loop.runner import run
+    from labbench.records import concat_pages
+    from labbench.runner import run
     from labbench.registry import make_protocol
 
     stream = []

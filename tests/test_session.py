@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from session_recorder import VE, synthetic_stream
 
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import RecordingError, UserError
 from labbench.sessions.session_catalogue import list_sessions
 from labbench.sessions.session_content import load_analysis_arrays

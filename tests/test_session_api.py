@@ -36,8 +36,8 @@ def _as_json(d: dict) -> dict:
 
 def test_import_labbench_is_light():
     code = ("import sys, labbench; heavy = [m for m in ('numpy', 'scipy', 'matplotlib', "
-            "'labbench.sessions.session_api') if m in sys.modules]; print(heavy); "
-            "assert callable(labbench.load); assert 'labbench.sessions.session_api' in sys.modules")
+            "'labbench.session_api') if m in sys.modules]; print(heavy); "
+            "assert callable(labbench.load); assert 'labbench.session_api' in sys.modules")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
 
@@ -193,7 +193,7 @@ def test_cancel_with_a_real_event_from_another_thread(sessions):
 
 
 def test_cli_maps_cancelled_like_an_interrupt(sessions, capsys, monkeypatch):
-    from labbench.sessions import session_api
+    from labbench import session_api
     from labbench.errors import Cancelled
 
     def cancelled(*a, **kw):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from session_recorder import synthetic_stream
 
-from labbench.sessions import records
+from labbench import records
 from labbench.sessions.session_format import read_session
 
 RECORDER = Path(__file__).with_name("session_recorder.py")
@@ -84,7 +84,7 @@ def test_sigkill_of_labbench_run_realtime(tmp_path):
     """The real chain: ``labbench run chirp-id --realtime`` killed mid-run; what survived
     equals the same run done to completion without pacing (the simulator is deterministic)."""
     from labbench.rig import Rig
-    from labbench.loop.runner import run
+    from labbench.runner import run
     from labbench.registry import make_protocol
     from labbench.sim_backend.sim_device import open_sim
 

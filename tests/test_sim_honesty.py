@@ -7,7 +7,7 @@ from labbench.device import ESTOP_STATE
 from labbench.errors import DeviceFault
 from labbench.registry import make_protocol, open_device
 from labbench.rig import Rig, rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.loop.timing import status_figures
 from can_fixtures import no_bus_left_open  # noqa: F401
 

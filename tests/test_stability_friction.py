@@ -10,7 +10,7 @@ from labbench.model import stability_friction as sf
 from labbench.protocol import precheck
 from labbench.registry import make_protocol
 from labbench.rig import Rig, rig_from_dict
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.sim_backend.sim_device import open_sim
 from labbench.model.ve import Plant, VirtualEnvironment
 
@@ -185,7 +185,7 @@ def test_zwidth_campaign_on_the_rough_rig_gives_a_boundary_or_the_reason_it_has_
     from labbench.campaign.figures import _friction_aware
     from labbench.campaign.plan import Context, make_plan
     from labbench.campaign.report import build
-    from labbench.campaign.settings import CampaignSettings
+    from labbench.rig import CampaignSettings
     from labbench.cli.campaign import point_runner
     from labbench.loop.interrupts import StopRequest
     from labbench.report.blocks import Table
@@ -257,7 +257,7 @@ def _planned_rows(rig, **fixed):
     """The rows a Z-width campaign over B = 0 and 2 plans (not run): its predictions."""
     from labbench.campaign.plan import Context, make_plan
     from labbench.campaign.rows import skipped_row
-    from labbench.campaign.settings import CampaignSettings
+    from labbench.rig import CampaignSettings
     from labbench.sweep.spec import spec_from_dict
 
     spec = spec_from_dict({"sweep": {"name": "z", "protocol": "stability"},

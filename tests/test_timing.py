@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from labbench.sessions import records
+from labbench import records
 from labbench.loop import timing
 from labbench.loop.chain import HapticLoop, SafetyConfig, run_loop
 from labbench.rig import Rig
-from labbench.loop.runner import run
+from labbench.runner import run
 from labbench.registry import make_protocol
 from labbench.sim_backend.sim_device import open_sim
 from labbench.model.ve import VirtualEnvironment

@@ -11,7 +11,7 @@ from gui_faulty_device import StallingDevice  # noqa: E402
 
 from labbench.registry import make_protocol  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
-from labbench.loop.runner import run  # noqa: E402
+from labbench.runner import run  # noqa: E402
 from labbench.loop.safety import OVERRUN, SafetyConfig, WatchdogPolicy  # noqa: E402
 
 STALL_S = 0.2  # four times the default watchdog (50 ms)

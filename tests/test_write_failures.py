@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labbench.sessions import records
+from labbench import records
 from labbench.cli import main
 from labbench.sessions.session_format import read_session
 
@@ -80,7 +80,7 @@ def test_a_write_refused_mid_run_is_one_line_json_and_a_readable_session(tmp_pat
         device.command = lambda f: (forces.append((faulty.refused, f)), command(f))[1]
         return real_loop(device, *a, **kw)
 
-    monkeypatch.setattr(loop, "run_loop", watched_loop)
+    monkeypatch.setattr(chain, "run_loop", watched_loop)
     rc, out, err = _run(capsys, [*RUN, "--out", str(tmp_path)])
     assert rc == 1
     assert len(err) == 1 and err[0].startswith("labbench run: error: ")

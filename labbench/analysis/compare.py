@@ -20,7 +20,6 @@ from labbench.model import linear
 from labbench.analysis.dataio import Recording, recording_from_arrays
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult, identify
-from labbench.model.effective import effective_impedances
 from labbench.errors import UserError
 from labbench.model.ve import VE_KINDS, Plant, VirtualEnvironment
 
@@ -167,7 +166,6 @@ def compare(res: EtfeResult, plant: Plant, ve: VirtualEnvironment, latency: floa
     curves = theory_curves(plant, ve, res.w, latency)
     model, Zt = curves["model"], curves["Z"]
     dev = deviation(res, Zt, W_BAND if band_rad_s is None else band_rad_s)
-    eff = effective_impedances(res.w, res.Z)
     return {
         "model": model,
         "plant": {"m": plant.m, "b": plant.b},

@@ -1,7 +1,7 @@
 """Progress reports and cancellation of a long analysis (a window's progress bar and
 Cancel button; docs/notebook.md).
 
-The analysis entry points (``labbench.sessions.session_api``'s ``Session.etfe`` and
+The analysis entry points (``labbench.session_api``'s ``Session.etfe`` and
 ``Session.identify``, and the analyses under them) take ``progress(fraction, phrase)``,
 fraction 0..1 never going back, and ``cancel``, a ``threading.Event``: once it is set
 the analysis raises ``labbench.errors.Cancelled`` at its next check. The checks sit

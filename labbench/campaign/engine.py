@@ -46,7 +46,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench.sessions import records
+from labbench import records
 from labbench.campaign import plan as plans
 from labbench.campaign import rows
 from labbench.errors import UnstableVEError, UserError
@@ -465,7 +465,7 @@ def _first_runnable(plan):
 def dry_row(pp, context) -> dict:
     """The row ``pp`` would have, from a run on the plain simulator (its columns)."""
     from labbench.registry import open_device
-    from labbench.loop.runner import run
+    from labbench.runner import run
 
     device = open_device("sim", pp.rig, **pp.device_options)
     peak = CommandPeak()

@@ -34,7 +34,7 @@ import numpy as np
 
 from labbench import commissioning
 from labbench.model import device_delay
-from labbench.campaign.settings import CampaignSettings
+from labbench.rig import CampaignSettings
 from labbench.errors import UnstableVEError, UserError
 from labbench.readout.escape import one_line
 from labbench.readout.numfmt import fmt

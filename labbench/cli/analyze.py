@@ -93,7 +93,7 @@ def _exit(d: dict, args) -> int:
 
 def run_id(args) -> int:
     from labbench.analysis.dataio import load_recording
-    from labbench.sessions.session_api import identify_recording
+    from labbench.session_api import identify_recording
 
 
     ident = identify_recording(load_recording(args.file, warner("analyze")), model=args.model,
@@ -120,7 +120,7 @@ def run_id(args) -> int:
 def run_etfe(args) -> int:
     from labbench.analysis.dataio import load_recording
     from labbench.safe_write import output_path
-    from labbench.sessions.session_api import etfe_recording
+    from labbench.session_api import etfe_recording
 
     for out in (args.plot, args.csv):
         if out:

@@ -126,7 +126,7 @@ def _not_ok(tab) -> int:
 def make_context(args):
     """The campaign's device, rig, plant and commissioning facts (``labbench.campaign.plan.Context``)."""
     from labbench.campaign.plan import Context, commission_facts, is_simulator
-    from labbench.campaign.settings import CampaignSettings
+    from labbench.rig import CampaignSettings
     from labbench.rig import load_rig
     from labbench.sessions.session_catalogue import last_identified
     from labbench.model.ve import Plant

@@ -26,7 +26,7 @@ def clock_text(seconds: float) -> str:
 
 
 class ProgressBar:
-    """Callable ``(fraction, message)``, as ``labbench.loop.runner.run`` expects.
+    """Callable ``(fraction, message)``, as ``labbench.runner.run`` expects.
 
     Shows the time since the first call and an estimate of the time left
     (elapsed x (1 - f) / f: a run's samples come at a steady rate).

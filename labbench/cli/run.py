@@ -174,7 +174,7 @@ def _run_one(args, rig, name: str, options: dict, stop: StopRequest, progress=No
     the start record (``{"m", "b", "session"}`` or ``{"m", "b", "nominal": True}``).
     ``labbench campaign`` runs each point through here."""
     from labbench.loop.realtime import RealtimeConfig
-    from labbench.loop.runner import run_recorded
+    from labbench.runner import run_recorded
     from labbench.registry import make_protocol, protocol_class
     from labbench.sessions.session_catalogue import OWN_PLANT, plant_options
     from labbench.sessions.session_format import session_folder
@@ -344,8 +344,9 @@ def _print(args, out: dict, runs) -> None:
     """The run's summary: every surface's words from ``labbench.readout.wording`` (of the session as
     recorded, when there is one); ``--json``: the same under ``readout`` (one per run)."""
     from labbench.readout import wording
+    from labbench.sessions import session_content
 
-    reads = {name: wording.of_session(path) if path else wording.of_results(name, result.results)
+    reads = {name: session_content.readout_of(path) if path else wording.of_results(name, result.results)
              for name, result, path in runs}
     if args.json:
         key = "readout" if len(reads) == 1 else "readouts"

@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from labbench.model import predictions
+from labbench.readout import bandwidth_text
 from labbench.model import linear
 from labbench.cli.main import float_list
 from labbench.readout.numfmt import fmt
@@ -203,7 +204,7 @@ def table(s: dict) -> str:
                   (("K", "N/m"), ("B", "N s/m"), ("w0", "rad/s")) if name in USES[ve["kind"]])
         + f"T = {ve['T']:g} s",
         _headline(s),
-        "; ".join(f"{predictions.SYMBOLS[k]}: {predictions.predicted_text(k, bw)}" for k in ("ws", "wb")),
+        "; ".join(f"{predictions.SYMBOLS[k]}: {bandwidth_text.predicted_text(k, bw)}" for k in ("ws", "wb")),
         "",
         f"{'w rad/s':>10} {'|Z| dB':>8} {'phase':>8} {'Re Z':>10} {'Im Z':>10} "
         f"{'ES N/m':>10} {'ED Ns/m':>10} {'EM kg':>10}",

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 
 from labbench.design.tradeoffs import MODELS, Designer, zwidth
 from labbench.errors import UserError

@@ -44,7 +44,7 @@ from itertools import chain
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.loop import timing as loop_timing
 from labbench.device import DeviceFault, Enabling, RawReading
 from labbench.errors import UserError
@@ -68,7 +68,7 @@ __all__ = ["HapticLoop", "LoopOutcome", "SafetyConfig", "run_loop"]
 # Order of the values in a row returned by ``HapticLoop.advance`` = the page channels.
 ROW = ("t", "seq", "position", "velocity", "ve_force", "excitation", "command", "flags")
 if tuple(records.CHANNELS) != ROW:
-    raise ImportError("labbench.sessions.records.CHANNELS changed: update labbench.loop.chain.ROW")
+    raise ImportError("labbench.records.CHANNELS changed: update labbench.loop.chain.ROW")
 
 
 class HapticLoop:

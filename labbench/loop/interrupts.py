@@ -43,7 +43,7 @@ class Interrupted(KeyboardInterrupt):
 
 
 class StopRequest:
-    """Whether, and why, a run should stop: what ``labbench.loop.runner.run`` takes as ``stop``.
+    """Whether, and why, a run should stop: what ``labbench.runner.run`` takes as ``stop``.
 
     Unlike ``threading.Event`` it takes no lock, so a signal handler may set it
     even when it interrupted the main thread inside another call on it. The

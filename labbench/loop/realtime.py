@@ -1,7 +1,7 @@
 """Real-time scheduling for the thread that runs the haptic loop (Linux; Windows in part).
 
 ``acquire(config)`` is a context manager entered by the thread about to run a
-paced loop (``labbench.loop.runner.run``: ``labbench run``, the GUI's acquisition
+paced loop (``labbench.runner.run``: ``labbench run``, the GUI's acquisition
 process). For its duration it asks, each step on its own:
 
 * SCHED_FIFO at ``priority`` for this thread; the process's other Python

@@ -4,7 +4,7 @@
 (``time.perf_counter`` differences; the period of the first sample, which
 includes starting the device, and the ``enable`` call are left out) and hands
 them to ``period_stats``. ``merge`` joins the segments of one run
-(``labbench.loop.runner``), ``summary`` makes the one line the CLI and GUI show, and
+(``labbench.runner``), ``summary`` makes the one line the CLI and GUI show, and
 ``report_rows`` the rows of the report's "Loop timing" table.
 
 An overrun is a period longer than ``OVERRUN_T`` = 1.5 T: the sample came at
@@ -20,7 +20,7 @@ import numpy as np
 OVERRUN_T = 1.5
 # The events a run records of its timing (what the live status bar showed): ``overrun`` (at
 # most one a second, ``labbench.loop.chain``), a simulator's ``stall`` beyond the watchdog, and
-# ``loop_timing``, the run's totals (``summary``) when it had overruns (``labbench.loop.runner``).
+# ``loop_timing``, the run's totals (``summary``) when it had overruns (``labbench.runner``).
 EVENTS = ("overrun", "stall", "loop_timing")
 # Histogram bin edges in periods T; the last bin is open-ended (>= 20 T).
 EDGES_T = (0.0, 0.5, 0.9, 1.1, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0)
@@ -102,7 +102,7 @@ def summary(timing: dict) -> str:
 
 def status_figures(timing: dict) -> dict:
     """What a status bar shows, from one timing summary: a run's (``merge``, the loop's
-    ``period_stats``) or a live snapshot (``labbench.loop.runner.run``'s ``live_timing``).
+    ``period_stats``) or a live snapshot (``labbench.runner.run``'s ``live_timing``).
 
     ``samples_per_s``: samples over wall seconds. On a paced device it is the loop's
     rate (1/T when it keeps up). On an unpaced one (lock-step) it is how fast the host

@@ -12,14 +12,11 @@ window that showed w0 as "theory" read as a far-off measurement.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from labbench.model.effective import effective_impedances, measured_wb_star, measured_ws_star
-from labbench.readout.numfmt import fmt
-from labbench.readout.units import SI
 from labbench.model.ve import Plant, VirtualEnvironment
 
 SYMBOLS = {"ws": "w_s*", "wb": "w_b*"}
@@ -120,27 +117,3 @@ def of_results(d, ve: VirtualEnvironment, latency_s: float) -> tuple[float | Non
                       num.get("ws_star_eq5"), num.get("wb_star_w0"),
                       "sampled" if linear.whole_samples(ve) else "paper", float(latency_s))
     return num.get("ws_star_measured"), num.get("wb_star_measured"), pred
-
-
-def predicted_text(which: str, bw: Bandwidths, unit=None, digits: int = 4) -> str:
-    """``sampled theory 72.57 rad/s; paper w0: 125``: the prediction, the closed form
-    labelled beside it. ``unit``: ``labbench.readout.units.DisplayUnits`` (None: SI, rad/s)."""
-    unit = unit if unit is not None else SI
-    text = f"{bw.model} theory {_shown(bw.predicted(which), unit, digits)} {unit.frequency}"
-    closed = bw.closed_form(which)
-    if closed is not None and math.isfinite(closed):
-        text += f"; {CLOSED_FORM[which]}: {_shown(closed, unit, digits)}"
-    return text
-
-
-def label(which: str, measured: float | None, bw: Bandwidths | None, unit=None,
-          digits: int = 4) -> str:
-    """One line for a measured bandwidth and its prediction: ``w_s* = 24.07 rad/s
-    (sampled theory 24.07 rad/s; paper eq. 5: 23.06)``; ``bw`` None: measured only."""
-    unit = unit if unit is not None else SI
-    text = f"{SYMBOLS[which]} = {_shown(measured, unit, digits)} {unit.frequency}"
-    return text if bw is None else f"{text} ({predicted_text(which, bw, unit, digits)})"
-
-
-def _shown(v, unit, digits: int) -> str:
-    return fmt(unit.frequency_of(v), digits)

@@ -218,19 +218,6 @@ def of_results(protocol: str, results: dict | None, start: dict | None = None) -
     return Readout(protocol)
 
 
-def of_session(path) -> Readout:
-    """The readout of a recorded session: its stop record's results with its start record
-    (headers only; the sample pages are not decoded)."""
-    from labbench.sessions import records
-    from labbench.sessions.session_format import SessionReader
-
-    got = records.StreamCollector()
-    with SessionReader(path, decode_pages=False) as reader:
-        records.fan_out(reader, [got])
-    stop = got.stop if isinstance(got.stop, dict) else {}
-    return of_results(records.protocol_name(got.start) or "", stop.get("results"), got.start)
-
-
 def of_etfe_analysis(d: dict, start: dict | None = None) -> Readout:
     """The readout of ``labbench analyze etfe``'s result (``FrequencyResponse.as_dict``)."""
     theory = d.get("theory") if isinstance(d.get("theory"), dict) else {}

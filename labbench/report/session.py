@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from labbench.model.predictions import recorded_plant
-from labbench.sessions.records import iso_time, protocol_name
+from labbench.records import iso_time, protocol_name
 from labbench.report import shapes
 from labbench.sessions.session_content import load_session, session_ve
 from labbench.model.ve import Plant, VirtualEnvironment

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.jsonutil import json_safe
 from labbench.errors import UserError
 from labbench.readout.escape import one_line
@@ -131,7 +131,7 @@ FR_COLUMNS = (("w_rad_s", "rad/s", "angular frequency"), ("f_hz", "Hz", "frequen
 
 
 def export_frequency_response(fr, out_path, inputs=(), force: bool = False) -> Path:
-    """Write a ``labbench.sessions.session_api.FrequencyResponse`` as CSV (module doc); returns the path."""
+    """Write a ``labbench.session_api.FrequencyResponse`` as CSV (module doc); returns the path."""
     out = output_path(out_path, inputs, force)
     d = fr.as_dict()
     w = np.asarray(d["w"], float)

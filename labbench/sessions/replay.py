@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import UserError
 from labbench.sessions.session_format import SessionReader, read_session
 

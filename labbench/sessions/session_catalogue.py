@@ -5,7 +5,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import LabbenchError, UserError
 from labbench.sessions.session_format import SessionReader, looks_like_session
 

@@ -7,9 +7,9 @@ import numpy as np
 
 from labbench.model import device_delay
 from labbench.model import device_friction
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import UserError
-from labbench.sessions.session_format import read_session
+from labbench.sessions.session_format import SessionReader, read_session
 from labbench.model.ve import VirtualEnvironment
 
 
@@ -122,3 +122,16 @@ def load_analysis_arrays(path, warn=None) -> dict:
         "position": ch["position"].astype(float),
         "meta": analysis_meta(start, desc),
     }
+
+
+def readout_of(path):
+    """The readout (``labbench.readout.wording.Readout``) of a recorded session: its stop
+    record's results with its start record
+    (headers only; the sample pages are not decoded)."""
+    from labbench.readout import wording
+
+    got = records.StreamCollector()
+    with SessionReader(path, decode_pages=False) as reader:
+        records.fan_out(reader, [got])
+    stop = got.stop if isinstance(got.stop, dict) else {}
+    return wording.of_results(records.protocol_name(got.start) or "", stop.get("results"), got.start)

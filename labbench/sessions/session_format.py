@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labbench.sessions import records
+from labbench import records
 from labbench.errors import RecordingError, UserError
 from labbench.input_files import open_regular
 

@@ -2,7 +2,7 @@
 
 Kind "run": the point's parameters are routed by name (``route``) to the
 protocol's config, the rig and the simulated device, and the protocol runs on
-the simulator through ``labbench.loop.runner.run``, unpaced, exactly as
+the simulator through ``labbench.runner.run``, unpaced, exactly as
 ``labbench run ... --device sim`` runs it, analysis included. Kind
 "analysis": an exact record (``labbench.sweep.exact``) with the point's
 measurement errors goes through one analysis (ETFE or identification).
@@ -151,7 +151,7 @@ def build_run(spec, params: dict):
 
 def _run_point(spec, params: dict, keep_dir) -> dict:
     from labbench.registry import open_device
-    from labbench.loop.runner import run, run_recorded
+    from labbench.runner import run, run_recorded
 
     rig, protocol, dev_opts, truth = build_run(spec, params)
     out = {"K": protocol.config.K} if K_FRACTION in params else {}

@@ -90,7 +90,7 @@ def _open_lock(path: Path) -> int:
     (never followed) and the file made."""
     try:
         return os.open(path, _OPEN | os.O_CREAT, 0o666)
-    except OSError as exc:
+    except OSError:
         if not os.path.islink(path):
             raise
         os.unlink(path)

@@ -3,7 +3,7 @@
 ```toml
 [sweep]
 name = "stability map"      # free text
-kind = "run"                # "run": a protocol on a simulator through labbench.loop.runner (default);
+kind = "run"                # "run": a protocol on a simulator through labbench.runner (default);
                             # "analysis": an analysis of an exact record (labbench.sweep.exact)
 protocol = "stability"      # kind run: a registered protocol (labbench.registry)
 device = "sim"              # kind run: a simulated backend (default sim)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from labbench.model import device_delay
-from labbench.sessions import records
+from labbench import records
 from labbench.analysis.dataio import Recording, load_recording
 from labbench.analysis.etfe import W_BAND, EtfeResult
 from labbench.analysis.identify import IdResult

@@ -1,6 +1,6 @@
 """Run one protocol on one device: precheck, records, the loop, analysis, safe shutdown.
 
-The whole run is one record stream (labbench.sessions.records): ``start`` -> ``descriptor``
+The whole run is one record stream (labbench.records): ``start`` -> ``descriptor``
 -> pages and events from ``labbench.loop.chain.run_loop`` (one call per protocol
 segment, each announced by a ``segment`` event) -> ``stop``. Every consumer
 sees every record in order. Whatever happens (a refused VE, Ctrl-C, the stop
@@ -30,7 +30,7 @@ import numpy as np
 from labbench import commissioning
 from labbench.model import device_delay
 from labbench.model import device_friction
-from labbench.sessions import records
+from labbench import records
 from labbench.loop import timing as loop_timing
 from labbench.jsonutil import json_safe
 from labbench.device import StatusReporting
