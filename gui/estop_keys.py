@@ -19,6 +19,8 @@ from typing import Callable
 
 from PySide6 import QtCore, QtWidgets
 
+from labbench.gui.app_filter import AppFilter
+
 KEYS = "Esc / Space"
 ARMED_HINT = "E-STOP: Esc everywhere (dialogs too); Space outside text fields"
 # the keyboard is in a text field: there a space is text (issue 43: the line said Space
@@ -47,19 +49,13 @@ def typing_in(widget) -> bool:
     return isinstance(widget, QtWidgets.QAbstractSpinBox)
 
 
-class EStopKeys(QtCore.QObject):
+class EStopKeys(AppFilter):
     """Installed on the QApplication: Esc, and Space outside text fields, call ``stop``
     (once per press) while ``armed()``; the key goes no further then."""
 
     def __init__(self, armed: Callable[[], bool], stop: Callable[[], None], parent=None):
         super().__init__(parent)
         self.armed, self.stop = armed, stop
-        QtWidgets.QApplication.instance().installEventFilter(self)
-
-    def remove(self) -> None:
-        app = QtWidgets.QApplication.instance()
-        if app is not None:
-            app.removeEventFilter(self)
 
     def eventFilter(self, obj, event) -> bool:  # noqa: N802 - Qt override
         kind = event.type()

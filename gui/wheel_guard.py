@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from PySide6 import QtCore, QtWidgets
 
+from labbench.gui.app_filter import AppFilter
+
 VALUE_WIDGETS = (QtWidgets.QComboBox, QtWidgets.QAbstractSpinBox, QtWidgets.QAbstractSlider)
 
 
@@ -34,17 +36,8 @@ def scroller_of(widget) -> QtWidgets.QAbstractScrollArea | None:
     return nearest
 
 
-class WheelGuard(QtCore.QObject):
+class WheelGuard(AppFilter):
     """Installed on the QApplication (once, by the window)."""
-
-    def __init__(self, parent=None):
-        super().__init__(parent)
-        QtWidgets.QApplication.instance().installEventFilter(self)
-
-    def remove(self) -> None:
-        app = QtWidgets.QApplication.instance()
-        if app is not None:
-            app.removeEventFilter(self)
 
     def eventFilter(self, obj, event) -> bool:  # noqa: N802 - Qt override
         kind = event.type()
