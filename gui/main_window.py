@@ -727,7 +727,7 @@ class MainWindow(QtWidgets.QMainWindow):
                               str(found["session"]) if found else "nominal",
                               self.simulated, CampaignSettings.from_rig(self.rig, self.simulated),
                               commission_facts(self.session_dir, self.rig.name),
-                              self.skip_commissioning)
+                              self.skip_commissioning, found.get("coulomb_n") if found else None)
             plan = make_plan(load_spec(path), context)
         except UserError as exc:
             self.campaign_plan = None
@@ -1269,11 +1269,11 @@ class MainWindow(QtWidgets.QMainWindow):
     def _identified_here(self, results: dict, session: str) -> None:
         """A chirp-ID run of this window: the next run takes its plant at once (the sessions
         folder, read in the background, names the same one as ``last_identified``)."""
-        try:
-            plant = Plant(results.get("m"), results.get("b"))
-        except (UserError, TypeError):
-            return  # not a plant last_identified would take either
-        self._set_identified({"m": plant.m, "b": plant.b, "session": session})
+        from labbench.sessions.session_catalogue import identified_plant
+
+        found = identified_plant(results, session)
+        if found is not None:  # else not a plant last_identified would take either
+            self._set_identified(found)
 
     def _set_identified(self, found: dict | None) -> None:
         """The newest chirp-ID of this rig (the plant the next runs' theory takes): the

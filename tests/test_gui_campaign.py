@@ -31,6 +31,20 @@ def spec_file(tmp_path, duration_s):
     return p
 
 
+def test_the_campaign_page_plans_with_the_chirp_ids_friction(win, tmp_path):
+    """The page's probes take the Coulomb term of the chirp-ID that gave their plant, as
+    ``labbench campaign`` does (before: only the commissioning's; none here)."""
+    p = tmp_path / "zw.toml"
+    p.write_text('[sweep]\nname = "zw"\nprotocol = "stability"\n[fixed]\nve = "spring-damper"\n'
+                 'w0_rad_s = 125.0\nK_frac_k_max = 0.8\n[grid]\nB = [0.0, 1.0]\n')
+    win.identified = {"m": 0.094, "b": 0.1, "session": str(tmp_path / "x_chirp-id.lbsession"),
+                      "coulomb_n": 0.02, "coulomb_ci95": [0.019, 0.021]}
+    win.campaign.open_requested.emit(str(p))
+    points = win.campaign_plan.points
+    assert [pp.options["plant_coulomb_n"] for pp in points] == [0.02, 0.02]
+    assert points[0].options["plant_m_kg"] == 0.094
+
+
 def test_a_campaign_from_the_page_stopped_and_resumed(qtbot, win, tmp_path):
     page = win.campaign
     assert not page.start_button.isEnabled()  # no plan yet

@@ -172,29 +172,37 @@ def last_results(directory, rig_name: str, protocol: str, on_skip=None) -> tuple
 
 
 def last_identified(directory, rig_name: str, on_skip=None) -> dict | None:
-    """m, b of the newest successful chirp-ID session of rig ``rig_name`` in ``directory``:
-    ``{"m", "b", "session", "coulomb_n", "coulomb_ci95"}`` (its l2 fit's Coulomb term and
-    its interval; None when the model had none), or None (no folder, no such session). The
-    plant a run uses when none is given (``labbench run --plant-from last-id``, the window):
-    what it was identified as, and where."""
+    """The newest successful chirp-ID session of rig ``rig_name`` in ``directory`` as
+    ``identified_plant`` reads it, or None (no folder, no such session). The plant a run uses
+    when none is given (``labbench run --plant-from last-id``, the window, a campaign): what
+    it was identified as, and where."""
+    for res, path in _newest_results(directory, rig_name, "chirp-id", on_skip):
+        found = identified_plant(res, path)
+        if found is not None:
+            return found
+    return None
+
+
+def identified_plant(res: dict, session) -> dict | None:
+    """A chirp-ID's results as the plant runs take: ``{"m", "b", "session", "coulomb_n",
+    "coulomb_ci95"}`` (its l2 fit's Coulomb term and its interval; None when the model had
+    none); None when m, b are not a plant (not numbers within the physical range)."""
     from labbench.model import device_friction
     from labbench.model.ve import Plant
 
-    for res, path in _newest_results(directory, rig_name, "chirp-id", on_skip):
-        try:
-            plant = Plant(res.get("m"), res.get("b"))  # a number within the physical range, or not used
-        except (UserError, TypeError):
-            continue
-        ident = res.get("identification") or {}
-        best = ident.get("l2") or next(iter(ident.values()), {}) if isinstance(ident, dict) else {}
-        best = best if isinstance(best, dict) else {}
-        ci = (best.get("ci95") or {}).get("coulomb") if isinstance(best.get("ci95"), dict) else None
-        friction = device_friction.from_dict({"n": best.get("coulomb"), "ci95": ci, "origin": "given"})
-        known = friction is not None and friction.known
-        return {"m": plant.m, "b": plant.b, "session": path,
-                "coulomb_n": friction.n if known else None,
-                "coulomb_ci95": list(friction.ci95) if known and friction.ci95 is not None else None}
-    return None
+    try:
+        plant = Plant(res.get("m"), res.get("b"))
+    except (UserError, TypeError):
+        return None
+    ident = res.get("identification") or {}
+    best = ident.get("l2") or next(iter(ident.values()), {}) if isinstance(ident, dict) else {}
+    best = best if isinstance(best, dict) else {}
+    ci = (best.get("ci95") or {}).get("coulomb") if isinstance(best.get("ci95"), dict) else None
+    friction = device_friction.from_dict({"n": best.get("coulomb"), "ci95": ci, "origin": "given"})
+    known = friction is not None and friction.known
+    return {"m": plant.m, "b": plant.b, "session": session,
+            "coulomb_n": friction.n if known else None,
+            "coulomb_ci95": list(friction.ci95) if known and friction.ci95 is not None else None}
 
 
 def plant_options(found: dict, fields) -> dict:
