@@ -1,4 +1,8 @@
-"""Why a serial board's stream was refused, in one line that names the change.
+"""Why a serial port would not open or a board's stream was refused, in one line that names
+the change.
+
+``open_failure``: a port pyserial would not open, by the OS's reason (not there,
+permission, busy, not a serial device), once (pyserial nests the reason in its own text).
 
 Pure functions over what the driver's handshake saw (``Seen``: the first bytes, the
 text and rejected lines, every sample line's board time, count and arrival). Each
@@ -10,6 +14,8 @@ that are not text), then lines of another layout, then the timing of good lines.
 """
 from __future__ import annotations
 
+import errno
+import os
 import re
 import statistics
 from dataclasses import dataclass, field
@@ -46,6 +52,47 @@ class Seen:
         room = HEAD_BYTES - len(self.head)
         if room > 0:
             self.head += data[:room]
+
+
+_OS_REASON = re.compile(r"\[Errno (\d+)\] ([^:\]]+)")  # pyserial's nested '[Errno 2] No such ...'
+_LIST_PORTS = "`labbench devices --serial` lists the ports seen"
+
+
+def open_failure(port: str, exc: Exception) -> str:
+    """One line for a port pyserial would not open: which, why, what to check. pyserial says
+    the OS's reason twice ('[Errno 2] could not open port X: [Errno 2] No such file or
+    directory: X') and a URL's only in its text, so the reason is read from its errno or the
+    innermost '[Errno N] reason' of the text."""
+    code = getattr(exc, "errno", None)
+    nested = _OS_REASON.findall(str(exc))
+    if code is None and nested:
+        code = int(nested[-1][0])
+    if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
+        why = f"it is not there (the board unplugged, or under another name: {_LIST_PORTS})"
+    elif code in (errno.EACCES, errno.EPERM):
+        group = _group_of(port)
+        why = (f"permission denied (the port belongs to group '{group}': add your user to it, "
+               f"`sudo usermod -aG {group} $USER`, then log in again)")
+    elif code == errno.EBUSY:
+        why = ("it is busy (another program has it open: a serial monitor, another labbench, "
+               "ModemManager; close it and connect again)")
+    elif code in (errno.EISDIR, errno.ENOTTY) or "Could not configure port" in str(exc):
+        why = f"it is not a serial device (choose the board's port: {_LIST_PORTS})"
+    elif code is not None:
+        why = f"{os.strerror(code).lower()} (check the port's name or address)"
+    else:  # a URL pyserial does not know, or a reason without errno: its text, once
+        why = f"{str(exc).strip() or type(exc).__name__} (check the port's name or address)"
+    return f"cannot open serial port {port}: {why}"
+
+
+def _group_of(path: str) -> str:
+    """The group owning ``path`` ('dialout' where it cannot be read: Debian's serial group)."""
+    try:
+        import grp
+
+        return grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (ImportError, OSError, KeyError):
+        return "dialout"
 
 
 def _q(line: bytes, limit: int = 40) -> str:

@@ -775,7 +775,7 @@ def open_port(config: SerialConfig, rig):
     try:
         return serial.serial_for_url(config.port, baudrate=config.baudrate, timeout=0)
     except (serial.SerialException, ValueError) as exc:
-        raise DeviceConnectionError(f"cannot open serial port {config.port}: {exc}") from None
+        raise DeviceConnectionError(diagnosis.open_failure(config.port, exc)) from None
 
 
 def open_serial(

@@ -115,6 +115,46 @@ def test_open_serial_user_errors():
         open_serial(make_rig(port="/nonexistent/tty"))
 
 
+def _open_error(port: str) -> str:
+    with pytest.raises(DeviceConnectionError) as exc:
+        open_serial(make_rig(port=port))
+    return str(exc.value)
+
+
+@pytest.mark.parametrize("os_error, why, check", [
+    (None, "it is not there", "labbench devices --serial"),
+    (PermissionError(13, "Permission denied"), "permission denied", "usermod -aG"),
+    (OSError(16, "Device or resource busy"), "it is busy", "close it and connect again"),
+    ("file", "it is not a serial device", "choose the board's port"),
+    ("dir", "it is not a serial device", "choose the board's port"),
+])
+def test_a_port_that_will_not_open_says_once_which_why_and_what_to_check(
+        tmp_path, monkeypatch, os_error, why, check):
+    """pyserial's own exception (its errno and its nested '[Errno N] ...' text) from what the
+    OS says. Permission and busy cannot happen to root (these tests' user on CI), so the OS's
+    refusal is injected where pyserial opens the path; a missing path, a plain file and a
+    folder are real."""
+    port = str(tmp_path / "ttyACM3")
+    if os_error == "file":
+        open(port, "w").close()
+    elif os_error == "dir":
+        os.mkdir(port)
+    elif os_error is not None:
+        real_open = os.open
+
+        def refusing(path, *args, **kw):
+            if path == port:
+                raise type(os_error)(os_error.errno, os_error.strerror, path)
+            return real_open(path, *args, **kw)
+
+        open(port, "w").close()
+        monkeypatch.setattr(os, "open", refusing)
+    msg = _open_error(port)
+    assert msg.startswith(f"cannot open serial port {port}: {why}"), msg
+    assert check in msg and "\n" not in msg
+    assert msg.count(port) == 1 and "Errno" not in msg  # the port and the reason once
+
+
 def test_open_serial_on_a_silent_port_gives_a_clear_error():
     master, slave = os.openpty()
     try:
