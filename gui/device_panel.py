@@ -5,7 +5,13 @@ What the chosen backend needs from the person is on the panel itself: a serial b
 port (pyserial's list of the ports there are, or one typed in), a CANopen drive's CAN
 interface and channel (python-can's ``detect_available_configs``, or the rig file's and
 python-can's own configuration); a simulator says what it simulates. Every row has a
-fixed height, so nothing below it (Start) moves when a backend or a state changes.
+fixed height, so nothing below it moves when a backend or a state changes.
+
+Compact, so that at 1280 x 800 (where the panel shares the left column with the Protocol
+panel) the backend, Connect, the device and its health show without scrolling: one line
+for the rig, the link and the device (the rest in their tooltips), the health in two
+columns, shown only while a device is open; the timing check only while none is (it opens
+the device itself).
 """
 from __future__ import annotations
 
@@ -13,12 +19,12 @@ import threading
 
 from PySide6 import QtCore, QtWidgets
 
-from labbench.gui.labels import fixed_lines, set_text
+from labbench.gui.labels import Elided, fixed_lines, set_text
 from labbench.gui.worker import Mailbox
 from labbench.registry import device_names
 
-HEALTH_FIELDS = (("state", "state"), ("drops", "drops (seq gaps)"), ("link", "link counters"),
-                 ("fault", "fault"))
+HEALTH_FIELDS = (("state", "state"), ("drops", "drops"), ("link", "link"), ("fault", "fault"))
+HEALTH_TIPS = {"drops": "samples lost (sequence gaps)", "link": "the link's error counters"}
 FROM_RIG = "as the rig file says"  # the link entry that passes nothing: the rig's own table
 SIMULATED = {
     "sim": "simulated joint in the acquisition process (no hardware)",
@@ -70,7 +76,7 @@ class DevicePanel(QtWidgets.QGroupBox):
 
     def __init__(self, default_device: str = "sim", parent=None):
         super().__init__("Device", parent)
-        self.rig_label = fixed_lines(QtWidgets.QLabel(), 3)
+        self.rig_label = Elided()
         self.rig_button = QtWidgets.QPushButton("Rig file...")
         self.rig_button.setToolTip("load a rig file (TOML): the device's geometry, limits, link "
                                    "and commissioning; Write on the Commissioning page updates it")
@@ -92,7 +98,7 @@ class DevicePanel(QtWidgets.QGroupBox):
         self.interface = QtWidgets.QComboBox()
         self.interface.setToolTip("the CAN interface and channel of the drive's bus (python-can)")
         self.interface.addItem(FROM_RIG, None)
-        self.simulated = fixed_lines(QtWidgets.QLabel(), 2)
+        self.simulated = Elided()
         self.link = QtWidgets.QStackedWidget()
         self._pages = {}
         for kind, field in (("sim", self.simulated), ("serial", self.port), ("canopen", self.interface)):
@@ -110,17 +116,29 @@ class DevicePanel(QtWidgets.QGroupBox):
             self._pages[kind] = page
         self.link.setFixedHeight(max(self.simulated.height(), self.port.sizeHint().height()))
 
-        self.name_label = fixed_lines(QtWidgets.QLabel("not connected"), 3)
-        self.health = {key: fixed_lines(QtWidgets.QLabel("-"), 1 if key != "link" else 2)
-                       for key, _ in HEALTH_FIELDS}
+        self.name_label = Elided("not connected", 2)
+        # the health in two columns (state, drops / link, fault), one line each
+        self.health = {key: Elided("-") for key, _ in HEALTH_FIELDS}
+        self.health_grid = QtWidgets.QWidget()
+        grid = QtWidgets.QGridLayout(self.health_grid)
+        grid.setContentsMargins(0, 0, 0, 0)
+        grid.setVerticalSpacing(2)
+        for n, (key, title) in enumerate(HEALTH_FIELDS):
+            name = QtWidgets.QLabel(title)
+            name.setToolTip(HEALTH_TIPS.get(key, ""))
+            grid.addWidget(name, n // 2, 2 * (n % 2))
+            grid.addWidget(self.health[key], n // 2, 2 * (n % 2) + 1)
+            grid.setColumnStretch(2 * (n % 2) + 1, 1)
         self.timing_button = QtWidgets.QPushButton("Check timing")
         self.timing_button.setToolTip(
             "the timing preflight (labbench devices --timing): the backend opened paced for "
             "the rig's [preflight] seconds, the loop's own calls; whether this PC and bus hold "
             "the rig's stale limit and sample time (the device must not be connected)")
-        self.timing_label = fixed_lines(QtWidgets.QLabel("not checked"), 1)  # the rest in its tooltip
+        self.timing_label = Elided("not checked")  # the rest in its tooltip
 
         form = QtWidgets.QFormLayout(self)
+        form.setContentsMargins(8, 4, 8, 4)
+        form.setVerticalSpacing(3)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.rig_label, 1)
         row.addWidget(self.rig_button)
@@ -133,12 +151,18 @@ class DevicePanel(QtWidgets.QGroupBox):
         self.link_title = QtWidgets.QLabel("link")
         form.addRow(self.link_title, self.link)
         form.addRow("device", self.name_label)
-        for key, title in HEALTH_FIELDS:
-            form.addRow(title, self.health[key])
-        timing = QtWidgets.QHBoxLayout()
+        # one row of one height: the timing check while no device is open, its health while one is
+        self.timing_row = QtWidgets.QWidget()
+        timing = QtWidgets.QHBoxLayout(self.timing_row)
+        timing.setContentsMargins(0, 0, 0, 0)
         timing.addWidget(self.timing_button)
         timing.addWidget(self.timing_label, 1)
-        form.addRow("timing", timing)
+        self.status = QtWidgets.QStackedWidget()
+        self.status.addWidget(self.timing_row)
+        self.status.addWidget(self.health_grid)
+        self.status.setFixedHeight(max(w.sizeHint().height() for w in (self.timing_row, self.health_grid)))
+        self.status_title = QtWidgets.QLabel("timing")
+        form.addRow(self.status_title, self.status)
 
         self._link = "none"
         self._activity = "idle"
@@ -156,6 +180,7 @@ class DevicePanel(QtWidgets.QGroupBox):
             lambda: self.timing_requested.emit(self.backend.currentText()))
         self.backend.currentTextChanged.connect(self._backend_shown)
         self._backend_shown(self.backend.currentText())
+        self._follow()
 
     # ----- the rig file, the link --------------------------------------------------------------
     def show_rig(self, rig, where: str) -> None:
@@ -277,6 +302,9 @@ class DevicePanel(QtWidgets.QGroupBox):
         self.enable_button.setEnabled(link == "connected")
         self.timing_button.setEnabled(free)
         self.timing_button.setText("Checking..." if checking else "Check timing")
+        open_ = link != "none"
+        self.status.setCurrentWidget(self.health_grid if open_ else self.timing_row)
+        self.status_title.setText("health" if open_ else "timing")
 
     def set_checking(self, checking: bool) -> None:
         self._checking = checking

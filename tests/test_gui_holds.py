@@ -559,3 +559,34 @@ def test_the_sessions_table_names_the_backend_and_a_probes_start():
     assert row["K [N/m]"] == "from 60" and row["device"] == "avr-sim"
     assert _device({"kind": "canopen", "simulated": True}) == "canopen (simulated)"
     assert _device({"kind": "sim", "simulated": True}) == "sim" and _device("junk") is None
+
+
+def test_the_device_panel_shows_its_rows_without_scrolling_at_1280_by_800(qtbot, window):
+    """At 1280 x 800 the Device panel showed ~3 rows above its own scroll (state and health
+    below the fold). Now the backend, Connect / Disconnect, the device and every health
+    field lie inside the panel's viewport, disconnected and connected, while the pre-check,
+    Start, Stop and the progress stay inside the window."""
+    win = window()  # 1280 x 800
+    panel = win.device_panel
+    viewport = panel.parentWidget()  # the scroll area's viewport
+
+    def inside(widget, room) -> bool:
+        rect = QtCore.QRect(widget.mapTo(room, QtCore.QPoint(0, 0)), widget.size())
+        return widget.isVisible() and room.rect().contains(rect)
+
+    def check(rows):
+        QtWidgets.QApplication.processEvents()
+        cut = [name for name, w in rows.items() if not inside(w, viewport)]
+        assert not cut, f"below the fold of the Device panel ({viewport.height()} px): {cut}"
+        run = win.protocol_panel
+        assert all(inside(w, win) for w in (run.precheck.parentWidget(), run.start_button,
+                                            run.stop_button, run.progress))
+
+    essential = {"backend": panel.backend, "connect": panel.connect_button,
+                 "device": panel.name_label}
+    check(essential | {"timing": panel.timing_button})
+    panel.connect_button.click()
+    qtbot.waitUntil(lambda: win.device is not None, timeout=30_000)
+    qtbot.waitUntil(lambda: panel.health["state"].text() not in ("-", ""), timeout=10_000)
+    assert panel.connect_button.text() == "Disconnect"
+    check(essential | {f"health {k}": w for k, w in panel.health.items()})
