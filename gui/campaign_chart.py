@@ -1,140 +1,180 @@
-"""The Campaign page's chart, drawn live (pyqtgraph): the points of the campaign's table as
-they are written, the measurement beside the prediction, the row under the mouse named.
+"""The Campaign page's chart, drawn live (pyqtgraph): every panel and point of the charts
+the campaign's table makes, as its rows are written, the row under the mouse named.
 
-What it draws is what the campaign's own charts draw first (``labbench.campaign.figures``,
-the PNGs its table's charts folder gets): for a Z-width study K_max against B, measured
-(dots, 95 % interval as an error bar; a triangle where no step grew, K_max above it)
-beside the exact sampled prediction (a line per velocity filter w0); for a rate study the
-ED rendering error against the sample time, measured and predicted. A point that is not
-ok is a red cross at its prediction. (It was a 430 x 300 bitmap of the matplotlib figure,
-its text about 6 px tall, with nothing to point at.)
+What it draws is the data of ``labbench.campaign.figures`` (``Chart``: panels of
+``Series``), the same the PNGs in the table's charts folder and the report are drawn from:
+for a Z-width, K_max against B per velocity filter w0, measured with its 95 % interval
+(filled: not passive; hollow: within the passive bound; a triangle: no step grew), the
+exact sampled and the paper's boundaries, the passive ones (sampled-data, Colgate &
+Schenkel, quantisation), and with the friction known the friction-aware boundary (curve)
+and each point's (diamonds); for a rate study its four panels against the sample time (ED
+and ES errors, the bandwidths, K_max), measured beside predicted. (It drew only the first
+panel's measured points and exact line: the PNG had the rest.)
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pyqtgraph as pg
+from matplotlib.colors import to_hex
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import no_si_prefix
 
-COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf")
-NOT_OK = "#d62728"
+ROW_PX = 260  # the least height of a row of panels (with its legend); more rows scroll
+HINT = "hover a point to read its row, click it to select the row"
+DASHES = {"-": QtCore.Qt.PenStyle.SolidLine, "--": QtCore.Qt.PenStyle.DashLine,
+          ":": QtCore.Qt.PenStyle.DotLine, "-.": QtCore.Qt.PenStyle.DashDotLine}
+SYMBOLS = {"o": "o", "s": "s", "^": "t1", "D": "d", "x": "x"}  # matplotlib's -> pyqtgraph's
 
 
-def _num(v) -> float:
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else math.nan
-
-
-def study(rows: list[dict]) -> str | None:
-    """"zwidth", "rate" or None (nothing this chart draws), as ``labbench.campaign.figures``
-    tells them apart (``zwidth_rows``, ``rate_rows``)."""
-    if any("zw.k_max" in r for r in rows):
-        return "zwidth"
-    if len({r.get("rig.sample_time_s") for r in rows if r.get("acc.ed_median") is not None}) > 1:
-        return "rate"
-    return None
+def _pen(s, width=None):
+    pen = pg.mkPen(to_hex(s.colour), width=s.width if width is None else width)
+    if isinstance(s.style, tuple):  # (offset, (on, off, ...)) in line widths, as matplotlib's
+        pen.setDashPattern([float(v) for v in s.style[1]])
+    else:
+        pen.setStyle(DASHES[s.style])
+    return pen
 
 
 class CampaignChart(QtWidgets.QWidget):
-    """``show(rows)`` draws them; ``row_hovered(i)`` / ``row_clicked(i)`` name a row of
-    ``rows`` (-1: none under the mouse)."""
+    """``show(charts, rows)`` draws them (``rows``: the table's, which each point names);
+    ``row_hovered(i)`` / ``row_clicked(i)`` name a row (-1: none under the mouse)."""
 
     row_hovered = QtCore.Signal(int)
     row_clicked = QtCore.Signal(int)
 
     def __init__(self, parent=None):
         super().__init__(parent)
-        self.plot = pg.PlotWidget()
-        self.plot.showGrid(x=True, y=True, alpha=0.3)
-        self.plot.addLegend(offset=(10, 5), brush=pg.mkBrush(255, 255, 255, 200))
-        for side in ("bottom", "left"):
-            no_si_prefix(self.plot.getAxis(side))
+        self.canvas = pg.GraphicsLayoutWidget()
+        self.canvas.setBackground("w")
+        self.title = QtWidgets.QLabel()
+        self.title.setWordWrap(True)
         self.caption = QtWidgets.QLabel("the chart fills in as the campaign's rows are written")
         self.caption.setWordWrap(True)
         lay = QtWidgets.QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
-        lay.addWidget(self.plot, 1)
+        self.room = QtWidgets.QScrollArea()  # a rate study's 2 x 2 panels scroll on a short page
+        self.room.setWidgetResizable(True)
+        self.room.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        self.room.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.room.setWidget(self.canvas)
+        lay.addWidget(self.title)
+        lay.addWidget(self.room, 1)
         lay.addWidget(self.caption)
-        keep_plots(self.plot)
         self.kind: str | None = None
+        self.plots: list[pg.PlotItem] = []  # one per panel, in the charts' order
+        self.panels: list = []  # the panel each plot draws
+        self.drawn: list[list[tuple]] = []  # per plot: (series, item) of each series drawn
         self.points: list[pg.ScatterPlotItem] = []  # the hoverable ones; each spot's data: row
 
-    def show(self, rows: list[dict]) -> None:  # noqa: A003 - the page's verb for its parts
-        self.plot.clear()
-        self.points = []
-        self.kind = study(rows)
-        if self.kind == "zwidth":
-            self._zwidth(rows)
-        elif self.kind == "rate":
-            self._rate(rows)
-        self.caption.setText(
-            "hover a point to read its row, click it to select the row" if self.points else
-            "no Z-width or rate study in this table yet: the chart fills in as rows are written")
+    def show(self, charts: list, rows: list[dict]) -> None:  # noqa: A003 - the page's verb
+        self.canvas.clear()
+        self.plots, self.panels, self.drawn, self.points = [], [], [], []
+        self.kind = charts[0].name if charts else None
+        top = 0
+        for chart in charts:
+            for n, panel in enumerate(chart.panels):
+                self._panel(panel, top + n // chart.columns, n % chart.columns)
+            top += -(-len(chart.panels) // chart.columns)
+        self.canvas.setMinimumHeight(ROW_PX * top)
+        keep_plots(*self.plots)
+        self.title.setText("<br>".join(f"<b>{c.title}</b>" + (f"<br><small>{c.foot}</small>"
+                                                               if c.foot else "") for c in charts))
+        self.caption.setText(HINT if self.points else
+                             "no Z-width or rate study in this table yet: the chart fills in as "
+                             "rows are written")
 
-    def _scatter(self, x, y, at: list[int], name, colour, symbol="o", filled=True) -> None:
-        """Points (x, y) of the rows at positions ``at`` of the rows shown (each spot's data)."""
+    def _panel(self, panel, row: int, col: int) -> None:
+        plot = self.canvas.addPlot(row=2 * row, col=col)
+        plot.setTitle(panel.title, size="8pt")
+        plot.setLabel("bottom", panel.xlabel)
+        plot.setLabel("left", panel.ylabel)
+        plot.showGrid(x=True, y=True, alpha=0.3)
+        for side in ("bottom", "left"):
+            no_si_prefix(plot.getAxis(side))
+        plot.setLogMode(x=panel.xlog, y=panel.ylog)
+        if panel.xticks:
+            plot.getAxis("bottom").setTicks([[(self._at(t, panel.xlog), f"{t:g}")
+                                              for t in panel.xticks]])
+        # the legend under the plot, in two columns: inside it covered half the curves
+        legend = pg.LegendItem(labelTextSize="7pt", colCount=2, verSpacing=-6)
+        self.canvas.addItem(legend, row=2 * row + 1, col=col)
+        self.plots.append(plot)
+        self.panels.append(panel)
+        self.drawn.append([])
+        for s in panel.series:
+            item = self._series(plot, legend, panel, s)
+            self.drawn[-1].append((s, item))
+        if panel.y_from_zero:
+            plot.enableAutoRange(y=False)
+            plot.autoRange()
+            _, (lo, hi) = plot.viewRange()
+            plot.setYRange(0, hi, padding=0)
+
+    @staticmethod
+    def _at(v, log: bool):
+        """A value where a scatter item puts it: pyqtgraph's log axes take log10 of the data
+        only in items that have a log mode (lines), not in scatter or error-bar items."""
+        v = np.asarray(v, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log10(v) if log else v
+
+    def _series(self, plot, legend, panel, s):
+        colour = to_hex(s.colour)
+        if s.kind == "level":
+            item = pg.InfiniteLine(pos=float(s.y[0]), angle=0, pen=_pen(s))
+            plot.addItem(item)
+            legend.addItem(pg.PlotDataItem(pen=_pen(s)), s.label)
+            return item
+        if s.kind == "line":
+            keep = np.isfinite(s.x) & np.isfinite(s.y)
+            item = pg.PlotDataItem(s.x[keep], s.y[keep], pen=_pen(s))
+            plot.addItem(item)
+            legend.addItem(item, s.label)
+            return item
+        x, y = self._at(s.x, panel.xlog), self._at(s.y, panel.ylog)
         keep = np.isfinite(x) & np.isfinite(y)
-        if not keep.any():
-            return
+        if s.lo is not None and s.hi is not None:
+            bars = keep & ((np.isfinite(s.lo) & np.isfinite(s.hi)) if s.faint_bars
+                           else (np.isfinite(s.lo) | np.isfinite(s.hi)))
+            if bars.any():
+                plot.addItem(pg.ErrorBarItem(
+                    x=x[bars], y=y[bars], top=np.where(np.isfinite(s.hi), s.hi - s.y, 0)[bars],
+                    bottom=np.where(np.isfinite(s.lo), s.y - s.lo, 0)[bars], beam=0.02,
+                    pen=pg.mkPen(colour, width=0.6 if s.faint_bars else 1)))
+        face = {None: colour, "white": "w", "none": None}[s.face]
         item = pg.ScatterPlotItem(
-            x=x[keep], y=y[keep], data=[at[i] for i in np.flatnonzero(keep)], symbol=symbol, size=10, pen=pg.mkPen(colour, width=1.5),
-            brush=pg.mkBrush(colour if filled else "w"), hoverable=True, tip=None, hoverSize=14,
-            hoverPen=pg.mkPen("k", width=2), name=name)
-        item.sigHovered.connect(self._hovered)
-        item.sigClicked.connect(self._clicked)
-        self.plot.addItem(item)
-        self.points.append(item)
+            x=x[keep], y=y[keep], data=[s.rows[i] for i in np.flatnonzero(keep)] if s.rows else None,
+            symbol=SYMBOLS[s.marker], size=1.6 * s.size, pen=pg.mkPen(colour, width=1.5),
+            brush=pg.mkBrush(face) if face else pg.mkBrush(0, 0, 0, 0),
+            hoverable=bool(s.rows), tip=None, hoverSize=1.6 * s.size + 4,
+            hoverPen=pg.mkPen("k", width=2))
+        plot.addItem(item)
+        if s.label:
+            legend.addItem(item, s.label)
+        if s.rows:
+            item.sigHovered.connect(self._hovered)
+            item.sigClicked.connect(self._clicked)
+            self.points.append(item)
+        return item
 
-    def _zwidth(self, rows: list[dict]) -> None:
-        self.plot.setLabel("bottom", "virtual damping B [N s/m]")
-        self.plot.setLabel("left", "largest stable stiffness K_max [N/m]")
-        series: dict = {}
-        for i, r in enumerate(rows):
-            series.setdefault(r.get("ve.w0_rad_s"), []).append((i, r))
-        for n, (w0, group) in enumerate(sorted(series.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))):
-            colour = COLOURS[n % len(COLOURS)]
-            name = f"w0 = {w0:g} rad/s" if isinstance(w0, (int, float)) else "no filter"
-            idx = [i for i, _ in group]
-            B = np.array([_num(r.get("ve.B")) for _, r in group])
-            order = np.argsort(B)
-            pred = np.array([_num(r.get("pred.k_max")) for _, r in group])
-            line = np.isfinite(B[order]) & np.isfinite(pred[order])
-            if line.any():
-                self.plot.plot(B[order][line], pred[order][line], pen=pg.mkPen(colour, width=1.5),
-                               name=f"exact sampled prediction ({name})")
-            k = np.array([_num(r.get("zw.k_max")) for _, r in group])
-            lo = np.array([_num(r.get("zw.ci_lo")) for _, r in group])
-            hi = np.array([_num(r.get("zw.ci_hi")) for _, r in group])
-            ranged = np.isfinite(k) & np.isfinite(lo) & np.isfinite(hi)
-            if ranged.any():
-                self.plot.addItem(pg.ErrorBarItem(x=B[ranged], y=k[ranged], top=(hi - k)[ranged],
-                                                  bottom=(k - lo)[ranged], beam=0.02,
-                                                  pen=pg.mkPen(colour)))
-            self._scatter(B, k, idx, f"measured K_max, 95 % interval ({name})", colour)
-            above = np.array([_num(r.get("zw.k_max_above")) for _, r in group])
-            self._scatter(B, above, idx, f"no step grew: K_max above ({name})", colour, "t1", False)
-            bad = np.array([r.get("status") not in ("ok", None) for _, r in group])
-            self._scatter(B, np.where(bad & ~np.isfinite(k) & ~np.isfinite(above), pred, np.nan),
-                          idx, "point not ok (see its row)", NOT_OK, "x")
-
-    def _rate(self, rows: list[dict]) -> None:
-        self.plot.setLabel("bottom", "sample time T [ms]")
-        self.plot.setLabel("left", "ED rendering error over 2-100 rad/s, median [%]")
-        T = np.array([1e3 * _num(r.get("rig.sample_time_s")) for r in rows])
-        order = np.argsort(T)
-        pred = np.array([100 * _num(r.get("pred.ed_median")) for r in rows])
-        line = np.isfinite(T[order]) & np.isfinite(pred[order])
-        if line.any():
-            self.plot.plot(T[order][line], pred[order][line], pen=pg.mkPen(COLOURS[0], width=1.5),
-                           name="predicted (exact sampled)")
-        at = list(range(len(rows)))
-        self._scatter(T, np.array([100 * _num(r.get("acc.ed_median")) for r in rows]), at,
-                      "measured", COLOURS[0])
-        bad = np.array([r.get("status") not in ("ok", None) for r in rows])
-        self._scatter(T, np.where(bad, pred, np.nan), at, "point not ok (see its row)", NOT_OK, "x")
+    def shown(self, plot: int) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+        """(label, kind, x, y) of each series plot ``plot`` holds, read back from its items
+        (in data units: a log axis's log10 undone)."""
+        out = []
+        panel = self.panels[plot]
+        for s, item in self.drawn[plot]:
+            if isinstance(item, pg.InfiniteLine):
+                x, y = np.array([]), np.array([item.value()])
+            elif isinstance(item, pg.ScatterPlotItem):
+                x, y = item.getData()
+                x = 10 ** x if panel.xlog else x
+                y = 10 ** y if panel.ylog else y
+            else:
+                x, y = item.xData, item.yData  # a line's data as given (its log mode aside)
+            out.append((s.label, s.kind, np.asarray(x, float), np.asarray(y, float)))
+        return out
 
     @staticmethod
     def _row_of(points) -> int:
@@ -145,3 +185,4 @@ class CampaignChart(QtWidgets.QWidget):
 
     def _clicked(self, _item, points, _ev) -> None:
         self.row_clicked.emit(self._row_of(points))
+

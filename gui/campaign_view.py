@@ -43,16 +43,18 @@ def row_cells(r: dict) -> list[str]:
             error if r.get("status") == "ok" else (r.get("error") or error), session]
 
 
-def table_rows(directory) -> list[dict]:
-    """The campaign table's rows ([] before it has any); no Qt: the window runs it off the
-    GUI thread."""
+def read_table(directory) -> tuple[list[dict], list]:
+    """The campaign table's rows ([] before it has any) and the charts they make
+    (``labbench.campaign.figures.charts``: their theory curves take a second or so); no Qt:
+    the window runs it off the GUI thread."""
     from labbench.campaign import figures
     from labbench.sweep import charts, table as tables
 
     if not tables.is_table(directory):
-        return []
+        return [], []
     tab = tables.read_table(directory)
-    return figures.table_rows(charts.columns(tab)) if tab.num_rows else []
+    rows = figures.table_rows(charts.columns(tab)) if tab.num_rows else []
+    return rows, figures.charts(rows)
 
 
 def point_label(r: dict) -> str:
@@ -145,8 +147,10 @@ class CampaignView(QtWidgets.QWidget):
         self.running = running
         self._sync()
 
-    def show_table(self, rows: list[dict]) -> None:
-        """The campaign's rows so far, in the table and on the chart."""
+    def show_table(self, table: tuple[list[dict], list]) -> None:
+        """The campaign's rows so far and their charts (``read_table``), in the table and on
+        the chart."""
+        rows, charts = table
         keep = self.selected_session()
         self.rows = rows
         self.table.setRowCount(len(rows))
@@ -158,7 +162,7 @@ class CampaignView(QtWidgets.QWidget):
                 self.table.setItem(i, j, item)
             if keep and r.get("session") == keep:
                 self.table.selectRow(i)
-        self.chart.show(rows)
+        self.chart.show(charts, rows)
         self._sync()
 
     def _show_hovered(self, i: int) -> None:

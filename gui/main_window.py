@@ -28,7 +28,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from pyqtgraph.util.garbage_collector import GarbageCollector
 
 from labbench.gui.acquisition import Acquisition
-from labbench.gui.campaign_view import CampaignView, table_rows
+from labbench.gui.campaign_view import CampaignView, read_table
 from labbench.gui.commission_view import PROTOCOL as COMMISSION, CommissionView, has_file, rig_where
 from labbench.gui.design_view import DesignView
 from labbench.gui.device_panel import DevicePanel, EStopButton
@@ -872,10 +872,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _show_campaign_table(self) -> None:
         if self.campaign_table is not None:
-            run_in_background(self.mailbox, "campaign_table", table_rows, self.campaign_table)
+            run_in_background(self.mailbox, "campaign_table", read_table, self.campaign_table)
 
-    def _on_campaign_table_done(self, rows) -> None:
-        self.campaign.show_table(rows)
+    def _on_campaign_table_done(self, table) -> None:
+        self.campaign.show_table(table)
 
     # ----- remembered state -----------------------------------------------------------------
     def _restore_state(self) -> None:

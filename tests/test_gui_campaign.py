@@ -7,6 +7,9 @@ os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
 import json  # noqa: E402
 
+import numpy as np  # noqa: E402
+import pyqtgraph as pg  # noqa: E402
+
 import pytest  # noqa: E402
 
 from labbench.gui.main_window import MainWindow  # noqa: E402
@@ -112,3 +115,104 @@ def test_the_zwidth_chart_fills_in_and_estop_ends_the_campaign(qtbot, win, tmp_p
     qtbot.waitUntil(lambda: not page.running, timeout=30_000)
     assert "E-STOP" in page.state_label.text()
     assert win.state.latched and not page.start_button.isEnabled()  # as after any run
+
+
+def _zwidth_rows() -> list[dict]:
+    """A Z-width table's rows as the campaign writes them (every column in every row, None
+    where a point has nothing): two filters; per filter a point above the passive bound, one
+    within it, one where no step grew, one that failed; the friction known (a plan, and a
+    friction-aware boundary with its range at two points)."""
+    from labbench.model.pulse import PulsePlan
+
+    plan = json.dumps({"coulomb_n": 0.02, "friction_cap": 3.0, "pulse": PulsePlan(
+        0.3, 0.01, 5.0, 0.02, 1.0).as_dict()}, sort_keys=True)
+    rows = []
+    for w0 in (125.0, 250.0):
+        for B, k, above, status, passive in ((1.0, 1200.0, None, "ok", 300.0),
+                                             (0.0, 200.0, None, "ok", 250.0),
+                                             (2.0, None, 1800.0, "ok", 100.0),
+                                             (0.5, None, None, "failed", 200.0)):
+            rows.append({
+                "index": len(rows), "status": status, "session": f"s{len(rows)}.lbsession",
+                "device": "sim", "rig.name": "bench", "rig.sample_time_s": 1e-3,
+                "rig.device_delay_s": 0.0, "rig.metres_per_count": 3.8e-5,
+                "rig.counts_per_rev": 16384, "plant.m": 0.094, "plant.b": 0.1,
+                "plant.from": "nominal", "commission.session": None, "commission.coulomb_n": None,
+                "ve.B": B, "ve.w0_rad_s": w0, "ve.td_s": 0.0,
+                "zw.k_max": k, "zw.ci_lo": None if k is None else 0.97 * k,
+                "zw.ci_hi": None if k is None else 1.02 * k, "zw.k_max_above": above,
+                "zw.k_friction": 0.9 * k if k else None,
+                "zw.k_friction_lo": 0.85 * k if k else None,
+                "zw.k_friction_hi": 0.95 * k if k else None,
+                "pred.k_max": 1000.0 * B + 200.0 + w0, "pred.k_passive": passive,
+                "pred.k_passive_quantised": 150.0, "pred.k_max_friction_plan": plan})
+    return rows
+
+
+def _rate_rows() -> list[dict]:
+    """A rate study's rows, not in the order of their sample times (the chart sorts them;
+    each point must still name its own row)."""
+    rows = []
+    for n, T in enumerate((2e-3, 5e-4, 4e-3, 1e-3)):
+        s = 1e3 * T
+        rows.append({"index": n, "status": "ok", "session": f"r{n}.lbsession", "device": "sim",
+                     "rig.sample_time_s": T, "ve.kind": "spring-damper", "ve.K": 50.0,
+                     "ve.B": 1.0, "ve.w0_rad_s": 125.0,
+                     **{f"{src}.{w}_{stat}": f * s * (1.1 if src == "acc" else 1.0)
+                        for src in ("acc", "pred") for w, f in (("ed", 0.02), ("es", 0.01))
+                        for stat in ("median", "max")},
+                     "res.bandwidths.ws_star_predicted": 24.0, "res.bandwidths.ws_star_measured": 24.5,
+                     "res.bandwidths.wb_star_predicted": 80 / s, "res.bandwidths.wb_star_measured": 78 / s,
+                     "pred.k_max": 1200 / s, "acc.k_max_fit": 1190 / s})
+    return rows
+
+
+@pytest.mark.parametrize("rows, make", [(_zwidth_rows, "zwidth_figure"), (_rate_rows, "rate_figure")])
+def test_the_page_draws_every_panel_and_point_of_the_campaigns_own_figure(qtbot, rows, make):
+    """The page drew only the first panel of the campaign's figure (for a Z-width its
+    measured points and exact line; for a rate study the ED median of its four panels);
+    the PNG the CLI writes (``labbench.campaign.figures``) has more. Every labelled line,
+    point set and level of every panel of the PNG's figure is on the page with the same
+    points (errors bars too), each point naming its row; the chart fills in as rows come."""
+    from labbench.campaign import figures
+    from labbench.gui.campaign_chart import CampaignChart
+
+    rows = rows()
+    cols = {name: [r.get(name) for r in rows] for name in {k for r in rows for k in r}}
+    fig = getattr(figures, make)(cols)
+    chart = CampaignChart()
+    qtbot.addWidget(chart)
+    chart.show(figures.charts(rows[:2]), rows[:2])
+    first = sum(len(p.points()) for p in chart.points)
+    chart.show(figures.charts(rows), rows)
+    assert sum(len(p.points()) for p in chart.points) > first  # filled in as rows came
+    assert len(chart.plots) == len(fig.axes)
+    for k, ax in enumerate(fig.axes):
+        page = chart.shown(k)
+        lines = [ln for ln in ax.get_lines() if not ln.get_label().startswith("_")]
+        assert [ln.get_label() for ln in lines] == [label for label, *_ in page] and len(page) >= 2
+        for ln, (label, kind, px, py) in zip(lines, page):
+            x, y = (np.asarray(v, float) for v in ln.get_data())
+            if kind == "level":  # matplotlib's axhline: x 0..1 of the axes, y its level
+                assert list(x) == [0, 1] and np.allclose(py, y), label
+                continue
+            keep = np.isfinite(x) & np.isfinite(y)
+            assert np.allclose(px, x[keep]) and np.allclose(py, y[keep]), label
+        bars = sorted(tuple(np.round([s[0][0], *sorted((s[0][1], s[1][1]))], 6))
+                      for c in ax.collections for s in c.get_segments())
+        on_page = sorted(tuple(np.round([x, y - b, y + t], 6))
+                         for item in chart.plots[k].items if isinstance(item, pg.ErrorBarItem)
+                         for x, y, t, b in zip(*(item.opts[o] for o in ("x", "y", "top", "bottom"))))
+        assert on_page == bars
+    # each point names its row: under the mouse the row, and its x is the row's
+    seen = set()
+    for item in chart.points:
+        for spot in item.points():
+            chart.row_hovered.connect(seen.add)
+            item.sigHovered.emit(item, [spot], None)
+            chart.row_hovered.disconnect(seen.add)
+            r = rows[spot.data()]
+            panel = chart.panels[chart.plots.index(item.getViewBox().parentItem())]
+            x = 10 ** spot.pos().x() if panel.xlog else spot.pos().x()
+            assert x == pytest.approx(r["ve.B"] if make == "zwidth_figure" else 1e3 * r["rig.sample_time_s"])
+    assert seen == set(range(len(rows)))

@@ -1,9 +1,13 @@
 """The campaign's own charts, drawn from its table: the Z-width and the rate-vs-accuracy chart.
 
-Matplotlib's object API on the Agg canvas (as ``labbench.sweep.charts``). A campaign table
-holds a Z-width when its rows are stability probes over K (``zwidth_figure``), a rate
-study when they are ETFE runs at more than one sample time (``rate_figure``);
-``write_figures`` draws whichever the table holds into it (``zwidth.png``, ``rate.png``).
+What a chart shows is data (``Chart``: panels of ``Series``, each point naming its table
+row), made once here (``zwidth_chart``, ``rate_chart``) and drawn by two hands: matplotlib's
+object API on the Agg canvas (``figure``, as ``labbench.sweep.charts``) for the PNGs and the
+report, pyqtgraph for the window's Campaign page (``labbench.gui.campaign_chart``), so the
+page shows every panel and point the PNG does. A campaign table holds a Z-width when its
+rows are stability probes over K (``zwidth_figure``), a rate study when they are ETFE runs
+at more than one sample time (``rate_figure``); ``write_figures`` draws whichever the table
+holds into it (``zwidth.png``, ``rate.png``).
 """
 from __future__ import annotations
 
@@ -11,6 +15,7 @@ import functools
 import json
 import math
 import textwrap
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +47,64 @@ def zwidth_rows(cols: dict) -> list[dict]:
     return table_rows(cols) if "zw.k_max" in cols else []
 
 
-def zwidth_figure(cols: dict) -> Figure | None:
+@dataclass
+class Series:
+    """One thing a panel draws: a ``line`` through (x, y), ``points`` (the i-th of table row
+    ``rows[i]``; ``lo``/``hi``: the ends of its error bars, nan: none), or a ``level``, a
+    horizontal line at y[0]. Styles in matplotlib's terms: colour ("C0", "0.3", "tab:red"),
+    line style ("-", "--", ":", "-." or (offset, (on, off, ...))), marker ("o", "^", "D",
+    "x")."""
+
+    kind: str
+    label: str | None
+    x: np.ndarray
+    y: np.ndarray
+    colour: str
+    style: str | tuple = "-"
+    width: float = 1.0
+    marker: str = "o"
+    size: float = 6.0
+    face: str | None = None  # a point's inside: None filled with its colour, "white", "none"
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
+    faint_bars: bool = False  # thin, half-transparent error bars (a prediction's range)
+    rows: tuple = ()
+
+
+@dataclass
+class Panel:
+    """One axes of a chart: its series, axis labels and scales."""
+
+    title: str
+    xlabel: str
+    ylabel: str
+    series: list[Series] = field(default_factory=list)
+    xlog: bool = False
+    ylog: bool = False
+    xticks: tuple = ()  # ticks at these x only (the sample times of a rate study)
+    y_from_zero: bool = False
+    legend: str = "best"
+
+
+@dataclass
+class Chart:
+    """What a campaign's figure shows, drawn by matplotlib into its PNG (``figure``) and by
+    the window's Campaign page (``labbench.gui.campaign_chart``): ``panels`` in a grid of
+    ``columns``, a title, and a foot (the rig's facts) below."""
+
+    name: str  # "zwidth" | "rate"
+    title: str
+    panels: list[Panel]
+    columns: int = 1
+    foot: str = ""
+    size: tuple = (8.0, 5.6)
+
+
+def _idx_col(rows: list[tuple[int, dict]], name: str) -> np.ndarray:
+    return np.array([_num(r.get(name)) for _, r in rows])
+
+
+def zwidth_chart(rows: list[dict]) -> Chart | None:
     """K_max against B, one series per velocity filter: the measured boundary with its 95 %
     interval (filled: above the sampled-data passive bound, stable but not passive; hollow:
     passive too; a triangle: no step grew, K_max above it), the exact sampled boundary, the
@@ -50,39 +112,35 @@ def zwidth_figure(cols: dict) -> Figure | None:
     VE and Abbott & Okamura's quantisation bound; with the device's friction known, the
     friction-aware boundary over B at the swing the probe plans there (a curve) and at the
     swing each point's steps started from (diamonds, over the swings of its steps); the
-    rig's facts below."""
-    rows = zwidth_rows(cols)
-    if not rows:
+    rig's facts below. None: ``rows`` are no stability probes over K."""
+    if not any("zw.k_max" in r for r in rows):
         return None
-    fig = Figure(figsize=(8.0, 5.6), layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    panel = Panel("", "virtual damping B (N s/m)", "stiffness K (N/m)", y_from_zero=True,
+                  legend="upper left")
     series: dict = {}
-    for r in rows:
-        series.setdefault(r.get("ve.w0_rad_s"), []).append(r)
+    for i, r in enumerate(rows):
+        series.setdefault(r.get("ve.w0_rad_s"), []).append((i, r))
     b_top = max(_num(r.get("ve.B")) for r in rows) or 1.0
     for n, (w0, group) in enumerate(sorted(series.items(), key=lambda kv: (kv[0] is None, kv[0] or 0))):
         color = f"C{n}"
         name = f"w0 = {fmt(w0)} rad/s" if w0 is not None else "no filter"
-        _theory_curves(ax, group[0], w0, b_top, color, name, first=n == 0)
-        _friction_curve(ax, group, w0, b_top, color, name)
-        _measured(ax, group, color, name)
-        _friction_aware(ax, group, color, name)
+        panel.series += _theory_curves(group[0][1], w0, b_top, color, name, first=n == 0)
+        panel.series += _friction_curve(group, w0, b_top, color, name)
+        panel.series += _measured(group, color, name)
+        panel.series += _friction_aware(group, color, name)
     q = _num(rows[0].get("pred.k_passive_quantised"))
     if math.isfinite(q):
-        ax.axhline(q, color="0.4", lw=1, ls=(0, (1, 3)),
-                   label=literal_mpl(f"passive, quantisation and friction 2 fc/Δ = {fmt(q)} N/m "
-                                     "(Abbott & Okamura)"))
-    ax.set_xlabel("virtual damping B (N s/m)\n\n" + "\n".join(textwrap.wrap(
-        literal_mpl(rig_line(rows[0])), 120)), fontsize=7)
-    ax.set_ylabel("stiffness K (N/m)", fontsize=8)
-    ax.set_ylim(bottom=0)
-    ax.tick_params(labelsize=7)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=6.5, loc="upper left")
-    ax.set_title("Z-width: largest stable K against B, measured on the device and predicted",
-                 fontsize=9)
-    return fig
+        panel.series.append(Series(
+            "level", f"passive, quantisation and friction 2 fc/Δ = {fmt(q)} N/m (Abbott & Okamura)",
+            np.array([]), np.array([q]), "0.4", (0, (1, 3))))
+    return Chart("zwidth", "Z-width: largest stable K against B, measured on the device and "
+                 "predicted", [panel], foot=rig_line(rows[0]))
+
+
+def zwidth_figure(cols: dict) -> Figure | None:
+    """``zwidth_chart`` of the table's columns, drawn (None: no Z-width in it)."""
+    chart = zwidth_chart(table_rows(cols))
+    return figure(chart) if chart else None
 
 
 def rig_line(r: dict) -> str:
@@ -112,52 +170,61 @@ def _ve_at(B: float, w0, T: float, td: float) -> VirtualEnvironment:
     return VirtualEnvironment("spring-damper", 1.0, B, math.inf if w0 is None else w0, T, td)
 
 
-def _theory_curves(ax, r: dict, w0, b_top: float, color: str, name: str, first: bool) -> None:
-    plant, latency, T, td = _loop(r, w0)
+@functools.lru_cache(maxsize=64)
+def _curves(plant: Plant, w0, T: float, td: float, latency: float, b_top: float) -> tuple:
+    """(B, exact, passive, approximation, Colgate's line) over 0..1.05 b_top; kept, since a
+    window redraws its chart with every new row."""
     Bs = np.linspace(0.0, 1.05 * b_top, N_CURVE)
     ves = [_ve_at(B, w0, T, td) for B in Bs]
-    exact = [linear.k_max(plant, ve, latency=latency) for ve in ves]
-    passive = [passivity.passive_k_max(plant, ve, latency) for ve in ves]
-    ax.plot(Bs, exact, "-", color=color, lw=1.3, label=literal_mpl(f"stable, exact sampled ({name})"))
-    ax.plot(Bs, passive, "--", color=color, lw=1.0,
-            label=literal_mpl(f"passive, sampled-data condition ({name})"))
+    return (Bs, np.array([linear.k_max(plant, ve, latency=latency) for ve in ves]),
+            np.array([passivity.passive_k_max(plant, ve, latency) for ve in ves]),
+            np.array([linear.k_max_approx(plant, ve, latency) for ve in ves]),
+            np.array([passivity.colgate_line(plant.b, B, T) for B in Bs]))
+
+
+def _theory_curves(r: dict, w0, b_top: float, color: str, name: str, first: bool) -> list[Series]:
+    plant, latency, T, td = _loop(r, w0)
+    Bs, exact, passive, approx, line = _curves(plant, w0, T, td, latency, b_top)
+    out = [Series("line", f"stable, exact sampled ({name})", Bs, exact, color, "-", 1.3),
+           Series("line", f"passive, sampled-data condition ({name})", Bs, passive, color, "--")]
     if first:
-        approx = [linear.k_max_approx(plant, ve, latency) for ve in ves]
-        ax.plot(Bs, approx, ":", color="0.3", lw=1.0,
-                label="stable, paper's approximation (b + B) / (T/2 + td)")
-        line = [passivity.colgate_line(plant.b, B, T) for B in Bs]
-        ax.plot(Bs, line, "-.", color="0.3", lw=1.0,
-                label="passive, Colgate & Schenkel b > K T/2 + |B|")
+        out += [Series("line", "stable, paper's approximation (b + B) / (T/2 + td)", Bs, approx,
+                       "0.3", ":"),
+                Series("line", "passive, Colgate & Schenkel b > K T/2 + |B|", Bs, line, "0.3", "-.")]
+    return out
 
 
-def _measured(ax, group: list[dict], color: str, name: str) -> None:
-    B = np.array([_num(r.get("ve.B")) for r in group])
-    k = np.array([_num(r.get("zw.k_max")) for r in group])
-    lo = np.array([_num(r.get("zw.ci_lo")) for r in group])
-    hi = np.array([_num(r.get("zw.ci_hi")) for r in group])
-    above = np.array([_num(r.get("zw.k_max_above")) for r in group])
-    passive = np.array([_num(r.get("pred.k_passive")) for r in group])
+def _measured(group: list[tuple[int, dict]], color: str, name: str) -> list[Series]:
+    at = np.array([i for i, _ in group])
+    B, k = _idx_col(group, "ve.B"), _idx_col(group, "zw.k_max")
+    lo, hi = _idx_col(group, "zw.ci_lo"), _idx_col(group, "zw.ci_hi")
+    above, passive = _idx_col(group, "zw.k_max_above"), _idx_col(group, "pred.k_passive")
     has = np.isfinite(k)
-    err = np.vstack([np.where(np.isfinite(lo), k - lo, 0), np.where(np.isfinite(hi), hi - k, 0)])
-    ax.errorbar(B[has], k[has], yerr=err[:, has], fmt="none", ecolor=color, capsize=3, lw=1)
     # above the passive bound by more than the measurement's own interval
     active = has & (np.where(np.isfinite(lo), lo, k) > passive)
-    ax.plot(B[active], k[active], "o", color=color, ms=6,
-            label=literal_mpl(f"measured K_max, 95 % interval ({name}): stable, not passive"))
+
+    def points(keep, label, y=k, **style) -> Series:
+        return Series("points", label, B[keep], y[keep], color, rows=tuple(at[keep].tolist()),
+                      **style)
+
+    out = [points(active, f"measured K_max, 95 % interval ({name}): stable, not passive",
+                  lo=lo[active], hi=hi[active])]
     if (has & ~active).any():
-        ax.plot(B[has & ~active], k[has & ~active], "o", mfc="white", color=color, ms=6,
-                label=literal_mpl(f"measured K_max ({name}): within the passive bound"))
+        out.append(points(has & ~active, f"measured K_max ({name}): within the passive bound",
+                          face="white", lo=lo[has & ~active], hi=hi[has & ~active]))
     up = np.isfinite(above)
     if up.any():
-        ax.plot(B[up], above[up], "^", color=color, ms=7,
-                label=literal_mpl(f"no step grew: K_max above ({name})"))
-    bad = np.array([r.get("status") not in ("ok", None) for r in group]) & ~has & ~up
+        out.append(points(up, f"no step grew: K_max above ({name})", y=above, marker="^", size=7))
+    bad = np.array([r.get("status") not in ("ok", None) for _, r in group]) & ~has & ~up
     if bad.any():
-        y = np.array([_num(r.get("pred.k_max")) for r in group])
-        ax.plot(B[bad], y[bad], "x", color="tab:red", ms=7, label="point not ok (see its row)")
+        out.append(Series("points", "point not ok (see its row)", B[bad],
+                          _idx_col(group, "pred.k_max")[bad], "tab:red", marker="x", size=7,
+                          rows=tuple(at[bad].tolist())))
+    return out
 
 
-def _friction_curve(ax, group: list[dict], w0, b_top: float, color: str, name: str) -> None:
+def _friction_curve(group: list[tuple[int, dict]], w0, b_top: float, color: str,
+                    name: str) -> list[Series]:
     """The friction-aware boundary over B as the probe plans it: at each B, where an
     oscillation of the swing its pulse starts at that K neither grows nor decays
     (``pred.k_max_friction_plan``: the friction believed, the safety cap and the pulse plan;
@@ -165,18 +232,20 @@ def _friction_curve(ax, group: list[dict], w0, b_top: float, color: str, name: s
     ``pred.k_max_friction``; not drawn beyond the probe's safety cap. One curve for each
     plan the series holds (a campaign over the friction believed has several)."""
     plans: dict = {}
-    for r in group:
+    for _, r in group:
         if isinstance(r.get("pred.k_max_friction_plan"), str):
             plans.setdefault(r["pred.k_max_friction_plan"], []).append(r)
+    out = []
     for text, rows in plans.items():
         plant, latency, T, td = _loop(rows[0], w0)
         Bs = np.union1d(np.linspace(0.0, 1.05 * b_top, N_FRICTION),
                         [_num(r.get("ve.B")) for r in rows if math.isfinite(_num(r.get("ve.B")))])
         k = _planned_curve(text, plant, w0, T, td, latency, tuple(Bs))
         fc = json.loads(text)["coulomb_n"]
-        ax.plot(Bs, k, ls=(0, (6, 2, 1, 2)), color=color, lw=1.2,
-                label=literal_mpl(f"stable with friction {fmt(fc)} N, at the swing the probe plans "
-                                  f"at each B ({name}): describing function"))
+        out.append(Series("line", f"stable with friction {fmt(fc)} N, at the swing the probe "
+                          f"plans at each B ({name}): describing function", Bs, k, color,
+                          (0, (6, 2, 1, 2)), 1.2))
+    return out
 
 
 @functools.lru_cache(maxsize=32)
@@ -194,22 +263,19 @@ def _planned_curve(text: str, plant: Plant, w0, T: float, td: float, latency: fl
     return np.array([x if x is not None and math.isfinite(x) else math.nan for x in k])
 
 
-def _friction_aware(ax, group: list[dict], color: str, name: str) -> None:
+def _friction_aware(group: list[tuple[int, dict]], color: str, name: str) -> list[Series]:
     """Each point's friction-aware boundary at the swing its steps started from
     (``zw.k_friction``, with its range): what its measurement is compared with."""
-    B = np.array([_num(r.get("ve.B")) for r in group])
-    k = np.array([_num(r.get("zw.k_friction")) for r in group])
-    lo = np.array([_num(r.get("zw.k_friction_lo")) for r in group])
-    hi = np.array([_num(r.get("zw.k_friction_hi")) for r in group])
+    at = np.array([i for i, _ in group])
+    B, k = _idx_col(group, "ve.B"), _idx_col(group, "zw.k_friction")
+    lo, hi = _idx_col(group, "zw.k_friction_lo"), _idx_col(group, "zw.k_friction_hi")
     has = np.isfinite(k)
     if not has.any():
-        return
-    ax.plot(B[has], k[has], "D", color=color, mfc="none", ms=9,
-            label=literal_mpl(f"stable with friction, at the swing the steps started from "
-                              f"({name}): compared with the measured"))
-    ranged = has & np.isfinite(lo) & np.isfinite(hi)
-    ax.errorbar(B[ranged], k[ranged], yerr=np.vstack([k - lo, hi - k])[:, ranged], fmt="none",
-                ecolor=color, capsize=2, lw=0.6, alpha=0.6)
+        return []
+    return [Series("points", f"stable with friction, at the swing the steps started from "
+                   f"({name}): compared with the measured", B[has], k[has], color, marker="D",
+                   size=9, face="none", lo=lo[has], hi=hi[has], faint_bars=True,
+                   rows=tuple(at[has].tolist()))]
 
 
 def rate_rows(cols: dict) -> list[dict]:
@@ -217,57 +283,112 @@ def rate_rows(cols: dict) -> list[dict]:
     return rows if len({r.get("rig.sample_time_s") for r in rows}) > 1 else []
 
 
-def rate_figure(cols: dict) -> Figure | None:
+def rate_chart(rows: list[dict]) -> Chart | None:
     """Against the sample time T: the median and max rendering error of ED and ES over
     2-100 rad/s, w_s* and w_b*, and K_max, each measured (points) and predicted by the exact
-    sampled theory (lines)."""
-    rows = sorted(rate_rows(cols), key=lambda r: r["rig.sample_time_s"])
-    if not rows:
+    sampled theory (lines). None: ``rows`` hold no ETFE runs at more than one T."""
+    shown = [(i, r) for i, r in enumerate(rows) if r.get("acc.ed_median") is not None]
+    if len({r.get("rig.sample_time_s") for _, r in shown}) < 2:
         return None
-    T = np.array([1e3 * r["rig.sample_time_s"] for r in rows])
-    fig = Figure(figsize=(8.0, 6.0), layout="constrained")
+    shown.sort(key=lambda ir: ir[1]["rig.sample_time_s"])
+    at = tuple(i for i, _ in shown)
+    T = 1e3 * _idx_col(shown, "rig.sample_time_s")
+
+    def pair(label_line, label_points, pred, meas, colour, marker="o", scale=1.0, width=1.5):
+        return [Series("line", label_line, T, scale * _idx_col(shown, pred), colour, "-", width),
+                Series("points", label_points, T, scale * _idx_col(shown, meas), colour,
+                       marker=marker, rows=at)]
+
+    panels = []
+    for which, title in (("ed", "ED: |ED - (b + B)| / (b + B)"), ("es", "ES: |ES - (K - m w^2)| / K")):
+        p = Panel(f"rendering error of {title}", "sample time T (ms)",
+                  "error over 2-100 rad/s (%)")
+        for n, (stat, mark) in enumerate((("median", "o"), ("max", "s"))):
+            p.series += pair(f"{stat}, predicted", f"{stat}, measured", f"pred.{which}_{stat}",
+                             f"acc.{which}_{stat}", f"C{n}", mark, 100.0, 1.2)
+        panels.append(p)
+    p = Panel("stiffness and damping bandwidths", "sample time T (ms)", "bandwidth (rad/s)")
+    for n, (key, label) in enumerate((("ws_star", "w_s*"), ("wb_star", "w_b*"))):
+        p.series += pair(f"{label} predicted", f"{label} measured",
+                         f"res.bandwidths.{key}_predicted", f"res.bandwidths.{key}_measured", f"C{n}")
+    panels.append(p)
+    p = Panel("largest stable K of this VE", "sample time T (ms)", "K_max (N/m)", ylog=True)
+    p.series += pair("predicted (rig's plant and delay)", "from the measured loop (closed-loop fit)",
+                     "pred.k_max", "acc.k_max_fit", "C0")
+    panels.append(p)
+    for p in panels:
+        p.xlog, p.xticks = True, tuple(T)
+    r = shown[0][1]
+    return Chart("rate", f"Rate vs accuracy: {r.get('ve.kind')} K = {fmt(r.get('ve.K'))} N/m, "
+                 f"B = {fmt(r.get('ve.B'))} N s/m, w0 = {fmt(r.get('ve.w0_rad_s'))} rad/s on "
+                 f"{r.get('device')}", panels, columns=2, size=(8.0, 6.0))
+
+
+def rate_figure(cols: dict) -> Figure | None:
+    """``rate_chart`` of the table's columns, drawn (None: no rate study in it)."""
+    chart = rate_chart(table_rows(cols))
+    return figure(chart) if chart else None
+
+
+def charts(rows: list[dict]) -> list[Chart]:
+    """The charts ``rows`` (a campaign table's, in its order) make: a Z-width, a rate study."""
+    return [c for c in (zwidth_chart(rows), rate_chart(rows)) if c is not None]
+
+
+def figure(chart: Chart) -> Figure:
+    """``chart`` drawn by matplotlib (its PNG, the report's figure)."""
+    fig = Figure(figsize=chart.size, layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 2)
-
-    def col(name):
-        return np.array([_num(r.get(name)) for r in rows])
-
-    for ax, which, title in ((axes[0, 0], "ed", "ED: |ED - (b + B)| / (b + B)"),
-                             (axes[0, 1], "es", "ES: |ES - (K - m w^2)| / K")):
-        for stat, mark in (("median", "o"), ("max", "s")):
-            line, = ax.plot(T, 100 * col(f"pred.{which}_{stat}"), "-", lw=1.2,
-                            label=f"{stat}, predicted")
-            ax.plot(T, 100 * col(f"acc.{which}_{stat}"), mark, color=line.get_color(),
-                    label=f"{stat}, measured")
-        ax.set_title(literal_mpl(f"rendering error of {title}"), fontsize=8)
-        ax.set_ylabel("error over 2-100 rad/s (%)", fontsize=8)
-    ax = axes[1, 0]
-    for key, label in (("ws_star", "w_s*"), ("wb_star", "w_b*")):
-        line, = ax.plot(T, col(f"res.bandwidths.{key}_predicted"), "-", label=f"{label} predicted")
-        ax.plot(T, col(f"res.bandwidths.{key}_measured"), "o", color=line.get_color(),
-                label=f"{label} measured")
-    ax.set_ylabel("bandwidth (rad/s)", fontsize=8)
-    ax.set_title("stiffness and damping bandwidths", fontsize=8)
-    ax = axes[1, 1]
-    line, = ax.plot(T, col("pred.k_max"), "-", label="predicted (rig's plant and delay)")
-    ax.plot(T, col("acc.k_max_fit"), "o", color=line.get_color(),
-            label="from the measured loop (closed-loop fit)")
-    ax.set_yscale("log")
-    ax.set_ylabel("K_max (N/m)", fontsize=8)
-    ax.set_title("largest stable K of this VE", fontsize=8)
-    for ax in axes.flat:
-        ax.set_xscale("log")
-        ax.set_xticks(T, [fmt(t) for t in T])
-        ax.minorticks_off()
-        ax.set_xlabel("sample time T (ms)", fontsize=8)
+    nrows = -(-len(chart.panels) // chart.columns)
+    axes = np.atleast_1d(fig.subplots(nrows, chart.columns)).ravel()
+    for ax, panel in zip(axes, chart.panels):
+        for s in panel.series:
+            _draw(ax, s)
+        xlabel = panel.xlabel
+        if chart.foot:
+            xlabel += "\n\n" + "\n".join(textwrap.wrap(literal_mpl(chart.foot), 120))
+        ax.set_xlabel(xlabel, fontsize=7 if chart.foot else 8)
+        ax.set_ylabel(panel.ylabel, fontsize=8)
+        if panel.xlog:
+            ax.set_xscale("log")
+        if panel.ylog:
+            ax.set_yscale("log")
+        if panel.xticks:
+            ax.set_xticks(panel.xticks, [fmt(t) for t in panel.xticks])
+            ax.minorticks_off()
+        if panel.y_from_zero:
+            ax.set_ylim(bottom=0)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=6.5)
-    fig.suptitle(literal_mpl(f"Rate vs accuracy: {rows[0].get('ve.kind')} K = {fmt(rows[0].get('ve.K'))} "
-                             f"N/m, B = {fmt(rows[0].get('ve.B'))} N s/m, w0 = "
-                             f"{fmt(rows[0].get('ve.w0_rad_s'))} rad/s on {rows[0].get('device')}"),
-                 fontsize=9)
+        ax.legend(fontsize=6.5, loc=panel.legend)
+        if panel.title:
+            ax.set_title(literal_mpl(panel.title), fontsize=8)
+    if len(chart.panels) == 1:
+        axes[0].set_title(literal_mpl(chart.title), fontsize=9)
+    else:
+        fig.suptitle(literal_mpl(chart.title), fontsize=9)
     return fig
+
+
+def _draw(ax, s: Series) -> None:
+    label = literal_mpl(s.label) if s.label else None
+    if s.kind == "level":
+        ax.axhline(s.y[0], color=s.colour, lw=s.width, ls=s.style, label=label)
+        return
+    if s.kind == "line":
+        ax.plot(s.x, s.y, ls=s.style, color=s.colour, lw=s.width, label=label)
+        return
+    if s.lo is not None and s.hi is not None:
+        bars = np.isfinite(s.lo) | np.isfinite(s.hi)
+        if s.faint_bars:
+            bars = np.isfinite(s.lo) & np.isfinite(s.hi)
+        err = np.vstack([np.where(np.isfinite(s.lo), s.y - s.lo, 0),
+                         np.where(np.isfinite(s.hi), s.hi - s.y, 0)])
+        ax.errorbar(s.x[bars], s.y[bars], yerr=err[:, bars], fmt="none", ecolor=s.colour,
+                    capsize=2 if s.faint_bars else 3, lw=0.6 if s.faint_bars else 1,
+                    alpha=0.6 if s.faint_bars else 1)
+    ax.plot(s.x, s.y, s.marker, ls="none", color=s.colour, ms=s.size,
+            mfc=s.face or s.colour, label=label)
 
 
 FIGURES = (("zwidth.png", zwidth_figure), ("rate.png", rate_figure))
