@@ -21,7 +21,7 @@ from PySide6 import QtCore, QtWidgets
 from labbench.gui.keep_alive import keep_plots
 from labbench.gui.live_plots import no_si_prefix
 
-ROW_PX = 260  # the least height of a row of panels (with its legend); more rows scroll
+PLOT_PX = 200  # the least height of a plot; its legend below it, what does not fit scrolls
 HINT = "hover a point to read its row, click it to select the row"
 DASHES = {"-": QtCore.Qt.PenStyle.SolidLine, "--": QtCore.Qt.PenStyle.DashLine,
           ":": QtCore.Qt.PenStyle.DotLine, "-.": QtCore.Qt.PenStyle.DashDotLine}
@@ -72,12 +72,15 @@ class CampaignChart(QtWidgets.QWidget):
         self.canvas.clear()
         self.plots, self.panels, self.drawn, self.points = [], [], [], []
         self.kind = charts[0].name if charts else None
-        top = 0
+        top, legends = 0, {}
         for chart in charts:
             for n, panel in enumerate(chart.panels):
-                self._panel(panel, top + n // chart.columns, n % chart.columns)
+                row = top + n // chart.columns
+                legend = self._panel(panel, row, n % chart.columns)
+                legends[row] = max(legends.get(row, 0.0), legend.preferredHeight())
             top += -(-len(chart.panels) // chart.columns)
-        self.canvas.setMinimumHeight(ROW_PX * top)
+        # each row's plot at least PLOT_PX tall above its whole legend: the room scrolls
+        self.canvas.setMinimumHeight(int(sum(PLOT_PX + 8 + h for h in legends.values())))
         keep_plots(*self.plots)
         self.title.setText("<br>".join(f"<b>{c.title}</b>" + (f"<br><small>{c.foot}</small>"
                                                                if c.foot else "") for c in charts))
@@ -111,6 +114,7 @@ class CampaignChart(QtWidgets.QWidget):
             plot.autoRange()
             _, (lo, hi) = plot.viewRange()
             plot.setYRange(0, hi, padding=0)
+        return legend
 
     @staticmethod
     def _at(v, log: bool):

@@ -115,11 +115,13 @@ class CampaignView(QtWidgets.QWidget):
         bl.addWidget(self.session_button, 0, QtCore.Qt.AlignmentFlag.AlignLeft)
         split.addWidget(self.chart)
         split.addWidget(below)
+        self.split = split
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(top)
         lay.addWidget(self.plan_label)
         lay.addWidget(split, 1)
 
+        self._sized = False  # the chart given two thirds at the first show
         self.rows: list[dict] = []
         self.planned = False
         self.running = False
@@ -130,6 +132,13 @@ class CampaignView(QtWidgets.QWidget):
         self.session_button.clicked.connect(self._open_session)
         self.table.itemSelectionChanged.connect(self._sync)
         self.table.itemDoubleClicked.connect(lambda _item: self._open_session())
+
+    def showEvent(self, event) -> None:  # noqa: N802 - Qt override
+        super().showEvent(event)
+        if not self._sized:
+            self._sized = True
+            total = sum(self.split.sizes())
+            self.split.setSizes([2 * total // 3, total - 2 * total // 3])
 
     # ----- what the window tells the page --------------------------------------------------
     def show_plan(self, lines: list[str] | None, error: str = "") -> None:
