@@ -101,7 +101,10 @@ def test_count_on_change_is_held_and_sampled_by_the_host():
     assert off_by(printed, lo, hi).max() <= 1
     assert set(np.abs(np.diff(printed))) == {1}  # it printed every change
     assert set(held) <= set(printed)  # the host holds what was printed, nothing else
-    assert max(held) == 100 and min(held) == -100 and held[-1] == end == printed[-1]
+    assert max(printed) == 100 and min(printed) == -100
+    # the host samples the held count at its own pace: on a loaded machine it can miss the
+    # few lines the top count lasts (CI: 99), so the extremes within the goal's one count
+    assert max(held) >= 99 and min(held) <= -99 and held[-1] == end == printed[-1]
 
 
 WRONG = {  # the rig a lab writes first: the default layout, its baud rate and period
