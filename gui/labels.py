@@ -15,6 +15,15 @@ def fixed_lines(label: QtWidgets.QLabel, lines: int) -> QtWidgets.QLabel:
     return label
 
 
+def never_widens(label: QtWidgets.QLabel, lines: int = 2) -> QtWidgets.QLabel:
+    """A ``fixed_lines`` label whose text never sets the window's width: a long word (an
+    exported file's path) is cut at the label's edge, whole in the tooltip (``set_text``).
+    A path in a plain label widened the window from 1280 to 1922 px past the screen."""
+    fixed_lines(label, lines)
+    label.setMinimumWidth(1)  # not the longest word's width (QLabel's minimum size hint)
+    return label
+
+
 def set_text(label: QtWidgets.QLabel, text: str) -> None:
     """Text and the same as tooltip (a fixed-height label may not show all of it)."""
     label.setText(text)

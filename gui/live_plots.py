@@ -28,6 +28,8 @@ MIN_PLOT_HEIGHT = 90  # three of them, the verdicts and the log fit 1280 x 800
 # this fraction of |Z|. Early in a run the wide-band points (6 s into white noise: ES of
 # +-400 000 N/m) would otherwise set the range and flatten the curve into a line.
 TRUSTED_REL_ERR = 0.25
+RIGHT_OF_LINE, LEFT_OF_LINE = (0, 0.5), (1, 0.5)  # a vertical mark's label anchor: its side
+LABEL_GROUND = pg.mkBrush(255, 255, 255, 220)  # under a mark's label where no curve is
 
 COLOURS = {"position": "#1f77b4", "velocity": "#2ca02c", "command": "#d62728",
            "excitation": "#7f7f7f", "measured": "#1f5fa8", "theory": "#d95f02", "band": (31, 95, 168, 60)}
@@ -266,7 +268,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             # the label on a white ground: a curve behind it does not cross its numbers
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
                                    label="", labelOpts={"position": at, "color": "#222222",
-                                                        "fill": pg.mkBrush(255, 255, 255, 220)})
+                                                        "fill": LABEL_GROUND,
+                                                        "anchors": [RIGHT_OF_LINE] * 2})
             line.setVisible(False)
             self.plots[plot].addItem(line, ignoreBounds=True)
             self.marks[key] = line
@@ -307,7 +310,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         no_si_prefix(p.getAxis("left"))
         no_si_prefix(p.getAxis("bottom"))
 
-    def clear_data(self) -> None:
+    def clear_data(self, title: str = "effective impedances: waiting for data") -> None:
         for c in self.curves.values():
             c.setData([], [])
         for band in self.bands.values():
@@ -315,7 +318,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         for m in self.marks.values():
             m.setVisible(False)
         self._show_theory_in_legend(False)
-        self.title.setText("effective impedances: waiting for data")
+        self.title.setText(title)
         self.last = self._theory_shown = self._bode_shown = None
         self._fresh = True
 
@@ -372,6 +375,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
                     " (", "\n(", 1).replace("; ", ";\n", 1)
                 if text != line.label.format:  # new text: a re-layout of the label on the next paint
                     line.label.setFormat(text)
+                _label_side(line, self.plots["ES" if key == "ws" else "ED"].getViewBox())
             else:
                 line.setVisible(False)
         # its source on a line of its own: a session's name ran past the plots at 1280 x 800
@@ -460,6 +464,25 @@ class ImpedancePlots(QtWidgets.QTabWidget):
             self.curves["bode_mag_theory"].setData([], [])
             self.curves["bode_phase_theory"].setData([], [])
         self._bode_shown = est
+
+
+def _label_side(line: pg.InfiniteLine, vb: pg.ViewBox) -> None:
+    """A mark's label right of its line, on a white ground, where ES is not drawn (past
+    w_s*) and ED falls (past w_b*); where the right has no room for it, left of the line
+    with no ground: the measured curve shows through. pyqtgraph chose the side by the
+    view's vertical centre: the white ground lay over the measured ES or ED in the band
+    K and B are read from (they looked faint there)."""
+    try:
+        room = (vb.viewRange()[0][1] - line.value()) / vb.viewPixelSize()[0]  # pixels
+    except (ZeroDivisionError, ValueError, TypeError):  # a view not laid out yet
+        room = np.inf
+    right = room >= line.label.boundingRect().width()
+    anchor = RIGHT_OF_LINE if right else LEFT_OF_LINE
+    if line.label.anchors[0] != anchor:
+        line.label.anchors = [anchor] * 2
+        line.label.fill = LABEL_GROUND if right else pg.mkBrush(None)
+        line.label.updatePosition()
+        line.label.update()
 
 
 def _excited(est: Estimate) -> np.ndarray:

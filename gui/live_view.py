@@ -18,10 +18,16 @@ from labbench.gui.live_estimate import LIVE, MIN_SAMPLES, LiveEstimator
 from labbench.gui.live_plots import ImpedancePlots, TimeTraces
 from labbench.gui.verdict_view import VerdictLabel
 from labbench.model.predictions import recorded_plant
+from labbench.records import protocol_name
 
 # the theory overlay's plant: the session's (as its analysis and report), or identified live
 PLANT_CHOICES = ("the run's plant (as the report)", "identified (l2) on this run")
 RUN_PLANT, IDENTIFIED = range(2)
+# protocols whose VE changes as they run (a stability probe steps K or the delay): their
+# record has no one effective impedance, and one ETFE of it (its marks "measured" against
+# the first step's theory) said numbers of no VE
+VE_CHANGES = {"stability": "a stability probe steps its VE as it runs: no effective impedance "
+                           "of one VE to estimate<br>(its boundary shows above once it ends)"}
 VERDICT_SHARE = 1  # parts of the page's height against the plots' PLOTS_SHARE: the verdicts' room
 PLOTS_SHARE = 3
 
@@ -129,6 +135,12 @@ class LiveView(QtWidgets.QWidget):
         """Hand the newest samples to the estimator unless it is busy (estimate timer)."""
         buf = self.buffer
         if buf.n < MIN_SAMPLES or buf.start is None or buf.version == self._estimated_version:
+            return
+        why_not = VE_CHANGES.get(protocol_name(buf.start))
+        if why_not:
+            if self.impedance.title.text != why_not:
+                self.impedance.clear_data(why_not)
+            self._estimated_version = buf.version
             return
         ve, plant, meta, source = self._estimate_inputs(buf)
         data = buf.snapshot(("t", "excitation", "position", "command"))

@@ -47,7 +47,7 @@ from labbench.gui.run_state import IDLE, REPLAY, RUNNING, RunState
 from labbench.gui.sessions_view import SessionsView
 from labbench.gui.sweep_view import SweepView
 from labbench.gui.units_choice import UnitsChoice, parse_or_si, units_text
-from labbench.gui.verdict_view import judged, rendered_line
+from labbench.gui.verdict_view import judged, rendered_line, result_lines
 from labbench.gui.wheel_guard import WheelGuard
 from labbench.gui.worker import Mailbox, describe_error, run_in_background, start_replay
 from labbench.design.tradeoffs import device_for
@@ -179,7 +179,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self._point = None  # the point running: (planned point, consumers, answer, Event)
 
         self.setWindowTitle(f"labbench: {rig.name}")
-        self.resize(1600, 1000)
+        # 1600 x 1000, or the screen's room: at 1280 x 800 that size put Start, the log and
+        # half the plots off the screen (a remembered geometry still wins, _restore_state)
+        self.resize(QtCore.QSize(1600, 1000).boundedTo(self.screen().availableGeometry().size()))
         remembered = settings.value("device/backend", "", type=str) if settings else ""
         self.wheel_guard = WheelGuard(self)  # before any widget: no value changes under the wheel
         self._build(backend or remembered or default_backend(rig))
@@ -619,6 +621,8 @@ class MainWindow(QtWidgets.QMainWindow):
             extra["plant_from"] = plant_from  # as labbench run records it
         if name == COMMISSION:
             self.commission.show_state("commissioning ...")
+        else:  # its traces and, at its end, its verdicts (a Start pressed on another page ran unseen)
+            self.tabs.setCurrentWidget(self.live)
         self._launch(protocol, values, self.rig, extra)
 
     def _launch(self, protocol, values: dict, rig, extra: dict):
@@ -1116,7 +1120,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.log.add("info", "results:", rows=read.row_texts(self.units_choice.units()))
         name = Path(session).name if session else "this run (not recorded)"
         self.live.verdicts.show_judged(read.verdicts, heading=f"<b>{escape(f'{protocol}, {name}')}</b>",
-                                       lines=rendered_line(read))
+                                       lines=result_lines(read))
         ident = results.get("identification")
         if isinstance(ident, dict) and ident:
             from labbench.sessions.session_content import analysis_meta

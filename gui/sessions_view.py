@@ -9,6 +9,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from labbench.gui.labels import never_widens, set_text
 from labbench.gui.tables import row_list
 from labbench.gui.verdict_view import COLOURS
 from labbench.readout.numfmt import fmt
@@ -64,7 +65,7 @@ class SessionsView(QtWidgets.QWidget):
     def __init__(self, directory: Path, estimators=("default",), parent=None):
         super().__init__(parent)
         self.directory = Path(directory)
-        self.dir_label = QtWidgets.QLabel()
+        self.dir_label = never_widens(QtWidgets.QLabel(), 1)
         choose = QtWidgets.QPushButton("Folder...")
         refresh = QtWidgets.QPushButton("Refresh")
         self.filter = QtWidgets.QLineEdit()
@@ -81,7 +82,7 @@ class SessionsView(QtWidgets.QWidget):
         self.progress = QtWidgets.QProgressBar()
         self.progress.setRange(0, 1000)
         self.progress.setTextVisible(False)
-        self.progress_line = QtWidgets.QLabel("")
+        self.progress_line = never_widens(QtWidgets.QLabel(""))
         self.cancel_button = QtWidgets.QPushButton("Cancel")
         self.cancel_button.setToolTip("stop the re-analysis; what the window shows stays as it was")
         self.cancel_button.setEnabled(False)
@@ -130,7 +131,7 @@ class SessionsView(QtWidgets.QWidget):
         self._set_dir_label()
 
     def _set_dir_label(self):
-        self.dir_label.setText(str(self.directory))
+        set_text(self.dir_label, str(self.directory))
 
     def _choose(self):
         from labbench.gui.dialogs import choose_folder
@@ -206,26 +207,26 @@ class SessionsView(QtWidgets.QWidget):
         """A re-analysis under way (``frac`` 0..1): its progress, and Cancel."""
         self._analysing = True
         self.progress.setValue(int(1000 * min(max(frac, 0.0), 1.0)))
-        self.progress_line.setText(text)
+        set_text(self.progress_line, text)
         self._sync()
 
     def analysis_ended(self, text: str, frac: float) -> None:
         self._analysing = False
         self.progress.setValue(int(1000 * frac))
-        self.progress_line.setText(text)
+        set_text(self.progress_line, text)
         self._sync()
 
     def show_export(self, text: str) -> None:
         """An export under way (a report takes 10-30 s): the bar busy, what is written."""
         if not self._analysing:  # a re-analysis' own progress keeps the bar
             self.progress.setRange(0, 0)
-        self.progress_line.setText(text)
+        set_text(self.progress_line, text)
 
     def export_ended(self, text: str) -> None:
         if not self._analysing:
             self.progress.setRange(0, 1000)
             self.progress.setValue(1000)
-        self.progress_line.setText(text)
+        set_text(self.progress_line, text)
 
     def _sync(self) -> None:
         self.cancel_button.setEnabled(self._analysing)

@@ -3,6 +3,7 @@ and notes, wherever a result shows. The words are ``labbench.readout.wording``'s
 what the CLI, the report and the window say of a result) and follow the display units."""
 from __future__ import annotations
 
+from functools import partial
 from html import escape
 
 from PySide6 import QtCore, QtWidgets
@@ -39,6 +40,21 @@ def verdict_html(j: Judged, units=None, explain: bool = True) -> str:
     if v.notes and explain:
         body += f'<br>&nbsp;&nbsp;<i style="color:#555555">({escape(NOTES_MEAN)})</i>'
     return head + body
+
+
+def result_lines(read) -> list:
+    """The first lines of a result on the Live page: its rendered impedance, or, for a result
+    with neither that nor a verdict (a stability probe's boundary), its headline rows as
+    the report's page 1 keeps them (a probe's K_max was in the log alone)."""
+    if read is None or read.rendered is not None or read.verdicts:
+        return rendered_line(read)
+    keep = read.headline
+    return [partial(_row_line, read, label) for label, _v in read.rows
+            if keep is None or label in keep]
+
+
+def _row_line(read, label: str, units=None) -> str:
+    return f"{label}: {dict(read.row_texts(units))[label]}"
 
 
 def rendered_line(read) -> list:
