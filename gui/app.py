@@ -8,7 +8,7 @@ from pathlib import Path
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.gc_policy import GuiThreadCollection
-from labbench.gui.main_window import MainWindow
+from labbench.gui.main_window import FIRST_SIZE, MainWindow
 from labbench.loop.interrupts import handle_signals
 from labbench.gui.screenshot import ShotWhen
 
@@ -61,6 +61,8 @@ def run_app(rig, session_dir, demo: bool = False, screenshot: Path | None = None
         win.show_error(f"internal error: {kind.__name__}: {exc}")
 
     sys.excepthook = hook
+    if screenshot is not None:
+        win.resize(*FIRST_SIZE)  # the same picture on any screen, offscreen too
     win.show()
     result = {"code": 0}
     if demo:

@@ -26,8 +26,8 @@ RUN_PLANT, IDENTIFIED = range(2)
 # protocols whose VE changes as they run (a stability probe steps K or the delay): their
 # record has no one effective impedance, and one ETFE of it (its marks "measured" against
 # the first step's theory) said numbers of no VE
-VE_CHANGES = {"stability": "a stability probe steps its VE as it runs: no effective impedance "
-                           "of one VE to estimate<br>(its boundary shows above once it ends)"}
+VE_CHANGES = {"stability": "a stability probe steps its VE as it runs:<br>no effective "
+                           "impedance of one VE to estimate<br>(its boundary shows above once it ends)"}
 VERDICT_SHARE = 1  # parts of the page's height against the plots' PLOTS_SHARE: the verdicts' room
 PLOTS_SHARE = 3
 

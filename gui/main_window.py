@@ -130,6 +130,9 @@ def _collect_garbage_in_gui_thread() -> None:
         _GC = GarbageCollector(interval=1.0)
 
 
+FIRST_SIZE = (1600, 1000)  # a first window's size where the screen has the room (pictures: always)
+
+
 class MainWindow(QtWidgets.QMainWindow):
     def __init__(self, rig, session_dir, backend: str | None = None, redraw_hz: float = 30.0,
                  estimate_period_s: float = 0.5, realtime: bool = True, settings=None,
@@ -181,7 +184,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.setWindowTitle(f"labbench: {rig.name}")
         # 1600 x 1000, or the screen's room: at 1280 x 800 that size put Start, the log and
         # half the plots off the screen (a remembered geometry still wins, _restore_state)
-        self.resize(QtCore.QSize(1600, 1000).boundedTo(self.screen().availableGeometry().size()))
+        self.resize(QtCore.QSize(*FIRST_SIZE).boundedTo(self.screen().availableGeometry().size()))
         remembered = settings.value("device/backend", "", type=str) if settings else ""
         self.wheel_guard = WheelGuard(self)  # before any widget: no value changes under the wheel
         self._build(backend or remembered or default_backend(rig))

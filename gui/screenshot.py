@@ -101,7 +101,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     import tempfile
 
     from labbench.gui.app import demo_finished, start_demo, tune_interpreter
-    from labbench.gui.main_window import MainWindow
+    from labbench.gui.main_window import FIRST_SIZE, MainWindow
     from labbench.rig import Rig, load_rig
     from labbench.readout.units import SI, DisplayUnits
 
@@ -130,6 +130,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
             raise RuntimeError(f"{protocol} did not finish; log: " + " | ".join(win.log.texts()))
 
     win = MainWindow(Rig(), work / "sessions", realtime=realtime)
+    win.resize(*FIRST_SIZE)  # the pictures' size on any screen (xvfb-run's is 640 x 480)
     win.show()
     settle_and_grab(win, "first-run.png", win.guide.next_step() == "connect")
     run(win, "chirp-id", f0_hz=0.2, duration_s=20.0)  # the plant the ETFE's theory then takes
@@ -193,6 +194,7 @@ def docs_screenshots(out_dir, seconds: float = 30.0, realtime: bool = False) -> 
     rig_file = work / "bench3.toml"
     rig_file.write_text(LYING_RIG)
     win = MainWindow(load_rig(rig_file), work / "bench3-sessions", realtime=realtime)
+    win.resize(*FIRST_SIZE)
     win.show()
     win.tabs.setCurrentWidget(win.commission)
     # the lie named and written, then the rig run again: every check passes
