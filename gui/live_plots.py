@@ -29,7 +29,8 @@ MIN_PLOT_HEIGHT = 90  # three of them, the verdicts and the log fit 1280 x 800
 # +-400 000 N/m) would otherwise set the range and flatten the curve into a line.
 TRUSTED_REL_ERR = 0.25
 RIGHT_OF_LINE, LEFT_OF_LINE = (0, 0.5), (1, 0.5)  # a vertical mark's label anchor: its side
-LABEL_GROUND = pg.mkBrush(255, 255, 255, 220)  # under a mark's label where no curve is
+LABEL_GROUND = pg.mkBrush(255, 255, 255, 220)
+WAITING = "effective impedances: waiting for data"  # under a mark's label where no curve is
 
 COLOURS = {"position": "#1f77b4", "velocity": "#2ca02c", "command": "#d62728",
            "excitation": "#7f7f7f", "measured": "#1f5fa8", "theory": "#d95f02", "band": (31, 95, 168, 60)}
@@ -238,7 +239,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         # the title and the legend above the plots: a legend inside the stiffness plot lay
         # over the w_s* mark's label at 1280 x 800
         head = self.effective.addLayout(row=0, col=0)
-        self.title = head.addLabel("effective impedances: waiting for data", row=0, col=0, size="9pt")
+        self.title = head.addLabel(WAITING, row=0, col=0, size="9pt")
         self.plots, self.curves, self.bands, self.marks = {}, {}, {}, {}
         # two lines: one rotated line was longer than a plot is tall at 1280 x 800 (they overlapped)
         rows = [("ES", "stiffness<br>ES", "N/m"), ("ED", "damping<br>ED", "N s/m"), ("EM", "mass<br>EM", "kg")]
@@ -262,9 +263,10 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         self.legend = pg.LegendItem(colCount=2, labelTextSize="9pt", verSpacing=-6)
         head.addItem(self.legend, row=1, col=0)
         self.legend.addItem(self.curves["ES"], "measured (ETFE), 95 % band")
-        # the labels where the curves are not: right of w_s* (ES is not drawn there), low
-        # beside w_b* (ED starts at B + b, at the top)
-        for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.3)):
+        # the labels where the curves are not (_label_side): right of w_s* (ES is not drawn
+        # there), high right of w_b* (ED falls below half its level there; at 0.3 the
+        # label's last line fell below a 1280 x 800 plot)
+        for key, plot, at in (("ws", "ES", 0.5), ("wb", "ED", 0.6)):
             # the label on a white ground: a curve behind it does not cross its numbers
             line = pg.InfiniteLine(angle=90, pen=pg.mkPen("#444444", width=1),
                                    label="", labelOpts={"position": at, "color": "#222222",
@@ -310,7 +312,8 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         no_si_prefix(p.getAxis("left"))
         no_si_prefix(p.getAxis("bottom"))
 
-    def clear_data(self, title: str = "effective impedances: waiting for data") -> None:
+    def clear_data(self, title: str = WAITING) -> None:
+        """Nothing drawn; ``title`` says why (the legend only while waiting for data)."""
         for c in self.curves.values():
             c.setData([], [])
         for band in self.bands.values():
@@ -318,6 +321,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         for m in self.marks.values():
             m.setVisible(False)
         self._show_theory_in_legend(False)
+        self.legend.setVisible(title == WAITING)
         self.title.setText(title)
         self.last = self._theory_shown = self._bode_shown = None
         self._fresh = True
@@ -335,6 +339,7 @@ class ImpedancePlots(QtWidgets.QTabWidget):
         shown = {"ES": np.where(excited & (est.Z.imag[ok] < 0), est.ES[ok], np.nan),
                  "ED": np.where(excited, est.ED[ok], np.nan),
                  "EM": np.where(excited & (est.Z.imag[ok] > 0), est.EM[ok], np.nan)}
+        self.legend.setVisible(True)
         bands = {}
         for key, y in shown.items():
             self.curves[key].setData(w, y, connect="finite")

@@ -20,7 +20,7 @@ from labbench.model.ve import VE_KINDS
 
 # name or suffix -> (unit, lower limit); the protocol itself enforces the real bounds
 UNITS = {
-    "K": ("N/m", 0.0), "B": ("N s/m", 0.0), "w0": ("rad/s", 1e-3), "T": ("s", 1e-6), "td": ("s", 0.0),
+    "K": ("N/m", 0.0), "K_stop": ("N/m", 0.0), "B": ("N s/m", 0.0), "w0": ("rad/s", 1e-3), "T": ("s", 1e-6), "td": ("s", 0.0),
     "m": ("kg", 1e-6), "b": ("N s/m", 0.0), "plant_b": ("N s/m", 0.0), "_kg": ("kg", 0.0),
     "_s": ("s", 0.0), "_hz": ("Hz", 0.0), "_n": ("N", 0.0), "_m": ("m", 0.0), "_j": ("J", 0.0),
     "_rad_s": ("rad/s", 0.0), "_n_per_s": ("N/s", 0.0), "_m_s": ("m/s", 0.0),

@@ -245,3 +245,17 @@ def test_a_stability_readout_without_friction_says_where_it_stopped():
     rows = dict(wording.of_results("stability", off).row_texts())
     assert rows["measured against friction-aware"] == \
         "-38 %: disagrees (the prediction's range misses the measured interval)"
+
+
+def test_a_stability_boundary_is_written_to_the_measurement_s_digits():
+    """Walkthrough 43C: "measured: 200.0355 N/m (200.0345 to 200.0365)" beside "exact
+    sampled: 200 N/m" and "measured against exact: +2.8e-05 %": the rounded prediction read
+    as 0.018 % off. The predictions are now written to the measurement's decimal place."""
+    res = {"variable": "K", "steps": [], "measured_boundary": 200.0355, "measured_ci95": [200.0345, 200.0365],
+           "exact_boundary": 200.03544, "approx_boundary": 200.0, "rel_error_vs_exact": 2.8e-7}
+    rows = dict(wording.of_results("stability", res).row_texts())
+    assert rows["boundary (K), measured"] == "200.0355 N/m (200.0345 to 200.0365)"
+    assert rows["boundary (K), exact sampled"] == "200.0354 N/m"
+    assert rows["boundary (K), paper's approximation"] == "200 N/m"  # 200.0000: fmt drops the zeros
+    wide = {**res, "measured_ci95": [190.0, 210.0]}  # a wide interval: the usual 4 digits
+    assert dict(wording.of_results("stability", wide).row_texts())["boundary (K), exact sampled"] == "200 N/m"

@@ -58,16 +58,16 @@ def at_place(values, place: int) -> list[str]:
     return [f"{x / 10.0**e:.{max(e - place, 0)}f}e{e:+03d}" for x in xs]
 
 
-def fmt_ci(value, lo=None, hi=None, unit: str = "", scale=None) -> str:
+def fmt_ci(value, lo=None, hi=None, unit: str = "", scale=None, digits: int = 4) -> str:
     """``200.3 N/m (199.1 to 201.5)``: ``value`` and its interval ``lo``-``hi`` to the
     digits the interval supports (two significant digits of its larger half-width);
     ``0.094 kg (exact to the model's precision)`` when the half-width is below ``EXACT_REL``
-    of ``scale`` (default: the value itself); no interval: ``fmt``."""
+    of ``scale`` (default: the value itself); no interval: ``fmt`` to ``digits``."""
     u = f" {unit}" if unit else ""
     if not _finite(value):
         return fmt(value) + (u if value is not None else "")
     if not (_finite(lo) and _finite(hi)):
-        return fmt(value) + u
+        return fmt(value, digits) + u
     half = max(value - lo, hi - value, 0.0)
     ref = abs(scale) if _finite(scale) and scale else max(abs(value), abs(lo), abs(hi))
     if ref == 0 or half <= EXACT_REL * ref:
@@ -75,6 +75,20 @@ def fmt_ci(value, lo=None, hi=None, unit: str = "", scale=None) -> str:
         return f"{fmt(round(float(value), -place), 6)}{u} ({EXACT})"
     v, a, b = at_place((value, lo, hi), math.floor(math.log10(half)) - 1)
     return f"{v}{u} ({a} to {b})"
+
+
+def digits_beside(value, lo, hi, other) -> int:
+    """Significant digits that write ``other`` to the decimal place ``fmt_ci`` writes
+    ``value`` with its interval ``lo``-``hi`` (at least 4): a prediction beside a measurement
+    ("exact sampled: 200 N/m" beside "measured: 200.0355 N/m (200.0345 to 200.0365)" read as
+    0.018 % apart where the two differ by 3e-7)."""
+    if not all(_finite(x) for x in (value, lo, hi, other)) or other == 0:
+        return 4
+    half = max(value - lo, hi - value, 0.0)
+    if half <= EXACT_REL * max(abs(value), abs(lo), abs(hi)):
+        return 4
+    place = math.floor(math.log10(half)) - 1
+    return max(4, math.floor(math.log10(abs(other))) - place + 1)
 
 
 def plain(x: float, digits: int = 3) -> str:

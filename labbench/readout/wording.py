@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labbench.readout.numfmt import band_text, fmt, fmt_ci, frequencies_in, frequency_text
+from labbench.readout.numfmt import band_text, digits_beside, fmt, fmt_ci, frequencies_in, frequency_text
 from labbench.readout.verdict import FAILED, OK, Verdict, from_dict, worst
 
 NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory",
@@ -34,13 +34,14 @@ class Value:
     unit: str = ""
     quantity: str = ""
     scale: float | None = None
+    digits: int = 4  # significant digits without an interval (numfmt.digits_beside)
 
     def text(self, units=None) -> str:
         if self.quantity == "frequency" and units is not None:
             conv = units.frequency_of
             return fmt_ci(conv(self.value), conv(self.lo), conv(self.hi), units.frequency,
-                          None if self.scale is None else conv(self.scale))
-        return fmt_ci(self.value, self.lo, self.hi, self.unit, self.scale)
+                          None if self.scale is None else conv(self.scale), self.digits)
+        return fmt_ci(self.value, self.lo, self.hi, self.unit, self.scale, self.digits)
 
     def as_dict(self) -> dict:
         d = {"value": self.value, "unit": self.unit}
@@ -528,10 +529,12 @@ def _stability(protocol: str, results: dict) -> Readout:
     steps = results.get("steps") if isinstance(results.get("steps"), list) else []
     r.rows.append(("probed variable", f"{var} ({unit}), {len(steps)} steps"))
     lo, hi = _pair(results.get("measured_ci95"))
+    measured = _num(results.get("measured_boundary"))
     for label, key in (("measured", "measured_boundary"), ("exact sampled", "exact_boundary"),
                        ("paper's approximation", "approx_boundary")):
-        r.rows.append((f"boundary ({var}), {label}", Value(
-            _num(results.get(key)), *((lo, hi) if key == "measured_boundary" else ()), unit=unit)))
+        x = _num(results.get(key))
+        r.rows.append((f"boundary ({var}), {label}", Value(x, lo, hi, unit=unit) if key == "measured_boundary"
+                       else Value(x, unit=unit, digits=digits_beside(measured, lo, hi, x))))
     rel = _num(results.get("rel_error_vs_exact"))
     if rel is not None:
         r.rows.append(("measured against exact", f"{100 * rel:+.2g} %"))
