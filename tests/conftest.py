@@ -60,12 +60,20 @@ def avr_toolchain():
 @pytest.fixture(autouse=True)
 def _gui_thread_collection(request):
     """A test with windows collects Python's garbage as the application does: in the GUI
-    thread only (labbench.gui.gc_policy); automatic collection comes back after it."""
+    thread only (labbench.gui.gc_policy); automatic collection comes back after it. Its
+    screen has a desktop's room."""
     if "qtbot" not in request.fixturenames:
         yield
         return
     request.getfixturevalue("qapp")
+    from PySide6 import QtCore, QtGui
+
     from labbench.gui.gc_policy import GuiThreadCollection
+
+    # a desktop's screen: a first window is bounded by the screen's room (MainWindow), and
+    # offscreen's screen is 800 x 800; a test of a smaller screen patches it again
+    request.getfixturevalue("monkeypatch").setattr(
+        QtGui.QScreen, "availableGeometry", lambda self: QtCore.QRect(0, 0, 1920, 1080))
 
     collection = GuiThreadCollection()
     yield
