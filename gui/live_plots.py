@@ -206,11 +206,14 @@ def no_si_prefix(axis) -> None:
 
 class DecadeAxis(pg.AxisItem):
     """Log axis labelled at decades only (pyqtgraph labels minor ticks too when a
-    plot spans less than about two decades, and they overlap)."""
+    plot spans less than about two decades, and they overlap), written alike: 0.1, 1, 10,
+    100 (pyqtgraph wrote 0.1, 1, 10\u00b9, 10\u00b2 on one axis); beyond 1e-3..1e5 its own."""
 
     def logTickStrings(self, values, scale, spacing):
         strings = super().logTickStrings(values, scale, spacing)
-        return [s if abs(v - round(v)) < 1e-6 else "" for v, s in zip(values, strings)]
+        return [("" if abs(v - round(v)) >= 1e-6 else
+                 f"{10.0 ** round(v) * scale:g}" if -3 <= round(v) <= 5 else s)
+                for v, s in zip(values, strings)]
 
 
 def _log_plot(layout, row, logy=False):

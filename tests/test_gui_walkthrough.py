@@ -118,3 +118,12 @@ def test_an_exported_path_does_not_widen_the_window(qtbot, window):
     QtWidgets.QApplication.processEvents()
     assert win.width() <= 1280 and win.minimumSizeHint().width() <= 1280, win.width()
     assert ".csv" in win.sessions.progress_line.toolTip()
+
+
+def test_a_log_axis_writes_its_decades_alike(qtbot):
+    """After a switch to Hz the impedance axes read '0.1, 1, 10\u00b9, 10\u00b2' (pyqtgraph's
+    notation changes at 10); now one notation per axis."""
+    from labbench.gui.live_plots import DecadeAxis
+
+    axis = DecadeAxis("bottom")
+    assert axis.logTickStrings([-1.0, -0.5, 0.0, 1.0, 2.0, 3.0], 1.0, 1.0) == ["0.1", "", "1", "10", "100", "1000"]
