@@ -24,7 +24,13 @@ UNITS = {
     "m": ("kg", 1e-6), "b": ("N s/m", 0.0), "plant_b": ("N s/m", 0.0), "_kg": ("kg", 0.0),
     "_s": ("s", 0.0), "_hz": ("Hz", 0.0), "_n": ("N", 0.0), "_m": ("m", 0.0), "_j": ("J", 0.0),
     "_rad_s": ("rad/s", 0.0), "_n_per_s": ("N/s", 0.0), "_m_s": ("m/s", 0.0),
+    "plant_coulomb_ci95": ("N", 0.0),
 }
+# fields whose name does not read as words (an interval of two numbers)
+WORDS = {"plant_coulomb_n": "plant Coulomb friction",
+         "plant_coulomb_ci95": "plant Coulomb friction 95 % interval lo, hi"}
+# optional fields that hold two numbers (lo, hi), not one
+PAIRS = frozenset({"plant_coulomb_ci95"})
 def choices() -> dict[str, list[str]]:
     """Text fields with a fixed set of values: shown as drop-down lists."""
     from labbench.protocols.excitation import SWEEPS
@@ -45,11 +51,11 @@ def choices() -> dict[str, list[str]]:
 def _unit(name: str):
     """(unit, lower limit, readable label) of a config field."""
     if name in UNITS:
-        return (*UNITS[name], name.replace("_", " "))
+        return (*UNITS[name], WORDS.get(name, name.replace("_", " ")))
     for suffix in sorted((k for k in UNITS if k.startswith("_")), key=len, reverse=True):
         if name.endswith(suffix):
-            return (*UNITS[suffix], name[: -len(suffix)].replace("_", " "))
-    return ("", None, name.replace("_", " "))
+            return (*UNITS[suffix], WORDS.get(name, name[: -len(suffix)].replace("_", " ")))
+    return ("", None, WORDS.get(name, name.replace("_", " ")))
 
 
 class Field:
@@ -119,6 +125,11 @@ class Field:
             return [self._number(v.strip()) for v in text.split(",") if v.strip()]
         if self.kind == "optional" and not text:
             return None
+        if self.name in PAIRS:
+            pair = [self._number(v.strip()) for v in text.split(",")]
+            if len(pair) != 2:
+                raise UserError(f"{self.name}: {text!r} is not two numbers lo, hi")
+            return pair
         return self._number(text)
 
     def set(self, value) -> None:
@@ -141,6 +152,9 @@ class Field:
             self.widget.setText(", ".join(_number_text(v) for v in value))
         elif value is None and self.kind == "optional":
             self.widget.setText("")
+        elif self.name in PAIRS and isinstance(value, (list, tuple)) and len(value) == 2 \
+                and all(_is_number(v) for v in value):
+            self.widget.setText(", ".join(_number_text(v) for v in value))
         elif not _is_number(value):
             raise TypeError(f"{self.name}: {value!r} is not a number")
         else:

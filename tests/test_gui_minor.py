@@ -1,0 +1,53 @@
+"""Issue 43, the minor defects a stranger's walkthrough left (43E): each clicked through or
+drawn offscreen as a person meets it, asserting what the screen then shows. Each test failed
+before its fix."""
+import os
+
+os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
+
+import pytest  # noqa: E402
+from PySide6 import QtWidgets  # noqa: E402
+
+from labbench.gui.main_window import MainWindow  # noqa: E402
+from labbench.rig import Rig  # noqa: E402
+
+
+@pytest.fixture
+def window(qtbot, tmp_path):
+    def make(size=(1280, 800)):
+        win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
+        qtbot.addWidget(win)
+        if size:
+            win.resize(*size)
+        win.show()
+        qtbot.waitExposed(win)
+        return win
+
+    return make
+
+
+def form_label(panel, name: str) -> str:
+    layout = panel.form.layout()
+    return layout.labelForField(panel.form.fields[name].widget).text()
+
+
+def test_the_coulomb_interval_field_reads_as_words_and_takes_its_two_numbers(qtbot, window):
+    """The ETFE form showed the raw name "plant coulomb ci95 (opt.)" and took one number only,
+    so the interval it asks for could not be typed. Now it reads as words with its unit and
+    takes "lo, hi", which the protocol accepts."""
+    from labbench.registry import make_protocol
+
+    panel = window().protocol_panel
+    panel.choice.setCurrentText("etfe")
+    label = form_label(panel, "plant_coulomb_ci95")
+    assert "ci95" not in label and "95 % interval" in label and "[N]" in label, label
+    assert "[N]" in form_label(panel, "plant_coulomb_n")
+    fields = panel.form.fields
+    fields["plant_coulomb_n"].widget.setText("0.02")
+    fields["plant_coulomb_ci95"].widget.setText("0.019, 0.021")
+    values = panel.form.values()
+    assert values["plant_coulomb_ci95"] == [0.019, 0.021]
+    cfg = make_protocol("etfe", **values).config
+    assert tuple(cfg.plant_coulomb_ci95) == (0.019, 0.021)
+    fields["plant_coulomb_ci95"].widget.setText("0.019")  # one number is not an interval
+    assert "#b00020" in fields["plant_coulomb_ci95"].widget.styleSheet()
