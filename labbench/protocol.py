@@ -229,6 +229,8 @@ class Segment:
     # A safety trip ends the run unless the protocol expects trips (the stability probe).
     trip_expected: bool = False
     role: str = "probe"  # "probe": measured data; "home": repositioning between steps
+    # what the progress line says of it (the label, recorded in full, when empty)
+    shown: str = ""
 
 
 @dataclass

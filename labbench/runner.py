@@ -243,7 +243,7 @@ def _segments(device, protocol, rig, plant, check, delay, friction, safety, watc
         while True:
             first = run_state.n_samples
 
-            def on_progress(n_done, n_total, _first=first, _label=segment.label):
+            def on_progress(n_done, n_total, _first=first, _label=segment.shown or segment.label):
                 if progress is not None:
                     progress(min((_first + n_done) / total, 1.0), _label)
 

@@ -67,6 +67,7 @@ from labbench.rig import Rig
 from labbench.loop.safety import CLAMP, FADE, GATED, RATE, TRIPPED
 from labbench.model.ve import Plant, VirtualEnvironment
 from labbench.protocols import excitation
+from labbench.readout.numfmt import fmt
 from labbench.protocol import (
     Config,
     ProtocolBase,
@@ -427,7 +428,7 @@ class StabilityProbe(ProtocolBase):
             n = self.step_samples(ve, plant)
             if c.variable == "K" and len(bracket) >= 2:
                 n = self._growth_capped(n, _line_at(bracket[-2], bracket[-1], ve.K))
-            sigma, unstable = yield from self._step(plant, ve, label, n)
+            sigma, unstable = yield from self._step(plant, ve, label, n, _shown(ve, c.variable))
             if unstable is None:  # never rendered: a stiffer step would not be either
                 return
             bracket.append({"K": ve.K, "sigma_per_s": sigma, "unstable": unstable})
@@ -443,7 +444,8 @@ class StabilityProbe(ProtocolBase):
         for K in refine_points(crossing, c.refine, c.refine_span):
             K = min(K, top)
             n = self._growth_capped(round(c.refine_s / c.sample_time_s), _line_at(below, above, K))
-            yield from self._step(plant, c.make_ve(K=K), f"{REFINE}K={K:.6g}", n)
+            ve = c.make_ve(K=K)
+            yield from self._step(plant, ve, f"{REFINE}K={K:.6g}", n, REFINE + _shown(ve, "K"))
 
     def _growth_capped(self, n: int, sigma: float | None) -> int:
         """``n`` samples, or fewer for a step expected to grow (``sigma`` > 0, from the steps
@@ -457,12 +459,13 @@ class StabilityProbe(ProtocolBase):
         return max(min(n, round(math.log(GROWTH) / sigma / c.sample_time_s)),
                    round(c.min_step_s / c.sample_time_s))
 
-    def _step(self, plant: Plant, ve: VirtualEnvironment, label: str, n: int):
+    def _step(self, plant: Plant, ve: VirtualEnvironment, label: str, n: int, shown: str = ""):
         """Home, then one probe step; returns (sigma, unstable), unstable None for a step
-        the enable gate kept shut (``rendered``)."""
+        the enable gate kept shut (``rendered``). ``label`` is recorded (6 digits, so the
+        refining steps 2 % apart stay apart); ``shown`` is the progress line's."""
         yield from self._home(plant, ve)
         out = yield Segment(label, ve, self.pulse(n, self.pulse_n(ve, plant)),
-                            trip_expected=True)
+                            trip_expected=True, shown=shown)
         self._last = out.data
         if not rendered(out.data):
             return None, None
@@ -661,6 +664,12 @@ class StabilityProbe(ProtocolBase):
 
 
 REFINE = "refine "  # label prefix of the refining steps
+
+
+def _shown(ve: VirtualEnvironment, variable: str) -> str:
+    """A step as the progress line says it: 4 digits and the unit (the default refining
+    steps lie 4 % apart; the label recorded in the session keeps 6)."""
+    return f"K = {fmt(ve.K, 4)} N/m" if variable == "K" else f"td = {fmt(ve.td * 1e3, 4)} ms"
 
 
 def _friction(plant: Plant, ve: VirtualEnvironment, fc: float, latency: float, steps: list[dict],

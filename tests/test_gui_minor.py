@@ -51,3 +51,28 @@ def test_the_coulomb_interval_field_reads_as_words_and_takes_its_two_numbers(qtb
     assert tuple(cfg.plant_coulomb_ci95) == (0.019, 0.021)
     fields["plant_coulomb_ci95"].widget.setText("0.019")  # one number is not an interval
     assert "#b00020" in fields["plant_coulomb_ci95"].widget.styleSheet()
+
+
+def test_a_stability_probe_s_progress_line_says_k_to_four_digits(qtbot, window):
+    """The probe's progress line read "K=51.8748: 40 %" (its step's name, recorded in the
+    session to six digits). Now the line says "K = 51.87 N/m" while the session keeps the
+    six-digit step names that its readers match."""
+    import re
+
+    from labbench.sessions.session_content import load_session
+    from test_gui_holds import run_protocol
+
+    win = window()
+    shown = []
+    set_progress = win.protocol_panel.set_progress
+    win.protocol_panel.set_progress = lambda frac, text="": (shown.append(text),
+                                                             set_progress(frac, text))
+    path = run_protocol(qtbot, win, "stability")
+    steps = [t for t in shown if "K" in t]
+    assert steps, shown
+    for text in steps:
+        found = re.search(r"K = ([0-9.]+) N/m", text)
+        assert found and len(found.group(1).replace(".", "").lstrip("0")) <= 4, text
+    segments = [e for e in load_session(path)[3] if e.get("name") == "segment"]
+    probed = [(e["reason"], e["ve"]["K"]) for e in segments if e.get("role") == "probe"]
+    assert probed and all(label.endswith(f"K={K:.6g}") for label, K in probed), probed
