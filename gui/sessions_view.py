@@ -44,13 +44,30 @@ def cells(s) -> tuple[str, ...]:
     date = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s.time)) if s.time else "?"
     ve = s.ve or ("none" if s.protocol else "")  # a run's start names no VE: it rendered none
     k = fmt(s.K) if s.K is not None else ""
+    verdict = s.verdict or ""
     if k and s.protocol == "stability":  # a probe's VE is where it starts, not its K_max
-        k = f"from {k}"
+        k, verdict = _probe(k, s.boundary, verdict)
     return (date, s.protocol or "?", s.device or "?", ve, k,
             fmt(s.B) if s.B is not None else "",
             f"{s.duration_s:.1f}" if s.duration_s is not None else "",
             s.status + (f", {s.overruns} overrun{'s' if s.overruns > 1 else ''}" if s.overruns else ""),
-            s.verdict or "", str(s.n_samples), s.rig_name or "?", Path(s.path).name)
+            verdict, str(s.n_samples), s.rig_name or "?", Path(s.path).name)
+
+
+def _probe(k: str, boundary, verdict: str) -> tuple[str, str]:
+    """A stability probe's K and verdict cells: its measured boundary (K_max, in the K column;
+    td_max beside the agreement) and the agreement as its readout words it (the parenthesis
+    of the friction-aware one, why it agrees, is left to the readout)."""
+    if boundary is None:
+        return f"from {k}", verdict or "no boundary measured"
+    var, measured, against = boundary
+    said = ""
+    if against is not None:
+        label, text = against
+        said = f"{label.removeprefix('measured ')}: {text.split(' (')[0]}"
+    if var == "K":
+        return f"K_max {measured.split(' ')[0]} (from {k})", verdict or said
+    return k, verdict or f"td_max {measured.split(' (')[0]}" + (f"; {said}" if said else "")
 
 
 class SessionsView(QtWidgets.QWidget):

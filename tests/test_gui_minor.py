@@ -6,7 +6,7 @@ import os
 os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 
 import pytest  # noqa: E402
-from PySide6 import QtWidgets  # noqa: E402
+from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from labbench.gui.main_window import MainWindow  # noqa: E402
 from labbench.rig import Rig  # noqa: E402
@@ -76,3 +76,26 @@ def test_a_stability_probe_s_progress_line_says_k_to_four_digits(qtbot, window):
     segments = [e for e in load_session(path)[3] if e.get("name") == "segment"]
     probed = [(e["reason"], e["ve"]["K"]) for e in segments if e.get("role") == "probe"]
     assert probed and all(label.endswith(f"K={K:.6g}") for label, K in probed), probed
+
+
+def test_the_sessions_table_shows_a_probe_s_boundary_and_its_agreement(qtbot, window):
+    """The Sessions table left a stability probe's verdict column empty and its K column said
+    only where it started ("from 20"). Now the K column holds the measured K_max and the
+    verdict column its agreement, as the readout words them."""
+    from labbench.gui.sessions_view import COLUMNS
+    from labbench.readout.wording import of_results
+    from test_gui_holds import run_protocol
+
+    win = window()
+    path = run_protocol(qtbot, win, "stability")
+    win.tabs.setCurrentWidget(win.sessions)
+    win.refresh_sessions()
+    name = path.rsplit("/", 1)[-1]
+    qtbot.waitUntil(lambda: bool(win.sessions.table.findItems(name, QtCore.Qt.MatchFlag.MatchExactly)),
+                    timeout=10_000)
+    r = win.sessions.table.findItems(name, QtCore.Qt.MatchFlag.MatchExactly)[0].row()
+    row = {c: win.sessions.table.item(r, j).text() for j, c in enumerate(COLUMNS)}
+    rows = dict(of_results("stability", win.last_run.results).row_texts())
+    measured = rows["boundary (K), measured"].split(" ")[0]  # '200.0355 N/m (...)'
+    assert row["K [N/m]"] == f"K_max {measured} (from 20)", row
+    assert row["verdict"] == f"against exact: {rows['measured against exact']}", row

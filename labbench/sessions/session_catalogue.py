@@ -29,6 +29,10 @@ class SessionSummary:
     verdict: str | None = None
     overruns: int = 0  # loop periods over 1.5 T of a paced run (its stop record's timing)
     device: str | None = None  # the backend it ran on ("sim", "avr-sim", "canopen (simulated)")
+    # a stability probe's result as its readout words it: the variable, the measured boundary
+    # ("200.0355 N/m (200.0345 to 200.0365)") and its agreement ("measured against exact",
+    # "+0.0063 %"; the friction-aware one where it was judged); None: no boundary
+    boundary: tuple[str, str, tuple[str, str] | None] | None = None
 
 
 class _HeaderCollector(records.StreamCollector):
@@ -74,7 +78,26 @@ def summarize(path) -> SessionSummary:
         verdict=worst_level((stop or {}).get("results")),
         overruns=_overruns(stop),
         device=_device(start.get("device")),
+        boundary=_boundary(records.protocol_name(start) if start else None,
+                           (stop or {}).get("results")),
     )
+
+
+def _boundary(protocol, results):
+    """A stability probe's measured boundary and agreement as its readout words them
+    (``labbench.readout.wording``; the friction-aware agreement before the exact one)."""
+    from labbench.readout.wording import of_results
+
+    if not isinstance(results, dict) or not isinstance(results.get("measured_boundary"), (int, float)):
+        return None
+    rows = dict(of_results(protocol or "", results).row_texts())
+    var = results.get("variable")
+    measured = rows.get(f"boundary ({var}), measured")
+    if measured is None or var not in ("K", "td"):
+        return None
+    label = next((k for k in ("measured against friction-aware", "measured against exact")
+                  if k in rows), None)
+    return var, measured, (label, rows[label]) if label else None
 
 
 def _device(d) -> str | None:
