@@ -30,6 +30,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from labbench.gui.keep_alive import keep_plots
+from labbench.gui.labels import never_widens, set_text
 from labbench.gui.live_plots import no_si_prefix
 from labbench.gui.sweep_runner import SweepRun
 from labbench.gui.worker import Mailbox, describe_error, run_in_background
@@ -91,10 +92,11 @@ def colours(values: list) -> tuple[list, str]:
     return [table[fmt(v)] for v in values], legend
 
 
-def column_label(name: str) -> str:
+def column_label(name: str, variable: str | None = None) -> str:
     """A table column as a person reads it, with its unit: ``res.loop_fit.ci95.m.0`` ->
     "loop fit: m, 95 % low [kg]", ``truth.k_max`` -> "truth: K_max [N/m]",
-    ``K_frac_k_max`` -> "K / K_max"."""
+    ``K_frac_k_max`` -> "K / K_max"; a stability probe's boundary in the unit of the
+    ``variable`` it probed (its rows' ``res.variable``: K in N/m, td in s)."""
     from labbench.gui.protocol_panel import _unit
 
     parts = name.split(".")
@@ -112,6 +114,8 @@ def column_label(name: str) -> str:
     key = parts[-1] if parts else name
     group = " ".join(p.replace("_", " ") for p in parts[:-1])
     unit, word = COLUMN_UNITS.get(key, (None, None))
+    if key in BOUNDARY_COLUMNS:
+        unit, word = BOUNDARY_UNITS.get(variable, ""), key.replace("_", " ")
     if unit is None:
         unit, _low, word = _unit(key)
     if end.endswith("(count)"):
@@ -120,6 +124,10 @@ def column_label(name: str) -> str:
     return f"{text} [{unit}]" if unit else text
 
 
+# a stability probe's results in the unit of its probed variable (res.variable)
+BOUNDARY_COLUMNS = ("measured_boundary", "measured_crossing", "exact_boundary",
+                    "approx_boundary", "measured_ci95", "bracket")
+BOUNDARY_UNITS = {"K": "N/m", "td": "s"}
 # result keys whose unit the name's suffix does not say: key -> (unit, words)
 COLUMN_UNITS = {
     "m": ("kg", "m"), "b": ("N s/m", "b"), "K": ("N/m", "K"), "B": ("N s/m", "B"),
@@ -192,7 +200,7 @@ class SweepView(QtWidgets.QWidget):
         self.progress = QtWidgets.QProgressBar()
         self.progress.setRange(0, 1000)
         self.progress.setTextVisible(False)
-        self.progress_text = QtWidgets.QLabel("")
+        self.progress_text = never_widens(QtWidgets.QLabel(""), 2)
         self.x, self.y, self.color = (QtWidgets.QComboBox() for _ in range(3))
         self.log_x, self.log_y = QtWidgets.QCheckBox("log"), QtWidgets.QCheckBox("log")
         self._picked = False  # the person chose the axes: a reload keeps them
@@ -238,7 +246,6 @@ class SweepView(QtWidgets.QWidget):
         for w in (self.workers, self.limit, self.run_button, self.cancel_button):
             running.addWidget(w)
         running.addWidget(self.progress, 1)
-        running.addWidget(self.progress_text, 2)
         axes = QtWidgets.QHBoxLayout()
         for text, combo, log in (("x", self.x, self.log_x), ("y", self.y, self.log_y),
                                  ("colour", self.color, None)):
@@ -266,6 +273,7 @@ class SweepView(QtWidgets.QWidget):
         outer = QtWidgets.QVBoxLayout(self)
         outer.addLayout(top)
         outer.addLayout(running)
+        outer.addWidget(self.progress_text)
         outer.addWidget(body, 1)
         outer.addWidget(self.note)
         self._sync_buttons()
@@ -334,7 +342,7 @@ class SweepView(QtWidgets.QWidget):
 
     def _show_progress(self, done: int, total: int, text: str = "") -> None:
         self.progress.setValue(int(1000 * done / total) if total else 0)
-        self.progress_text.setText(f"{done} of {total} points" + (f", {text}" if text else ""))
+        set_text(self.progress_text, f"{done} of {total} points" + (f", {text}" if text else ""))
 
     def _on_run_progress(self, p: dict) -> None:
         eta = p.get("eta_s")
@@ -428,11 +436,16 @@ class SweepView(QtWidgets.QWidget):
             combo.blockSignals(True)
             combo.clear()
             for item in items:
-                combo.addItem(column_label(item) if item != NONE else NONE, item)
+                combo.addItem(column_label(item, self._variable()) if item != NONE else NONE, item)
             index = combo.findData(pick)
             combo.setCurrentIndex(index if index >= 0 else 0)
             combo.blockSignals(False)
         self._axes_changed()
+
+    def _variable(self) -> str | None:
+        """The variable a stability sweep's probes stepped, where all its rows say one."""
+        found = {v for v in self.cols.get("res.variable", []) if v is not None}
+        return found.pop() if len(found) == 1 else None
 
     def _default_axes(self, names: list[str]) -> tuple[str, str, str]:
         """The spec's first chart with numeric x and y (a lines chart's first y; a failure
@@ -505,8 +518,8 @@ class SweepView(QtWidgets.QWidget):
         self.plot.getPlotItem().setLogMode(*logs)
         self.points.setData(x=px, y=py, data=rows, brush=brushes, symbol=symbols,
                             pen=pg.mkPen(None))
-        self.plot.setLabel("bottom", column_label(xname))
-        self.plot.setLabel("left", column_label(yname))
+        self.plot.setLabel("bottom", column_label(xname, self._variable()))
+        self.plot.setLabel("left", column_label(yname, self._variable()))
         self.plot.getPlotItem().enableAutoRange()
         hidden = len(x) - len(rows)
         self.legend.setText(legend + (f"; {hidden} rows without a value to plot" if hidden else ""))

@@ -99,3 +99,41 @@ def test_the_sessions_table_shows_a_probe_s_boundary_and_its_agreement(qtbot, wi
     measured = rows["boundary (K), measured"].split(" ")[0]  # '200.0355 N/m (...)'
     assert row["K [N/m]"] == f"K_max {measured} (from 20)", row
     assert row["verdict"] == f"against exact: {rows['measured against exact']}", row
+
+
+def test_the_sweeps_page_gives_the_boundary_its_unit_and_its_status_line_room(qtbot, window, tmp_path):
+    """On the Sweeps page a stability map's y axis read "measured boundary" with no unit, and
+    the status line beside the progress bar was cut ("stopped: the 4 points asked f"). Now
+    the axis says N/m (s for a td probe) and the line has a row of its own, whole."""
+    from PySide6 import QtGui
+
+    from labbench.gui.sweep_runner import limit_reached
+    from labbench.sweep import table as tables
+
+    folder = tmp_path / "map.sweep"
+    folder.mkdir()
+    writer = tables.TableWriter(folder)
+    for i, (td, k) in enumerate(((0.0, 200.04), (0.001, 124.7), (0.002, 90.1))):
+        writer.append({"key": f"k{i}", "index": i, "status": "ok", "td_s": td,
+                       "res.variable": "K", "res.measured_boundary": k})
+    writer.close()
+    win = window()  # 1280 x 800
+    view = win.sweeps
+    win.tabs.setCurrentWidget(view)
+    assert view.open_table(folder)
+    view.x.setCurrentIndex(view.x.findData("td_s"))
+    view.y.setCurrentIndex(view.y.findData("res.measured_boundary"))
+    left = view.plot.getPlotItem().getAxis("left").labelText
+    assert left == "measured boundary [N/m]", left
+    assert view.y.currentText() == "measured boundary [N/m]"
+
+    text = f"4 of 36 points, 0 not ok, stopped: {limit_reached(4)}"
+    view._show_progress(4, 36, text.split(", ", 1)[1])
+    QtWidgets.QApplication.processEvents()
+    label = view.progress_text
+    room = label.contentsRect()
+    need = QtGui.QFontMetrics(label.font()).boundingRect(
+        QtCore.QRect(0, 0, room.width(), 10_000), QtCore.Qt.TextFlag.TextWordWrap, label.text())
+    assert label.text() == text and need.height() <= room.height() and need.width() <= room.width(), \
+        (need, room)
+    assert win.width() <= 1280 and label.mapTo(win, QtCore.QPoint(room.right(), 0)).x() < win.width()
