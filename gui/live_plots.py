@@ -116,14 +116,19 @@ class TimeTraces(pg.GraphicsLayoutWidget):
         self.setMinimumHeight(len(rows) * MIN_PLOT_HEIGHT)
         self._span = None
         self._fresh = True  # no data drawn since the last clear: the next set the ranges
-        legend = self.plots["force"].addLegend(offset=(-10, 5), brush=pg.mkBrush(255, 255, 255, 200))
+        # the force traces' legend on a row of its own under their plot, in one line: inside
+        # the plot its box covered the traces' newest end
+        self.legend = pg.LegendItem(colCount=2, labelTextSize="9pt")
+        self.addItem(self.legend, row=len(rows), col=0)
+        self.legend.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred,
+                                  QtWidgets.QSizePolicy.Policy.Fixed)
         self.curves = {}
         for name, key in (("position", "position"), ("velocity", "velocity"),
                           ("excitation", "force"), ("command", "force")):
             self.curves[name] = PathCurve(_pen(name))
             self.plots[key].addItem(self.curves[name])
         for name in ("excitation", "command"):
-            legend.addItem(self.curves[name], name)
+            self.legend.addItem(self.curves[name], name)
         _cheap_repaint(self)
         keep_plots(self)
         self.frames = 0

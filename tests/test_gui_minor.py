@@ -137,3 +137,24 @@ def test_the_sweeps_page_gives_the_boundary_its_unit_and_its_status_line_room(qt
     assert label.text() == text and need.height() <= room.height() and need.width() <= room.width(), \
         (need, room)
     assert win.width() <= 1280 and label.mapTo(win, QtCore.QPoint(room.right(), 0)).x() < win.width()
+
+
+def test_the_force_legend_leaves_the_traces_whole(qtbot, window):
+    """The force plot's legend box (excitation, command) lay over the traces' right end, the
+    newest samples. Now it sits outside the plot's data area, both names still shown."""
+    from test_gui_holds import run_protocol
+
+    win = window()
+    run_protocol(qtbot, win, "etfe", duration_s=1.0, seed=1)
+    traces = win.live.traces
+    QtWidgets.QApplication.processEvents()
+    import pyqtgraph as pg
+
+    legend, = [item for item in traces.scene().items() if isinstance(item, pg.LegendItem)]
+    box = legend.mapRectToScene(legend.boundingRect())
+    data = traces.plots["force"].getViewBox()
+    area = data.mapRectToScene(data.boundingRect())
+    assert legend.isVisible() and box.width() > 0 and not box.intersects(area), (box, area)
+    names = [label.text for _sample, label in legend.items]
+    assert names == ["excitation", "command"]
+    assert box.bottom() <= traces.sceneRect().bottom() + 1  # inside the widget, not cut
