@@ -24,6 +24,7 @@ from labbench.gui.live_plots import COLOURS, DecadeAxis
 from labbench.model import linear
 from labbench.model.noise import STICK_SHARE_MAX
 from labbench.readout.numfmt import fmt
+from labbench.readout.units import SI
 from labbench.rig import Rig
 
 # slider name -> (label, unit, values, default)
@@ -49,6 +50,7 @@ class DesignView(QtWidgets.QWidget):
     def __init__(self, device: Device | None = None, settings=None, parent=None):
         super().__init__(parent)
         self.settings = settings
+        self.units = SI  # display units (set_units): the frequencies shown; the model stays SI
         self.designer = Designer(device or device_for(Rig(), simulated=False))
         self.point = None
         self.sliders: dict[str, QtWidgets.QSlider] = {}
@@ -97,7 +99,6 @@ class DesignView(QtWidgets.QWidget):
         }
         self.ed_plot = self.plots.addPlot(row=1, col=0, axisItems={"bottom": DecadeAxis("bottom")})
         self.ed_plot.setLogMode(True, False)
-        self.ed_plot.setLabel("bottom", "frequency (rad/s)")
         self.ed_plot.setLabel("left", "ED (N s/m)")
         self.ed_plot.addLegend(offset=(-10, 10))
         self.curves["ed_sampled"] = self.ed_plot.plot(
@@ -128,6 +129,16 @@ class DesignView(QtWidgets.QWidget):
         layout.addWidget(panel)
         layout.addWidget(self.plots, 1)
         self._restore()
+        self.set_units(SI)
+
+    def set_units(self, units) -> None:
+        """Display units (``labbench.readout.units.DisplayUnits``) of the frequencies: w0, w_s*,
+        w_b* and the ED plot's axis (the noise spectra are per Hz, in Hz, whatever is chosen)."""
+        self.units = units
+        self.numbers.units = units
+        freq = "f" if units.frequency == "Hz" else "w"
+        self.ed_plot.setLabel("bottom", f"frequency {freq} ({units.frequency})")
+        self.sliders["w0"].setToolTip(f"{SLIDERS['w0'][0]} ({units.frequency})")
         self.redraw()
 
     # ----- inputs ---------------------------------------------------------------------------
@@ -177,6 +188,9 @@ class DesignView(QtWidgets.QWidget):
         K, B, w0, T = (self.value(n) for n in ("K", "B", "w0", "T"))
         for name in SLIDERS:
             v = self.value(name)
+            if name == "w0":
+                self.values[name].setText(f"{fmt(self.units.frequency_of(v), 4)} {self.units.frequency}")
+                continue
             self.values[name].setText(f"{fmt(v * 1e3 if name == 'T' else v, 4)} {SLIDERS[name][1]}")
         d = self.designer.device
         self.device_line.setText(
@@ -204,15 +218,16 @@ class DesignView(QtWidgets.QWidget):
                 self.curves[name].setData([], [])
         ve = self.designer.ve(K, B, w0, T)
         w = np.geomspace(0.1, W_MAX_NYQUIST * math.pi / T, N_CURVE)
-        self.curves["ed_sampled"].setData(w, linear.z_sampled(d.plant, ve, w, d.latency).real)
-        self.curves["ed_paper"].setData(w, linear.z_paper(d.plant, ve, w, d.latency).real)
+        fx = self.units.frequency_of(1.0)  # the axis in the display unit; the model in rad/s
+        self.curves["ed_sampled"].setData(fx * w, linear.z_sampled(d.plant, ve, w, d.latency).real)
+        self.curves["ed_paper"].setData(fx * w, linear.z_paper(d.plant, ve, w, d.latency).real)
         target = d.plant.b + B
         self.target_line.setValue(target)
         self.ed_plot.setYRange(-0.5 * target, 1.5 * target, padding=0)
-        self.ed_plot.setXRange(math.log10(w[0]), math.log10(w[-1]), padding=0)
+        self.ed_plot.setXRange(math.log10(fx * w[0]), math.log10(fx * w[-1]), padding=0)
         self.wb_line.setVisible(p.wb_star is not None)
         if p.wb_star is not None:
-            self.wb_line.setValue(math.log10(p.wb_star))
+            self.wb_line.setValue(math.log10(fx * p.wb_star))
         self._remember()
         self.redrawn.emit()
 
@@ -244,6 +259,7 @@ class Numbers(QtWidgets.QWidget):
 
     def __init__(self, parent=None):
         super().__init__(parent)
+        self.units = SI  # of w_s* and w_b* (DesignView.set_units)
         grid = QtWidgets.QGridLayout(self)
         grid.setContentsMargins(0, 0, 0, 0)
         grid.setVerticalSpacing(2)
@@ -291,13 +307,16 @@ class Numbers(QtWidgets.QWidget):
                 ("k_passive", f"{fmt(p.k_passive)} N/m"),
                 ("k_quantised", f"{fmt(p.k_quantised)} N/m"),
                 ("k_friction", f"{fmt(p.k_friction)} N/m"),
-                ("ws_star", f"{fmt(p.ws_star)} rad/s"), ("wb_star", f"{fmt(p.wb_star)} rad/s"),
+                ("ws_star", self._frequency(p.ws_star)), ("wb_star", self._frequency(p.wb_star)),
                 ("rendered_B", f"{fmt(p.rendered_B)} N s/m"),
                 ("ed_error_sampled", _pct(p.ed_error_sampled)),
                 ("ed_error_paper", _pct(p.ed_error_paper)),
                 ("noise_command", _mn(p.noise_command)), ("noise_felt", _mn(p.noise_felt)),
                 ("noise_friction", _mn(p.noise_friction))):
             self.cells[key].setText(text)
+
+    def _frequency(self, w) -> str:
+        return "-" if w is None else f"{fmt(self.units.frequency_of(w))} {self.units.frequency}"
 
     def text(self) -> str:
         """Everything shown, as one text (tests read it)."""

@@ -704,6 +704,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """Display units (``labbench.readout.units.DisplayUnits``) of every plot and label at once."""
         self.live.set_units(units)
         self.id_view.set_units(units)
+        self.design.set_units(units)
 
     @guarded
     def stop_run(self):

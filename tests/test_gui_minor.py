@@ -158,3 +158,30 @@ def test_the_force_legend_leaves_the_traces_whole(qtbot, window):
     names = [label.text for _sample, label in legend.items]
     assert names == ["excitation", "command"]
     assert box.bottom() <= traces.sceneRect().bottom() + 1  # inside the widget, not cut
+
+
+def test_the_design_page_follows_the_display_units(qtbot, window):
+    """Under Hz the Design page still wrote w0, w_s* and w_b* in rad/s and drew the ED plot
+    over rad/s (each number with its unit, but not the unit chosen). Now all four follow the
+    units chosen in the window's corner, to the same values."""
+    import math
+
+    win = window()
+    design = win.design
+    win.tabs.setCurrentWidget(design)
+    p = design.point
+    ws, wb, w0 = p.ws_star, p.wb_star, design.value("w0")
+    assert design.values["w0"].text().endswith("rad/s")
+    win.units_choice.combos["frequency"].setCurrentText("Hz")  # as a person picks it
+    cells = design.numbers.cells
+    hz = 1 / (2 * math.pi)
+    for text, w in ((cells["ws_star"].text(), ws), (cells["wb_star"].text(), wb),
+                    (design.values["w0"].text(), w0)):
+        value, unit = text.split(" ")
+        assert unit == "Hz" and float(value) == pytest.approx(w * hz, rel=1e-3), text
+    axis = design.ed_plot.getAxis("bottom").labelText
+    assert "Hz" in axis and "rad/s" not in axis, axis
+    x = design.curves["ed_sampled"].xData  # as given (getData is log10 on a log axis)
+    T = design.value("T")
+    assert x[-1] == pytest.approx(0.3 * math.pi / T * hz, rel=1e-9)  # W_MAX_NYQUIST
+    assert 10 ** design.wb_line.value() == pytest.approx(wb * hz, rel=1e-9)
