@@ -223,16 +223,28 @@ class MainWindow(QtWidgets.QMainWindow):
             self._laid_out = True
             self._lay_out()
 
+    def resizeEvent(self, event) -> None:  # noqa: N802 - Qt override
+        super().resizeEvent(event)
+        if self._laid_out and not self._body_chosen:  # maximised: the left column grows too
+            self._size_left_column()
+
+    def _body_dragged(self, *_) -> None:
+        self._body_chosen = True
+
     def _lay_out(self) -> None:
         """The first sizes for this window's size: the left column wider on a wide screen
         (440 px up to 1600, then 30 % of the rest, at most 560), the Device panel as tall
         as it needs but at most 45 % of the panels' height, the rest to the settings."""
-        width = self.width()
-        left = int(min(max(440 + 0.3 * (width - 1600), 440), 560))
-        self.body.setSizes([left, max(width - left, 400)])
+        self._size_left_column()
         total = max(self.panels.height(), 300)
         device = min(self.device_panel.sizeHint().height(), int(0.45 * total))
         self.panels.setSizes([device, total - device])
+
+    def _size_left_column(self) -> None:
+        """440 px up to a 1600 px window, then 30 % of the rest, at most 560 (``_lay_out``)."""
+        width = self.width()
+        left = int(min(max(440 + 0.3 * (width - 1600), 440), 560))
+        self.body.setSizes([left, max(width - left, 400)])
 
     @property
     def mode(self) -> str:
@@ -312,6 +324,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.splitters = {"live": self.live.splitter, "identification": self.id_view.splitter,
                           "log": right, "body": body, "panels": self.panels}
         self._laid_out = False  # the splitters sized to the window once (unless restored)
+        # the left column's width follows the window's (maximised, resized) until the person
+        # drags it: then theirs stands, remembered with the splitters
+        self._body_chosen = False
+        body.splitterMoved.connect(self._body_dragged)
         central = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(central)
         cl.setContentsMargins(4, 4, 4, 4)
@@ -899,6 +915,7 @@ class MainWindow(QtWidgets.QMainWindow):
             value = s.value(f"splitters/{name}")
             if isinstance(value, QtCore.QByteArray) and splitter.restoreState(value):
                 self._laid_out = True
+        self._body_chosen = s.value("splitters/body_chosen", False, type=bool)
         self.tabs.setCurrentIndex(s.value("window/tab", 0, type=int))
         self.units_choice.set_units(parse_or_si(s.value("display/units", "", type=str)))
 
@@ -911,6 +928,7 @@ class MainWindow(QtWidgets.QMainWindow):
         s.setValue("window/state", self.saveState())
         for name, splitter in self.splitters.items():
             s.setValue(f"splitters/{name}", splitter.saveState())
+        s.setValue("splitters/body_chosen", self._body_chosen)
         s.setValue("window/tab", self.tabs.currentIndex())
         s.setValue("display/units", units_text(self.units_choice.units()))
         s.setValue("device/backend", self.device_panel.backend.currentText())

@@ -185,3 +185,26 @@ def test_the_design_page_follows_the_display_units(qtbot, window):
     T = design.value("T")
     assert x[-1] == pytest.approx(0.3 * math.pi / T * hz, rel=1e-9)  # W_MAX_NYQUIST
     assert 10 ** design.wb_line.value() == pytest.approx(wb * hz, rel=1e-9)
+
+
+def test_the_left_column_grows_when_the_window_is_maximised(qtbot, window):
+    """Opened at 1600 x 1000 and maximised on a 1920 x 1080 screen, the left column (device,
+    settings, pre-check) stayed 440 px while the pages took all the new room. Now it follows
+    the window's width (440 + 30 % of the width over 1600, at most 560) until the person
+    drags the divider; then their width stands."""
+    win = window(size=(1600, 1000))
+    assert win.body.sizes()[0] == 440
+    win.resize(1920, 1080)  # what maximising on that screen does
+    qtbot.waitUntil(lambda: win.width() == 1920)
+    assert win.body.sizes()[0] == 536, win.body.sizes()  # 440 + 0.3 * 320
+    from PySide6.QtTest import QTest
+
+    handle = win.body.handle(1)  # the person drags the divider 56 px left
+    middle = handle.rect().center()
+    QTest.mousePress(handle, QtCore.Qt.MouseButton.LeftButton, pos=middle)
+    QTest.mouseMove(handle, middle - QtCore.QPoint(56, 0))
+    QTest.mouseRelease(handle, QtCore.Qt.MouseButton.LeftButton, pos=middle - QtCore.QPoint(56, 0))
+    assert win.body.sizes()[0] == 480, win.body.sizes()
+    win.resize(1700, 1000)
+    qtbot.waitUntil(lambda: win.width() == 1700)
+    assert win.body.sizes()[0] == 480, win.body.sizes()
