@@ -180,8 +180,6 @@ def test_zwidth_campaign_on_the_rough_rig_gives_a_boundary_or_the_reason_it_has_
     # row holds the measured boundary beside the friction-aware prediction; without it, the
     # reason the probe found none. The chart and the report show both.
     from labbench.campaign import engine
-    from matplotlib.figure import Figure
-
     from labbench.campaign.figures import _friction_aware
     from labbench.campaign.plan import Context, make_plan
     from labbench.campaign.report import build
@@ -215,11 +213,9 @@ def test_zwidth_campaign_on_the_rough_rig_gives_a_boundary_or_the_reason_it_has_
     assert known["zw.ci_lo"] <= known["zw.k_friction_hi"]
     assert known["pred.k_max_friction"] == pytest.approx(known["zw.k_friction"], rel=0.03)
     # the chart's friction-aware series (the whole chart's theory curves take seconds)
-    ax = Figure().add_subplot()
-    _friction_aware(ax, [unknown, known], "C0", "w0 = 125 rad/s")
-    line = ax.get_lines()[0]
-    assert "stable with friction" in line.get_label()
-    assert list(line.get_ydata()) == [known["zw.k_friction"]]  # the unknown row has none
+    (diamonds,) = _friction_aware(list(enumerate([unknown, known])), "C0", "w0 = 125 rad/s")
+    assert "stable with friction" in diamonds.label
+    assert list(diamonds.y) == [known["zw.k_friction"]] and diamonds.rows == (1,)  # unknown: none
     _, _, blocks = build(tmp_path / "t.sweep")
     points = next(b for b in blocks if isinstance(b, Table) and b.title.startswith("One row"))
     assert f"#{unknown['index']}: no sustained oscillation" in points.note
@@ -270,17 +266,14 @@ def _planned_rows(rig, **fixed):
 def test_the_zwidth_chart_draws_the_friction_aware_boundary_over_b_as_the_probe_plans_it():
     # 41B's chart had a diamond per point only: the probe's swing changes with K and B, so
     # the curve between points needs the plan's swing at each B, from the table alone
-    from matplotlib.figure import Figure
 
     from labbench.campaign.figures import _friction_curve
 
     rig = rough_rig(0.02)
     rows = _planned_rows(rig, plant_coulomb_n=0.02)
-    ax = Figure().add_subplot()
-    _friction_curve(ax, rows, 125.0, 2.0, "C0", "w0 = 125 rad/s")
-    (line,) = ax.get_lines()
-    assert "with friction 0.02 N, at the swing the probe plans at each B" in line.get_label()
-    curve = dict(zip(line.get_xdata(), line.get_ydata()))
+    (line,) = _friction_curve(list(enumerate(rows)), 125.0, 2.0, "C0", "w0 = 125 rad/s")
+    assert "with friction 0.02 N, at the swing the probe plans at each B" in line.label
+    curve = dict(zip(line.x, line.y))
     for r in rows:  # through each point's planned prediction
         assert curve[r["ve.B"]] == pytest.approx(r["pred.k_max_friction"], rel=1e-12)
     # between the points: what a probe planned at that B expects (1438 N/m at B = 1.05) ...
@@ -296,18 +289,15 @@ def test_the_zwidth_chart_draws_the_friction_aware_boundary_over_b_as_the_probe_
 
 
 def test_the_friction_aware_curve_stops_at_the_probes_safety_cap():
-    from matplotlib.figure import Figure
 
     from labbench.campaign.figures import _friction_curve
 
     rows = _planned_rows(rough_rig(0.05), plant_coulomb_n=0.05, friction_cap=2.0)
     assert rows[0]["pred.k_max_friction"] is None  # B = 0: beyond 2 x the linear boundary
-    ax = Figure().add_subplot()
-    _friction_curve(ax, rows, 125.0, 2.0, "C0", "w0 = 125 rad/s")
-    curve = dict(zip(*ax.get_lines()[0].get_data()))
+    (line,) = _friction_curve(list(enumerate(rows)), 125.0, 2.0, "C0", "w0 = 125 rad/s")
+    curve = dict(zip(line.x, line.y))
     assert math.isnan(curve[0.0]) and curve[2.0] == pytest.approx(rows[1]["pred.k_max_friction"])
     assert curve[2.0] <= 2.0 * linear.k_max(PLANT, ve(B=2.0))
     # a campaign that does not know the friction draws none
-    ax = Figure().add_subplot()
-    _friction_curve(ax, _planned_rows(rough_rig(0.05)), 125.0, 2.0, "C0", "w0 = 125 rad/s")
-    assert not ax.get_lines()
+    assert _friction_curve(list(enumerate(_planned_rows(rough_rig(0.05)))), 125.0, 2.0, "C0",
+                           "w0 = 125 rad/s") == []
