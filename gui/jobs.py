@@ -58,7 +58,8 @@ def reanalyse_session(path: str, estimator: str | None, run_plant: Plant | None,
                    progress=steps.part(0.45, 0.7), cancel=cancel,
                    recorded=again.get("bandwidths") if run_plant is not None else None)
     ident = identify_all(data, meta, progress=steps.part(0.7, 1.0), cancel=cancel)
-    steps.report(1.0, "done")
+    # not "done": the Sessions line says that once the window shows the results
+    steps.report(1.0, "computed, showing")
     return (est, ident, plant_data(data, meta), again,
             (start, desc, ch, stop))  # the record too: the Live page shows its traces
 
