@@ -15,10 +15,13 @@ from labbench.rig import Rig  # noqa: E402
 
 @pytest.fixture
 def window(qtbot, tmp_path):
+    """A window at 1280 x 800 (``size`` None: the size it opens at), shown (also the
+    walkthrough's and the minor defects' tests')."""
     def make(rig=None, size=(1280, 800), realtime=False, **kw):
         win = MainWindow(rig or Rig(), tmp_path / "sessions", realtime=realtime, **kw)
         qtbot.addWidget(win)
-        win.resize(*size)
+        if size:
+            win.resize(*size)
         win.show()
         qtbot.waitExposed(win)
         return win

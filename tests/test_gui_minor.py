@@ -8,22 +8,7 @@ os.environ["QT_QPA_PLATFORM"] = "offscreen"  # before any Qt import
 import pytest  # noqa: E402
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
-from labbench.gui.main_window import MainWindow  # noqa: E402
-from labbench.rig import Rig  # noqa: E402
-
-
-@pytest.fixture
-def window(qtbot, tmp_path):
-    def make(size=(1280, 800)):
-        win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
-        qtbot.addWidget(win)
-        if size:
-            win.resize(*size)
-        win.show()
-        qtbot.waitExposed(win)
-        return win
-
-    return make
+from test_gui_holds import window  # noqa: E402,F401 (a fixture)
 
 
 def form_label(panel, name: str) -> str:

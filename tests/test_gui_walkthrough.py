@@ -9,24 +9,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PySide6 import QtCore, QtGui, QtWidgets  # noqa: E402
 
-from labbench.gui.main_window import MainWindow  # noqa: E402
-from labbench.rig import Rig  # noqa: E402
 
-from test_gui_holds import plain, run_protocol  # noqa: E402
-
-
-@pytest.fixture
-def window(qtbot, tmp_path):
-    def make(size=(1280, 800)):
-        win = MainWindow(Rig(), tmp_path / "sessions", realtime=False)
-        qtbot.addWidget(win)
-        if size:
-            win.resize(*size)
-        win.show()
-        qtbot.waitExposed(win)
-        return win
-
-    return make
+from test_gui_holds import plain, run_protocol, window  # noqa: E402,F401 (window: a fixture)
 
 
 def test_the_first_window_fits_the_screen(qtbot, window, monkeypatch):
