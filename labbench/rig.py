@@ -139,7 +139,7 @@ def rig_from_dict(d: dict, source: str = "<dict>") -> Rig:
     for name, (lo, hi, unit) in _BOUNDS.items():
         if name in common:
             v = common[name]
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = scales.is_number(v)
             closed = lo > 0 or name in _ZERO_OK  # the lowest value itself allowed
             if not ok or not ((v >= lo if closed else v > lo) and v <= hi):
                 low = f"[{lo:g}" if closed else f"({lo:g}"
@@ -237,7 +237,7 @@ class CampaignSettings:
             if name != "pause_s":
                 raise UserError(f"{rig.source}: [{CAMPAIGN_TABLE}] {unknown_name('field', name, ('pause_s',))}")
         pause = table.get("pause_s", 0.0 if simulated else HARDWARE_PAUSE_S)
-        ok = isinstance(pause, (int, float)) and not isinstance(pause, bool) and math.isfinite(pause)
+        ok = scales.is_number(pause)
         if not ok or not 0 <= pause <= MAX_PAUSE_S:
             raise UserError(f"{rig.source}: [{CAMPAIGN_TABLE}] pause_s must be a number of seconds in "
                             f"[0, {MAX_PAUSE_S:g}], got {pause!r}")

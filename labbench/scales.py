@@ -42,6 +42,11 @@ from dataclasses import dataclass
 from labbench.errors import UserError
 
 
+def is_number(x) -> bool:
+    """A finite int or float, not a bool (TOML and JSON give bools where numbers belong)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 @dataclass(frozen=True)
 class Bound:
     lo: float
@@ -53,8 +58,7 @@ class Bound:
     def check(self, value, where: str) -> float:
         """``value`` as a float when it lies in [lo, hi] (or is ``unset``), else one UserError
         naming ``where``, the range and why it is physical."""
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-        if ok and (value == self.unset or self.lo <= value <= self.hi):
+        if is_number(value) and (value == self.unset or self.lo <= value <= self.hi):
             return float(value)
         unset = f" (or {self.unset:g}: not given)" if self.unset is not None else ""
         raise UserError(f"{where} must be a number in [{self.lo:g}, {self.hi:g}] {self.unit}"

@@ -68,6 +68,7 @@ import numpy as np
 from labbench.loop import timing as loop_timing
 from labbench.device import TimingProbe
 from labbench.errors import DeviceFault, UserError
+from labbench.scales import is_number
 from labbench.loop.realtime import RealtimeConfig, acquire, hint
 from labbench.readout.verdict import DOUBTFUL, FAILED, OK, judge as judge_findings
 
@@ -109,7 +110,7 @@ def checked_seconds(value, what: str = "--timing") -> float:
             value = float(value)
         except ValueError:
             raise UserError(f"{what} must be a number of seconds, got {value!r}") from None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = is_number(value)
     if not ok or not 0.1 <= value <= 3600:
         raise UserError(f"{what} must be a number of seconds in [0.1, 3600], got {value!r}")
     return float(value)

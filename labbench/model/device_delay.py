@@ -30,10 +30,10 @@ rig's value as ``precheck.measured_td.td_s`` and ``td_measured``, read here too.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from labbench.errors import UserError
+from labbench.scales import is_number
 
 ORIGINS = ("given", "rig", "device", "none")
 MAX_DELAY_S = 1.0  # as the rig file's bound: no haptic loop survives a longer one
@@ -61,7 +61,7 @@ NONE = DeviceDelay()
 
 def checked(s, what: str = "device delay") -> float:
     """``s`` as a float in [0, MAX_DELAY_S] s, or one UserError naming ``what``."""
-    ok = isinstance(s, (int, float)) and not isinstance(s, bool) and math.isfinite(s)
+    ok = is_number(s)
     if not ok or not 0.0 <= s <= MAX_DELAY_S:
         raise UserError(f"{what} must be a number of seconds in [0, {MAX_DELAY_S:g}], got {s!r}")
     return float(s)

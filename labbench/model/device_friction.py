@@ -22,10 +22,10 @@ which a CSV may give too.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from labbench.errors import UserError
+from labbench.scales import is_number
 
 ORIGINS = ("given", "device", "record", "none")
 MAX_COULOMB_N = 1000.0  # as the rig's force limit: no handle holds more
@@ -70,7 +70,7 @@ NONE = DeviceFriction()
 
 def checked(n, what: str = "Coulomb friction") -> float:
     """``n`` as a float in [0, MAX_COULOMB_N] N, or one UserError naming ``what``."""
-    ok = isinstance(n, (int, float)) and not isinstance(n, bool) and math.isfinite(n)
+    ok = is_number(n)
     if not ok or not 0.0 <= n <= MAX_COULOMB_N:
         raise UserError(f"{what} must be a number of newtons in [0, {MAX_COULOMB_N:g}], got {n!r}")
     return float(n)
@@ -82,7 +82,7 @@ def checked_ci(ci, n: float, what: str = "Coulomb friction's 95 % interval") -> 
     if ci is None:
         return None
     ok = isinstance(ci, (list, tuple)) and len(ci) == 2 and all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in ci)
+        is_number(x) for x in ci)
     if not ok:
         raise UserError(f"{what} must be two finite numbers lo, hi [N], got {ci!r}")
     lo, hi = float(ci[0]), float(ci[1])

@@ -11,12 +11,12 @@ writes these texts; none composes its own.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from labbench.readout.numfmt import band_text, digits_beside, fmt, fmt_ci, frequencies_in, frequency_text
 from labbench.readout.verdict import FAILED, OK, Verdict, from_dict, worst
+from labbench.scales import is_number
 
 NAMES = {"etfe": "ETFE", "loop_fit": "closed-loop fit", "rendered": "against the theory",
          "levels": "amplitude"}
@@ -256,7 +256,7 @@ def session_label(path) -> str:
 
 # ----------------------------------------------------------------------------- per result
 def _num(x) -> float | None:
-    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else None
+    return float(x) if is_number(x) else None
 
 
 def _band(x) -> list[float] | None:
